@@ -1,0 +1,196 @@
+"""Typed configuration, one section per stage, loadable from and dumped to TOML.
+
+Every number a user may want to change lives here with its unit in the field name or comment.
+The SNAPS section uses the paper's Table I names (radius, frame distance, discount length,
+minimum similarity, inter-frame pause, attempts). A run dumps the full configuration it used to
+``config.toml`` in its results folder, and ``Config.load`` reads such a file back (unknown keys
+are a one-line error, so a typo never passes silently).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .errors import SnapsGraphError
+
+
+@dataclass
+class FrontendConfig:
+    """Stereo visual odometry (SPEC "Front end")."""
+
+    # Feature mode: "sift" is the paper's (faithful, slower); "orb" and "klt" are fast modes.
+    mode: str = "klt"
+    # Dense disparity: "bm_wls" (paper: StereoBM + WLS filter), "sgbm", or "sparse" (depth only
+    # at keypoints, found by matching along the epipolar line; the fast default).
+    disparity: str = "sparse"
+    num_disparities: int = 128  # BM/SGBM disparity search range, pixels (multiple of 16)
+    block_size: int = 15  # BM block size, pixels (odd)
+    wls_lambda: float = 8000.0  # WLS smoothness
+    wls_sigma: float = 1.5  # WLS colour sensitivity
+    min_depth_m: float = 0.5
+    max_depth_m: float = 80.0  # depth beyond this is invalid (eq. 1 is noisy far away)
+    sift_features: int = 2000
+    orb_features: int = 2000
+    klt_features: int = 1500  # corners detected when re-detecting in KLT mode
+    klt_min_tracks: int = 600  # re-detect when fewer tracks than this survive
+    ratio_test: float = 0.75  # Lowe's ratio for descriptor matching
+    pnp_reprojection_px: float = 1.5  # RANSAC inlier threshold
+    pnp_iterations: int = 200
+    pnp_confidence: float = 0.999
+    min_inliers: int = 20  # fewer PnP inliers flags the frame
+    max_step_m: float = 4.0  # a larger translation between frames is implausible (flagged)
+    max_step_deg: float = 20.0  # a larger rotation between frames is implausible (flagged)
+    min_frame_std: float = 3.0  # a frame whose grey std is below this is treated as black/flat
+    threads: int = 2  # worker threads (OpenCV releases the GIL)
+
+
+@dataclass
+class LoopConfig:
+    """SNAPS loop closure (paper §III, Table I; SPEC "SNAPS loop closure")."""
+
+    radius_m: float = 10.0  # candidates lie within this distance of the current position
+    frame_distance: int = 100  # M: candidate j must satisfy N - j >= M
+    discount_length: int = 100  # K: poses N-K..N are corrected
+    min_similarity: float = 0.75  # Q threshold for a loop
+    inter_frame_pause: int = 50  # frames after the last pinned frame before another loop
+    attempts: int = 5  # at most this many candidates (nearest first) are compared
+    max_yaw_deg: float = 10.0  # |yaw_j - yaw_N| limit
+    thumbnail_scale: float = 1.0 / 6.0  # thumbnails: left image rescaled by this (INTER_AREA)
+    window: int = 8  # UIQI sliding window B (Wang & Bovik)
+    discount_offset: float = 3.0  # the 3 in gamma = 1 - exp(-(3 - alpha*0.01*s'))
+    discount_rate: float = 0.01  # the 0.01 in the same formula
+
+
+@dataclass
+class GraphConfig:
+    """GTSAM factor graph (SPEC "Factor graph")."""
+
+    refine: str = "none"  # none | isam2 | batch
+    prior_sigma_rot_rad: float = 1e-4
+    prior_sigma_trans_m: float = 1e-3
+    odom_sigma_rot_rad: float = 0.005  # VO step noise at the reference inlier count
+    odom_sigma_trans_m: float = 0.05
+    odom_ref_inliers: int = 200  # sigmas scale with sqrt(odom_ref_inliers / inliers)
+    flagged_sigma_scale: float = 100.0  # a flagged VO step's sigmas are this much looser
+    loop_sigma_rot_rad: float = 0.05  # verified loop at Q = 1
+    loop_sigma_trans_m: float = 0.2
+    unverified_sigma_rot_rad: float = 0.5  # same-place assumption: loose rotation
+    unverified_sigma_trans_m: float = 2.0
+    robust_kernel: str = "cauchy"  # huber | cauchy
+    robust_param: float = 1.0
+    isam2_relinearize_threshold: float = 0.01
+    isam2_relinearize_skip: int = 1
+    batch_solver: str = "lm"  # lm | gnc
+    batch_max_iterations: int = 100
+
+
+@dataclass
+class MapConfig:
+    """Point-cloud map (SPEC "Map")."""
+
+    enabled: bool = False
+    keyframe_every: int = 5  # one keyframe cloud every this many frames
+    pixel_step: int = 4  # subsample depth pixels on this grid
+    max_range_m: float = 40.0
+    voxel_size_m: float = 0.3
+    trajectory: str = "best"  # vo | snaps | isam2 | batch | best (the most refined available)
+
+
+@dataclass
+class Config:
+    frontend: FrontendConfig = field(default_factory=FrontendConfig)
+    loop: LoopConfig = field(default_factory=LoopConfig)
+    graph: GraphConfig = field(default_factory=GraphConfig)
+    map: MapConfig = field(default_factory=MapConfig)
+    loops: str = "snaps"  # snaps | none
+
+    # ---- TOML ----
+    @classmethod
+    def load(cls, path: str | Path) -> "Config":
+        path = Path(path)
+        try:
+            data = tomllib.loads(path.read_text())
+        except FileNotFoundError:
+            raise SnapsGraphError(f"{path}: config file not found") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise SnapsGraphError(f"{path}: malformed TOML ({exc})") from None
+        return cls.from_dict(data, source=str(path))
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any], source: str = "config") -> "Config":
+        cfg = cls()
+        for key, value in data.items():
+            if not hasattr(cfg, key):
+                raise SnapsGraphError(f"{source}: unknown key '{key}'")
+            current = getattr(cfg, key)
+            if dataclasses.is_dataclass(current):
+                if not isinstance(value, dict):
+                    raise SnapsGraphError(f"{source}: [{key}] must be a table")
+                for sub, subval in value.items():
+                    if not hasattr(current, sub):
+                        raise SnapsGraphError(f"{source}: unknown key '{key}.{sub}'")
+                    setattr(current, sub, _coerce(getattr(current, sub), subval, f"{source}: {key}.{sub}"))
+            else:
+                setattr(cfg, key, _coerce(current, value, f"{source}: {key}"))
+        return cfg
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def dumps(self) -> str:
+        lines: list[str] = []
+        sections = []
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if dataclasses.is_dataclass(value):
+                sections.append((f.name, value))
+            else:
+                lines.append(f"{f.name} = {_toml_value(value)}")
+        for name, section in sections:
+            lines.append("")
+            lines.append(f"[{name}]")
+            for f in dataclasses.fields(section):
+                lines.append(f"{f.name} = {_toml_value(getattr(section, f.name))}")
+        return "\n".join(lines) + "\n"
+
+    def dump(self, path: str | Path) -> None:
+        from .io_utils import atomic_write_text
+
+        atomic_write_text(path, self.dumps())
+
+
+def _coerce(current: Any, value: Any, where: str) -> Any:
+    if isinstance(current, bool):
+        if not isinstance(value, bool):
+            raise SnapsGraphError(f"{where}: expected true/false, got {value!r}")
+        return value
+    if isinstance(current, int):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise SnapsGraphError(f"{where}: expected an integer, got {value!r}")
+        return value
+    if isinstance(current, float):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise SnapsGraphError(f"{where}: expected a finite number, got {value!r}")
+        return float(value)
+    if isinstance(current, str):
+        if not isinstance(value, str):
+            raise SnapsGraphError(f"{where}: expected a string, got {value!r}")
+        return value
+    return value
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return repr(value)
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    raise TypeError(f"cannot write {value!r} to TOML")

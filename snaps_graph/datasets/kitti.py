@@ -1,0 +1,166 @@
+"""KITTI odometry sequence reader (also reads what ``snaps-graph synth`` writes).
+
+Layout of a sequence folder ``SEQ``::
+
+    SEQ/image_0/NNNNNN.png   rectified left grey images
+    SEQ/image_1/NNNNNN.png   rectified right grey images
+    SEQ/calib.txt            'P0:' and 'P1:' lines (others ignored)
+    SEQ/times.txt            optional, one timestamp (s) a line
+    SEQ/poses.txt            optional ground truth (KITTI pose format); for the official layout
+                             ROOT/sequences/XX, ground truth is found at ROOT/poses/XX.txt
+
+Frames are read lazily, one at a time. A frame range ``A:B`` (Python slice semantics) selects
+part of the sequence; frame indices stay those of the files. Every user error is a
+``SnapsGraphError`` whose one-line message names the file.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+import cv2
+import numpy as np
+
+from ..camera import StereoCamera
+from ..errors import SnapsGraphError
+from ..evaluation.trajectory import read_kitti_poses, read_times
+from ..io_utils import parse_frame_range
+
+IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".pgm", ".bmp", ".tif", ".tiff")
+
+
+@dataclass
+class StereoFrame:
+    index: int  # frame index in the sequence (file number order)
+    timestamp: float  # seconds
+    left: np.ndarray  # uint8 grey, H x W
+    right: np.ndarray  # uint8 grey, H x W
+
+
+def _list_images(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXTS)
+
+
+def read_grey(path: Path) -> np.ndarray:
+    """Read an image as 8-bit grey; a one-line error if it cannot be read."""
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise SnapsGraphError(f"{path}: unreadable image")
+    if img.ndim == 3:
+        code = cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+        img = cv2.cvtColor(img, code)
+    if img.dtype != np.uint8:
+        if img.dtype == np.uint16:
+            img = (img >> 8).astype(np.uint8)
+        else:
+            raise SnapsGraphError(f"{path}: unsupported pixel type {img.dtype}")
+    return img
+
+
+class KittiSequence:
+    """A KITTI-format stereo sequence, read frame by frame."""
+
+    def __init__(self, path: str | Path, frames: str | None = None, gt: str | Path | None = None):
+        self.path = Path(path)
+        if not self.path.is_dir():
+            raise SnapsGraphError(f"{self.path}: sequence folder not found")
+        left_dir, right_dir = self.path / "image_0", self.path / "image_1"
+        for d in (left_dir, right_dir):
+            if not d.is_dir():
+                raise SnapsGraphError(f"{d}: missing image folder (expected image_0/ and image_1/)")
+        self._left = _list_images(left_dir)
+        self._right = _list_images(right_dir)
+        if not self._left:
+            raise SnapsGraphError(f"{left_dir}: no images")
+        if len(self._left) != len(self._right):
+            raise SnapsGraphError(
+                f"{self.path}: {len(self._left)} left images in image_0/ but {len(self._right)} right images in image_1/"
+            )
+        for lp, rp in zip(self._left, self._right):
+            if lp.stem != rp.stem:
+                raise SnapsGraphError(f"{rp}: right image does not pair with left image {lp.name}")
+        n_all = len(self._left)
+        self.camera = StereoCamera.from_calib_file(self.path / "calib.txt")
+
+        times_path = self.path / "times.txt"
+        if times_path.is_file():
+            times = read_times(times_path)
+            if len(times) != n_all:
+                raise SnapsGraphError(f"{times_path}: {len(times)} timestamps for {n_all} images")
+        else:
+            times = np.arange(n_all) * 0.1  # KITTI's 10 Hz
+        self._times_all = times
+
+        self.gt_path = self._find_gt(gt)
+        self._gt_all = None
+        if self.gt_path is not None:
+            gt_poses = read_kitti_poses(self.gt_path)
+            if len(gt_poses) != n_all:
+                raise SnapsGraphError(f"{self.gt_path}: {len(gt_poses)} poses for {n_all} images")
+            self._gt_all = gt_poses
+
+        rng = parse_frame_range(frames, n_all)
+        start, stop = (0, n_all) if rng is None else (rng[0], rng[1] if rng[1] is not None else n_all)
+        self.start, self.stop = start, stop
+
+        # The image size is read once from the first frame; every frame must match it.
+        first = read_grey(self._left[start])
+        self.camera = self.camera.with_size(first.shape[1], first.shape[0])
+
+    def _find_gt(self, gt: str | Path | None) -> Path | None:
+        if gt is not None:
+            p = Path(gt)
+            if not p.is_file():
+                raise SnapsGraphError(f"{p}: ground-truth file not found")
+            return p
+        local = self.path / "poses.txt"
+        if local.is_file():
+            return local
+        official = self.path.parent.parent / "poses" / f"{self.path.name}.txt"
+        if self.path.parent.name == "sequences" and official.is_file():
+            return official
+        return None
+
+    # ---- dataset protocol ----
+    def __len__(self) -> int:
+        return self.stop - self.start
+
+    @property
+    def indices(self) -> np.ndarray:
+        return np.arange(self.start, self.stop)
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return self._times_all[self.start : self.stop]
+
+    @property
+    def gt_poses(self) -> np.ndarray | None:
+        """Ground truth for the selected frames, re-based so the first selected frame is identity."""
+        if self._gt_all is None:
+            return None
+        gt = self._gt_all[self.start : self.stop]
+        return np.linalg.inv(gt[0]) @ gt
+
+    def __getitem__(self, i: int) -> StereoFrame:
+        if i < 0:
+            i += len(self)
+        if not 0 <= i < len(self):
+            raise IndexError(i)
+        k = self.start + i
+        left = read_grey(self._left[k])
+        right = read_grey(self._right[k])
+        if left.shape != right.shape:
+            raise SnapsGraphError(
+                f"{self._right[k]}: size {right.shape[1]}x{right.shape[0]} differs from left image {left.shape[1]}x{left.shape[0]}"
+            )
+        if (left.shape[1], left.shape[0]) != (self.camera.width, self.camera.height):
+            raise SnapsGraphError(
+                f"{self._left[k]}: size {left.shape[1]}x{left.shape[0]} differs from the sequence's {self.camera.width}x{self.camera.height}"
+            )
+        return StereoFrame(k, float(self._times_all[k]), left, right)
+
+    def __iter__(self) -> Iterator[StereoFrame]:
+        for i in range(len(self)):
+            yield self[i]

@@ -1,0 +1,170 @@
+"""Trajectory files: KITTI (12 numbers a line, row-major 3x4) and TUM (t x y z qx qy qz qw).
+
+Poses are an (N, 4, 4) float array of T_world_cam. Writers are atomic and produce exactly what
+evo's ``evo_ape kitti`` / ``evo_ape tum`` read.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import SnapsGraphError
+from ..io_utils import atomic_write_text
+
+
+def read_kitti_poses(path: str | Path) -> np.ndarray:
+    path = Path(path)
+    if not path.is_file():
+        raise SnapsGraphError(f"{path}: pose file not found")
+    poses = []
+    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            vals = [float(v) for v in line.split()]
+        except ValueError:
+            raise SnapsGraphError(f"{path}:{lineno}: not a number in a KITTI pose line") from None
+        if len(vals) != 12:
+            raise SnapsGraphError(f"{path}:{lineno}: a KITTI pose line needs 12 numbers, found {len(vals)}")
+        T = np.eye(4)
+        T[:3, :4] = np.array(vals).reshape(3, 4)
+        if not np.all(np.isfinite(T)):
+            raise SnapsGraphError(f"{path}:{lineno}: non-finite pose")
+        poses.append(T)
+    if not poses:
+        raise SnapsGraphError(f"{path}: no poses")
+    return np.array(poses)
+
+
+def kitti_text(poses: np.ndarray) -> str:
+    rows = []
+    for T in np.asarray(poses):
+        rows.append(" ".join(f"{v:.9e}" for v in T[:3, :4].reshape(-1)))
+    return "\n".join(rows) + "\n"
+
+
+def write_kitti_poses(path: str | Path, poses: np.ndarray) -> None:
+    poses = np.asarray(poses)
+    if not np.all(np.isfinite(poses)):
+        raise ValueError("refusing to write non-finite poses")
+    atomic_write_text(path, kitti_text(poses))
+
+
+def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
+    """(qx, qy, qz, qw) of a rotation matrix, qw >= 0 (Shepperd's method)."""
+    R = np.asarray(R, float)
+    tr = np.trace(R)
+    if tr > 0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        w = 0.25 * s
+        x = (R[2, 1] - R[1, 2]) / s
+        y = (R[0, 2] - R[2, 0]) / s
+        z = (R[1, 0] - R[0, 1]) / s
+    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
+        w = (R[2, 1] - R[1, 2]) / s
+        x = 0.25 * s
+        y = (R[0, 1] + R[1, 0]) / s
+        z = (R[0, 2] + R[2, 0]) / s
+    elif R[1, 1] > R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
+        w = (R[0, 2] - R[2, 0]) / s
+        x = (R[0, 1] + R[1, 0]) / s
+        y = 0.25 * s
+        z = (R[1, 2] + R[2, 1]) / s
+    else:
+        s = 2.0 * np.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
+        w = (R[1, 0] - R[0, 1]) / s
+        x = (R[0, 2] + R[2, 0]) / s
+        y = (R[1, 2] + R[2, 1]) / s
+        z = 0.25 * s
+    q = np.array([x, y, z, w])
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
+def quaternion_to_rotation(q: np.ndarray) -> np.ndarray:
+    x, y, z, w = np.asarray(q, float) / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def tum_text(poses: np.ndarray, times: np.ndarray | None = None) -> str:
+    poses = np.asarray(poses)
+    if times is None:
+        times = np.arange(len(poses), dtype=float) * 0.1
+    rows = []
+    for t, T in zip(times, poses):
+        q = rotation_to_quaternion(T[:3, :3])
+        p = T[:3, 3]
+        rows.append(
+            f"{t:.6f} {p[0]:.9f} {p[1]:.9f} {p[2]:.9f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}"
+        )
+    return "\n".join(rows) + "\n"
+
+
+def write_tum_poses(path: str | Path, poses: np.ndarray, times: np.ndarray | None = None) -> None:
+    poses = np.asarray(poses)
+    if not np.all(np.isfinite(poses)):
+        raise ValueError("refusing to write non-finite poses")
+    if times is not None and len(times) != len(poses):
+        raise ValueError("times and poses differ in length")
+    atomic_write_text(path, tum_text(poses, times))
+
+
+def read_tum_poses(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    path = Path(path)
+    if not path.is_file():
+        raise SnapsGraphError(f"{path}: pose file not found")
+    times, poses = [], []
+    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        try:
+            vals = [float(v) for v in line.split()]
+        except ValueError:
+            raise SnapsGraphError(f"{path}:{lineno}: not a number in a TUM line") from None
+        if len(vals) != 8:
+            raise SnapsGraphError(f"{path}:{lineno}: a TUM line needs 8 numbers, found {len(vals)}")
+        T = np.eye(4)
+        T[:3, :3] = quaternion_to_rotation(vals[4:8])
+        T[:3, 3] = vals[1:4]
+        times.append(vals[0])
+        poses.append(T)
+    if not poses:
+        raise SnapsGraphError(f"{path}: no poses")
+    return np.array(times), np.array(poses)
+
+
+def read_poses(path: str | Path) -> np.ndarray:
+    """Read a KITTI or TUM file, by its extension (.tum = TUM, anything else = KITTI)."""
+    path = Path(path)
+    if path.suffix.lower() == ".tum":
+        return read_tum_poses(path)[1]
+    return read_kitti_poses(path)
+
+
+def read_times(path: str | Path) -> np.ndarray:
+    path = Path(path)
+    if not path.is_file():
+        raise SnapsGraphError(f"{path}: times file not found")
+    out = []
+    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            out.append(float(line.split()[0]))
+        except ValueError:
+            raise SnapsGraphError(f"{path}:{lineno}: not a number") from None
+    return np.array(out)
+
+
+def write_times(path: str | Path, times: np.ndarray) -> None:
+    atomic_write_text(path, "".join(f"{t:.6e}\n" for t in times))

@@ -1,0 +1,55 @@
+"""Small file helpers: atomic writes, so an interrupted run never leaves a half-written file."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+
+def atomic_write_text(path: str | Path, text: str) -> None:
+    """Write ``text`` to ``path`` via a temporary file in the same folder and a rename."""
+    atomic_write_bytes(path, text.encode())
+
+
+def atomic_write_bytes(path: str | Path, data: bytes) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+
+
+def parse_frame_range(text: str | None, n_total: int | None = None) -> tuple[int, int | None] | None:
+    """Parse ``A:B`` (Python slice semantics: A included, B excluded; either may be empty).
+
+    Returns ``(start, stop)`` with ``stop`` None for open-ended ranges, or None for no range.
+    """
+    from .errors import SnapsGraphError
+
+    if text is None or text == "":
+        return None
+    parts = text.split(":")
+    if len(parts) != 2:
+        raise SnapsGraphError(f"frame range '{text}': expected A:B, for example 0:100")
+    try:
+        start = int(parts[0]) if parts[0].strip() else 0
+        stop = int(parts[1]) if parts[1].strip() else None
+    except ValueError:
+        raise SnapsGraphError(f"frame range '{text}': A and B must be whole numbers") from None
+    if start < 0 or (stop is not None and stop <= start):
+        raise SnapsGraphError(f"frame range '{text}': need 0 <= A < B")
+    if n_total is not None:
+        if start >= n_total:
+            raise SnapsGraphError(f"frame range '{text}': the sequence has only {n_total} frames")
+        if stop is not None:
+            stop = min(stop, n_total)
+    return start, stop

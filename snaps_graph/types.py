@@ -1,0 +1,84 @@
+"""Data passed between stages (images -> front end -> SNAPS -> graph -> map/evaluation).
+
+Plain dataclasses with numpy fields; no stage imports another stage's internals, only these.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class FrameFeatures:
+    """A compact description of one frame, kept per frame for loop verification.
+
+    ``uv`` are pixel positions in the left image, ``pts3d`` the matching 3D points in that
+    frame's camera frame (metres, KITTI axes), ``desc`` their descriptors (uint8 rows for binary
+    descriptors, float32 rows for SIFT). All three have the same length.
+    """
+
+    uv: np.ndarray  # (N, 2) float32
+    pts3d: np.ndarray  # (N, 3) float32
+    desc: np.ndarray  # (N, D) uint8 or float32
+
+
+@dataclass
+class VOResult:
+    """What the front end returns for one frame."""
+
+    index: int
+    T_rel: np.ndarray  # 4x4, T_prev_cur: pose of this frame in the previous frame's camera frame
+    pose: np.ndarray  # 4x4, T_world_cam of the pure VO chain (frame 0 = identity)
+    ok: bool  # False: flagged frame, T_rel is the constant-velocity guess
+    reason: str = ""  # why the frame was flagged ("" when ok)
+    inliers: int = 0  # PnP inliers (0 when flagged)
+    matches: int = 0
+    features: FrameFeatures | None = None
+    timings_ms: dict[str, float] = field(default_factory=dict)  # per stage
+
+
+@dataclass
+class LoopEvent:
+    """A loop closed by SNAPS at frame ``frame`` against earlier frame ``reference``."""
+
+    frame: int
+    reference: int
+    distance_m: float  # |p_ref - p_N| before the correction (heuristic positions)
+    yaw_diff_deg: float
+    q: float  # UIQI (eq. 4)
+    correlation: float
+    luminance: float
+    contrast: float
+    delta: np.ndarray  # (3,) p_ref - p_N
+    n_corrected: int  # poses moved by eq. 6
+    alpha: int  # loops closed so far, this one included
+    candidates: int  # similarities computed on this frame
+    t_ms: float  # detection + correction time
+    # Filled by the graph stage:
+    verified: bool = False  # measurement from geometric verification (else same-place assumption)
+    verify_inliers: int = 0
+    T_ref_cur: np.ndarray | None = None  # measured relative pose when verified
+
+    def to_json(self) -> dict:
+        d = {
+            "frame": self.frame,
+            "reference": self.reference,
+            "distance_m": self.distance_m,
+            "yaw_diff_deg": self.yaw_diff_deg,
+            "q": self.q,
+            "correlation": self.correlation,
+            "luminance": self.luminance,
+            "contrast": self.contrast,
+            "delta": [float(v) for v in self.delta],
+            "n_corrected": self.n_corrected,
+            "alpha": self.alpha,
+            "candidates": self.candidates,
+            "t_ms": self.t_ms,
+            "verified": self.verified,
+            "verify_inliers": self.verify_inliers,
+        }
+        if self.T_ref_cur is not None:
+            d["T_ref_cur"] = [float(v) for v in np.asarray(self.T_ref_cur)[:3, :4].reshape(-1)]
+        return d
