@@ -1,12 +1,183 @@
-"""Command line: ``snaps-graph synth | run | eval | compare | demo`` (thin: parse, call, print)."""
+"""Command line: ``snaps-graph synth | run | eval | compare | demo | config``.
+
+Thin: each command parses its options, calls the package and prints. A user error
+(``SnapsGraphError``) prints one line ``error: ...`` and exits with status 2, never a traceback.
+"""
 
 from __future__ import annotations
 
+import json
 import sys
+from pathlib import Path
+from typing import Optional
 
 import typer
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, help="Stereo visual SLAM with SNAPS loop closure and a GTSAM pose graph.")
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    help="Stereo visual SLAM with SNAPS loop closure and a GTSAM pose graph.",
+)
+
+
+def _progress(total: int, desc: str):
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit="frame", dynamic_ncols=True, file=sys.stderr, mininterval=0.5)
+
+
+@app.command()
+def synth(
+    out: Path = typer.Option(..., "--out", help="Sequence folder to write (image_0/, image_1/, calib.txt, times.txt, poses.txt)."),
+    trajectory: str = typer.Option("loop", "--trajectory", help="A KITTI pose file to drive along, or 'loop' for the built-in closed loop."),
+    times: Optional[Path] = typer.Option(None, "--times", help="Timestamps file for the trajectory (default 10 Hz)."),
+    frames: Optional[str] = typer.Option(None, "--frames", help="Frame range A:B (A included, B excluded)."),
+    width: int = typer.Option(1241, "--width", help="Image width, pixels."),
+    height: int = typer.Option(376, "--height", help="Image height, pixels."),
+    seed: int = typer.Option(0, "--seed", help="World and noise seed (same seed, same images)."),
+    noise: float = typer.Option(0.0, "--noise", help="Sensor noise, grey-level standard deviation."),
+    exposure: float = typer.Option(0.0, "--exposure", help="Exposure change between passes (0 = none)."),
+    depth: bool = typer.Option(False, "--depth/--no-depth", help="Also write exact depth of the left camera."),
+) -> None:
+    """Render a synthetic stereo sequence along a trajectory, in KITTI layout."""
+    from .datasets.synthetic import SyntheticSequence, load_trajectory, render_to_folder
+
+    if width < 32 or height < 32:
+        raise_user(f"--width/--height too small: {width}x{height}")
+    poses, ts = load_trajectory(trajectory, frames, times=str(times) if times else None)
+    seq = SyntheticSequence(poses, width=width, height=height, seed=seed, noise_std=noise, exposure_change=exposure, times=ts)
+    with _progress(len(seq), "render") as bar:
+        render_to_folder(seq, out, progress=lambda *_: bar.update(1), write_depth=depth)
+    typer.echo(f"wrote {len(seq)} stereo pairs to {out}")
+
+
+@app.command()
+def run(
+    seq_dir: Path = typer.Argument(..., help="A KITTI-format sequence folder (image_0/, image_1/, calib.txt)."),
+    out: Path = typer.Option(..., "--out", help="Results folder."),
+    frames: Optional[str] = typer.Option(None, "--frames", help="Frame range A:B (A included, B excluded)."),
+    config: Optional[Path] = typer.Option(None, "--config", help="A TOML config (see `snaps-graph config`)."),
+    gt: Optional[Path] = typer.Option(None, "--gt", help="Ground-truth poses (default: SEQ/poses.txt or ROOT/poses/XX.txt)."),
+    loops: Optional[str] = typer.Option(None, "--loops", help="snaps | none (default from config: snaps)."),
+    refine: Optional[str] = typer.Option(None, "--refine", help="none | isam2 | batch (default from config: none)."),
+    map_: Optional[bool] = typer.Option(None, "--map/--no-map", help="Build the point-cloud map (default from config: off)."),
+    mode: Optional[str] = typer.Option(None, "--mode", help="Front-end mode override: klt | orb | sift."),
+) -> None:
+    """Run stereo VO (+ SNAPS, + graph refinement, + map) over a sequence and write a results folder."""
+    from .config import Config
+    from .datasets.kitti import KittiSequence
+    from .pipeline import run_sequence
+
+    cfg = Config.load(config) if config else Config()
+    if mode is not None:
+        cfg.frontend.mode = mode
+    seq = KittiSequence(seq_dir, frames=frames, gt=gt)
+    n_loops = 0
+    with _progress(len(seq), "slam") as bar:
+
+        def on_frame(o):
+            nonlocal n_loops
+            n_loops += o.loop is not None
+            bar.set_postfix(loops=n_loops, refresh=False)
+            bar.update(1)
+
+        result, metrics = run_sequence(seq, out, cfg, loops=loops, refine=refine, build_map=map_, on_frame=on_frame)
+    _print_summary(metrics, out)
+
+
+@app.command("eval")
+def eval_(
+    est: Path = typer.Argument(..., help="Estimated poses (KITTI format; .tum for TUM)."),
+    gt: Path = typer.Option(..., "--gt", help="Ground-truth poses (KITTI format; .tum for TUM)."),
+    as_json: bool = typer.Option(False, "--json", help="Print one JSON object instead of a table."),
+) -> None:
+    """Mean deviation, ATE RMSE (SE(3)-aligned), KITTI t_rel / r_rel of a trajectory."""
+    from .evaluation.metrics import evaluate
+    from .evaluation.trajectory import read_poses
+
+    m = evaluate(read_poses(est), read_poses(gt))
+    if as_json:
+        typer.echo(json.dumps({k: (None if isinstance(v, float) and v != v else v) for k, v in m.items()}))
+        return
+    typer.echo(_metrics_table({est.name: m}))
+
+
+@app.command()
+def compare(
+    run_dir: Path = typer.Argument(..., help="A results folder written by `snaps-graph run`."),
+    gt: Optional[Path] = typer.Option(None, "--gt", help="Ground truth (default: RUN_DIR/poses_gt.txt)."),
+) -> None:
+    """Heuristic (SNAPS) against optimised corrections: report.md, PNGs and metrics.json."""
+    from .evaluation.report import compare_run
+
+    compare_run(run_dir, gt)
+    typer.echo(f"wrote {run_dir / 'report.md'}")
+
+
+@app.command()
+def demo(
+    out: Path = typer.Option(Path("results/demo"), "--out", help="Where the demo writes everything."),
+    frames: int = typer.Option(300, "--frames", help="Length of the built-in loop, frames."),
+    width: int = typer.Option(1241, "--width"),
+    height: int = typer.Option(376, "--height"),
+    refine: str = typer.Option("isam2", "--refine", help="none | isam2 | batch."),
+) -> None:
+    """Render the built-in loop, run VO + SNAPS + refinement + map, compare, print a summary."""
+    from .demo import run_demo
+
+    run_demo(out, frames=frames, width=width, height=height, refine=refine, progress=_progress)
+
+
+@app.command("config")
+def config_cmd(
+    path: Optional[Path] = typer.Argument(None, help="A TOML config to check; default: print the defaults."),
+) -> None:
+    """Print the default configuration (or a checked, completed copy of PATH) as TOML."""
+    from .config import Config
+
+    cfg = Config.load(path) if path else Config()
+    typer.echo(cfg.dumps(), nl=False)
+
+
+def raise_user(msg: str) -> None:
+    from .errors import SnapsGraphError
+
+    raise SnapsGraphError(msg)
+
+
+def _fmt(v, nd=3) -> str:
+    if v is None or (isinstance(v, float) and v != v):
+        return "n/a"
+    if isinstance(v, float):
+        return f"{v:.{nd}f}"
+    return str(v)
+
+
+def _metrics_table(per_traj: dict[str, dict]) -> str:
+    head = f"{'trajectory':<14}{'frames':>8}{'mean dev m':>12}{'ATE m':>10}{'t_rel %':>9}{'r_rel °/100m':>14}{'end drift %':>13}"
+    lines = [head, "-" * len(head)]
+    for name, m in per_traj.items():
+        lines.append(
+            f"{name:<14}{m.get('frames', ''):>8}{_fmt(m.get('mean_deviation')):>12}{_fmt(m.get('ate_rmse')):>10}"
+            f"{_fmt(m.get('t_rel'), 2):>9}{_fmt(m.get('r_rel'), 3):>14}{_fmt(m.get('end_drift_percent'), 2):>13}"
+        )
+    return "\n".join(lines)
+
+
+def _print_summary(metrics: dict, out: Path) -> None:
+    lat = metrics.get("latency_ms", {})
+    fps = lat.get("frames_per_s")
+    typer.echo(
+        f"{metrics['frames']} frames, {metrics['loops']} loops, "
+        f"median {_fmt(lat.get('total', {}).get('median'), 1)} ms/frame"
+        + (f" ({fps:.1f} frames/s)" if fps else "")
+    )
+    if "trajectories" in metrics:
+        typer.echo(_metrics_table(metrics["trajectories"]))
+    if metrics.get("graph_failures"):
+        typer.echo(f"graph: {len(metrics['graph_failures'])} flagged updates (see metrics.json)")
+    typer.echo(f"results in {out}")
 
 
 def main() -> None:
@@ -17,3 +188,6 @@ def main() -> None:
     except SnapsGraphError as exc:
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(2)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        sys.exit(130)

@@ -1,0 +1,228 @@
+"""Config, camera, KITTI reader, trajectory files, frame ranges: the foundation's contracts."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from snaps_graph.camera import StereoCamera, kitti00_camera
+from snaps_graph.config import Config
+from snaps_graph.datasets.kitti import KittiSequence
+from snaps_graph.errors import SnapsGraphError
+from snaps_graph.evaluation.trajectory import (
+    read_kitti_poses,
+    read_tum_poses,
+    rotation_to_quaternion,
+    quaternion_to_rotation,
+    write_kitti_poses,
+    write_tum_poses,
+)
+from snaps_graph.geometry import wrap_deg, yaw_deg
+from snaps_graph.io_utils import parse_frame_range
+
+
+# ---- config ----
+def test_config_roundtrip(tmp_path):
+    cfg = Config()
+    cfg.loop.radius_m = 12.5
+    cfg.frontend.mode = "sift"
+    cfg.map.enabled = True
+    p = tmp_path / "c.toml"
+    cfg.dump(p)
+    back = Config.load(p)
+    assert back.loop.radius_m == 12.5
+    assert back.frontend.mode == "sift"
+    assert back.map.enabled is True
+    assert back.to_dict() == cfg.to_dict()
+
+
+def test_config_table1_defaults():
+    c = Config().loop
+    assert (c.radius_m, c.frame_distance, c.discount_length, c.min_similarity) == (10.0, 100, 100, 0.75)
+    assert (c.inter_frame_pause, c.attempts, c.max_yaw_deg, c.window) == (50, 5, 10.0, 8)
+    assert c.thumbnail_scale == pytest.approx(1 / 6)
+
+
+@pytest.mark.parametrize(
+    "text,msg",
+    [
+        ("[loop]\nradius = 3\n", "unknown key 'loop.radius'"),
+        ("[loop]\nradius_m = 'far'\n", "expected a finite number"),
+        ("[loop]\nframe_distance = 1.5\n", "expected an integer"),
+        ("[loop\n", "malformed TOML"),
+    ],
+)
+def test_config_errors(tmp_path, text, msg):
+    p = tmp_path / "bad.toml"
+    p.write_text(text)
+    with pytest.raises(SnapsGraphError, match=msg):
+        Config.load(p)
+
+
+# ---- camera ----
+def test_camera_from_kitti06_calib(kitti06_dir):
+    cam = StereoCamera.from_calib_file(kitti06_dir / "calib.txt")
+    assert cam.fx == pytest.approx(707.0912)
+    assert cam.cx == pytest.approx(601.8873)
+    assert cam.cy == pytest.approx(183.1104)
+    assert cam.baseline_m == pytest.approx(379.8145 / 707.0912)
+
+
+def test_camera_depth_and_backprojection():
+    cam = kitti00_camera()
+    z = cam.depth_from_disparity(np.array([[10.0, 0.0, -1.0]]))
+    assert z[0, 0] == pytest.approx(718.856 * 0.537165 / 10.0, rel=1e-4)
+    assert z[0, 1] == 0 and z[0, 2] == 0
+    p = cam.backproject(np.array([cam.cx + 71.8856]), np.array([cam.cy]), np.array([10.0]))
+    assert p[0] == pytest.approx([1.0, 0.0, 10.0])
+
+
+def test_calib_roundtrip(tmp_path):
+    cam = kitti00_camera()
+    cam.write_calib(tmp_path / "calib.txt")
+    back = StereoCamera.from_calib_file(tmp_path / "calib.txt")
+    assert back.baseline_m == pytest.approx(cam.baseline_m, rel=1e-9)
+    assert back.fx == pytest.approx(cam.fx)
+
+
+@pytest.mark.parametrize(
+    "text,msg",
+    [
+        ("P0: 1 0 0 0 0 1 0 0 0 0 1 0\n", "no 'P1:' line"),
+        ("P0: 1 0 0\nP1: 1 0 0 0 0 1 0 0 0 0 1 0\n", "needs 12 numbers"),
+        ("P0: 1 0 0 0 0 1 0 0 0 0 1 x\nP1: 1 0 0 0 0 1 0 0 0 0 1 0\n", "not a number"),
+        ("P0: 700 0 600 0 0 700 180 0 0 0 1 0\nP1: 700 0 600 0 0 700 180 0 0 0 1 0\n", "baseline"),
+    ],
+)
+def test_calib_errors(tmp_path, text, msg):
+    (tmp_path / "calib.txt").write_text(text)
+    with pytest.raises(SnapsGraphError, match=msg):
+        StereoCamera.from_calib_file(tmp_path / "calib.txt")
+
+
+# ---- reader ----
+def test_kitti06_reader(kitti06_dir):
+    seq = KittiSequence(kitti06_dir)
+    assert len(seq) == 51
+    f = seq[10]
+    assert f.index == 10 and f.left.shape == (370, 1226) and f.left.dtype == np.uint8
+    assert f.timestamp == pytest.approx(1.044989e00, rel=1e-6) or f.timestamp > 1.0
+    assert seq.gt_poses.shape == (51, 4, 4)
+    assert np.allclose(seq.gt_poses[0], np.eye(4))
+    assert (seq.camera.width, seq.camera.height) == (1226, 370)
+
+
+def test_kitti06_frame_range_rebases_gt(kitti06_dir):
+    full = KittiSequence(kitti06_dir)
+    part = KittiSequence(kitti06_dir, frames="20:30")
+    assert len(part) == 10 and part[0].index == 20 and list(part.indices) == list(range(20, 30))
+    expect = np.linalg.inv(full.gt_poses[20]) @ full.gt_poses[25]
+    assert np.allclose(part.gt_poses[5], expect, atol=1e-9)
+    path_len = np.linalg.norm(np.diff(full.gt_poses[:, :3, 3], axis=0), axis=1).sum()
+    assert 55 < path_len < 65  # the README's 59.9 m
+
+
+def _copy_clip(src: Path, dst: Path, n: int = 3) -> Path:
+    for sub in ("image_0", "image_1"):
+        (dst / sub).mkdir(parents=True)
+        for i in range(n):
+            shutil.copy(src / sub / f"{i:06d}.png", dst / sub / f"{i:06d}.png")
+    shutil.copy(src / "calib.txt", dst / "calib.txt")
+    return dst
+
+
+def test_reader_errors(kitti06_dir, tmp_path):
+    seq = _copy_clip(kitti06_dir, tmp_path / "s")
+    # times.txt of the wrong length
+    (seq / "times.txt").write_text("0\n0.1\n")
+    with pytest.raises(SnapsGraphError, match="times.txt: 2 timestamps for 3 images"):
+        KittiSequence(seq)
+    (seq / "times.txt").unlink()
+    # poses of the wrong length
+    (seq / "poses.txt").write_text("1 0 0 0 0 1 0 0 0 0 1 0\n")
+    with pytest.raises(SnapsGraphError, match="1 poses for 3 images"):
+        KittiSequence(seq)
+    (seq / "poses.txt").unlink()
+    # unreadable image
+    (seq / "image_1" / "000001.png").write_bytes(b"not a png")
+    s = KittiSequence(seq)
+    with pytest.raises(SnapsGraphError, match="000001.png: unreadable image"):
+        s[1]
+    # left/right size mismatch
+    img = cv2.imread(str(kitti06_dir / "image_1" / "000001.png"), cv2.IMREAD_GRAYSCALE)
+    cv2.imwrite(str(seq / "image_1" / "000001.png"), img[:-2])
+    with pytest.raises(SnapsGraphError, match="differs from left image"):
+        KittiSequence(seq)[1]
+    # different numbers of images
+    (seq / "image_1" / "000002.png").unlink()
+    with pytest.raises(SnapsGraphError, match="3 left images .* but 2 right images"):
+        KittiSequence(seq)
+    # missing calibration
+    shutil.copy(kitti06_dir / "image_1" / "000002.png", seq / "image_1" / "000002.png")
+    (seq / "calib.txt").unlink()
+    with pytest.raises(SnapsGraphError, match="calib.txt: calibration file not found"):
+        KittiSequence(seq)
+    with pytest.raises(SnapsGraphError, match="sequence folder not found"):
+        KittiSequence(tmp_path / "nope")
+
+
+def test_frame_range_parse():
+    assert parse_frame_range("0:50") == (0, 50)
+    assert parse_frame_range("10:") == (10, None)
+    assert parse_frame_range(None) is None
+    assert parse_frame_range("0:500", 51) == (0, 51)
+    for bad in ("5", "a:b", "9:3", "-1:4"):
+        with pytest.raises(SnapsGraphError):
+            parse_frame_range(bad)
+    with pytest.raises(SnapsGraphError, match="only 51 frames"):
+        parse_frame_range("60:70", 51)
+
+
+# ---- trajectory files ----
+def _random_poses(n=20, seed=1):
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(n):
+        q = rng.normal(size=4)
+        T = np.eye(4)
+        T[:3, :3] = quaternion_to_rotation(q)
+        T[:3, 3] = rng.normal(scale=50, size=3)
+        out.append(T)
+    return np.array(out)
+
+
+def test_kitti_and_tum_roundtrip(tmp_path):
+    poses = _random_poses()
+    write_kitti_poses(tmp_path / "a.txt", poses)
+    assert np.allclose(read_kitti_poses(tmp_path / "a.txt"), poses, atol=1e-7)
+    line = (tmp_path / "a.txt").read_text().splitlines()[0]
+    assert len(line.split()) == 12 and not line.endswith(" ")
+    times = np.arange(len(poses)) * 0.1
+    write_tum_poses(tmp_path / "a.tum", poses, times)
+    t, back = read_tum_poses(tmp_path / "a.tum")
+    assert np.allclose(t, times) and np.allclose(back, poses, atol=1e-7)
+
+
+def test_quaternion_branches():
+    for angle, axis in [(179.9, [1, 0, 0]), (179.9, [0, 1, 0]), (179.9, [0, 0, 1]), (10, [1, 1, 0])]:
+        R, _ = cv2.Rodrigues(np.radians(angle) * np.array(axis, float) / np.linalg.norm(axis))
+        assert np.allclose(quaternion_to_rotation(rotation_to_quaternion(R)), R, atol=1e-9)
+
+
+def test_refuse_nan_pose(tmp_path):
+    poses = _random_poses(3)
+    poses[1, 0, 3] = np.nan
+    with pytest.raises(ValueError):
+        write_kitti_poses(tmp_path / "x.txt", poses)
+    assert not (tmp_path / "x.txt").exists()
+
+
+def test_yaw_and_wrap():
+    R, _ = cv2.Rodrigues(np.array([0.0, np.radians(30.0), 0.0]))
+    assert yaw_deg(R) == pytest.approx(30.0)
+    assert wrap_deg(190.0) == pytest.approx(-170.0)
+    assert wrap_deg(-180.0) == pytest.approx(180.0)
