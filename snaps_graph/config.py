@@ -47,6 +47,24 @@ class FrontendConfig:
     max_step_deg: float = 20.0  # a larger rotation between frames is implausible (flagged)
     min_frame_std: float = 3.0  # a frame whose grey std is below this is treated as black/flat
     threads: int = 2  # worker threads (OpenCV releases the GIL)
+    sgbm_block_size: int = 5  # SGBM block size, pixels (odd)
+    # Sparse stereo (disparity = "sparse"): LK from left to right along the row.
+    stereo_window_px: int = 11  # LK window, pixels
+    stereo_levels: int = 4  # LK pyramid levels (disparities up to ~100 px near the car)
+    stereo_max_dy_px: float = 1.0  # a match may leave its row by at most this (rectified pair)
+    stereo_lr_check_px: float = 0.5  # right-to-left re-track must land this close; 0 disables
+    # KLT mode: frame-to-frame tracking of corners.
+    klt_window_px: int = 11  # LK window, pixels
+    klt_levels: int = 3  # LK pyramid levels
+    klt_quality: float = 0.01  # goodFeaturesToTrack quality level (relative to the best corner)
+    klt_min_distance_px: int = 10  # minimum spacing between corners, pixels
+    klt_border_px: int = 16  # corners are not detected this close to the image border
+    loop_features: int = 500  # keypoints (with depth and descriptor) kept per frame for loops
+    min_stereo_points: int = 40  # a frame with fewer keypoints with depth cannot be a reference
+    min_sharpness_ratio: float = 0.35  # mean |Laplacian| below this x the reference's: blurred
+    ransac_seed: int = 0  # cv2.setRNGSeed before every RANSAC (same input -> same output)
+    verify_max_translation_m: float = 30.0  # verify_loop: a larger relative pose is implausible
+    verify_max_rotation_deg: float = 90.0
 
 
 @dataclass
@@ -64,6 +82,9 @@ class LoopConfig:
     window: int = 8  # UIQI sliding window B (Wang & Bovik)
     discount_offset: float = 3.0  # the 3 in gamma = 1 - exp(-(3 - alpha*0.01*s'))
     discount_rate: float = 0.01  # the 0.01 in the same formula
+    # UIQI window sums kept per thumbnail (LRU) so a comparison only computes the cross term;
+    # ~180 KB per 207x63 thumbnail, so 512 frames ~ 92 MB. 0 disables the cache.
+    stats_cache_frames: int = 512
 
 
 @dataclass
@@ -76,17 +97,29 @@ class GraphConfig:
     odom_sigma_rot_rad: float = 0.005  # VO step noise at the reference inlier count
     odom_sigma_trans_m: float = 0.05
     odom_ref_inliers: int = 200  # sigmas scale with sqrt(odom_ref_inliers / inliers)
+    odom_min_inliers: int = 20  # inlier counts below this floor count as this many
+    odom_sigma_scale_min: float = 0.5  # clamp of the inlier scale sqrt(ref / inliers)
+    odom_sigma_scale_max: float = 4.0
     flagged_sigma_scale: float = 100.0  # a flagged VO step's sigmas are this much looser
-    loop_sigma_rot_rad: float = 0.05  # verified loop at Q = 1
-    loop_sigma_trans_m: float = 0.2
+    loop_sigma_rot_rad: float = 0.01  # verified loop at Q = 1 (a PnP like a VO step, ~2x looser)
+    loop_sigma_trans_m: float = 0.1
     unverified_sigma_rot_rad: float = 0.5  # same-place assumption: loose rotation
     unverified_sigma_trans_m: float = 2.0
-    robust_kernel: str = "cauchy"  # huber | cauchy
-    robust_param: float = 1.0
+    loop_q_floor: float = 0.7  # Q at which a loop's sigmas would be infinite (below paper's 0.75)
+    loop_sigma_scale_max: float = 10.0  # clip of (1 - loop_q_floor) / (Q - loop_q_floor)
+    robust_kernel: str = "cauchy"  # huber | cauchy | none (loop factors only)
+    robust_param: float = 3.0  # kernel width on the whitened 6-vector norm (an inlier's is ~2.4)
+    isam2_factorization: str = "QR"  # QR | CHOLESKY (Cholesky failed on long chains here)
     isam2_relinearize_threshold: float = 0.01
     isam2_relinearize_skip: int = 1
+    # Extra iSAM2 steps right after an update that carried a loop (the robust weight converges
+    # by IRLS). Each costs about a loop update (20-100 ms on KITTI 00) and later frames' updates
+    # converge it anyway, so 0 online; PoseGraph.converge() finishes the job at the end.
+    isam2_loop_iterations: int = 0
+    isam2_final_iterations: int = 10  # PoseGraph.converge(): at most this many extra steps
     batch_solver: str = "lm"  # lm | gnc
     batch_max_iterations: int = 100
+    gnc_inlier_probability: float = 0.99  # GNC: chi-square inlier threshold at this probability
 
 
 @dataclass
@@ -96,8 +129,17 @@ class MapConfig:
     enabled: bool = False
     keyframe_every: int = 5  # one keyframe cloud every this many frames
     pixel_step: int = 4  # subsample depth pixels on this grid
-    max_range_m: float = 40.0
-    voxel_size_m: float = 0.3
+    max_range_m: float = 40.0  # depth beyond this is dropped (stereo depth error grows with z^2)
+    voxel_size_m: float = 0.3  # voxel of the global map (open3d voxel_down_sample)
+    # Voxel each keyframe cloud is pre-downsampled with in its own camera frame, to bound memory;
+    # half the map voxel so the global downsample decides the final spacing. 0 disables.
+    keyframe_voxel_size_m: float = 0.15
+    # build() voxelises consecutive keyframes in chunks of about this many points, then the
+    # union of the chunks once more: bounds peak memory on long runs (KITTI 00: ~10 M points).
+    build_chunk_points: int = 2_000_000
+    build_tile_m: float = 100.0  # ...and the union is voxelised again in x-z tiles of this size
+    topdown_colour_by: str = "height"  # top-down PNG: "height" (-y, metres) or "intensity"
+    topdown_dpi: int = 150  # top-down PNG resolution (a 8x8 inch figure)
     trajectory: str = "best"  # vo | snaps | isam2 | batch | best (the most refined available)
 
 

@@ -1,0 +1,5 @@
+"""Factor-graph back end: the only package that imports gtsam (see pose_graph.py)."""
+
+from .pose_graph import GraphStats, LoopFactorInfo, PoseGraph, loop_sigma_scale, loop_sigmas, odometry_sigmas
+
+__all__ = ["GraphStats", "LoopFactorInfo", "PoseGraph", "loop_sigma_scale", "loop_sigmas", "odometry_sigmas"]

@@ -1,0 +1,18 @@
+"""Loop closure: UIQI similarity (uiqi.py) and the SNAPS loop closer (snaps.py)."""
+
+from .snaps import SnapsLoopCloser, SnapsStep, discount, validate_loop_config
+from .uiqi import UIQI, WindowStats, make_thumbnail, similarity, similarity_q, uiqi, window_stats
+
+__all__ = [
+    "UIQI",
+    "SnapsLoopCloser",
+    "SnapsStep",
+    "WindowStats",
+    "discount",
+    "make_thumbnail",
+    "similarity",
+    "similarity_q",
+    "uiqi",
+    "validate_loop_config",
+    "window_stats",
+]

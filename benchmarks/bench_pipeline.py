@@ -1,0 +1,176 @@
+"""End-to-end accuracy and latency on a synthetic rendering along a KITTI ground-truth path.
+
+Renders the sequence once (or reuses it), runs VO + SNAPS + iSAM2 over it, then the batch
+optimisation of the same graph, and prints for every trajectory: mean deviation (the paper's
+figure), ATE RMSE (SE(3)-aligned), t_rel, r_rel; the SNAPS reduction of mean deviation against VO;
+true revisits found versus missed and false loops (ground truth); latency per stage.
+
+    python benchmarks/bench_pipeline.py --trajectory ../shared/data/kitti_gt/00.txt \
+        --seq results/bench/seq00 [--frames 0:4541] [--width 1241 --height 376]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from snaps_graph.config import Config  # noqa: E402
+from snaps_graph.datasets.kitti import KittiSequence  # noqa: E402
+from snaps_graph.evaluation.metrics import evaluate  # noqa: E402
+from snaps_graph.geometry import wrap_deg, yaw_deg  # noqa: E402
+from snaps_graph.pipeline import SlamPipeline, latency_summary  # noqa: E402
+
+
+def ensure_sequence(args) -> Path:
+    seq = Path(args.seq)
+    if (seq / "poses.txt").is_file() and (seq / "image_1").is_dir():
+        return seq
+    from tqdm import tqdm
+
+    from snaps_graph.datasets.synthetic import SyntheticSequence, load_trajectory, render_to_folder
+
+    poses, times = load_trajectory(args.trajectory, args.frames)
+    synth = SyntheticSequence(poses, width=args.width, height=args.height, seed=args.seed, noise_std=args.noise, times=times)
+    t0 = time.perf_counter()
+    with tqdm(total=len(synth), desc="render", unit="frame", mininterval=2) as bar:
+        render_to_folder(synth, seq, progress=lambda *_: bar.update(1))
+    dt = time.perf_counter() - t0
+    print(f"rendered {len(synth)} stereo pairs in {dt:.1f} s = {len(synth) / dt:.2f} pairs/s")
+    return seq
+
+
+def revisit_stats(gt: np.ndarray, loops, frame_ids, cfg) -> dict:
+    """True revisits (ground truth) found versus missed, and false loops."""
+    p = gt[:, :3, 3]
+    yaw = yaw_deg(gt[:, :3, :3])
+    n = len(p)
+    M = cfg.loop.frame_distance
+    revisit = np.zeros(n, bool)
+    for k in range(M, n):
+        d = np.linalg.norm(p[: k - M + 1] - p[k], axis=1)
+        ok = (d <= cfg.loop.radius_m) & (np.abs(wrap_deg(yaw[: k - M + 1] - yaw[k])) <= cfg.loop.max_yaw_deg)
+        revisit[k] = ok.any()
+    # Segments: maximal runs of revisit frames (a gap of < 10 frames joins runs).
+    segs, start, last = [], None, None
+    for k in np.flatnonzero(revisit):
+        if start is None:
+            start = last = k
+        elif k - last <= 10:
+            last = k
+        else:
+            segs.append((start, last))
+            start = last = k
+    if start is not None:
+        segs.append((start, last))
+    k_of = {f: k for k, f in enumerate(frame_ids)}
+    loop_ks = [k_of[l.frame] for l in loops]
+    found = sum(any(a <= k <= b for k in loop_ks) for a, b in segs)
+    false = [l for l in loops if np.linalg.norm(p[k_of[l.reference]] - p[k_of[l.frame]]) > cfg.loop.radius_m]
+    # Frames the loops could have corrected: segments at least 20 frames long are the real revisits.
+    long_segs = [(a, b) for a, b in segs if b - a >= 20]
+    found_long = sum(any(a <= k <= b for k in loop_ks) for a, b in long_segs)
+    return {
+        "revisit_frames": int(revisit.sum()),
+        "revisit_segments": len(segs),
+        "segments_found": int(found),
+        "revisit_segments_20plus": len(long_segs),
+        "segments_20plus_found": int(found_long),
+        "loops": len(loops),
+        "false_loops": len(false),
+        "false_loop_pairs": [(l.frame, l.reference) for l in false],
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--trajectory", default=str(ROOT.parent / "shared/data/kitti_gt/00.txt"))
+    ap.add_argument("--seq", default=str(ROOT / "results/bench/seq00"))
+    ap.add_argument("--frames", default=None, help="range of the trajectory to render (A:B)")
+    ap.add_argument("--run-frames", default=None, help="range of the rendered sequence to run")
+    ap.add_argument("--width", type=int, default=1241)
+    ap.add_argument("--height", type=int, default=376)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--noise", type=float, default=0.0)
+    ap.add_argument("--config", default=None)
+    ap.add_argument("--mode", default=None, help="front-end mode override")
+    ap.add_argument("--refine", default="isam2", choices=["none", "isam2"])
+    ap.add_argument("--out", default=None, help="also write the results folder here")
+    ap.add_argument("--json", default=None, help="write the figures as JSON here")
+    args = ap.parse_args()
+
+    seq_dir = ensure_sequence(args)
+    seq = KittiSequence(seq_dir, frames=args.run_frames)
+    cfg = Config.load(args.config) if args.config else Config()
+    if args.mode:
+        cfg.frontend.mode = args.mode
+    pipe = SlamPipeline(seq.camera, cfg, loops="snaps", refine=args.refine, build_map=False)
+    from tqdm import tqdm
+
+    t0 = time.perf_counter()
+    for frame in tqdm(seq, total=len(seq), desc="slam", unit="frame", mininterval=2):
+        pipe.process(frame)
+    wall = time.perf_counter() - t0
+    result = pipe.finish()
+    tb = time.perf_counter()
+    batch = pipe.graph.optimize_batch()
+    t_batch = time.perf_counter() - tb
+    result.trajectories["batch"] = batch
+    gt = seq.gt_poses
+
+    figures: dict = {"frames": len(seq), "wall_s": wall, "batch_s": t_batch, "trajectories": {}}
+    print(f"\n{len(seq)} frames of {seq_dir}, {wall:.1f} s ({len(seq) / wall:.1f} frames/s), mode {cfg.frontend.mode}")
+    print(f"{'trajectory':<10}{'mean dev m':>12}{'ATE m':>10}{'t_rel %':>10}{'r_rel deg/100m':>16}{'end drift %':>13}")
+    for name, poses in result.trajectories.items():
+        m = evaluate(poses, gt)
+        figures["trajectories"][name] = m
+        print(f"{name:<10}{m['mean_deviation']:>12.3f}{m['ate_rmse']:>10.3f}{m['t_rel']:>10.3f}{m['r_rel']:>16.4f}{m['end_drift_percent']:>13.3f}")
+    tr = figures["trajectories"]
+    if "snaps" in tr:
+        red = 1 - tr["snaps"]["mean_deviation"] / tr["vo"]["mean_deviation"]
+        figures["snaps_mean_deviation_reduction"] = red
+        print(f"SNAPS reduces the mean deviation by {100 * red:.1f}% against VO (paper: 65%)")
+        for name in ("isam2", "batch"):
+            if name in tr:
+                ratio = tr[name]["mean_deviation"] / tr["snaps"]["mean_deviation"]
+                figures[f"{name}_over_snaps_mean_deviation"] = ratio
+                print(f"{name} mean deviation / SNAPS mean deviation = {ratio:.3f} (target <= 0.5)")
+    rs = revisit_stats(gt, result.loops, pipe.frame_ids, cfg)
+    figures["revisits"] = rs
+    print(
+        f"loops closed {rs['loops']}, false loops {rs['false_loops']}; true revisit segments found "
+        f"{rs['segments_found']}/{rs['revisit_segments']} (of those >= 20 frames long: {rs['segments_20plus_found']}/{rs['revisit_segments_20plus']})"
+    )
+    verified = sum(l.verified for l in result.loops)
+    print(f"loop factors verified geometrically: {verified}/{len(result.loops)}")
+    lat = latency_summary(result.rows)
+    figures["latency_ms"] = lat
+    print("latency (ms): median / p95")
+    for key in ("total", "vo", "loop_no_candidate", "loop_with_candidates", "loop_closed", "graph"):
+        s = lat[key]
+        if s.get("n"):
+            print(f"  {key:<22}{s['median']:>10.4f}{s['p95']:>10.4f}   (n={s['n']})")
+    loop_graph = [r["t_graph_ms"] for r in result.rows if r["loop_closed"]]
+    if loop_graph:
+        print(f"  graph update on loop frames: median {np.median(loop_graph):.2f} ms, max {np.max(loop_graph):.2f} ms")
+        figures["graph_loop_update_ms"] = {"median": float(np.median(loop_graph)), "max": float(np.max(loop_graph))}
+    print(f"  batch optimisation of {len(batch)} poses: {t_batch:.2f} s")
+    if pipe.graph.failures:
+        print(f"graph failures: {len(pipe.graph.failures)}: {pipe.graph.failures[:3]}")
+    if args.out:
+        pipe.write_results(args.out, result, gt)
+        print(f"results in {args.out}")
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(figures, indent=2, default=float))
+
+
+if __name__ == "__main__":
+    main()

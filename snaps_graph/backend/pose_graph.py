@@ -1,0 +1,606 @@
+"""GTSAM pose graph: odometry factors, UIQI-weighted loop factors, iSAM2 or batch refinement.
+
+This is the only module in the package that imports gtsam (SPEC "Factor graph"); everything else
+passes 4x4 numpy poses (T_world_cam, KITTI camera axes) through :class:`PoseGraph`.
+
+Decisions, and why:
+
+* **Keys.** One Pose3 variable per frame, keyed by the frame's *stream position* k = 0, 1, 2, ...
+  (the order frames reach the graph, not a file index), so a run over a frame range ``A:B`` still
+  starts at key 0. Frames must arrive in order; key 0 gets a tight prior (frame 0 is the identity
+  in our convention, but any given initial pose is held).
+* **Noise order.** GTSAM's Pose3 tangent is (rotation rad, translation m): every sigma vector
+  here is ``[rx, ry, rz, tx, ty, tz]`` in that order (a swapped order silently makes rotation
+  100x too stiff or too loose).
+* **Odometry noise** (SPEC: "a noise model that reflects the VO quality"). A PnP pose estimated
+  from n independent inliers has a covariance that shrinks like 1/n, so its sigmas shrink like
+  1/sqrt(n): ``sigma = odom_sigma * clip(sqrt(odom_ref_inliers / max(n, odom_min_inliers)),
+  odom_sigma_scale_min, odom_sigma_scale_max)``. ``inliers <= 0`` means "not reported" and gives
+  the reference sigmas. A flagged step (``ok=False``: the front end fell back on a
+  constant-velocity guess) is multiplied by ``flagged_sigma_scale`` so loops can bend it freely.
+* **Loop noise from the UIQI Q** (paper eq. 4; SPEC: a higher Q gives a tighter model). Q is a
+  similarity, not a calibrated probability; what it tells us is how far the match clears the
+  acceptance threshold. We take the margin above a floor ``q0 = loop_q_floor`` (just below the
+  paper's 0.75 minimum similarity, so a loop at the threshold still has a finite weight) and let
+  the information 1/sigma^2 grow with the square of that margin, full weight at Q = 1::
+
+      scale(Q) = clip((1 - q0) / (Q - q0), 1, loop_sigma_scale_max)   (scale_max when Q <= q0)
+      sigma(Q) = base_sigma * scale(Q)
+
+  With q0 = 0.7: Q = 1 -> 1x, 0.95 -> 1.2x, 0.85 -> 2x, 0.75 -> 6x. It is monotone
+  (non-increasing) in Q by construction.
+* **Loop measurement.** A geometrically verified loop (``T_ref_cur`` given) uses the measured
+  relative pose with the ``loop_sigma_*`` base sigmas. Otherwise the paper's own assumption (SNAPS
+  only says the two frames show the same place, §III) is written as a factor: zero translation,
+  and the relative rotation of the *current* estimates (so the factor does not fight the heading,
+  which SNAPS never observes), with the loose ``unverified_sigma_*`` base sigmas.
+* **Robust kernel.** Loop factors (never odometry) sit under ``noiseModel.Robust`` with a Cauchy
+  or Huber m-estimator of width ``robust_param`` whitened units, so one false SNAPS match cannot
+  tear the trajectory. ``robust_kernel = "none"`` exists for comparisons.
+* **iSAM2.** QR factorisation by default: with Cholesky, ISAM2 threw
+  IndeterminantLinearSystemException after ~1080 chained Pose3 factors at 0.01 rad sigmas on this
+  machine (SPEC pitfalls). Each :meth:`PoseGraph.update` passes only the factors and values added
+  since the previous call. The full estimate is O(N) to compute, so it is computed lazily on
+  :meth:`PoseGraph.estimates` and cached until the next update; :meth:`update` checks only the
+  newest pose for finiteness.
+* **Failures never raise.** gtsam's C++ exceptions (IndeterminantLinearSystemException, ...)
+  surface as ``RuntimeError``. :meth:`update` catches them, records ``(k, reason)`` in
+  ``failures``, rebuilds iSAM2 (always with QR) from all factors except the loop factors of the
+  failed update, seeded with the last good estimate; if that fails too, iSAM2 is switched off and
+  estimates fall back to the initial (heuristic) poses. :meth:`optimize_batch` returns the initial
+  estimates on failure. A non-finite estimate is replaced by the initial value and recorded.
+* **g2o files.** ``gtsam.writeG2o`` refuses Robust noise models ("invalid noise model") and
+  skips prior factors, so :meth:`save_g2o` writes a Gaussian copy of the graph (same
+  measurements and sigmas, kernel dropped) with the current estimates; g2o's convention fixes
+  vertex 0 in place of the prior.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import gtsam
+import numpy as np
+
+from ..config import GraphConfig
+from ..errors import SnapsGraphError
+
+MODES = ("none", "isam2", "batch")
+KERNELS = ("huber", "cauchy", "none")
+BATCH_SOLVERS = ("lm", "gnc")
+FACTORIZATIONS = ("QR", "CHOLESKY")
+
+
+@dataclass
+class LoopFactorInfo:
+    """What :meth:`PoseGraph.add_loop` did with one loop.
+
+    ``sigmas`` is the 6-vector (rotation rad x3, translation m x3) of the Gaussian part of the
+    factor, None when the loop was not added; ``reason`` says why it was not added ("" if added).
+    """
+
+    ref: int
+    cur: int
+    q: float
+    added: bool
+    verified: bool
+    sigmas: np.ndarray | None = None
+    reason: str = ""
+
+
+@dataclass
+class GraphStats:
+    """Counts and timings of one graph (all times in milliseconds)."""
+
+    n_frames: int = 0
+    n_prior_factors: int = 0
+    n_odometry_factors: int = 0
+    n_flagged_odometry: int = 0
+    n_loops_added: int = 0
+    n_loops_verified: int = 0
+    n_loops_rejected: int = 0
+    n_loops_dropped: int = 0  # removed after an iSAM2 failure
+    n_updates: int = 0
+    update_ms: list[float] = field(default_factory=list)  # one per update() call in isam2 mode
+    loop_update_ms: list[float] = field(default_factory=list)  # updates that carried a loop
+    batch_ms: float = 0.0
+    batch_iterations: int = 0
+
+    @property
+    def n_factors(self) -> int:
+        return self.n_prior_factors + self.n_odometry_factors + self.n_loops_added - self.n_loops_dropped
+
+    def summary(self) -> dict:
+        """JSON-ready counts plus median / p95 / max of the update times."""
+
+        def pct(values: list[float], p: float) -> float:
+            return float(np.percentile(values, p)) if values else 0.0
+
+        return {
+            "n_frames": self.n_frames,
+            "n_factors": self.n_factors,
+            "n_odometry_factors": self.n_odometry_factors,
+            "n_flagged_odometry": self.n_flagged_odometry,
+            "n_loops_added": self.n_loops_added,
+            "n_loops_verified": self.n_loops_verified,
+            "n_loops_rejected": self.n_loops_rejected,
+            "n_loops_dropped": self.n_loops_dropped,
+            "n_updates": self.n_updates,
+            "update_ms_median": pct(self.update_ms, 50),
+            "update_ms_p95": pct(self.update_ms, 95),
+            "update_ms_max": max(self.update_ms, default=0.0),
+            "loop_update_ms_median": pct(self.loop_update_ms, 50),
+            "loop_update_ms_max": max(self.loop_update_ms, default=0.0),
+            "batch_ms": self.batch_ms,
+            "batch_iterations": self.batch_iterations,
+        }
+
+
+@dataclass
+class _Loop:
+    ref: int
+    cur: int
+    measurement: gtsam.Pose3
+    sigmas: np.ndarray
+    active: bool = True
+
+
+def _to_pose3(T: np.ndarray) -> gtsam.Pose3:
+    """A Pose3 from a 4x4 whose rotation is projected onto SO(3) (SVD), so tiny numerical
+    non-orthogonality from chained float products never reaches GTSAM's retractions."""
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    R = U @ Vt
+    if np.linalg.det(R) < 0:  # a reflection: flip the weakest axis
+        U[:, -1] *= -1
+        R = U @ Vt
+    return gtsam.Pose3(gtsam.Rot3(R), np.asarray(T[:3, 3], dtype=float))
+
+
+def _check_pose(T: np.ndarray | None, what: str) -> np.ndarray:
+    if T is None:
+        raise SnapsGraphError(f"{what}: missing pose")
+    T = np.asarray(T, dtype=float)
+    if T.shape != (4, 4):
+        raise SnapsGraphError(f"{what}: expected a 4x4 pose, got shape {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise SnapsGraphError(f"{what}: non-finite pose")
+    return T
+
+
+def odometry_sigmas(cfg: GraphConfig, inliers: int, ok: bool) -> np.ndarray:
+    """Sigmas (rot rad x3, trans m x3) of one VO step: see the module docstring.
+
+    ``sqrt(odom_ref_inliers / max(inliers, odom_min_inliers))`` clamped to
+    ``[odom_sigma_scale_min, odom_sigma_scale_max]``; ``inliers <= 0`` (not reported) -> 1;
+    a flagged step is further multiplied by ``flagged_sigma_scale``.
+    """
+    if inliers > 0:
+        scale = math.sqrt(cfg.odom_ref_inliers / max(inliers, cfg.odom_min_inliers, 1))
+        scale = min(max(scale, cfg.odom_sigma_scale_min), cfg.odom_sigma_scale_max)
+    else:
+        scale = 1.0
+    if not ok:
+        scale *= cfg.flagged_sigma_scale
+    return scale * np.array([cfg.odom_sigma_rot_rad] * 3 + [cfg.odom_sigma_trans_m] * 3)
+
+
+def loop_sigma_scale(cfg: GraphConfig, q: float) -> float:
+    """UIQI-to-noise mapping: ``clip((1 - q0) / (Q - q0), 1, loop_sigma_scale_max)``, q0 =
+    ``loop_q_floor``. 1 at Q = 1, growing as Q falls toward q0 (information ~ (Q - q0)^2)."""
+    q0 = cfg.loop_q_floor
+    margin = min(float(q), 1.0) - q0
+    if margin <= 0.0:
+        return float(cfg.loop_sigma_scale_max)
+    return float(min(max((1.0 - q0) / margin, 1.0), cfg.loop_sigma_scale_max))
+
+
+def loop_sigmas(cfg: GraphConfig, q: float, verified: bool) -> np.ndarray:
+    """Sigmas (rot rad x3, trans m x3) of a loop factor with similarity ``q``."""
+    if verified:
+        base = [cfg.loop_sigma_rot_rad] * 3 + [cfg.loop_sigma_trans_m] * 3
+    else:
+        base = [cfg.unverified_sigma_rot_rad] * 3 + [cfg.unverified_sigma_trans_m] * 3
+    return loop_sigma_scale(cfg, q) * np.array(base)
+
+
+class PoseGraph:
+    """A thin wrapper over GTSAM so no other module touches the solver.
+
+    ``mode``: "none" (build the graph, keep the initial estimates), "isam2" (incremental update
+    per :meth:`update` call) or "batch" (Levenberg-Marquardt or GNC over the whole graph on
+    :meth:`optimize_batch`). Default ``cfg.refine``. The graph is built in every mode, so
+    :meth:`optimize_batch` and :meth:`save_g2o` always work.
+    """
+
+    def __init__(self, cfg: GraphConfig, mode: str | None = None) -> None:
+        self.cfg = cfg
+        self.mode = cfg.refine if mode is None else mode
+        if self.mode not in MODES:
+            raise SnapsGraphError(f"graph refine mode '{self.mode}': expected one of {', '.join(MODES)}")
+        if cfg.robust_kernel not in KERNELS:
+            raise SnapsGraphError(f"graph.robust_kernel '{cfg.robust_kernel}': expected one of {', '.join(KERNELS)}")
+        if cfg.batch_solver not in BATCH_SOLVERS:
+            raise SnapsGraphError(f"graph.batch_solver '{cfg.batch_solver}': expected one of {', '.join(BATCH_SOLVERS)}")
+        if cfg.isam2_factorization.upper() not in FACTORIZATIONS:
+            raise SnapsGraphError(
+                f"graph.isam2_factorization '{cfg.isam2_factorization}': expected one of {', '.join(FACTORIZATIONS)}"
+            )
+        if not cfg.robust_param > 0:
+            raise SnapsGraphError(f"graph.robust_param must be > 0, got {cfg.robust_param}")
+
+        self.failures: list[tuple[int, str]] = []
+        self.loops: list[LoopFactorInfo] = []
+        self.stats = GraphStats()
+
+        self._initial: list[np.ndarray] = []  # heuristic poses, the initial estimates
+        self._base = gtsam.NonlinearFactorGraph()  # prior + odometry (known inliers)
+        self._loops: list[_Loop] = []
+        self._initial_values = gtsam.Values()
+        # iSAM2 state: pending factors/values since the last update, the solver, cached estimate.
+        self._isam: gtsam.ISAM2 | None = self._new_isam2(cfg.isam2_factorization) if self.mode == "isam2" else None
+        self._isam_disabled = False
+        self._pending_factors = gtsam.NonlinearFactorGraph()
+        self._pending_values = gtsam.Values()
+        self._pending_loops: list[_Loop] = []
+        self._n_in_isam = 0  # frames whose variables are in iSAM2
+        self._estimate_cache: np.ndarray | None = None
+        self._batch_estimate: np.ndarray | None = None
+
+    # ------------------------------------------------------------------ building
+    def __len__(self) -> int:
+        return len(self._initial)
+
+    def add_frame(
+        self,
+        k: int,
+        initial_pose: np.ndarray,
+        T_rel: np.ndarray | None = None,
+        inliers: int = 0,
+        ok: bool = True,
+    ) -> None:
+        """Add frame ``k`` (stream position; must be the next one) with its initial estimate.
+
+        ``initial_pose`` is the heuristic (SNAPS-corrected) T_world_cam. Frame 0 gets a prior at
+        it; frame k > 0 gets BetweenFactorPose3(k-1, k, T_rel) with :func:`odometry_sigmas`.
+        ``T_rel`` None for k > 0 falls back on the relative pose of the two initial estimates.
+        """
+        if k != len(self._initial):
+            raise SnapsGraphError(f"graph: frame key {k} out of order (expected {len(self._initial)})")
+        T = _check_pose(initial_pose, f"graph frame {k} initial pose")
+        pose = _to_pose3(T)
+        if k == 0:
+            sig = np.array([self.cfg.prior_sigma_rot_rad] * 3 + [self.cfg.prior_sigma_trans_m] * 3)
+            factor = gtsam.PriorFactorPose3(0, pose, gtsam.noiseModel.Diagonal.Sigmas(sig))
+            self.stats.n_prior_factors += 1
+        else:
+            if T_rel is None:
+                T_rel = np.linalg.solve(self._initial[k - 1], T)
+            T_rel = _check_pose(T_rel, f"graph frame {k} relative pose")
+            sig = odometry_sigmas(self.cfg, int(inliers), bool(ok))
+            factor = gtsam.BetweenFactorPose3(k - 1, k, _to_pose3(T_rel), gtsam.noiseModel.Diagonal.Sigmas(sig))
+            self.stats.n_odometry_factors += 1
+            self.stats.n_flagged_odometry += int(not ok)
+        # Validated: only now touch the state, so a rejected frame leaves no trace.
+        self._initial.append(T.copy())
+        self._initial_values.insert(k, pose)
+        self._base.add(factor)
+        self.stats.n_frames += 1
+        if self._isam is not None:
+            self._pending_factors.add(factor)
+            self._pending_values.insert(k, pose)
+        self._estimate_cache = None
+
+    def add_loop(self, ref: int, cur: int, q: float, T_ref_cur: np.ndarray | None) -> LoopFactorInfo:
+        """Add a loop factor BetweenFactorPose3(ref, cur) weighted by the UIQI ``q``.
+
+        Verified (``T_ref_cur`` given): the measured relative pose. Unverified: the same-place
+        assumption (zero translation, heuristic relative rotation). Never raises: a loop that
+        cannot be added comes back with ``added=False`` and a ``reason``.
+        """
+        verified = T_ref_cur is not None
+        info = LoopFactorInfo(ref=int(ref), cur=int(cur), q=float(q), added=False, verified=verified)
+        n = len(self._initial)
+        reason = ""
+        if not (0 <= ref < n) or not (0 <= cur < n):
+            reason = f"no variable for key {ref if not 0 <= ref < n else cur} (graph has {n} frames)"
+        elif ref == cur:
+            reason = "loop from a frame to itself"
+        elif not math.isfinite(float(q)):
+            reason = "non-finite similarity Q"
+        elif verified and (np.shape(T_ref_cur) != (4, 4) or not np.all(np.isfinite(T_ref_cur))):
+            reason = "measured relative pose is not a finite 4x4"
+        if reason:
+            info.reason = reason
+            self.stats.n_loops_rejected += 1
+            self.loops.append(info)
+            return info
+
+        if verified:
+            measurement = _to_pose3(np.asarray(T_ref_cur, dtype=float))
+        else:
+            # Same place (paper §III): no translation; rotation as currently estimated.
+            T_ref, T_cur = self._current_pose(ref), self._current_pose(cur)
+            T_meas = np.eye(4)
+            T_meas[:3, :3] = T_ref[:3, :3].T @ T_cur[:3, :3]
+            measurement = _to_pose3(T_meas)
+        sig = loop_sigmas(self.cfg, float(q), verified)
+        loop = _Loop(int(ref), int(cur), measurement, sig)
+        self._loops.append(loop)
+        if self._isam is not None:
+            self._pending_factors.add(self._loop_factor(loop, robust=True))
+            self._pending_loops.append(loop)
+        info.added, info.sigmas = True, sig
+        self.stats.n_loops_added += 1
+        self.stats.n_loops_verified += int(verified)
+        self.loops.append(info)
+        return info
+
+    def _loop_factor(self, loop: _Loop, robust: bool) -> gtsam.BetweenFactorPose3:
+        noise = gtsam.noiseModel.Diagonal.Sigmas(loop.sigmas)
+        if robust and self.cfg.robust_kernel != "none":
+            if self.cfg.robust_kernel == "cauchy":
+                m = gtsam.noiseModel.mEstimator.Cauchy.Create(self.cfg.robust_param)
+            else:
+                m = gtsam.noiseModel.mEstimator.Huber.Create(self.cfg.robust_param)
+            noise = gtsam.noiseModel.Robust.Create(m, noise)
+        return gtsam.BetweenFactorPose3(loop.ref, loop.cur, loop.measurement, noise)
+
+    def _graph(self, robust: bool) -> tuple[gtsam.NonlinearFactorGraph, int]:
+        """Prior + odometry + active loops; returns the graph and the number of base factors
+        (the base factors come first, at indices 0..n_base-1)."""
+        g = gtsam.NonlinearFactorGraph(self._base)
+        for loop in self._loops:
+            if loop.active:
+                g.add(self._loop_factor(loop, robust))
+        return g, self._base.size()
+
+    # ------------------------------------------------------------------ solving
+    def _new_isam2(self, factorization: str) -> gtsam.ISAM2:
+        p = gtsam.ISAM2Params()
+        p.setFactorization(factorization.upper())
+        p.setRelinearizeThreshold(self.cfg.isam2_relinearize_threshold)
+        p.relinearizeSkip = self.cfg.isam2_relinearize_skip
+        return gtsam.ISAM2(p)
+
+    def update(self) -> float:
+        """One iSAM2 update with the factors and values added since the last call; returns its
+        time in ms (0.0 and no work in modes "none" and "batch"). Never raises on a solver
+        failure: see the module docstring for the fallback."""
+        if self._isam is None or (self._pending_factors.size() == 0 and self._pending_values.size() == 0):
+            return 0.0
+        k = len(self._initial) - 1
+        has_loop = bool(self._pending_loops)
+        t0 = time.perf_counter()
+        try:
+            self._isam.update(self._pending_factors, self._pending_values)
+            if has_loop:
+                self._iterate(self.cfg.isam2_loop_iterations)
+            newest = self._isam.calculateEstimatePose3(k).matrix()
+            if not np.all(np.isfinite(newest)):
+                raise RuntimeError("non-finite estimate after update")
+        except RuntimeError as exc:
+            self.failures.append((k, f"isam2 update failed: {_one_line(exc)}"))
+            self._rebuild_isam2(k, self._last_good_estimate())
+        dt = (time.perf_counter() - t0) * 1e3
+        self._pending_factors = gtsam.NonlinearFactorGraph()
+        self._pending_values = gtsam.Values()
+        self._pending_loops = []
+        self._n_in_isam = len(self._initial)
+        self._estimate_cache = None
+        self.stats.n_updates += 1
+        self.stats.update_ms.append(dt)
+        if has_loop:
+            self.stats.loop_update_ms.append(dt)
+        return dt
+
+    def _iterate(self, max_iterations: int) -> None:
+        """Extra empty iSAM2 updates until nothing is relinearised. iSAM2 takes one Gauss-Newton
+        step per update, but a robust loop factor is an IRLS problem whose weight is re-evaluated
+        at each relinearisation, so right after a loop the estimate is not yet converged."""
+        for _ in range(max_iterations):
+            if self._isam.update().getVariablesRelinearized() == 0:
+                break
+
+    def converge(self, max_iterations: int | None = None) -> float:
+        """isam2 mode: flush pending factors, then iterate to convergence (at most
+        ``max_iterations``, default ``isam2_final_iterations``); returns the time in ms. Call it
+        once at the end of a run: online, later frames' updates converge earlier loops anyway,
+        but a loop near the last frame would otherwise stay half-applied. No-op in other modes."""
+        if self._isam is None:
+            return 0.0
+        t0 = time.perf_counter()
+        self.update()
+        if self._isam is None:  # the flush failed and switched iSAM2 off
+            return (time.perf_counter() - t0) * 1e3
+        n = self.cfg.isam2_final_iterations if max_iterations is None else max_iterations
+        try:
+            self._iterate(n)
+            newest = self._isam.calculateEstimatePose3(self._n_in_isam - 1).matrix()
+            if not np.all(np.isfinite(newest)):
+                raise RuntimeError("non-finite estimate after iterating")
+        except RuntimeError as exc:
+            k = self._n_in_isam - 1
+            self.failures.append((k, f"isam2 final iterations failed: {_one_line(exc)}"))
+            self._rebuild_isam2(k, self._last_good_estimate())
+        self._estimate_cache = None
+        return (time.perf_counter() - t0) * 1e3
+
+    def _last_good_estimate(self) -> np.ndarray:
+        """Seed for a rebuild: the failed solver's estimate of the frames it held before the
+        failed update where it is still finite and readable, else the initial poses."""
+        seed = self._initial_array()
+        m = self._n_in_isam
+        if m == 0 or self._isam is None:
+            return seed
+        try:
+            est = _values_to_array(self._isam.calculateEstimate(), None)[:m]
+            if len(est) == m and np.all(np.isfinite(est)):
+                seed[:m] = est
+        except RuntimeError:
+            pass
+        return seed
+
+    def _rebuild_isam2(self, k: int, seed: np.ndarray) -> None:
+        """Fallback after a failed update: drop the loops of the failed update and rebuild iSAM2
+        (QR) from all remaining factors, seeded with the last good estimate. If that fails too,
+        switch iSAM2 off (estimates become the initial poses)."""
+        for loop in self._pending_loops:
+            loop.active = False
+            self.stats.n_loops_dropped += 1
+            self.failures.append((k, f"dropped loop factor {loop.ref}->{loop.cur}"))
+        values = gtsam.Values()
+        for i, T in enumerate(seed):
+            values.insert(i, _to_pose3(T))
+        graph, _ = self._graph(robust=True)
+        try:
+            isam = self._new_isam2("QR")
+            isam.update(graph, values)
+            newest = isam.calculateEstimatePose3(k).matrix()
+            if not np.all(np.isfinite(newest)):
+                raise RuntimeError("non-finite estimate after rebuild")
+            self._isam = isam
+        except RuntimeError as exc:
+            self.failures.append((k, f"isam2 rebuild failed, isam2 off: {_one_line(exc)}"))
+            self._isam = None
+            self._isam_disabled = True
+
+    def optimize_batch(self) -> np.ndarray:
+        """Optimise the whole graph from the initial (heuristic) estimates; returns (N, 4, 4).
+
+        ``batch_solver`` "lm": Levenberg-Marquardt on the graph with robust loop factors.
+        "gnc": GncLMOptimizer on the Gaussian graph, prior and odometry as known inliers and the
+        loop factors as the outlier candidates (GNC supplies its own robust loss, so the loop
+        factors are not wrapped twice). On a solver failure: the initial estimates, and the
+        reason in ``failures``.
+        """
+        if not self._initial:
+            raise SnapsGraphError("graph: optimize_batch on an empty graph")
+        t0 = time.perf_counter()
+        k = len(self._initial) - 1
+        try:
+            lm = gtsam.LevenbergMarquardtParams()
+            lm.setMaxIterations(self.cfg.batch_max_iterations)
+            if self.cfg.batch_solver == "gnc" and any(loop.active for loop in self._loops):
+                graph, n_base = self._graph(robust=False)
+                params = gtsam.GncLMParams(lm)
+                params.setKnownInliers(list(range(n_base)))
+                params.setMaxIterations(self.cfg.batch_max_iterations)
+                opt = gtsam.GncLMOptimizer(graph, self._initial_values, params)
+                opt.setInlierCostThresholdsAtProbability(self.cfg.gnc_inlier_probability)
+                result = opt.optimize()
+                iterations = 0
+            else:
+                graph, _ = self._graph(robust=True)
+                opt = gtsam.LevenbergMarquardtOptimizer(graph, self._initial_values, lm)
+                result = opt.optimize()
+                iterations = opt.iterations()
+            poses = _values_to_array(result, len(self._initial))
+            if not np.all(np.isfinite(poses)):
+                raise RuntimeError("non-finite result")
+        except RuntimeError as exc:
+            self.failures.append((k, f"batch optimisation failed: {_one_line(exc)}"))
+            poses = self._initial_array()
+            iterations = 0
+        self.stats.batch_ms = (time.perf_counter() - t0) * 1e3
+        self.stats.batch_iterations = iterations
+        self._batch_estimate = poses
+        return poses.copy()
+
+    # ------------------------------------------------------------------ results
+    def estimates(self) -> np.ndarray:
+        """Current best estimate (N, 4, 4): isam2 -> latest iSAM2 estimate (frames not yet passed
+        to :meth:`update` keep their initial pose); batch -> the optimised poses once
+        :meth:`optimize_batch` ran; none -> the initial poses. Never NaN."""
+        n = len(self._initial)
+        if n == 0:
+            return np.zeros((0, 4, 4))
+        if self.mode == "batch" and self._batch_estimate is not None and len(self._batch_estimate) == n:
+            return self._batch_estimate.copy()
+        if self._isam is None or self._n_in_isam == 0:
+            return self._initial_array()
+        if self._estimate_cache is None or len(self._estimate_cache) != n:
+            poses = self._initial_array()
+            try:
+                est = _values_to_array(self._isam.calculateEstimate(), self._n_in_isam)
+                poses[: self._n_in_isam] = est
+            except RuntimeError as exc:
+                self.failures.append((n - 1, f"isam2 estimate failed: {_one_line(exc)}"))
+            bad = ~np.all(np.isfinite(poses.reshape(n, -1)), axis=1)
+            for i in np.flatnonzero(bad):
+                self.failures.append((int(i), "non-finite estimate replaced by the initial pose"))
+                poses[i] = self._initial[i]
+            self._estimate_cache = poses
+        return self._estimate_cache.copy()
+
+    def initial_estimates(self) -> np.ndarray:
+        """The initial (heuristic) poses as given to :meth:`add_frame`, (N, 4, 4)."""
+        return self._initial_array()
+
+    def save_g2o(self, path: str | Path) -> None:
+        """Write the graph and the current estimates as a 3D g2o file, atomically.
+
+        writeG2o cannot write Robust noise models, so the file holds a Gaussian copy of the loop
+        factors (same measurement and sigmas, kernel dropped); it skips the prior (g2o fixes
+        vertex 0). Read back with ``gtsam.readG2o(path, True)``.
+        """
+        path = Path(path)
+        if not self._initial:
+            raise SnapsGraphError(f"{path}: cannot write an empty graph")
+        graph, _ = self._graph(robust=False)
+        values = gtsam.Values()
+        for i, T in enumerate(self.estimates()):
+            values.insert(i, _to_pose3(T))
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        os.close(fd)
+        try:
+            gtsam.writeG2o(graph, values, tmp)
+            os.replace(tmp, path)
+        except BaseException:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+            raise
+
+    # ------------------------------------------------------------------ helpers
+    def _initial_array(self) -> np.ndarray:
+        return np.array(self._initial) if self._initial else np.zeros((0, 4, 4))
+
+    def _current_pose(self, k: int) -> np.ndarray:
+        """Best available pose of key k without forcing a full estimate: iSAM2's if k is in it."""
+        if self._isam is not None and k < self._n_in_isam:
+            if self._estimate_cache is not None:
+                return self._estimate_cache[k]
+            try:
+                T = self._isam.calculateEstimatePose3(k).matrix()
+                if np.all(np.isfinite(T)):
+                    return T
+            except RuntimeError:
+                pass
+        if self.mode == "batch" and self._batch_estimate is not None and k < len(self._batch_estimate):
+            return self._batch_estimate[k]
+        return self._initial[k]
+
+
+def _values_to_array(values: gtsam.Values, n: int | None) -> np.ndarray:
+    """Poses of keys 0..n-1 as (n, 4, 4) (n None: all); extractPose3 gives rows [R row-major (9),
+    t (3)] in key order, and our keys are exactly 0..n-1."""
+    flat = gtsam.utilities.extractPose3(values)
+    if n is None:
+        n = flat.shape[0]
+    if flat.shape[0] != n:
+        raise RuntimeError(f"expected {n} poses in the estimate, found {flat.shape[0]}")
+    out = np.zeros((n, 4, 4))
+    out[:, :3, :3] = flat[:, :9].reshape(n, 3, 3)
+    out[:, :3, 3] = flat[:, 9:]
+    out[:, 3, 3] = 1.0
+    return out
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    return (text[:200] + "...") if len(text) > 200 else (text or type(exc).__name__)

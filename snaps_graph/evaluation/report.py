@@ -1,0 +1,543 @@
+"""Heuristic-vs-optimised comparison of one run folder (``snaps-graph compare RUN_DIR [--gt GT]``).
+
+Reads what the pipeline wrote into a run folder and writes, into the same folder:
+
+- ``report.md``: the trajectories table (mean deviation, ATE RMSE, t_rel, r_rel, end drift per
+  trajectory), the per-loop table (UIQI score and its three factors, verification, and the
+  heuristic against the optimised correction at each loop frame), the latency table, and links
+  to the figures;
+- ``trajectories.png`` (top-down, loops drawn on the SNAPS trajectory), ``errors.png`` (position
+  error over frames; only with ground truth), ``latency.png`` (box plots, paper Fig. 5);
+- ``metrics.json``, updated atomically: existing keys are kept; ``trajectories`` (name ->
+  ``metrics.evaluate`` dict, with ground truth), ``paths`` (frames and path length per
+  trajectory), ``latency_ms`` (same shape as the pipeline's: per stage n / median / mean / p95 /
+  max, SNAPS split into frames with and without candidates) and ``loop_corrections`` (one object
+  per loop) are (re)written from the files. A metric that cannot be computed is ``null``.
+
+Inputs, as the pipeline writes them: ``poses_vo.txt`` (required), ``poses_snaps.txt``,
+``poses_isam2.txt``, ``poses_batch.txt`` (each when computed), KITTI format, one line per
+processed frame; ``frames.csv`` (required; absent columns are tolerated, the matching figures
+become n/a); ``loops.jsonl`` (optional: a run without loops may omit it); ``poses_gt.txt`` (when
+the run knew the ground truth) or ``gt_path``; ``config.toml`` (optional: read only for the
+discount offset of eq. 6, default from ``LoopConfig``).
+
+Frame numbering: ``frames.csv``'s ``frame`` column holds the dataset frame index of each row, and
+loops.jsonl's ``frame``/``reference`` are dataset indices; both are mapped to rows through it. A
+ground-truth file with one pose per row is used as is; a longer one (the whole sequence) is
+indexed by the ``frame`` column. The selected ground truth is re-based so that its first row is
+the identity, as the estimates' first rows are (pipeline convention). The estimates are used as
+written, not re-based, so the figures here equal the pipeline's own ``evaluate`` on the same
+poses (a refined trajectory's frame 0 may sit a prior sigma away from the identity, and that
+belongs to its error).
+
+Corrections compared per loop (the point of this report):
+- *SNAPS step* = |Q gamma_0 delta|, the move eq. 6 prescribes for the loop frame itself
+  (s' = 0, gamma_0 = 1 - exp(-discount_offset)), from loops.jsonl's q and delta;
+- *heuristic correction* = |p_snaps - p_vo| at the loop frame: the displacement of that frame's
+  position between the pure VO chain and the SNAPS trajectory (for the first loop it equals the
+  SNAPS step; later loops also carry the earlier loops' corrections, which are composed forward);
+- *optimised correction* = |p_refined - p_vo| at the loop frame, for each of isam2 / batch.
+Measuring both against the same VO positions makes them directly comparable; with ground truth
+the table also gives each trajectory's position error at the loop frame, which says whose
+correction landed closer to the truth.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..config import LoopConfig
+from ..errors import SnapsGraphError
+from ..geometry import inv
+from ..io_utils import atomic_write_text
+from .metrics import evaluate, path_length, position_errors
+from .trajectory import read_kitti_poses, read_poses
+
+TRAJECTORY_NAMES = ("vo", "snaps", "isam2", "batch")  # report order: raw -> heuristic -> optimised
+REFINED_NAMES = ("isam2", "batch")
+TRAJECTORY_LABELS = {
+    "vo": "pure visual odometry",
+    "snaps": "SNAPS heuristic (eq. 6)",
+    "isam2": "iSAM2 (online) refinement",
+    "batch": "batch (offline) refinement",
+}
+BOOL_WORDS = {"true": 1.0, "yes": 1.0, "false": 0.0, "no": 0.0}  # csv cells written from bools
+
+
+# ---------------------------------------------------------------------------------------------
+# Reading the run folder
+# ---------------------------------------------------------------------------------------------
+def _read_frames_csv(path: Path) -> dict[str, np.ndarray]:
+    """Columns of frames.csv as float arrays (empty or unparsable cells -> NaN, booleans -> 0/1)."""
+    if not path.is_file():
+        raise SnapsGraphError(f"{path}: not found (every run writes frames.csv)")
+    with path.open(newline="") as fh:
+        reader = csv.DictReader(fh)
+        if not reader.fieldnames:
+            raise SnapsGraphError(f"{path}: empty file, expected a header row")
+        names = [n.strip() for n in reader.fieldnames]
+        cells: dict[str, list[str]] = {n: [] for n in names}
+        for row in reader:
+            for raw_name, n in zip(reader.fieldnames, names):
+                cells[n].append((row.get(raw_name) or "").strip())
+    return {n: _column(v) for n, v in cells.items()}
+
+
+def _column(values: list[str]) -> np.ndarray:
+    out = np.full(len(values), np.nan)
+    for i, v in enumerate(values):
+        low = v.lower()
+        if low in BOOL_WORDS:
+            out[i] = BOOL_WORDS[low]
+        else:
+            try:
+                out[i] = float(v)
+            except ValueError:
+                pass
+    return out
+
+
+def _frame_ids(cols: dict[str, np.ndarray], n_rows: int, path: Path) -> np.ndarray:
+    if "frame" not in cols:
+        return np.arange(n_rows)
+    f = cols["frame"]
+    if not np.all(np.isfinite(f)) or np.any(f != np.round(f)) or np.any(f < 0):
+        raise SnapsGraphError(f"{path}: the 'frame' column must hold non-negative whole numbers")
+    ids = f.astype(int)
+    if len(np.unique(ids)) != len(ids):
+        raise SnapsGraphError(f"{path}: the 'frame' column repeats a frame index")
+    return ids
+
+
+def _read_trajectories(run: Path) -> dict[str, np.ndarray]:
+    vo_path = run / "poses_vo.txt"
+    if not vo_path.is_file():
+        raise SnapsGraphError(f"{vo_path}: not found (every run writes the VO trajectory)")
+    trajs = {}
+    for name in TRAJECTORY_NAMES:
+        p = run / f"poses_{name}.txt"
+        if p.is_file():
+            trajs[name] = read_kitti_poses(p)
+    n = len(trajs["vo"])
+    for name, poses in trajs.items():
+        if len(poses) != n:
+            raise SnapsGraphError(f"{run / f'poses_{name}.txt'}: {len(poses)} poses, but poses_vo.txt has {n}")
+    return trajs
+
+
+def _rebase(poses: np.ndarray) -> np.ndarray:
+    return np.einsum("ij,njk->nik", inv(poses[0]), poses)
+
+
+def _load_gt(run: Path, gt_path: str | Path | None, frame_ids: np.ndarray) -> tuple[np.ndarray | None, Path | None]:
+    if gt_path is None:
+        p = run / "poses_gt.txt"
+        if not p.is_file():
+            return None, None
+    else:
+        p = Path(gt_path)
+        if not p.is_file():
+            raise SnapsGraphError(f"{p}: ground-truth file not found")
+    gt = read_poses(p)
+    n = len(frame_ids)
+    if len(gt) == n:
+        selected = gt
+    elif frame_ids.max() < len(gt):
+        selected = gt[frame_ids]  # a whole-sequence file: pick the processed frames
+    else:
+        raise SnapsGraphError(
+            f"{p}: {len(gt)} poses cover neither the run's {n} rows nor its dataset frames "
+            f"{frame_ids.min()}..{frame_ids.max()}"
+        )
+    return _rebase(selected), p
+
+
+def _read_loops(path: Path, row_of_frame: dict[int, int]) -> list[dict]:
+    if not path.is_file():
+        return []
+    loops = []
+    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            obj = json.loads(line)
+            frame, ref = int(obj["frame"]), int(obj["reference"])
+        except (json.JSONDecodeError, KeyError, TypeError, ValueError):
+            raise SnapsGraphError(f"{path}:{lineno}: not a loop object with integer 'frame' and 'reference'") from None
+        for key, value in (("frame", frame), ("reference", ref)):
+            if value not in row_of_frame:
+                raise SnapsGraphError(f"{path}:{lineno}: {key} {value} is not a frame of this run (frames.csv)")
+        obj["row"] = row_of_frame[frame]
+        obj["reference_row"] = row_of_frame[ref]
+        loops.append(obj)
+    return loops
+
+
+def _discount_offset(run: Path) -> float:
+    """eq. 6's offset (the 3 in gamma = 1 - exp(-(3 - alpha 0.01 s'))) this run used."""
+    default = LoopConfig().discount_offset
+    p = run / "config.toml"
+    if not p.is_file():
+        return default
+    try:
+        value = tomllib.loads(p.read_text()).get("loop", {}).get("discount_offset", default)
+    except tomllib.TOMLDecodeError as exc:
+        raise SnapsGraphError(f"{p}: malformed TOML ({exc})") from None
+    return float(value)
+
+
+def _read_metrics_json(path: Path) -> dict:
+    if not path.is_file():
+        return {}
+    try:
+        data = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise SnapsGraphError(f"{path}: malformed JSON ({exc.msg} at line {exc.lineno})") from None
+    if not isinstance(data, dict):
+        raise SnapsGraphError(f"{path}: expected a JSON object")
+    return data
+
+
+# ---------------------------------------------------------------------------------------------
+# Summaries
+# ---------------------------------------------------------------------------------------------
+def latency_stats(values: np.ndarray) -> dict:
+    """n / median / mean / p95 / max of the finite samples (ms); ``{"n": 0}`` when there is none.
+
+    The shape of every stage in metrics.json's ``latency_ms`` (the pipeline's too, so one reader
+    serves both).
+    """
+    v = np.asarray(values, float)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return {"n": 0}
+    return {
+        "n": int(v.size),
+        "median": float(np.median(v)),
+        "mean": float(v.mean()),
+        "p95": float(np.percentile(v, 95)),
+        "max": float(v.max()),
+    }
+
+
+def _latency_samples(cols: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Latency samples (ms) per stage, keyed as the pipeline's ``latency_ms``; absent columns absent."""
+    out: dict[str, np.ndarray] = {}
+    if "t_total_ms" in cols:
+        out["total"] = cols["t_total_ms"]
+    if "t_vo_ms" in cols:
+        out["vo"] = cols["t_vo_ms"]
+    if "t_loop_ms" in cols:
+        t = cols["t_loop_ms"]
+        if "loop_candidates" in cols:
+            cand = cols["loop_candidates"]
+            out["loop_no_candidate"] = t[cand == 0]
+            out["loop_with_candidates"] = t[cand > 0]
+        else:
+            out["loop_all"] = t
+        if "loop_closed" in cols:
+            out["loop_closed"] = t[cols["loop_closed"] > 0]
+    if "t_graph_ms" in cols:
+        out["graph"] = cols["t_graph_ms"]
+    return out
+
+
+LATENCY_LABELS = {
+    "total": "total per frame",
+    "vo": "front end (VO)",
+    "loop_no_candidate": "SNAPS, no candidate",
+    "loop_with_candidates": "SNAPS, with candidates",
+    "loop_closed": "SNAPS, loop closed",
+    "loop_all": "SNAPS, all frames",
+    "graph": "graph update",
+}
+
+
+def _latency_summary(samples: dict[str, np.ndarray]) -> dict:
+    out: dict[str, Any] = {k: latency_stats(v) for k, v in samples.items()}
+    total = samples.get("total")
+    if total is not None:
+        t = total[np.isfinite(total)]
+        if t.size and t.sum() > 0:
+            out["frames_per_s"] = float(t.size / (t.sum() / 1e3))
+    return out
+
+
+def latency_summary(columns: dict[str, np.ndarray]) -> dict:
+    """metrics.json's ``latency_ms`` from frames.csv-named columns (t_total_ms, t_vo_ms, t_loop_ms,
+    loop_candidates, loop_closed, t_graph_ms; any may be absent): per stage (total, vo,
+    loop_no_candidate, loop_with_candidates, loop_closed, graph) ``latency_stats``, plus
+    frames_per_s from the total. SNAPS is split by candidates because the paper's Fig. 5 is:
+    microseconds without a candidate, tens of milliseconds with one.
+    """
+    return _latency_summary(_latency_samples({k: np.asarray(v, float) for k, v in columns.items()}))
+
+
+def _loop_corrections(loops: list[dict], trajs: dict[str, np.ndarray], gt: np.ndarray | None, gamma0: float) -> list[dict]:
+    out = []
+    p_vo = trajs["vo"][:, :3, 3]
+    for lp in loops:
+        row = lp["row"]
+        q = lp.get("q")
+        delta = lp.get("delta")
+        step = None
+        if q is not None and delta is not None and len(delta) == 3:
+            step = abs(float(q)) * gamma0 * float(np.linalg.norm(np.asarray(delta, float)))
+        entry: dict[str, Any] = {
+            "frame": int(lp["frame"]),
+            "reference": int(lp["reference"]),
+            "q": lp.get("q"),
+            "correlation": lp.get("correlation"),
+            "luminance": lp.get("luminance"),
+            "contrast": lp.get("contrast"),
+            "verified": lp.get("verified"),
+            "snaps_step_m": step,
+            "heuristic_m": (
+                float(np.linalg.norm(trajs["snaps"][row, :3, 3] - p_vo[row])) if "snaps" in trajs else None
+            ),
+            "optimised_m": {
+                name: float(np.linalg.norm(trajs[name][row, :3, 3] - p_vo[row])) for name in REFINED_NAMES if name in trajs
+            },
+        }
+        if gt is not None:
+            entry["error_m"] = {
+                name: float(np.linalg.norm(poses[row, :3, 3] - gt[row, :3, 3])) for name, poses in trajs.items()
+            }
+        out.append(entry)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Markdown
+# ---------------------------------------------------------------------------------------------
+def _f(value: Any, digits: int) -> str:
+    if value is None or (isinstance(value, float) and not math.isfinite(value)):
+        return "n/a"
+    return f"{float(value):.{digits}f}"
+
+
+def _table(header: list[str], rows: list[list[str]]) -> list[str]:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return lines
+
+
+def _trajectory_lines(trajs: dict, metrics: dict | None, paths: dict) -> list[str]:
+    if metrics is None:
+        header = ["trajectory", "frames", "path length [m]", "end offset from vo [m]"]
+        p_vo_end = trajs["vo"][-1, :3, 3]
+        rows = [
+            [name, str(paths[name]["frames"]), _f(paths[name]["path_length_m"], 3),
+             _f(float(np.linalg.norm(trajs[name][-1, :3, 3] - p_vo_end)), 3)]
+            for name in trajs
+        ]
+        return _table(header, rows)
+    header = ["trajectory", "frames", "mean deviation [m]", "vs vo", "ATE RMSE [m]", "t_rel [%]",
+              "r_rel [deg/100 m]", "end error [m]", "end drift [%]"]
+    md_vo = metrics["vo"]["mean_deviation"]
+    rows = []
+    for name, m in metrics.items():
+        if name == "vo":
+            change = "reference"
+        else:
+            change = "n/a" if md_vo <= 0 else f"{(m['mean_deviation'] - md_vo) / md_vo * 100.0:+.1f}%"
+        rows.append([name, str(m["frames"]), _f(m["mean_deviation"], 3), change, _f(m["ate_rmse"], 3),
+                     _f(m["t_rel"], 3), _f(m["r_rel"], 4), _f(m["end_error_m"], 3), _f(m["end_drift_percent"], 3)])
+    return _table(header, rows)
+
+
+def _loop_lines(corrections: list[dict], trajs: dict, with_gt: bool) -> list[str]:
+    refined = [n for n in REFINED_NAMES if n in trajs]
+    header = ["frame", "reference", "Q", "correlation", "luminance", "contrast", "verified",
+              "SNAPS step [m]", "heuristic [m]"] + [f"optimised {n} [m]" for n in refined]
+    if with_gt:
+        header += [f"error {n} [m]" for n in trajs]
+    rows = []
+    for c in corrections:
+        verified = c["verified"]
+        row = [str(c["frame"]), str(c["reference"]), _f(c["q"], 4), _f(c["correlation"], 4),
+               _f(c["luminance"], 4), _f(c["contrast"], 4),
+               "n/a" if verified is None else ("yes" if verified else "no"),
+               _f(c["snaps_step_m"], 3), _f(c["heuristic_m"], 3)]
+        row += [_f(c["optimised_m"].get(n), 3) for n in refined]
+        if with_gt:
+            row += [_f(c["error_m"][n], 3) for n in trajs]
+        rows.append(row)
+    return _table(header, rows)
+
+
+def _latency_lines(latency: dict) -> list[str]:
+    header = ["stage", "frames", "median [ms]", "mean [ms]", "p95 [ms]", "max [ms]"]
+    rows = []
+    for key, label in LATENCY_LABELS.items():
+        s = latency.get(key)
+        if s is None:
+            continue
+        rows.append([label, str(s["n"]), _f(s.get("median"), 4), _f(s.get("mean"), 4),
+                     _f(s.get("p95"), 4), _f(s.get("max"), 4)])
+    return _table(header, rows)
+
+
+def _summary_lines(metrics: dict | None, corrections: list[dict], trajs: dict) -> list[str]:
+    lines = []
+    if metrics is not None:
+        md_vo = metrics["vo"]["mean_deviation"]
+        for name in trajs:
+            if name == "vo":
+                continue
+            md = metrics[name]["mean_deviation"]
+            change = f" ({(md - md_vo) / md_vo * 100.0:+.1f}%)" if md_vo > 0 else ""
+            lines.append(f"- {name}: mean deviation {md_vo:.3f} m (vo) -> {md:.3f} m{change}.")
+    if corrections:
+        heur = [c["heuristic_m"] for c in corrections if c["heuristic_m"] is not None]
+        if heur:
+            lines.append(f"- Mean heuristic correction at the {len(corrections)} loop frame(s): {np.mean(heur):.3f} m.")
+        for n in REFINED_NAMES:
+            opt = [c["optimised_m"][n] for c in corrections if n in c["optimised_m"]]
+            if opt:
+                lines.append(f"- Mean optimised ({n}) correction at the loop frames: {np.mean(opt):.3f} m.")
+    return lines
+
+
+def _json_clean(obj: Any) -> Any:
+    """NaN/inf -> None and numpy scalars -> Python, so metrics.json is strict JSON."""
+    if isinstance(obj, dict):
+        return {str(k): _json_clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_clean(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _json_clean(obj.tolist())
+    if isinstance(obj, (bool, np.bool_)):
+        return bool(obj)
+    if isinstance(obj, (int, np.integer)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(obj) else None
+    return obj
+
+
+# ---------------------------------------------------------------------------------------------
+# Entry point
+# ---------------------------------------------------------------------------------------------
+def compare_run(run_dir: str | Path, gt_path: str | Path | None = None) -> dict:
+    """Compare a run's trajectories (VO, SNAPS heuristic, iSAM2 / batch) and write the report.
+
+    ``gt_path`` overrides ``RUN_DIR/poses_gt.txt`` (KITTI, or TUM by a ``.tum`` extension; either
+    one pose per run row or the whole sequence, indexed by frames.csv's ``frame``). Without any
+    ground truth the tables carry no error columns and no errors.png is written. Returns the
+    updated metrics.json content. A missing or malformed input raises SnapsGraphError naming
+    the file.
+    """
+    from .plots import plot_errors, plot_latency_box, plot_trajectories
+
+    run = Path(run_dir)
+    if not run.is_dir():
+        raise SnapsGraphError(f"{run}: run folder not found")
+    trajs = _read_trajectories(run)
+    n = len(trajs["vo"])
+    csv_path = run / "frames.csv"
+    cols = _read_frames_csv(csv_path)
+    n_rows = len(next(iter(cols.values())))
+    if n_rows != n:
+        raise SnapsGraphError(f"{csv_path}: {n_rows} rows, but poses_vo.txt has {n} poses")
+    frame_ids = _frame_ids(cols, n, csv_path)
+    row_of_frame = {int(f): i for i, f in enumerate(frame_ids)}
+    gt, gt_file = _load_gt(run, gt_path, frame_ids)
+    loops = _read_loops(run / "loops.jsonl", row_of_frame)
+    offset = _discount_offset(run)
+    gamma0 = 1.0 - math.exp(-offset)  # eq. 6 at s' = 0
+
+    per_traj = {name: evaluate(p, gt) for name, p in trajs.items()} if gt is not None else None
+    paths = {name: {"frames": n, "path_length_m": path_length(p)} for name, p in trajs.items()}
+    samples = _latency_samples(cols)
+    latency = _latency_summary(samples)  # = latency_summary(cols), samples kept for the box plot
+    corrections = _loop_corrections(loops, trajs, gt, gamma0)
+
+    # Figures
+    figures = []
+    plot_trajectories(
+        run / "trajectories.png",
+        ({"gt": gt} if gt is not None else {}) | trajs,
+        loops=[(lp["row"], lp["reference_row"]) for lp in loops],
+        title=f"{run.name}: top-down (x right, z forward)",
+    )
+    figures.append("trajectories.png")
+    if gt is not None:
+        plot_errors(
+            run / "errors.png",
+            {name: position_errors(p, gt) for name, p in trajs.items()},
+            title=f"{run.name}: position error (no alignment)",
+            frames=frame_ids,
+        )
+        figures.append("errors.png")
+    if samples:
+        plot_latency_box(run / "latency.png", {LATENCY_LABELS[k]: v for k, v in samples.items()}, title=f"{run.name}: latency")
+        figures.append("latency.png")
+
+    # report.md
+    md = [f"# Heuristic vs optimised: `{run.name}`", ""]
+    md.append(f"Run folder `{run}`; {n} frames (dataset frames {frame_ids[0]}..{frame_ids[-1]}); "
+              f"{len(loops)} loop(s) closed.")
+    md.append(f"Ground truth: `{gt_file}` (re-based to the first processed frame)." if gt is not None
+              else "Ground truth: none (no poses_gt.txt and no --gt), so no error columns and no errors.png.")
+    md.append("Trajectories: " + "; ".join(f"**{k}** = {TRAJECTORY_LABELS[k]}" for k in trajs) + ".")
+    md += ["", "## Trajectories", ""]
+    md += _trajectory_lines(trajs, per_traj, paths)
+    md.append("")
+    if per_traj is not None:
+        md += [
+            "Mean deviation: mean distance between estimated and true positions, no alignment (the paper's "
+            "figure). ATE RMSE: after SE(3) Umeyama alignment, as `evo_ape kitti GT EST -a` prints it. "
+            "t_rel / r_rel: KITTI devkit segments of 100..800 m every 10th frame (n/a on a path shorter "
+            "than 100 m). End drift: final position error / ground-truth path length.",
+            "",
+        ]
+    md += _summary_lines(per_traj, corrections, trajs)
+    md += ["", "![trajectories](trajectories.png)", ""]
+    if gt is not None:
+        md += ["![position error](errors.png)", ""]
+    md += ["## Loops: heuristic vs optimised corrections", ""]
+    if corrections:
+        md += [
+            f"SNAPS step = |Q gamma_0 delta|, the move eq. 6 applies to the loop frame itself (gamma_0 = "
+            f"1 - exp(-{offset:g}) = {gamma0:.4f}, delta = p_reference - p_frame). "
+            "Heuristic = |p_snaps - p_vo|: how far the loop frame's position moved between the VO chain "
+            "and the SNAPS trajectory (equal to the step for the first loop; later loops also carry the "
+            "earlier corrections). Optimised = |p_refined - p_vo| at the same frame for each refined "
+            "trajectory. Frame numbers are dataset indices. Q = correlation x luminance x contrast (eq. 4-5)."
+            + (" Error columns: each trajectory's position error at the loop frame." if gt is not None else ""),
+            "",
+        ]
+        md += _loop_lines(corrections, trajs, gt is not None)
+    else:
+        md.append("No loop closed in this run" + ("" if (run / "loops.jsonl").is_file() else " (no loops.jsonl)") + ".")
+    md += ["", "## Latency", ""]
+    if samples:
+        md += _latency_lines(latency)
+        fps = latency.get("frames_per_s")
+        md += ["", f"Throughput: {fps:.2f} frames/s (from the total per frame)." if fps else "",
+               "", "![latency](latency.png)"]
+    else:
+        md.append("frames.csv has no timing columns.")
+    md.append("")
+    atomic_write_text(run / "report.md", "\n".join(md))
+
+    # metrics.json: keep what is there, (re)write our keys
+    metrics_path = run / "metrics.json"
+    metrics = _read_metrics_json(metrics_path)
+    if per_traj is not None:
+        metrics["trajectories"] = per_traj
+    metrics["paths"] = paths
+    metrics["latency_ms"] = latency
+    metrics["loop_corrections"] = corrections
+    metrics["report"] = {"markdown": "report.md", "figures": figures}
+    metrics = _json_clean(metrics)
+    atomic_write_text(metrics_path, json.dumps(metrics, indent=2) + "\n")
+    return metrics

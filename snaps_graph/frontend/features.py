@@ -1,0 +1,170 @@
+"""Keypoints, descriptors, matching and tracking on the left image (paper §II-C).
+
+Three ways to get 2D correspondences between two frames, chosen by ``FrontendConfig.mode``:
+- "sift" (the paper's): SIFT keypoints and descriptors (``sift_features``), matched by nearest
+  neighbour with Lowe's ratio test;
+- "orb": the same with ORB (``orb_features``) and Hamming distance;
+- "klt": Shi-Tomasi corners tracked frame to frame with pyramidal Lucas-Kanade, re-detected
+  where tracks ran out. No descriptors are needed for motion; for loop verification the kept
+  corners get ORB descriptors (``orb_at``).
+
+Every function returns plain float32/uint8 numpy arrays and is deterministic for a given input
+(keypoints are put in a fixed order, ties broken by position), so the front end is
+bit-reproducible.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from ..config import FrontendConfig
+
+
+def _kp_arrays(kps, desc) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Keypoints as (uv float32 (N,2), response float32 (N,)) plus descriptors, in a fixed order.
+
+    Sorted by response (strongest first), then by position, so multi-threaded detectors that
+    gather keypoints in a thread-dependent order still give one answer.
+    """
+    if not kps or desc is None:
+        return np.zeros((0, 2), np.float32), np.zeros(0, np.float32), desc
+    uv = np.array([k.pt for k in kps], np.float32)
+    resp = np.array([k.response for k in kps], np.float32)
+    order = np.lexsort((uv[:, 1], uv[:, 0], -resp))
+    return uv[order], resp[order], desc[order]
+
+
+def detect_sift(img: np.ndarray, cfg: FrontendConfig) -> tuple[np.ndarray, np.ndarray]:
+    """SIFT (paper §II-C) on ``img``: (uv float32 (N,2), descriptors float32 (N,128)), N <= sift_features."""
+    sift = cv2.SIFT.create(cfg.sift_features)
+    kps, desc = sift.detectAndCompute(img, None)
+    uv, _, desc = _kp_arrays(kps, desc)
+    if desc is None:
+        desc = np.zeros((0, 128), np.float32)
+    return uv, np.ascontiguousarray(desc, np.float32)
+
+
+def detect_orb(img: np.ndarray, cfg: FrontendConfig) -> tuple[np.ndarray, np.ndarray]:
+    """ORB on ``img``: (uv float32 (N,2), descriptors uint8 (N,32)), N <= orb_features."""
+    orb = cv2.ORB.create(cfg.orb_features)
+    kps, desc = orb.detectAndCompute(img, None)
+    uv, _, desc = _kp_arrays(kps, desc)
+    if desc is None:
+        desc = np.zeros((0, 32), np.uint8)
+    return uv, np.ascontiguousarray(desc, np.uint8)
+
+
+def orb_at(img: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """ORB descriptors at given points: (indices into ``uv`` that got one, descriptors uint8 (M,32)).
+
+    Upright (angle 0) at full resolution: KITTI-like cameras do not roll, and skipping the
+    orientation makes the descriptors of the same place seen again more alike. Points too close
+    to the border for ORB's 31-pixel patch are dropped (hence the indices).
+    """
+    uv = np.asarray(uv, np.float32).reshape(-1, 2)
+    if len(uv) == 0:
+        return np.zeros(0, np.int64), np.zeros((0, 32), np.uint8)
+    kps = [cv2.KeyPoint(float(u), float(v), 31.0, 0.0, 0.0, 0, i) for i, (u, v) in enumerate(uv)]
+    orb = cv2.ORB.create(nfeatures=len(kps), nlevels=1)
+    kept, desc = orb.compute(img, kps)
+    if desc is None or not kept:
+        return np.zeros(0, np.int64), np.zeros((0, 32), np.uint8)
+    idx = np.array([k.class_id for k in kept], np.int64)
+    return idx, np.ascontiguousarray(desc, np.uint8)
+
+
+def match_descriptors(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest-neighbour matches a -> b that pass Lowe's ratio test: (ia, ib) int64 index arrays.
+
+    Binary (uint8) descriptors use Hamming distance (OpenCV's brute-force matcher); float ones
+    use L2, computed as one matrix product |a|² + |b|² - 2 a·b (BLAS), which measured about
+    twice as fast here as OpenCV's brute-force float matcher for 2000 x 2000 SIFT descriptors.
+    The test compares distances (not squared): d1 < ratio · d2.
+    """
+    na, nb = len(desc_a), len(desc_b)
+    if na == 0 or nb < 2:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    if desc_a.dtype == np.uint8:
+        matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+        pairs = matcher.knnMatch(desc_a, desc_b, k=2)
+        ia, ib, d1, d2 = [], [], [], []
+        for p in pairs:
+            if len(p) == 2:
+                ia.append(p[0].queryIdx)
+                ib.append(p[0].trainIdx)
+                d1.append(p[0].distance)
+                d2.append(p[1].distance)
+        ia, ib = np.array(ia, np.int64), np.array(ib, np.int64)
+        keep = np.array(d1, np.float64) < ratio * np.array(d2, np.float64)
+        return ia[keep], ib[keep]
+    a = np.asarray(desc_a, np.float32)
+    b = np.asarray(desc_b, np.float32)
+    d = (b * b).sum(1)[None, :] - 2.0 * (a @ b.T)  # |a|² is constant per row: added below
+    rows = np.arange(na)
+    j1 = np.argmin(d, axis=1)
+    best = d[rows, j1].copy()
+    d[rows, j1] = np.inf
+    second = d.min(axis=1)
+    aa = (a * a).sum(1)
+    d1 = np.sqrt(np.maximum(best + aa, 0.0))
+    d2 = np.sqrt(np.maximum(second + aa, 0.0))
+    keep = d1 < ratio * d2
+    return rows[keep].astype(np.int64), j1[keep].astype(np.int64)
+
+
+def detect_corners(img: np.ndarray, n: int, cfg: FrontendConfig, avoid: np.ndarray | None = None) -> np.ndarray:
+    """Up to ``n`` Shi-Tomasi corners (float32 (N,2)), at least ``klt_min_distance_px`` apart,
+    none within ``klt_border_px`` of the border, none within ``klt_min_distance_px`` of the
+    points ``avoid`` (the tracks that survived, so new corners fill the gaps).
+
+    The exclusion mask is built without a per-point loop: mark the surviving points, then erode.
+    """
+    if n <= 0:
+        return np.zeros((0, 2), np.float32)
+    h, w = img.shape
+    b = cfg.klt_border_px
+    mask = np.zeros((h, w), np.uint8)
+    mask[b : h - b, b : w - b] = 255
+    if avoid is not None and len(avoid):
+        u = np.clip(np.rint(avoid[:, 0]).astype(np.int64), 0, w - 1)
+        v = np.clip(np.rint(avoid[:, 1]).astype(np.int64), 0, h - 1)
+        mask[v, u] = 0
+        r = cfg.klt_min_distance_px
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+        mask = cv2.erode(mask, kernel)
+    pts = cv2.goodFeaturesToTrack(img, n, cfg.klt_quality, cfg.klt_min_distance_px, mask=mask)
+    if pts is None:
+        return np.zeros((0, 2), np.float32)
+    return pts.reshape(-1, 2).astype(np.float32)
+
+
+def track_klt(
+    prev_img: np.ndarray,
+    cur_img: np.ndarray,
+    uv: np.ndarray,
+    cfg: FrontendConfig,
+    guess: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Track points from ``prev_img`` into ``cur_img`` with pyramidal LK.
+
+    ``guess`` (N,2), when given, is where each point is predicted to land (constant-velocity
+    projection of its 3D point); LK then starts there. Returns (uv_cur float32 (N,2), ok bool
+    (N,)): converged, finite and inside the image. Outliers left over are PnP RANSAC's job.
+    """
+    uv = np.ascontiguousarray(uv, np.float32).reshape(-1, 2)
+    if len(uv) == 0:
+        return uv.copy(), np.zeros(0, bool)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
+    init = None if guess is None else np.ascontiguousarray(guess, np.float32).reshape(-1, 1, 2)
+    flags = 0 if guess is None else cv2.OPTFLOW_USE_INITIAL_FLOW
+    p1, st, _ = cv2.calcOpticalFlowPyrLK(
+        prev_img, cur_img, uv.reshape(-1, 1, 2), init,
+        winSize=(cfg.klt_window_px, cfg.klt_window_px), maxLevel=cfg.klt_levels,
+        criteria=crit, flags=flags,
+    )
+    p1 = p1.reshape(-1, 2)
+    h, w = cur_img.shape
+    ok = (st.reshape(-1) == 1) & np.all(np.isfinite(p1), axis=1)
+    ok &= (p1[:, 0] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] <= h - 1)
+    return p1.astype(np.float32), ok

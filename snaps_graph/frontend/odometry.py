@@ -1,0 +1,482 @@
+"""Stereo visual odometry (paper §II-B..D): one interface, three feature modes.
+
+``StereoOdometry.process(frame)`` takes one rectified stereo pair at a time and returns a
+``VOResult`` at once. For every frame N:
+
+1. 2D correspondences between the reference frame (the last frame whose motion was estimated,
+   normally N-1) and frame N: descriptor matching ("sift", the paper's; "orb") or LK tracking
+   ("klt", the fast default).
+2. PnP with RANSAC (paper eq. 3, ``cv2.solvePnPRansac``) from the reference frame's 3D points
+   (eq. 2: keypoint + stereo depth of eq. 1) to frame N's 2D keypoints, then Levenberg-Marquardt
+   refinement on the inliers (``cv2.solvePnPRefineLM``). PnP gives T_cur_ref (it maps reference
+   points into the current camera); the pose is T_world_cur = T_world_ref · inv(T_cur_ref).
+3. Stereo depth of frame N's keypoints, so frame N can be the next reference.
+
+Robustness. A frame is flagged (``ok=False`` with a ``reason``) when its left image is flat or
+black (grey std below ``min_frame_std``), blurred (mean |Laplacian| below
+``min_sharpness_ratio`` times the reference's), when PnP has fewer than ``min_inliers``
+inliers, when the motion is non-finite or implausible (more than ``max_step_m`` /
+``max_step_deg`` per frame), when stereo finds depth at fewer than ``min_stereo_points``
+keypoints (a swapped or broken stereo pair), or when OpenCV raises. A flagged frame's pose
+follows the constant-velocity guess (the last good T_rel). Its features become the new
+reference only if they are usable (sharp, non-flat, enough keypoints with depth); otherwise
+the last good reference stays, and the next frame is tracked against it directly, so the guess
+does not enter the chain: T_world_cur = T_world_ref · T_ref_cur for the reference's pose.
+
+Parallelism. OpenCV releases the GIL, so independent stages of the same frame run in two
+threads (``threads``): in "klt" mode stereo depth of the tracked points (and re-detection)
+runs beside PnP; in "sift"/"orb" dense depth runs beside keypoint detection, and sparse depth
+beside matching + PnP. Each stage's inputs are fixed before it starts and RANSAC is seeded
+(``ransac_seed``) in the thread that runs it, so the output is bit-identical run to run.
+"""
+
+from __future__ import annotations
+
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import cv2
+import numpy as np
+
+from ..camera import StereoCamera
+from ..config import FrontendConfig
+from ..datasets.kitti import StereoFrame
+from ..errors import SnapsGraphError
+from ..geometry import inv, rotation_angle_deg
+from ..types import FrameFeatures, VOResult
+from . import depth as depth_mod
+from . import features as feat
+
+MODES = ("sift", "orb", "klt")
+
+
+def check_frontend_config(cfg: FrontendConfig) -> None:
+    """A one-line SnapsGraphError for a front-end setting that cannot work."""
+    if cfg.mode not in MODES:
+        raise SnapsGraphError(f"frontend.mode: unknown mode '{cfg.mode}' (use one of {', '.join(MODES)})")
+    if cfg.disparity not in depth_mod.DISPARITY_METHODS:
+        raise SnapsGraphError(
+            f"frontend.disparity: unknown method '{cfg.disparity}' (use one of {', '.join(depth_mod.DISPARITY_METHODS)})"
+        )
+    if not 0 < cfg.min_depth_m < cfg.max_depth_m:
+        raise SnapsGraphError(f"frontend: need 0 < min_depth_m < max_depth_m, got {cfg.min_depth_m}, {cfg.max_depth_m}")
+    if not 0 < cfg.ratio_test <= 1:
+        raise SnapsGraphError(f"frontend.ratio_test must be in (0, 1], got {cfg.ratio_test}")
+    if cfg.pnp_reprojection_px <= 0 or cfg.pnp_iterations < 1 or not 0 < cfg.pnp_confidence < 1:
+        raise SnapsGraphError("frontend: pnp_reprojection_px > 0, pnp_iterations >= 1 and 0 < pnp_confidence < 1 are required")
+    if cfg.min_inliers < 6:
+        raise SnapsGraphError(f"frontend.min_inliers must be at least 6 (PnP needs them), got {cfg.min_inliers}")
+    for name in ("stereo_window_px", "klt_window_px"):
+        w = getattr(cfg, name)
+        if w < 3:
+            raise SnapsGraphError(f"frontend.{name} must be at least 3, got {w}")
+    for name in ("sift_features", "orb_features", "klt_features", "loop_features", "threads"):
+        if getattr(cfg, name) < 1:
+            raise SnapsGraphError(f"frontend.{name} must be at least 1, got {getattr(cfg, name)}")
+    if cfg.disparity in depth_mod.DENSE_METHODS:
+        depth_mod._check_dense_config(cfg)
+
+
+def pose_from_rvec(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(np.asarray(rvec, np.float64).reshape(3, 1))[0]
+    T[:3, 3] = np.asarray(tvec, np.float64).reshape(3)
+    return T
+
+
+def pnp_ransac(
+    pts3d: np.ndarray, uv: np.ndarray, camera: StereoCamera, cfg: FrontendConfig
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """PnP RANSAC (eq. 3) then LM refinement on the inliers.
+
+    Returns (T_cur_ref 4x4: maps points given in the reference camera frame into the current
+    camera frame, inlier indices) or None when there are too few points, RANSAC fails or the
+    result is not finite. The RNG is seeded here (``ransac_seed``), in the calling thread,
+    because OpenCV's RNG is per thread.
+    """
+    n = len(pts3d)
+    if n < max(6, cfg.min_inliers):
+        return None
+    obj = np.ascontiguousarray(pts3d, np.float64).reshape(-1, 3)
+    img = np.ascontiguousarray(uv, np.float64).reshape(-1, 2)
+    K = camera.K
+    cv2.setRNGSeed(cfg.ransac_seed)
+    ok, rvec, tvec, inl = cv2.solvePnPRansac(
+        obj, img, K, None,
+        iterationsCount=cfg.pnp_iterations,
+        reprojectionError=cfg.pnp_reprojection_px,
+        confidence=cfg.pnp_confidence,
+        flags=cv2.SOLVEPNP_ITERATIVE,
+    )
+    if not ok or inl is None or len(inl) < 6:
+        return None
+    inl = inl.reshape(-1)
+    rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], K, None, rvec, tvec)
+    T = pose_from_rvec(rvec, tvec)
+    if not np.all(np.isfinite(T)):
+        return None
+    # Inliers of the refined pose (the count reported and used for the flags).
+    proj = obj @ T[:3, :3].T + T[:3, 3]
+    z = proj[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = K[0, 0] * proj[:, 0] / z + K[0, 2]
+        v = K[1, 1] * proj[:, 1] / z + K[1, 2]
+    err = np.hypot(u - img[:, 0], v - img[:, 1])
+    inliers = np.flatnonzero((z > 0) & (err <= cfg.pnp_reprojection_px))
+    return T, inliers
+
+
+def project(T_cur_ref: np.ndarray, pts3d: np.ndarray, camera: StereoCamera) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel positions of reference-frame points seen from the current camera, and their depth."""
+    p = pts3d.astype(np.float64) @ T_cur_ref[:3, :3].T + T_cur_ref[:3, 3]
+    z = p[:, 2]
+    zs = np.where(z > 1e-6, z, 1.0)
+    uv = np.stack([camera.fx * p[:, 0] / zs + camera.cx, camera.fy * p[:, 1] / zs + camera.cy], axis=1)
+    return uv.astype(np.float32), z
+
+
+def sharpness(img: np.ndarray) -> float:
+    """Mean absolute Laplacian (3x3): drops sharply when an image is blurred."""
+    return float(np.mean(np.abs(cv2.Laplacian(img, cv2.CV_16S, ksize=1))))
+
+
+def empty_features(mode: str) -> FrameFeatures:
+    d = np.zeros((0, 128), np.float32) if mode == "sift" else np.zeros((0, 32), np.uint8)
+    return FrameFeatures(np.zeros((0, 2), np.float32), np.zeros((0, 3), np.float32), d)
+
+
+@dataclass
+class _Keyframe:
+    """What a frame leaves for the next one: its keypoints with depth, and the pose it was given."""
+
+    index: int
+    pose: np.ndarray  # T_world_cam (VO chain)
+    left: np.ndarray  # left image (KLT tracks from it)
+    uv: np.ndarray  # (N,2) float32, only keypoints with valid depth
+    pts3d: np.ndarray  # (N,3) float32, camera frame
+    disp: np.ndarray  # (N,) float32 disparity, pixels (the next stereo search starts there)
+    desc: np.ndarray | None  # (N,D) descriptors in sift/orb modes
+    sharpness: float
+    features: FrameFeatures  # for loop verification
+
+
+class _Flag(Exception):
+    """Internal: this frame is flagged for ``reason``; ``usable`` features may be a reference."""
+
+    def __init__(self, reason: str, keyframe: _Keyframe | None = None):
+        super().__init__(reason)
+        self.reason = reason
+        self.keyframe = keyframe
+
+
+class _Inline:
+    """Runs a task at once in the caller's thread (threads = 1), with a Future-like result()."""
+
+    def __init__(self, fn: Callable, *args: Any):
+        try:
+            self._value, self._exc = fn(*args), None
+        except BaseException as exc:  # re-raised by result(), like a Future
+            self._value, self._exc = None, exc
+
+    def result(self) -> Any:
+        if self._exc is not None:
+            raise self._exc
+        return self._value
+
+
+class StereoOdometry:
+    """Streaming stereo VO. ``process`` one ``StereoFrame`` at a time; see the module docstring."""
+
+    def __init__(self, camera: StereoCamera, cfg: FrontendConfig | None = None):
+        self.cfg = cfg or FrontendConfig()
+        check_frontend_config(self.cfg)
+        self.camera = camera
+        self._pool = ThreadPoolExecutor(max_workers=self.cfg.threads - 1) if self.cfg.threads > 1 else None
+        self._ref: _Keyframe | None = None
+        self._pose = np.eye(4)  # pose of the last processed frame
+        self._velocity = np.eye(4)  # T_rel of the last good frame (constant-velocity guess)
+        self._last_ok = False
+        self._n = 0  # frames processed
+
+    # ---- lifecycle ----
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
+
+    def __enter__(self) -> "StereoOdometry":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def _submit(self, fn: Callable, *args: Any) -> Future | _Inline:
+        if self._pool is None:
+            return _Inline(fn, *args)
+        return self._pool.submit(fn, *args)
+
+    # ---- main entry ----
+    def process(self, frame: StereoFrame) -> VOResult:
+        """Estimate the pose of ``frame``; never raises for a bad image, never returns NaN.
+
+        A malformed frame (not 2-D uint8, left/right sizes differ, not the camera's size)
+        is a user error: SnapsGraphError.
+        """
+        t_start = time.perf_counter()
+        left, right = frame.left, frame.right
+        depth_mod.check_stereo_pair(left, right)
+        if self.camera.width and (left.shape[1], left.shape[0]) != (self.camera.width, self.camera.height):
+            raise SnapsGraphError(
+                f"frame {frame.index}: image {left.shape[1]}x{left.shape[0]} differs from the camera's {self.camera.width}x{self.camera.height}"
+            )
+        timings: dict[str, float] = {}
+        first = self._n == 0
+        self._n += 1
+        prev_pose = self._pose
+        result = None
+        try:
+            kf_or_none, T_ref_cur, inliers, matches = self._estimate(frame, first, timings)
+        except _Flag as flag:
+            result = self._flagged(frame, prev_pose, flag.reason, flag.keyframe, timings)
+        except cv2.error as exc:  # OpenCV refusing an odd image: flag, do not crash
+            msg = str(exc).strip().splitlines()[-1] if str(exc).strip() else "error"
+            result = self._flagged(frame, prev_pose, f"OpenCV error: {msg}", None, timings)
+        if result is None:
+            if first:
+                pose = np.eye(4)
+                T_rel = np.eye(4)
+            else:
+                pose = self._ref.pose @ T_ref_cur
+                T_rel = inv(prev_pose) @ pose
+            kf = kf_or_none
+            kf.pose = pose
+            self._ref = kf
+            self._pose = pose
+            if not first:
+                self._velocity = T_rel
+            self._last_ok = True
+            result = VOResult(
+                index=frame.index, T_rel=T_rel, pose=pose, ok=True, inliers=inliers,
+                matches=matches, features=kf.features,
+            )
+        timings["total"] = (time.perf_counter() - t_start) * 1000.0
+        result.timings_ms = timings
+        return result
+
+    def _flagged(self, frame: StereoFrame, prev_pose: np.ndarray, reason: str,
+                 keyframe: _Keyframe | None, timings: dict[str, float]) -> VOResult:
+        T_rel = self._velocity.copy() if self._n > 1 else np.eye(4)
+        pose = prev_pose @ T_rel
+        if not np.all(np.isfinite(pose)):  # cannot happen with finite inputs; belt and braces
+            T_rel, pose = np.eye(4), prev_pose.copy()
+        self._pose = pose
+        self._last_ok = False
+        if keyframe is not None:
+            keyframe.pose = pose
+            self._ref = keyframe
+        feats = keyframe.features if keyframe is not None else empty_features(self.cfg.mode)
+        if self._n == 1:  # the first frame is the origin whatever happens
+            return VOResult(frame.index, np.eye(4), np.eye(4), True, reason="", features=feats)
+        return VOResult(frame.index, T_rel, pose, False, reason=reason, features=feats)
+
+    # ---- estimation ----
+    def _estimate(self, frame: StereoFrame, first: bool, timings: dict[str, float]):
+        """(keyframe of this frame, T_ref_cur, inliers, matches); raises _Flag to flag."""
+        cfg = self.cfg
+        t0 = time.perf_counter()
+        left = frame.left
+        std = float(cv2.meanStdDev(left)[1][0, 0])
+        sharp = sharpness(left)
+        timings["quality"] = (time.perf_counter() - t0) * 1000.0
+        if not std >= cfg.min_frame_std:
+            raise _Flag(f"flat or black image (grey std {std:.2f} < {cfg.min_frame_std})")
+        if self._ref is not None and sharp < cfg.min_sharpness_ratio * self._ref.sharpness:
+            raise _Flag(
+                f"blurred image (sharpness {sharp:.2f} < {cfg.min_sharpness_ratio} x reference {self._ref.sharpness:.2f})"
+            )
+        if cfg.mode == "klt":
+            return self._estimate_klt(frame, first, sharp, timings)
+        return self._estimate_descriptors(frame, first, sharp, timings)
+
+    def _check_motion(self, T_cur_ref: np.ndarray, inliers: int, gap: int) -> np.ndarray:
+        cfg = self.cfg
+        if inliers < cfg.min_inliers:
+            raise _Flag(f"too few PnP inliers ({inliers} < {cfg.min_inliers})")
+        if not np.all(np.isfinite(T_cur_ref)):
+            raise _Flag("non-finite PnP pose")
+        T_ref_cur = inv(T_cur_ref)
+        step = float(np.linalg.norm(T_ref_cur[:3, 3]))
+        angle = rotation_angle_deg(T_ref_cur[:3, :3])
+        if step > cfg.max_step_m * gap or angle > cfg.max_step_deg * gap:
+            raise _Flag(f"implausible motion ({step:.2f} m, {angle:.1f} deg over {gap} frame(s))")
+        return T_ref_cur
+
+    def _make_keyframe(self, frame: StereoFrame, uv: np.ndarray, z: np.ndarray, disp: np.ndarray,
+                       desc: np.ndarray | None, sharp: float, timings: dict[str, float]) -> _Keyframe:
+        """Keep keypoints with valid depth; back-project them (eq. 2); pick the loop features."""
+        cfg = self.cfg
+        valid = z > 0
+        uv, z, disp = uv[valid], z[valid], disp[valid]
+        desc = desc[valid] if desc is not None else None
+        pts3d = self.camera.backproject(uv[:, 0], uv[:, 1], z).astype(np.float32)
+        t0 = time.perf_counter()
+        m = len(uv)
+        # Loop features: an evenly spread subset, strongest-first order where there is one.
+        pick = np.arange(m) if m <= cfg.loop_features else np.linspace(0, m - 1, cfg.loop_features).astype(np.int64)
+        if desc is not None:
+            fdesc = desc[pick]
+        else:
+            keep, fdesc = feat.orb_at(frame.left, uv[pick])
+            pick = pick[keep]
+        features = FrameFeatures(np.ascontiguousarray(uv[pick]), np.ascontiguousarray(pts3d[pick]), np.ascontiguousarray(fdesc))
+        timings["features"] = timings.get("features", 0.0) + (time.perf_counter() - t0) * 1000.0
+        return _Keyframe(frame.index, np.eye(4), frame.left, uv, pts3d, disp, desc, sharp, features)
+
+    def _conclude(self, kf: _Keyframe, T_cur_ref: np.ndarray | None, n_inl: int, gap: int, failure: str):
+        """Flag or accept the frame. Motion problems are reported first; a frame whose own
+        stereo failed (a swapped or broken pair) is flagged even when PnP succeeded, since its
+        depth, and so its next step, cannot be trusted."""
+        usable = len(kf.uv) >= self.cfg.min_stereo_points
+        if T_cur_ref is None:
+            raise _Flag(failure, kf if usable else None)
+        try:
+            T_ref_cur = self._check_motion(T_cur_ref, n_inl, gap)
+        except _Flag as flag:
+            raise _Flag(flag.reason, kf if usable else None) from None
+        if not usable:
+            raise _Flag(f"too few keypoints with stereo depth ({len(kf.uv)} < {self.cfg.min_stereo_points})")
+        return T_ref_cur
+
+    def _prediction(self, gap: int) -> np.ndarray | None:
+        """T_cur_ref predicted by constant velocity, when the last frame was tracked (gap 1)."""
+        if not self._last_ok or gap != 1:
+            return None
+        return inv(self._velocity)
+
+    # -- klt --
+    def _stereo_klt(self, frame: StereoFrame, uv: np.ndarray, guess: np.ndarray | None,
+                    timings: dict[str, float]):
+        """Stereo depth at tracked points; if too few, detect new corners and add theirs."""
+        cfg = self.cfg
+        t0 = time.perf_counter()
+        z, d = depth_mod.sparse_depth(frame.left, frame.right, uv, self.camera, cfg, guess)
+        t1 = time.perf_counter()
+        n_valid = int(np.count_nonzero(z > 0))
+        new_uv = np.zeros((0, 2), np.float32)
+        if n_valid < cfg.klt_min_tracks:
+            new_uv = feat.detect_corners(frame.left, cfg.klt_features - n_valid, cfg, avoid=uv[z > 0])
+        t2 = time.perf_counter()
+        if len(new_uv):
+            z2, d2 = depth_mod.sparse_depth(frame.left, frame.right, new_uv, self.camera, cfg)
+        else:
+            z2, d2 = np.zeros(0, np.float32), np.zeros(0, np.float32)
+        t3 = time.perf_counter()
+        timings["depth"] = (t1 - t0 + t3 - t2) * 1000.0
+        timings["features"] = (t2 - t1) * 1000.0
+        return z, d, new_uv, z2, d2
+
+    def _estimate_klt(self, frame: StereoFrame, first: bool, sharp: float, timings: dict[str, float]):
+        cfg = self.cfg
+        ref = self._ref
+        if first or ref is None:
+            z, d, new_uv, z2, d2 = self._stereo_klt(frame, np.zeros((0, 2), np.float32), None, timings)
+            kf = self._make_keyframe(frame, new_uv, z2, d2, None, sharp, timings)
+            if not first:
+                self._conclude(kf, None, 0, 1, "no reference frame to track from")
+            elif len(kf.uv) < cfg.min_stereo_points:
+                raise _Flag("too few keypoints with stereo depth")
+            return kf, np.eye(4), 0, 0
+        gap = max(1, frame.index - ref.index)
+        t0 = time.perf_counter()
+        pred = self._prediction(gap)
+        guess = None
+        if pred is not None:
+            guess, zp = project(pred, ref.pts3d, self.camera)
+            guess = np.where((zp > 0)[:, None], guess, ref.uv)
+        uv_cur, ok = feat.track_klt(ref.left, frame.left, ref.uv, cfg, guess)
+        timings["match"] = (time.perf_counter() - t0) * 1000.0
+        idx = np.flatnonzero(ok)
+        # Stereo (and re-detection) of the current frame runs beside PnP.
+        stereo = self._submit(self._stereo_klt, frame, uv_cur[idx], ref.disp[idx], timings)
+        t1 = time.perf_counter()
+        pnp = pnp_ransac(ref.pts3d[idx], uv_cur[idx], self.camera, cfg)
+        timings["pnp"] = (time.perf_counter() - t1) * 1000.0
+        z, d, new_uv, z2, d2 = stereo.result()
+        if pnp is None:
+            keep = np.ones(len(idx), bool)
+            T_cur_ref, n_inl = None, 0
+        else:
+            T_cur_ref, inl = pnp
+            n_inl = len(inl)
+            keep = np.zeros(len(idx), bool)
+            keep[inl] = True  # drop PnP outliers: mostly bad tracks
+        uv_next = np.concatenate([uv_cur[idx][keep], new_uv])
+        z_next = np.concatenate([z[keep], z2])
+        d_next = np.concatenate([d[keep], d2])
+        kf = self._make_keyframe(frame, uv_next, z_next, d_next, None, sharp, timings)
+        T_ref_cur = self._conclude(kf, T_cur_ref, n_inl, gap, f"PnP failed ({len(idx)} tracks)")
+        return kf, T_ref_cur, n_inl, len(idx)
+
+    # -- sift / orb --
+    def _detect(self, img: np.ndarray):
+        if self.cfg.mode == "sift":
+            return feat.detect_sift(img, self.cfg)
+        return feat.detect_orb(img, self.cfg)
+
+    def _estimate_descriptors(self, frame: StereoFrame, first: bool, sharp: float, timings: dict[str, float]):
+        cfg = self.cfg
+        cam = self.camera
+        dense = cfg.disparity in depth_mod.DENSE_METHODS
+
+        def dense_task():
+            t = time.perf_counter()
+            dm = depth_mod.dense_disparity(frame.left, frame.right, cfg)
+            return dm, (time.perf_counter() - t) * 1000.0
+
+        t0 = time.perf_counter()
+        dense_future = self._submit(dense_task) if dense else None
+        uv, desc = self._detect(frame.left)
+        timings["features"] = (time.perf_counter() - t0) * 1000.0
+
+        def depth_task():
+            if dense:
+                disp_map, ms = dense_future.result()
+                t = time.perf_counter()
+                disp = depth_mod.sample_depth(disp_map, uv)  # nearest-pixel disparity
+                z = depth_mod.depth_from_disparity(disp, cam, cfg)
+                return z, disp, ms + (time.perf_counter() - t) * 1000.0
+            t = time.perf_counter()
+            z, disp = depth_mod.sparse_depth(frame.left, frame.right, uv, cam, cfg)
+            return z, disp, (time.perf_counter() - t) * 1000.0
+
+        depth_future = dense_future if dense else self._submit(depth_task)
+        ref = self._ref
+        result = None
+        n_matches = 0
+        if not first and ref is not None and ref.desc is not None and len(ref.desc):
+            t1 = time.perf_counter()
+            ia, ib = feat.match_descriptors(ref.desc, desc, cfg.ratio_test)
+            timings["match"] = (time.perf_counter() - t1) * 1000.0
+            n_matches = len(ia)
+            t2 = time.perf_counter()
+            result = pnp_ransac(ref.pts3d[ia], uv[ib], cam, cfg)
+            timings["pnp"] = (time.perf_counter() - t2) * 1000.0
+        if dense:
+            z, disp, timings["depth"] = depth_task()
+        else:
+            z, disp, timings["depth"] = depth_future.result()
+        kf = self._make_keyframe(frame, uv, z, disp, desc, sharp, timings)
+        if first:
+            if len(kf.uv) < cfg.min_stereo_points:
+                raise _Flag("too few keypoints with stereo depth")
+            return kf, np.eye(4), 0, 0
+        if ref is None:
+            self._conclude(kf, None, 0, 1, "no reference frame to match against")
+        gap = max(1, frame.index - ref.index)
+        if result is None:
+            self._conclude(kf, None, 0, gap, f"PnP failed ({n_matches} matches)")
+        T_cur_ref, inl = result
+        T_ref_cur = self._conclude(kf, T_cur_ref, len(inl), gap, "")
+        return kf, T_ref_cur, len(inl), n_matches

@@ -1,0 +1,332 @@
+"""SNAPS: similarity and location-based real-time loop closure (paper §III, eq. 6, Table I).
+
+:class:`SnapsLoopCloser` owns the real-time *heuristic* trajectory. Per frame it
+
+1. composes the VO increment onto the previous heuristic pose (already corrected, so corrections
+   persist into every later frame);
+2. stores the frame's 1/6-scale thumbnail (§III-A);
+3. searches loop candidates (§III-B): earlier frames j with ‖p_j − p_N‖ ≤ radius (current,
+   corrected positions), N − j ≥ frame distance M, |wrap(yaw_j − yaw_N)| ≤ max yaw difference, and
+   only if N − last pinned frame > inter-frame pause; nearest first (ties: older frame first), at
+   most ``attempts`` of them are compared by UIQI (eq. 4) on thumbnails; the loop is the candidate
+   with the highest Q among those with Q ≥ minimum similarity;
+4. on a loop corrects positions with our reading of eq. 6 (SPEC "SNAPS loop closure"): with
+   δ = p_ref − p_N and α the number of loops closed so far (this one included), for
+   s ∈ [N − K, N] (clipped at 0), s' = N − s::
+
+       γ_s = max(0, 1 − exp(−(c − α·r·s')))      c = discount_offset (3), r = discount_rate (0.01)
+       p_s ← p_s + Q·γ_s·δ
+
+   The paper prints x_s^new = Q·γ·δ_x, which would throw every pose near the origin; the additive
+   reading moves the current frame 95 % (γ = 1 − e^-3 at s' = 0, times Q) of the way to the
+   reference and older frames less. γ turns negative once α·r·s' > c, which would push poses away
+   from the reference, so it is clamped at 0. Only positions move (the paper corrects x, y, z);
+   orientations keep their VO values. The current frame becomes the last pinned frame.
+
+Frame numbering. Internally frames are numbered by their position in the processed stream
+(0, 1, ...): M, K and the pause count processed frames. The caller's ``index`` (the dataset's
+frame number, which differs when a frame range is processed) is what :class:`LoopEvent` records in
+``frame`` and ``reference``; :attr:`indices` maps one to the other.
+
+Spatial look-up. A uniform grid hash with cell = radius maps a cell to the frames inside it, so a
+query reads the 27 cells around p_N and checks exact distances only there: the cost does not grow
+with the trajectory, only with the local density of frames. Frame N − M enters the grid when frame
+N arrives (younger frames can never be candidates), and a correction re-files the moved frames that
+are already in the grid, so the index always holds the corrected positions.
+
+Similarity cost. UIQI's per-image window sums are cached per thumbnail (LRU, ``stats_cache_frames``)
+so comparing the current frame with a candidate computes only the cross term; the winner's Q and
+its three factors, reported in the LoopEvent, come from the same exact float64 arithmetic.
+
+Timing. ``t_ms`` covers detection and correction: grid insertion, candidate search, similarities
+(including any window sums computed on a cache miss) and eq. 6, measured with perf_counter. It
+excludes making the thumbnail (a resize of the full image) and composing the pose, which the
+pipeline times as part of the frame.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass
+from time import perf_counter
+
+import numpy as np
+
+from ..config import LoopConfig
+from ..errors import SnapsGraphError
+from ..geometry import wrap_deg, yaw_deg
+from ..types import LoopEvent
+from .uiqi import WindowStats, make_thumbnail, similarity, similarity_q, window_stats
+
+# Grid cell keys are packed into one Python int (mixed radix with balanced digits): unique while
+# every cell coordinate stays within ±2^30 cells.
+_RADIX = 1 << 32
+_NEIGHBOUR_OFFSETS = tuple(
+    (dx * _RADIX + dy) * _RADIX + dz for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)
+)
+
+
+def _cell_key(c: np.ndarray) -> int:
+    return (int(c[0]) * _RADIX + int(c[1])) * _RADIX + int(c[2])
+
+
+@dataclass
+class SnapsStep:
+    """What :meth:`SnapsLoopCloser.step` returns for one frame."""
+
+    pose: np.ndarray  # 4x4 heuristic T_world_cam of this frame, after any correction
+    loop: LoopEvent | None  # the loop closed at this frame, if any
+    candidates: int  # similarities computed on this frame
+    t_ms: float  # detection + correction time (see module docstring)
+
+
+def validate_loop_config(cfg: LoopConfig) -> None:
+    """One-line SnapsGraphError for a LoopConfig that would make SNAPS misbehave."""
+    checks = [
+        (cfg.radius_m > 0, f"loop.radius_m must be > 0, got {cfg.radius_m}"),
+        (cfg.frame_distance >= 1, f"loop.frame_distance must be >= 1, got {cfg.frame_distance}"),
+        (cfg.discount_length >= 0, f"loop.discount_length must be >= 0, got {cfg.discount_length}"),
+        (0 < cfg.min_similarity <= 1, f"loop.min_similarity must be in (0, 1], got {cfg.min_similarity}"),
+        (cfg.inter_frame_pause >= 0, f"loop.inter_frame_pause must be >= 0, got {cfg.inter_frame_pause}"),
+        (cfg.attempts >= 0, f"loop.attempts must be >= 0, got {cfg.attempts}"),
+        (cfg.max_yaw_deg >= 0, f"loop.max_yaw_deg must be >= 0, got {cfg.max_yaw_deg}"),
+        (0 < cfg.thumbnail_scale <= 1, f"loop.thumbnail_scale must be in (0, 1], got {cfg.thumbnail_scale}"),
+        (cfg.window >= 2, f"loop.window must be >= 2, got {cfg.window}"),
+        (cfg.discount_offset > 0, f"loop.discount_offset must be > 0, got {cfg.discount_offset}"),
+        (cfg.discount_rate >= 0, f"loop.discount_rate must be >= 0, got {cfg.discount_rate}"),
+        (cfg.stats_cache_frames >= 0, f"loop.stats_cache_frames must be >= 0, got {cfg.stats_cache_frames}"),
+    ]
+    for ok, msg in checks:
+        if not ok:
+            raise SnapsGraphError(msg)
+
+
+def discount(cfg: LoopConfig, alpha: int, s_prime: np.ndarray) -> np.ndarray:
+    """γ of eq. 6 for offsets s' = N − s, clamped at 0 (see module docstring)."""
+    return np.maximum(0.0, 1.0 - np.exp(-(cfg.discount_offset - alpha * cfg.discount_rate * s_prime)))
+
+
+class SnapsLoopCloser:
+    """Real-time SNAPS loop closer and owner of the heuristic trajectory (no I/O inside)."""
+
+    def __init__(self, cfg: LoopConfig | None = None):
+        self.cfg = cfg if cfg is not None else LoopConfig()
+        validate_loop_config(self.cfg)
+        cap = 1024
+        self._R = np.empty((cap, 3, 3))
+        self._p = np.empty((cap, 3))
+        self._yaw = np.empty(cap)
+        self._index = np.empty(cap, dtype=np.int64)
+        self._cell = np.empty((cap, 3), dtype=np.int64)  # grid cell of each indexed frame
+        self._n = 0  # frames processed
+        self._n_indexed = 0  # frames 0 .. _n_indexed-1 are in the grid
+        self._grid: dict[int, list[int]] = {}
+        self._thumbs: list[np.ndarray] = []
+        self._stats: OrderedDict[int, WindowStats] = OrderedDict()
+        self._last_pinned: int | None = None
+        self._loops: list[LoopEvent] = []
+        self.similarities_computed = 0
+        self.stats_computed = 0
+
+    # ---- accessors ----
+    def __len__(self) -> int:
+        return self._n
+
+    @property
+    def poses(self) -> np.ndarray:
+        """(N, 4, 4) heuristic trajectory T_world_cam (a copy)."""
+        n = self._n
+        out = np.zeros((n, 4, 4))
+        out[:, :3, :3] = self._R[:n]
+        out[:, :3, 3] = self._p[:n]
+        out[:, 3, 3] = 1.0
+        return out
+
+    @property
+    def positions(self) -> np.ndarray:
+        """(N, 3) heuristic positions (a copy)."""
+        return self._p[: self._n].copy()
+
+    @property
+    def indices(self) -> np.ndarray:
+        """(N,) the caller's frame index of each processed frame (stream position -> dataset index)."""
+        return self._index[: self._n].copy()
+
+    @property
+    def loops(self) -> list[LoopEvent]:
+        return list(self._loops)
+
+    @property
+    def last_pinned(self) -> int | None:
+        """Stream position of the last pinned frame (None before the first loop)."""
+        return self._last_pinned
+
+    def thumbnail(self, k: int) -> np.ndarray:
+        """Thumbnail of the frame at stream position ``k`` (uint8 for uint8 input)."""
+        return self._thumbs[k]
+
+    def pose(self, k: int) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, :3] = self._R[k]
+        T[:3, 3] = self._p[k]
+        return T
+
+    # ---- the per-frame step ----
+    def step(self, index: int, T_rel: np.ndarray, left: np.ndarray) -> SnapsStep:
+        """Process one frame: compose the pose, store the thumbnail, detect and close a loop.
+
+        ``T_rel`` is T_prev_cur from the VO (ignored for the first frame, which is the identity);
+        ``left`` is the full left grey image. Raises SnapsGraphError for a non-finite or
+        malformed ``T_rel`` and for an image whose size differs from the first frame's.
+        """
+        n = self._n
+        thumb = make_thumbnail(left, self.cfg.thumbnail_scale)
+        if self._thumbs and thumb.shape != self._thumbs[0].shape:
+            raise SnapsGraphError(
+                f"SNAPS: frame {index}: image size {np.shape(left)[1]}x{np.shape(left)[0]} differs from the first frame's"
+            )
+        if min(thumb.shape) < self.cfg.window:
+            raise SnapsGraphError(
+                f"SNAPS: frame {index}: thumbnail {thumb.shape[1]}x{thumb.shape[0]} is smaller than the UIQI window {self.cfg.window}"
+            )
+        self._grow(n + 1)
+        if n == 0:
+            R, p = np.eye(3), np.zeros(3)
+        else:
+            T = np.asarray(T_rel, dtype=float)
+            if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+                raise SnapsGraphError(f"SNAPS: frame {index}: T_rel must be a finite 4x4 transform")
+            R_prev, p_prev = self._R[n - 1], self._p[n - 1]
+            R = R_prev @ T[:3, :3]
+            p = p_prev + R_prev @ T[:3, 3]
+        self._R[n], self._p[n] = R, p
+        self._yaw[n] = yaw_deg(R)
+        self._index[n] = index
+        self._thumbs.append(thumb)
+        self._n = n + 1
+
+        t0 = perf_counter()
+        if n - self.cfg.frame_distance >= 0:
+            self._insert(n - self.cfg.frame_distance)
+        loop, computed = None, 0
+        if self._last_pinned is None or n - self._last_pinned > self.cfg.inter_frame_pause:
+            ids, dists = self.search(n)
+            ids, dists = ids[: self.cfg.attempts], dists[: self.cfg.attempts]
+            if ids.size:
+                loop, computed = self._try_close(n, ids, dists)
+        t_ms = (perf_counter() - t0) * 1e3
+        if loop is not None:
+            loop.t_ms = t_ms
+        return SnapsStep(pose=self.pose(n), loop=loop, candidates=computed, t_ms=t_ms)
+
+    # ---- candidates ----
+    def search(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """Candidates of stream frame ``n`` by radius, frame distance and yaw, nearest first.
+
+        Ignores the inter-frame pause and the attempts limit (``step`` applies those). Returns
+        (stream positions, distances in metres), sorted by distance, ties by older frame.
+        """
+        cfg = self.cfg
+        p = self._p[n]
+        base = _cell_key(np.floor(p / cfg.radius_m))
+        grid = self._grid
+        found: list[int] = []
+        for off in _NEIGHBOUR_OFFSETS:
+            members = grid.get(base + off)
+            if members:
+                found.extend(members)
+        if not found:
+            return np.empty(0, dtype=np.int64), np.empty(0)
+        ids = np.array(found, dtype=np.int64)
+        ids = ids[ids <= n - cfg.frame_distance]  # the grid holds only these, unless n is in the past
+        d = np.linalg.norm(self._p[ids] - p, axis=1)
+        ok = (d <= cfg.radius_m) & (np.abs(wrap_deg(self._yaw[ids] - self._yaw[n])) <= cfg.max_yaw_deg)
+        ids, d = ids[ok], d[ok]
+        order = np.lexsort((ids, d))
+        return ids[order], d[order]
+
+    def _try_close(self, n: int, ids: np.ndarray, dists: np.ndarray) -> tuple[LoopEvent | None, int]:
+        cur = self._window_stats(n)
+        qs = np.array([similarity_q(cur, self._window_stats(int(j))) for j in ids])
+        self.similarities_computed += len(ids)
+        best = int(np.argmax(qs))  # first maximum = nearest among equal Q
+        if qs[best] < self.cfg.min_similarity:
+            return None, len(ids)
+        ref = int(ids[best])
+        sim = similarity(cur, self._window_stats(ref))  # the winner's factors, same arithmetic
+        delta = self._p[ref] - self._p[n]
+        alpha = len(self._loops) + 1
+        n_corrected = self._correct(n, sim.q, delta, alpha)
+        self._last_pinned = n
+        event = LoopEvent(
+            frame=int(self._index[n]),
+            reference=int(self._index[ref]),
+            distance_m=float(dists[best]),
+            yaw_diff_deg=float(wrap_deg(self._yaw[ref] - self._yaw[n])),
+            q=sim.q,
+            correlation=sim.correlation,
+            luminance=sim.luminance,
+            contrast=sim.contrast,
+            delta=delta.copy(),
+            n_corrected=n_corrected,
+            alpha=alpha,
+            candidates=len(ids),
+            t_ms=0.0,  # set by step() once the frame's detection + correction is over
+        )
+        self._loops.append(event)
+        return event, len(ids)
+
+    # ---- eq. 6 ----
+    def _correct(self, n: int, q: float, delta: np.ndarray, alpha: int) -> int:
+        """Eq. 6 (our reading): p_s += Q·γ_s·δ for s in [N−K, N]; returns how many moved."""
+        lo = max(0, n - self.cfg.discount_length)
+        gamma = discount(self.cfg, alpha, n - np.arange(lo, n + 1, dtype=float))
+        self._p[lo : n + 1] += (q * gamma)[:, None] * delta
+        hi = min(n + 1, self._n_indexed)
+        if hi > lo:  # re-file moved frames that are already in the grid
+            new = np.floor(self._p[lo:hi] / self.cfg.radius_m).astype(np.int64)
+            for k in np.flatnonzero(np.any(new != self._cell[lo:hi], axis=1)):
+                j = lo + int(k)
+                old_key = _cell_key(self._cell[j])
+                members = self._grid[old_key]
+                members.remove(j)
+                if not members:
+                    del self._grid[old_key]
+                self._cell[j] = new[k]
+                self._grid.setdefault(_cell_key(new[k]), []).append(j)
+        return int(np.count_nonzero(gamma > 0.0))
+
+    # ---- storage ----
+    def _insert(self, j: int) -> None:
+        c = np.floor(self._p[j] / self.cfg.radius_m).astype(np.int64)
+        self._cell[j] = c
+        self._grid.setdefault(_cell_key(c), []).append(j)
+        self._n_indexed = j + 1
+
+    def _window_stats(self, k: int) -> WindowStats:
+        cache = self._stats
+        st = cache.get(k)
+        if st is not None:
+            cache.move_to_end(k)
+            return st
+        st = window_stats(self._thumbs[k], self.cfg.window)
+        self.stats_computed += 1
+        if self.cfg.stats_cache_frames > 0:
+            cache[k] = st
+            if len(cache) > self.cfg.stats_cache_frames:
+                cache.popitem(last=False)
+        return st
+
+    def _grow(self, need: int) -> None:
+        cap = len(self._p)
+        if need <= cap:
+            return
+        new_cap = max(need, 2 * cap)
+        for name in ("_R", "_p", "_yaw", "_index", "_cell"):
+            old = getattr(self, name)
+            arr = np.empty((new_cap,) + old.shape[1:], dtype=old.dtype)
+            arr[:cap] = old
+            setattr(self, name, arr)
+
+
+__all__ = ["SnapsLoopCloser", "SnapsStep", "discount", "validate_loop_config"]

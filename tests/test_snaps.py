@@ -1,0 +1,293 @@
+"""SNAPS loop closer: candidate rules, eq. 6 correction, persistence, spatial index.
+
+Fake images are random textures (one per place, identical at a revisit); ``A // 2`` against ``A``
+(even-valued A) has Q = (2·0.5/1.25)² = 0.64 exactly, which gives hand-checkable corrections.
+Thumbnails are taken at scale 1 so the textures are compared as they are.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from snaps_graph.config import LoopConfig
+from snaps_graph.errors import SnapsGraphError
+from snaps_graph.geometry import inv, wrap_deg, yaw_deg
+from snaps_graph.loop import SnapsLoopCloser
+
+SHAPE = (16, 20)
+
+
+def cfg(**kw) -> LoopConfig:
+    base = dict(
+        radius_m=5.5,
+        frame_distance=3,
+        discount_length=4,
+        min_similarity=0.6,
+        inter_frame_pause=2,
+        attempts=5,
+        max_yaw_deg=10.0,
+        thumbnail_scale=1.0,
+        window=4,
+    )
+    base.update(kw)
+    return LoopConfig(**base)
+
+
+def tex(seed: int) -> np.ndarray:
+    """A random texture with even pixel values (so tex // 2 is exact)."""
+    return (2 * np.random.default_rng(1000 + seed).integers(1, 128, SHAPE)).astype(np.uint8)
+
+
+def pose(z: float = 0.0, x: float = 0.0, yaw: float = 0.0) -> np.ndarray:
+    """T_world_cam at (x, 0, z) with heading ``yaw`` degrees about the camera's y axis."""
+    c, s = math.cos(math.radians(yaw)), math.sin(math.radians(yaw))
+    T = np.eye(4)
+    T[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
+    T[0, 3], T[2, 3] = x, z
+    return T
+
+
+def drive(closer: SnapsLoopCloser, poses: list[np.ndarray], images: list[np.ndarray], index0: int = 0, start: int = 0):
+    """Feed frames start.. of a true path (frame 0 = identity) as VO increments; return the steps."""
+    steps = []
+    for k in range(start, len(poses)):
+        T_rel = np.eye(4) if k == 0 else inv(poses[k - 1]) @ poses[k]
+        steps.append(closer.step(index0 + k, T_rel, images[k]))
+    return steps
+
+
+def gamma(alpha: int, s_prime: float) -> float:
+    """Eq. 6's discount with the paper's constants 3 and 0.01, clamped at 0."""
+    return max(0.0, 1.0 - math.exp(-(3.0 - alpha * 0.01 * s_prime)))
+
+
+# ---------------------------------------------------------------- eq. 6
+def test_eq6_known_corrections_alpha_1_and_2_and_persistence():
+    closer = SnapsLoopCloser(cfg())
+    poses = [pose(z=k) for k in range(9)]  # straight ahead, 1 m per frame
+    images = [tex(k) for k in range(9)]
+    images[5] = tex(0) // 2  # frame 5 revisits frame 0 with Q = 0.64
+    images[8] = tex(3) // 2  # frame 8 revisits frame 3 with Q = 0.64
+    steps = drive(closer, poses[:6], images[:6], index0=100)
+
+    ev = steps[5].loop
+    assert ev is not None and (ev.frame, ev.reference) == (105, 100)
+    assert ev.q == pytest.approx(0.64, abs=1e-12) and ev.alpha == 1
+    assert ev.distance_m == pytest.approx(5.0) and ev.n_corrected == 5
+    np.testing.assert_allclose(ev.delta, [0, 0, -5.0], atol=1e-12)
+    # s in [N-K, N] = [1, 5]; p_s.z = s + Q·γ(s')·δz. At s' = 0: 5 - 3.2·(1 - e^-3) = 1.959318618...
+    z = closer.positions[:, 2]
+    assert z[5] == pytest.approx(1.9593186187772, abs=1e-9)
+    for s in range(1, 6):
+        assert z[s] == pytest.approx(s - 0.64 * 5.0 * gamma(1, 5 - s), abs=1e-12)
+    assert z[0] == 0.0  # outside the discount length
+    np.testing.assert_allclose(steps[5].pose[:3, 3], [0, 0, z[5]], atol=1e-12)
+    assert closer.last_pinned == 5
+
+    # Frames 6, 7 compose onto the corrected pose; the pause (2) blocks any search on them.
+    steps += drive(closer, poses[:8], images[:8], index0=100, start=6)
+    assert steps[6].pose[2, 3] == pytest.approx(z[5] + 1.0) and steps[7].pose[2, 3] == pytest.approx(z[5] + 2.0)
+    assert steps[6].candidates == 0 and steps[7].candidates == 0
+    before = closer.positions
+    p8 = before[7] + [0, 0, 1.0]
+
+    # Frame 8: second loop (alpha = 2) against frame 3, found among candidates 5, 4, 0, 3 (nearest first).
+    steps += drive(closer, poses, images, index0=100, start=8)
+    ev2 = steps[8].loop
+    assert ev2 is not None and (ev2.frame, ev2.reference, ev2.alpha) == (108, 103, 2)
+    assert ev2.candidates == 4
+    delta = before[3] - p8
+    np.testing.assert_allclose(ev2.delta, delta, atol=1e-12)
+    after = closer.positions
+    for s in range(4, 9):
+        prev = p8 if s == 8 else before[s]
+        np.testing.assert_allclose(after[s], prev + 0.64 * gamma(2, 8 - s) * delta, atol=1e-12)
+    np.testing.assert_array_equal(after[:4], before[:4])
+    assert [e.frame for e in closer.loops] == [105, 108]
+
+
+def test_gamma_clamped_at_zero_and_orientations_kept():
+    # rate 1.0: γ(s') = 1 - e^-(3 - s') is 0 at s' = 3 and would be negative at s' = 4.
+    closer = SnapsLoopCloser(cfg(discount_rate=1.0))
+    poses = [pose(z=k, yaw=1.0 * k) for k in range(6)]  # yaw 5° apart at the loop
+    images = [tex(k) for k in range(6)]
+    images[5] = tex(0) // 2
+    steps = drive(closer, poses, images)
+    ev = steps[5].loop
+    assert ev is not None and ev.n_corrected == 3
+    assert ev.yaw_diff_deg == pytest.approx(-5.0)
+    moved = closer.positions
+    true = np.array([p[:3, 3] for p in poses])
+    np.testing.assert_allclose(moved[:3], true[:3], atol=1e-12)  # s' = 5 (outside K), 4 (clamped), 3 (γ = 0)
+    np.testing.assert_allclose(moved[5], true[5] + 0.64 * (1 - math.exp(-3)) * ev.delta, atol=1e-12)
+    R_true = np.array([p[:3, :3] for p in poses])
+    np.testing.assert_allclose(closer.poses[:, :3, :3], R_true, atol=1e-12)
+
+
+# ---------------------------------------------------------------- candidate rules
+def far_path(last: np.ndarray, n_before: int = 5) -> list[np.ndarray]:
+    """Frames 0..n_before-1 40 m apart along x, then ``last``."""
+    return [pose(x=40.0 * k) for k in range(n_before)] + [last]
+
+
+@pytest.mark.parametrize("z, found", [(5.4, True), (5.6, False)])
+def test_radius(z, found):
+    closer = SnapsLoopCloser(cfg())
+    images = [tex(k) for k in range(5)] + [tex(0)]
+    steps = drive(closer, far_path(pose(z=z)), images)
+    assert (steps[5].loop is not None) == found
+    assert steps[5].candidates == (1 if found else 0)
+
+
+@pytest.mark.parametrize("revisit, found", [(2, True), (3, False)])
+def test_frame_distance(revisit, found):
+    closer = SnapsLoopCloser(cfg())
+    poses = [pose(z=0.1 * k) for k in range(6)]  # all frames within the radius
+    images = [tex(k) for k in range(5)] + [tex(revisit)]
+    steps = drive(closer, poses, images)
+    assert steps[5].candidates == 3  # frames 0, 1, 2 (N - j >= 3)
+    assert (steps[5].loop is not None) == found
+    if found:
+        assert steps[5].loop.reference == 2
+
+
+@pytest.mark.parametrize(
+    "yaw_ref, yaw_cur, found",
+    [(0.0, 9.9, True), (0.0, 10.1, False), (0.0, -10.1, False), (179.0, -179.0, True), (175.0, -174.0, False)],
+)
+def test_yaw_difference_with_wraparound(yaw_ref, yaw_cur, found):
+    closer = SnapsLoopCloser(cfg())
+    # Frame 1 is the reference place (heading yaw_ref); frame 6 comes back to it heading yaw_cur.
+    poses = [pose(), pose(x=100.0, yaw=yaw_ref)] + [pose(x=40.0 * k + 200) for k in range(4)]
+    poses.append(pose(x=101.0, yaw=yaw_cur))
+    images = [tex(k) for k in range(6)] + [tex(1)]
+    steps = drive(closer, poses, images)
+    assert (steps[6].loop is not None) == found
+    assert steps[6].candidates == (1 if found else 0)
+    if found:
+        assert steps[6].loop.yaw_diff_deg == pytest.approx(wrap_deg(yaw_ref - yaw_cur))
+        assert abs(yaw_deg(closer.poses[6]) - yaw_cur) < 1e-9
+
+
+def test_inter_frame_pause():
+    closer = SnapsLoopCloser(cfg())
+    # 0..4 20 m apart; 5 back at frame 0; 6, 7, 8 stand at frame 1's place and look like it.
+    poses = [pose(z=20.0 * k) for k in range(5)] + [pose(z=1.0)] + [pose(z=21.0)] * 3
+    images = [tex(k) for k in range(5)] + [tex(0)] + [tex(1)] * 3
+    steps = drive(closer, poses, images)
+    assert steps[5].loop is not None and steps[5].loop.reference == 0
+    assert steps[6].candidates == 0 and steps[7].candidates == 0  # N - 5 <= 2: no search
+    assert steps[7].loop is None
+    assert steps[8].loop is not None and steps[8].loop.reference == 1  # 8 - 5 > 2
+    assert closer.last_pinned == 8
+
+
+@pytest.mark.parametrize("attempts, found", [(2, False), (3, True)])
+def test_attempts_limit_nearest_first(attempts, found):
+    closer = SnapsLoopCloser(cfg(attempts=attempts))
+    # Frame 5 at z = 3 looks like frame 0 (3 m away), the third nearest after frames 2 (1 m) and 1 (2 m).
+    poses = [pose(z=0.0), pose(z=1.0), pose(z=2.0), pose(z=50.0), pose(z=60.0), pose(z=3.0)]
+    images = [tex(k) for k in range(5)] + [tex(0)]
+    steps = drive(closer, poses, images)
+    assert steps[5].candidates == attempts
+    assert (steps[5].loop is not None) == found
+    if found:
+        assert steps[5].loop.reference == 0 and steps[5].loop.distance_m == pytest.approx(3.0)
+    else:  # nothing corrected: the full candidate list is still the one step() saw
+        ids, d = closer.search(5)
+        np.testing.assert_array_equal(ids, [2, 1, 0])
+        np.testing.assert_allclose(d, [1.0, 2.0, 3.0])
+
+
+def test_highest_q_wins_over_nearest():
+    closer = SnapsLoopCloser(cfg())
+    A = tex(0)
+    poses = [pose(z=0.0), pose(z=2.0), pose(z=50.0), pose(z=60.0), pose(z=70.0), pose(z=3.0)]
+    images = [A, A // 2, tex(2), tex(3), tex(4), A]  # frame 1 (nearer): Q = 0.64; frame 0: Q = 1
+    ev = drive(closer, poses, images)[5].loop
+    assert ev is not None and ev.reference == 0 and ev.q == pytest.approx(1.0)
+    assert ev.candidates == 2
+
+
+def test_below_min_similarity_no_loop():
+    closer = SnapsLoopCloser(cfg(min_similarity=0.7))
+    poses = far_path(pose(z=1.0))
+    images = [tex(k) for k in range(5)] + [tex(0) // 2]  # Q = 0.64 < 0.7
+    steps = drive(closer, poses, images)
+    assert steps[5].loop is None and steps[5].candidates == 1
+    np.testing.assert_allclose(steps[5].pose[:3, 3], [0, 0, 1.0], atol=1e-12)
+    assert closer.loops == [] and closer.last_pinned is None
+
+
+# ---------------------------------------------------------------- spatial index
+def brute_force(closer: SnapsLoopCloser, n: int) -> np.ndarray:
+    c = closer.cfg
+    P, yaw = closer.positions, yaw_deg(closer.poses)
+    j = np.arange(n + 1 - c.frame_distance)
+    d = np.linalg.norm(P[j] - P[n], axis=1)
+    ok = (d <= c.radius_m) & (np.abs(wrap_deg(yaw[j] - yaw[n])) <= c.max_yaw_deg)
+    j, d = j[ok], d[ok]
+    return j[np.lexsort((j, d))]
+
+
+def test_spatial_index_tracks_corrected_positions():
+    # A drifting loop driven 4 times: images keyed by the true 4 m cell, so revisits close loops,
+    # and K > M so corrections move frames that are already in the grid.
+    c = cfg(radius_m=3.0, frame_distance=5, discount_length=40, inter_frame_pause=3, max_yaw_deg=30.0, min_similarity=0.9)
+    closer = SnapsLoopCloser(c)
+    rng = np.random.default_rng(9)
+    n = 160
+    theta = np.linspace(0, 8 * np.pi, n)  # 4 laps of a 12 m radius circle
+    poses = [pose(x=12 * math.sin(t) + 0.02 * k, z=12 * (1 - math.cos(t)), yaw=math.degrees(t)) for k, t in enumerate(theta)]
+    poses[0] = np.eye(4)
+    textures: dict[tuple[int, int], np.ndarray] = {}
+    moved_cells = 0
+    for k in range(n):
+        P = poses[k][:3, 3]
+        key = (int(np.floor(P[0] / 4)), int(np.floor(P[2] / 4)))
+        if key not in textures:
+            textures[key] = tex(len(textures) + 50)
+        img = np.clip(textures[key].astype(int) + rng.integers(-3, 4, SHAPE), 0, 255).astype(np.uint8)
+        T_rel = np.eye(4) if k == 0 else inv(poses[k - 1]) @ poses[k]
+        T_rel[:3, 3] *= 1.03  # VO scale drift
+        before = closer.positions
+        step = closer.step(k, T_rel, img)
+        if step.loop is not None:
+            j = np.arange(max(0, k - c.discount_length), k - c.frame_distance + 1)
+            after = closer.positions
+            moved_cells += int(np.any(np.floor(before[j] / 3.0) != np.floor(after[j] / 3.0), axis=1).sum())
+        np.testing.assert_array_equal(closer.search(k)[0], brute_force(closer, k))
+    assert len(closer.loops) >= 3
+    assert moved_cells > 0  # the index really had to re-file frames
+
+
+# ---------------------------------------------------------------- bad input
+def test_bad_input_errors():
+    closer = SnapsLoopCloser(cfg())
+    closer.step(0, np.eye(4), tex(0))
+    bad = np.eye(4)
+    bad[0, 3] = np.nan
+    with pytest.raises(SnapsGraphError, match="finite 4x4"):
+        closer.step(1, bad, tex(1))
+    with pytest.raises(SnapsGraphError, match="finite 4x4"):
+        closer.step(1, np.eye(3), tex(1))
+    with pytest.raises(SnapsGraphError, match="differs"):
+        closer.step(1, np.eye(4), np.zeros((16, 22), np.uint8))
+    assert len(closer) == 1 and np.all(np.isfinite(closer.poses))
+    with pytest.raises(SnapsGraphError, match="radius_m"):
+        SnapsLoopCloser(dataclasses.replace(cfg(), radius_m=0.0))
+    with pytest.raises(SnapsGraphError, match="min_similarity"):
+        SnapsLoopCloser(dataclasses.replace(cfg(), min_similarity=0.0))
+
+
+def test_default_thumbnail_scale_on_full_size_frames():
+    closer = SnapsLoopCloser(LoopConfig())
+    img = np.random.default_rng(0).integers(0, 256, (376, 1241), dtype=np.uint8)
+    s = closer.step(7, np.eye(4), img)
+    assert closer.thumbnail(0).shape == (63, 207) and closer.thumbnail(0).dtype == np.uint8
+    np.testing.assert_array_equal(s.pose, np.eye(4))
+    assert closer.indices.tolist() == [7]
