@@ -147,6 +147,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--false-fraction", type=float, nargs="+", default=[0.05, 0.25],
                     help="false loops as a fraction of the true ones (one batch run each)")
     ap.add_argument("--skip-isam2", action="store_true")
+    ap.add_argument("--gnc", action="store_true", help="also run the GNC batch solver")
     args = ap.parse_args(argv)
 
     if not args.gt.is_file():
@@ -171,14 +172,16 @@ def main(argv: list[str] | None = None) -> int:
     rows = [("VO chain (initial)", chain)]
     if not args.skip_isam2:
         g, frame_ms, loop_ms = build("isam2", cfg, rel, chain, loops, online=True)
-        est = g.estimates()
-        rows.append(("iSAM2", est))
+        rows.append(("iSAM2 online", g.estimates()))
+        t_conv = g.converge()
+        rows.append(("iSAM2 + converge()", g.estimates()))
         fm = np.array(frame_ms)
         print(f"iSAM2 update per frame: median {np.median(fm):.2f} ms, p95 {np.percentile(fm, 95):.2f} ms, "
               f"max {fm.max():.1f} ms ({len(fm)} frames)")
         if loop_ms:
             print(f"iSAM2 loop-closing update: median {np.median(loop_ms):.1f} ms, max {max(loop_ms):.1f} ms "
                   f"({len(loop_ms)} loop frames)")
+        print(f"iSAM2 converge() at the end: {t_conv:.1f} ms")
         if g.failures:
             print(f"iSAM2 failures: {len(g.failures)} (first: {g.failures[0]})")
 
@@ -191,6 +194,10 @@ def main(argv: list[str] | None = None) -> int:
           f"optimise, {gb.stats.batch_iterations} iterations (graph build {t_build:.2f} s)")
     if gb.failures:
         print(f"batch failures: {gb.failures}")
+    if args.gnc:
+        gg, _, _ = build("batch", GraphConfig(batch_solver="gnc"), rel, chain, loops, online=False)
+        rows.append(("batch GNC", gg.optimize_batch()))
+        print(f"batch (gnc): {gg.stats.batch_ms / 1e3:.2f} s optimise")
 
     print(f"{'trajectory':22s} {'mean dev (m)':>12s} {'ATE RMSE (m)':>12s}")
     for name, poses in rows:

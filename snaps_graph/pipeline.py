@@ -132,7 +132,6 @@ class SlamPipeline:
         self._k_of_frame: dict[int, int] = {}
         self._timestamps: list[float] = []
         self._vo_poses: list[np.ndarray] = []
-        self._heuristic: list[np.ndarray] = []
         self.loops: list[LoopEvent] = []
         self.rows: list[dict] = []
         self._t_start = time.perf_counter()
@@ -161,7 +160,6 @@ class SlamPipeline:
             loop, candidates, t_loop_ms = step.loop, step.candidates, step.t_ms
         else:
             heuristic = vo.pose
-        self._heuristic.append(heuristic)
 
         tg = time.perf_counter()
         self.graph.add_frame(k, heuristic, None if k == 0 else vo.T_rel, inliers=vo.inliers, ok=vo.ok)
@@ -237,7 +235,9 @@ class SlamPipeline:
     def finish(self) -> RunResult:
         trajs: dict[str, np.ndarray] = {"vo": np.array(self._vo_poses)}
         if self.snaps is not None:
-            trajs["snaps"] = np.array(self._heuristic)
+            # The loop closer's trajectory, with every eq. 6 correction applied (a pose stored at
+            # its arrival would miss the corrections of later loops).
+            trajs["snaps"] = self.snaps.poses
         if self.refine == "isam2":
             trajs["isam2"] = self.graph.estimates()
         elif self.refine == "batch":
@@ -274,7 +274,7 @@ class SlamPipeline:
             result.graph_failures.append((-1, f"graph.g2o not written: {exc}"))
 
         metrics = run_metrics(result, gt_poses)
-        atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2, default=_json_default) + "\n")
+        atomic_write_text(out / "metrics.json", _json_text(metrics))
 
         if self.map is not None and len(self.map) > 0:
             name = self._map_trajectory_name(result)
@@ -284,7 +284,7 @@ class SlamPipeline:
                 trajs = {"gt": gt_poses, **trajs}
             self.map.render_topdown_png(out / "map.png", result.trajectories[name], trajs)
             metrics["map"] = {"trajectory": name, "keyframes": len(self.map), "bytes": self.map.memory_bytes()}
-            atomic_write_text(out / "metrics.json", json.dumps(metrics, indent=2, default=_json_default) + "\n")
+            atomic_write_text(out / "metrics.json", _json_text(metrics))
         return metrics
 
     def _map_trajectory_name(self, result: RunResult) -> str:
@@ -313,30 +313,11 @@ def run_metrics(result: RunResult, gt_poses: np.ndarray | None) -> dict:
 
 
 def latency_summary(rows: list[dict]) -> dict:
-    def stats(values: Iterable[float]) -> dict:
-        v = np.asarray(list(values), float)
-        if v.size == 0:
-            return {"n": 0}
-        return {
-            "n": int(v.size),
-            "median": float(np.median(v)),
-            "mean": float(v.mean()),
-            "p95": float(np.percentile(v, 95)),
-            "max": float(v.max()),
-        }
+    """metrics.json's ``latency_ms`` from the per-frame rows (one implementation: the report's)."""
+    from .evaluation.report import latency_summary as _summary
 
-    out = {
-        "total": stats(r["t_total_ms"] for r in rows),
-        "vo": stats(r["t_vo_ms"] for r in rows),
-        "graph": stats(r["t_graph_ms"] for r in rows),
-        "loop_no_candidate": stats(r["t_loop_ms"] for r in rows if r["loop_candidates"] == 0),
-        "loop_with_candidates": stats(r["t_loop_ms"] for r in rows if r["loop_candidates"] > 0),
-        "loop_closed": stats(r["t_loop_ms"] for r in rows if r["loop_closed"]),
-    }
-    fps = [1e3 / r["t_total_ms"] for r in rows if r["t_total_ms"] > 0]
-    if rows:
-        out["frames_per_s"] = float(len(rows) / (sum(r["t_total_ms"] for r in rows) / 1e3))
-    return out
+    cols = ("t_total_ms", "t_vo_ms", "t_loop_ms", "loop_candidates", "loop_closed", "t_graph_ms")
+    return _summary({c: np.array([r[c] for r in rows], float) for c in cols})
 
 
 def _rows_csv(rows: list[dict]) -> str:
@@ -346,6 +327,13 @@ def _rows_csv(rows: list[dict]) -> str:
     for r in rows:
         w.writerow({k: (f"{v:.4f}" if isinstance(v, float) and k != "timestamp" else v) for k, v in r.items()})
     return buf.getvalue()
+
+
+def _json_text(obj) -> str:
+    """Strict JSON: a metric that cannot be computed (NaN) is written as null."""
+    from .evaluation.report import _json_clean
+
+    return json.dumps(_json_clean(obj), indent=2, default=_json_default) + "\n"
 
 
 def _json_default(o):

@@ -206,9 +206,9 @@ def test_outlier_loop_under_robust_kernel_moves_little(solver):
             assert not g.failures
         moved[kernel] = float(np.max(np.linalg.norm(results[0][:, :3, 3] - results[1][:, :3, 3], axis=1)))
     if solver == "lm":
-        # Measured: Cauchy moves the result by ~0.06 m, no kernel by ~4.7 m.
-        assert moved["none"] > 3.0
-        assert moved["cauchy"] < 0.05 * moved["none"]
+        # Measured: Cauchy moves the result by 0.006 m, no kernel by 9.9 m.
+        assert moved["none"] > 5.0
+        assert moved["cauchy"] < 0.01 * moved["none"]
     else:
         # GNC rejects the outlier by itself (robust_kernel is not used by GNC).
         assert moved["cauchy"] < 0.05 and moved["none"] < 0.05
@@ -221,8 +221,10 @@ def test_isam2_outlier_loop_moves_little():
     for loops in ([true], [true, false]):
         g = PoseGraph(GraphConfig(), mode="isam2")
         feed(g, rel, init, loops, online=True)
+        g.converge()
         res.append(g.estimates())
-    assert np.max(np.linalg.norm(res[0][:, :3, 3] - res[1][:, :3, 3], axis=1)) < 0.3
+    # Measured 0.007 m (batch LM without a kernel: 9.9 m).
+    assert np.max(np.linalg.norm(res[0][:, :3, 3] - res[1][:, :3, 3], axis=1)) < 0.05
 
 
 def test_g2o_written_and_readable(tmp_path):

@@ -25,13 +25,13 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ._world import BACKDROP, FACADE, GROUND, ROOF, SKY, World
+from ._world import BACKDROP, FACADE, GROUND, SKY, World
 
 TILE = 256  # noise tile side, cells
 # (scale m per tile cell, relative amplitude): incommensurate scales, from 4 cm grain to 9 m blotches
 OCTAVES = ((0.043, 0.45), (0.13, 0.5), (0.41, 0.55), (1.37, 0.6), (3.9, 0.55), (9.1, 0.5))
 SUN_DIR = np.array([0.45, -0.75, 0.48])  # towards the sun, world axes (y down): high, front-right
-SUN_DIR = SUN_DIR / np.linalg.norm(SUN_DIR)
+SUN_DIR = (SUN_DIR / np.linalg.norm(SUN_DIR)).astype(np.float32)
 AMBIENT, DIFFUSE = 0.55, 0.5
 HAZE_M = 350.0  # haze reaches 63 % at this distance
 HORIZON = 0.78  # haze / horizon brightness (0..1)
@@ -66,18 +66,32 @@ class NoiseBank:
         inv = np.float32(1.0 / TILE)
         mx = (x - np.floor(x * inv) * np.float32(TILE)).astype(np.float32, copy=False)
         my = (y - np.floor(y * inv) * np.float32(TILE)).astype(np.float32, copy=False)
+        # remap wants 2-D maps; a flat array is one row (remap limits rows to < 32768 columns)
+        shape = mx.shape
+        if mx.ndim == 1:
+            cols = 1024
+            pad = (-mx.size) % cols
+            if pad:
+                mx, my = np.concatenate([mx, np.zeros(pad, np.float32)]), np.concatenate([my, np.zeros(pad, np.float32)])
+            out = cv2.remap(tile, mx.reshape(-1, cols), my.reshape(-1, cols), cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+            return out.reshape(-1)[: shape[0]]
         return cv2.remap(tile, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
 
-    def fbm(self, tu: np.ndarray, tv: np.ndarray, footprint: np.ndarray) -> np.ndarray:
-        """Sum of octaves at texture coordinates (m); octaves finer than ~2 px fade out."""
-        out = np.zeros(tu.shape, np.float32)
+    def fbm(self, tu: np.ndarray, tv: np.ndarray, inv_fp: np.ndarray) -> np.ndarray:
+        """Sum of octaves at texture coordinates (m); ``inv_fp`` is pixels per metre at the hit.
+
+        Blurred-noise features are ~3 cells wide, so an octave has full weight when a cell spans
+        >= 4/3 px and none below 2/3 px (it would only alias).
+        """
+        f32 = np.float32
+        out = np.zeros(tu.shape, f32)
         for (scale, amp), tile, (c, s) in zip(OCTAVES, self.tiles, self.rot):
-            inv = np.float32(1.0 / scale)
-            x = (tu * c - tv * s) * inv
-            y = (tu * s + tv * c) * inv
-            # blurred-noise features are ~3 cells wide: full weight at >= 4 px, none at <= 2 px
-            w = np.clip(np.float32(1.5 * scale) / footprint - np.float32(1.0), 0.0, 1.0)
-            out += np.float32(amp) * w * self.sample(tile, x, y)
+            inv = f32(1.0 / scale)
+            x = (tu * (c * inv) - tv * (s * inv))
+            y = (tu * (s * inv) + tv * (c * inv))
+            w = np.clip(inv_fp * f32(1.5 * scale) - f32(1.0), f32(0.0), f32(1.0))
+            w *= f32(amp)
+            out += w * self.sample(tile, x, y).reshape(-1)
         return out
 
 
@@ -94,133 +108,151 @@ def _hash(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
     return (h >> np.uint32(8)).astype(np.float32) * np.float32(1.0 / (1 << 24))
 
 
-def _edge(dist_inside: np.ndarray, footprint: np.ndarray) -> np.ndarray:
-    """Anti-aliased step: 1 well inside a shape, 0 outside, a one-pixel ramp at its edge."""
-    return np.clip(dist_inside / footprint + np.float32(0.5), 0.0, 1.0)
+def _edge(dist_inside: np.ndarray, inv_fp: np.ndarray) -> np.ndarray:
+    """Anti-aliased step: 1 well inside a shape, 0 outside, a one-pixel ramp at its edge
+    (``dist_inside`` in metres, ``inv_fp`` pixels per metre at the hit)."""
+    return np.clip(dist_inside * inv_fp + np.float32(0.5), np.float32(0.0), np.float32(1.0))
 
 
 class Renderer:
-    """Casts a camera's rays into a ``World`` and shades them into grey images."""
+    """Casts a camera's rays into a ``World`` and shades them into grey images.
+
+    Arrays are flat and contiguous (one float32 row per quantity): elementwise numpy on them is
+    several times faster than on strided (H, W, 3) views, and no large matrix product is used
+    (BLAS threads stall badly on a shared, busy CPU).
+    """
 
     def __init__(self, world: World, fx: float, fy: float, cx: float, cy: float, width: int, height: int, seed: int):
         self.world = world
         self.fx = float(fx)
         self.width, self.height = int(width), int(height)
         u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
-        self.dirs_cam = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones_like(u)], -1).astype(np.float32)
-        self.dir_norm = np.linalg.norm(self.dirs_cam, axis=-1).astype(np.float32)
+        # camera-frame directions with z = 1, so the hit distance open3d returns is the z-depth
+        self.cam_dirs = (((u - cx) / fx).ravel().astype(np.float32), ((v - cy) / fy).ravel().astype(np.float32))
+        self.dir_norm = np.sqrt(self.cam_dirs[0] ** 2 + self.cam_dirs[1] ** 2 + np.float32(1.0)).astype(np.float32)
         self.noise = NoiseBank(seed)
 
     def cast(self, R: np.ndarray, origin: np.ndarray) -> dict[str, np.ndarray]:
         """Cast one image's rays from ``origin`` with camera rotation ``R`` (world from camera)."""
         import open3d as o3d
 
-        d = self.dirs_cam @ R.T.astype(np.float32)
-        rays = np.empty((self.height, self.width, 6), np.float32)
-        rays[..., :3] = np.asarray(origin, np.float32)
-        rays[..., 3:] = d
+        dx, dy = self.cam_dirs
+        R = np.asarray(R, np.float32)
+        d = [dx * R[k, 0] + dy * R[k, 1] + R[k, 2] for k in range(3)]  # world directions, dz_cam = 1
+        rays = np.empty((dx.size, 6), np.float32)
+        rays[:, :3] = np.asarray(origin, np.float32)
+        for k in range(3):
+            rays[:, 3 + k] = d[k]
         out = self.world.scene.cast_rays(o3d.core.Tensor(rays))
-        t = out["t_hit"].numpy()
-        return {"t": t, "prim": out["primitive_ids"].numpy(), "normal": out["primitive_normals"].numpy(), "dirs": d,
-                "origin": np.asarray(origin, np.float32)}
+        return {"t": out["t_hit"].numpy(), "prim": out["primitive_ids"].numpy(),
+                "normal": out["primitive_normals"].numpy(), "dirs": d, "origin": np.asarray(origin, np.float32)}
 
-    @staticmethod
-    def depth(hit: dict[str, np.ndarray]) -> np.ndarray:
-        """z-depth (m) of a cast, 0 where no surface was hit (the sky)."""
+    def depth(self, hit: dict[str, np.ndarray]) -> np.ndarray:
+        """z-depth (m) of a cast as an (H, W) image, 0 where no surface was hit (the sky)."""
         t = hit["t"]
-        return np.where(np.isfinite(t), t, np.float32(0.0)).astype(np.float32)
+        return np.where(np.isfinite(t), t, np.float32(0.0)).astype(np.float32).reshape(self.height, self.width)
 
     def shade(self, hit: dict[str, np.ndarray]) -> np.ndarray:
-        """Grey levels (float32, 0..255 before exposure/noise) of a cast."""
+        """Grey levels (float32 (H, W), 0..255 before exposure/noise) of a cast."""
         world, F = self.world, self.world.faces
-        t, d, o = hit["t"], hit["dirs"], hit["origin"]
+        t, (dx, dy, dz), o = hit["t"], hit["dirs"], hit["origin"]
+        f32 = np.float32
         valid = np.isfinite(t)
-        tz = np.where(valid, t, np.float32(0.0))
+        tz = np.where(valid, t, f32(0.0))
         face = world.tri_face[np.where(valid, hit["prim"], 0)]
         kind = np.where(valid, F.kind[face], np.uint8(SKY))
-
-        px = o[0] + tz * d[..., 0]
-        py = o[1] + tz * d[..., 1]
-        pz = o[2] + tz * d[..., 2]
         n = hit["normal"]
+        nx, ny, nz = n[:, 0], n[:, 1], n[:, 2]
+
+        px = dx * tz + o[0]
+        py = dy * tz + o[1]
+        pz = dz * tz + o[2]
         dist = tz * self.dir_norm  # Euclidean distance along the ray
-        # cos of incidence (normals from open3d may face either way: use |n.d|)
-        cos_i = np.abs(n[..., 0] * d[..., 0] + n[..., 1] * d[..., 1] + n[..., 2] * d[..., 2]) / self.dir_norm
-        footprint = dist / np.float32(self.fx) / np.sqrt(np.maximum(cos_i, np.float32(0.05)))
-        footprint = np.maximum(footprint, np.float32(1e-4))
+        # |cos| of incidence (open3d normals may face either way)
+        n_dot_d = nx * dx + ny * dy + nz * dz
+        cos_i = np.abs(n_dot_d) / self.dir_norm
+        # Pixel footprint on the surface (m): distance / f, stretched at grazing angles (the
+        # square root is a compromise between the along- and across-ray footprints).
+        inv_fp = (f32(self.fx) * np.sqrt(np.maximum(cos_i, f32(0.05)))) / np.maximum(dist, f32(1e-3))
 
+        # Texture coordinates (m): along / up a vertical face, or world (x, z) on the ground and
+        # roofs; a per-surface random offset decorrelates the noise of different surfaces.
         vertical = (kind == FACADE) | (kind == BACKDROP)
-        org = F.origin[face]
-        tan = F.tangent[face]
-        su = (px - org[..., 0]) * tan[..., 0] + (pz - org[..., 2]) * tan[..., 2]  # along the face
-        sv = org[..., 1] - py  # height above the face's ground
-        tu = np.where(vertical, su, px)
-        tv = np.where(vertical, sv, pz)
-        off = F.offset[face]
-        noise = self.noise.fbm(tu + off[..., 0], tv + off[..., 1], footprint)
-
+        tu = px * F.tu_x[face] + pz * F.tu_z[face] + F.tu_c[face]
+        tv = np.where(vertical, -py, pz) + F.tv_c[face]
+        noise = self.noise.fbm(tu, tv, inv_fp)
         albedo = F.albedo[face] + F.noise_amp[face] * noise
 
-        # Bricks / stones / planks: a per-brick brightness (hash) and dark mortar lines.
-        bw, bh = F.brick_w[face], F.brick_h[face]
-        has_brick = bw > 0
-        if has_brick.any():
-            bws = np.where(has_brick, bw, np.float32(1.0))
-            bhs = np.where(has_brick, bh, np.float32(1.0))
-            row = np.floor(sv / bhs)
-            bu = su / bws + np.float32(0.5) * np.mod(row, 2)
-            col = np.floor(bu)
-            ident = F.ident[face]
-            rnd = _hash(col, row, ident) - np.float32(0.5)
-            fade = np.clip(np.minimum(bhs, bws) / footprint * np.float32(0.25) - np.float32(0.5), 0.0, 1.0)
-            mortar_w = np.float32(0.025)
-            du = (bu - col - np.float32(0.5)) * bws  # m from the brick centre
-            dv = (sv / bhs - row - np.float32(0.5)) * bhs
-            inside = np.minimum(bws * 0.5 - np.abs(du), bhs * 0.5 - np.abs(dv)) - mortar_w
-            brick = _edge(inside, footprint)
-            albedo += np.where(has_brick, fade * (F.brick_amp[face] * rnd - np.float32(0.12) * (1 - brick)), 0.0)
+        fi = np.flatnonzero(kind == FACADE)
+        if fi.size:
+            albedo[fi] += self._facade(F, face[fi], tu[fi], tv[fi], inv_fp[fi], noise[fi], albedo[fi])
+        gi = np.flatnonzero(kind == GROUND)
+        if gi.size:
+            albedo[gi] += self._ground(px[gi], pz[gi], inv_fp[gi])
 
-        # Windows: a grid of dark panes, each with its own brightness (reflections, lit rooms).
-        ww, wh = F.win_w[face], F.win_h[face]
-        has_win = ww > 0
-        if has_win.any():
-            wws = np.where(has_win, ww, np.float32(1.0))
-            whs = np.where(has_win, wh, np.float32(1.0))
-            cu = np.floor(su / wws)
-            cv = np.floor(sv / whs)
-            du = (su / wws - cu - np.float32(0.5)) * wws
-            dv = (sv / whs - cv - np.float32(0.55)) * whs
-            inside = np.minimum(F.win_fx[face] * wws * 0.5 - np.abs(du), F.win_fy[face] * whs * 0.5 - np.abs(dv))
-            pane = _edge(inside, footprint)
-            # no panes below 0.8 m or within one floor of the top
-            pane *= (sv > 0.8) & (sv < F.top[face] - 0.6 * whs)
-            glass = np.float32(0.08) + np.float32(0.35) * _hash(cu, cv, F.ident[face]) ** 2
-            fade = np.clip(np.minimum(wws, whs) / footprint * np.float32(0.125) - np.float32(0.5), 0.0, 1.0)
-            mean_glass = np.float32(0.2)
-            pane_val = fade * glass + (1 - fade) * mean_glass
-            albedo = np.where(has_win, albedo * (1 - pane) + pane * (pane_val + np.float32(0.2) * noise * 0.1), albedo)
-
-        # Ground patches: crisp-edged repairs / stains that give corners on the road surface.
-        is_ground = kind == GROUND
-        if is_ground.any():
-            pn = self.noise.sample(self.noise.patch_tile, (px + 311.0) / np.float32(0.6), (pz - 127.0) / np.float32(0.6))
-            edge_m = np.float32(0.6 * 0.25)  # d(noise)/dx ~ 1 / (2 cells) -> metres per unit noise
-            patch = _edge((pn - np.float32(1.0)) * edge_m, footprint)
-            stain = _edge((-np.float32(1.2) - pn) * edge_m, footprint)
-            albedo += np.where(is_ground, np.float32(-0.1) * patch + np.float32(0.12) * stain, 0.0)
-
-        # Light: ambient + Lambertian, normals oriented towards the camera.
-        ndotl = np.abs(n[..., 0] * SUN_DIR[0] + n[..., 1] * SUN_DIR[1] + n[..., 2] * SUN_DIR[2])
-        # a surface facing away from the sun (relative to the viewer) gets only ambient light
-        facing = (n[..., 0] * d[..., 0] + n[..., 1] * d[..., 1] + n[..., 2] * d[..., 2]) < 0
-        sun_side = (n[..., 0] * SUN_DIR[0] + n[..., 1] * SUN_DIR[1] + n[..., 2] * SUN_DIR[2]) > 0
-        lit = np.where(facing == sun_side, ndotl, np.float32(0.0))
-        grey = np.clip(albedo, 0.02, 1.0) * (np.float32(AMBIENT) + np.float32(DIFFUSE) * lit)
-        haze = np.float32(1.0) - np.exp(-dist / np.float32(HAZE_M))
-        grey = grey * (1 - haze) + np.float32(HORIZON) * haze
+        # Light: ambient + Lambertian from the sun, normals turned towards the camera: a face
+        # is sunlit when it and the sun lie on the same side of it as the viewer.
+        n_dot_l = nx * SUN_DIR[0] + ny * SUN_DIR[1] + nz * SUN_DIR[2]
+        lit = np.where((n_dot_d < 0) == (n_dot_l > 0), np.abs(n_dot_l), f32(0.0))
+        grey = np.clip(albedo, f32(0.02), f32(1.0)) * (lit * f32(DIFFUSE) + f32(AMBIENT))
+        haze = dist / (dist + f32(HAZE_M))  # rational haze: cheaper than exp, same look
+        grey += (f32(HORIZON) - grey) * haze
 
         # Sky: brighter with elevation (world up is -y).
-        elev = -d[..., 1] / self.dir_norm
-        sky = np.float32(HORIZON) + np.float32(0.15) * np.clip(elev * 2.5, 0.0, 1.0)
+        sky = np.clip(dy / self.dir_norm * f32(-2.5), f32(0.0), f32(1.0)) * f32(0.15) + f32(HORIZON)
         grey = np.where(valid, grey, sky)
-        return grey * np.float32(255.0)
+        grey *= f32(255.0)
+        return grey.reshape(self.height, self.width)
+
+    @staticmethod
+    def _facade(F, face, tu, tv, inv_fp, noise, albedo):
+        """Albedo change from bricks and windows on facade pixels (1-D arrays of those pixels)."""
+        f32 = np.float32
+        su = tu - F.tu_off[face]  # m along the face from its corner
+        sv = tv - F.tv_off[face]  # m above the face's ground
+        ident = F.ident[face]
+        delta = np.zeros_like(tu)
+
+        # Bricks / stones / planks: per-brick brightness (a hash) and dark mortar lines.
+        bw, bh = F.brick_w[face], F.brick_h[face]
+        bi = np.flatnonzero(bw > 0)
+        if bi.size:
+            bw, bh, u, v, ifp = bw[bi], bh[bi], su[bi], sv[bi], inv_fp[bi]
+            row = np.floor(v / bh)
+            bu = u / bw + f32(0.5) * (row - f32(2.0) * np.floor(row * f32(0.5)))  # odd rows shifted
+            col = np.floor(bu)
+            rnd = _hash(col, row, ident[bi]) - f32(0.5)
+            du = (bu - col - f32(0.5)) * bw  # m from the brick centre
+            dv = (v / bh - row - f32(0.5)) * bh
+            inside = np.minimum(bw * f32(0.5) - np.abs(du), bh * f32(0.5) - np.abs(dv)) - f32(0.025)
+            mortar = f32(1.0) - _edge(inside, ifp)
+            fade = np.clip(np.minimum(bh, bw) * ifp * f32(0.25) - f32(0.5), f32(0.0), f32(1.0))
+            delta[bi] = fade * (F.brick_amp[face[bi]] * rnd - f32(0.12) * mortar)
+
+        # Windows: a grid of panes, each with its own brightness (reflections, lit rooms); no
+        # panes below 0.8 m nor in the top 0.6 floor.
+        ww, wh = F.win_w[face], F.win_h[face]
+        wi = np.flatnonzero(ww > 0)
+        if wi.size:
+            ww, wh, u, v, ifp, fw = ww[wi], wh[wi], su[wi], sv[wi], inv_fp[wi], face[wi]
+            cu = np.floor(u / ww)
+            cv = np.floor(v / wh)
+            du = (u / ww - cu - f32(0.5)) * ww
+            dv = (v / wh - cv - f32(0.55)) * wh
+            inside = np.minimum(F.win_fx[fw] * ww * f32(0.5) - np.abs(du), F.win_fy[fw] * wh * f32(0.5) - np.abs(dv))
+            pane = _edge(inside, ifp) * ((v > f32(0.8)) & (v < F.top[fw] - f32(0.6) * wh))
+            glass = _hash(cu, cv, ident[wi]) ** 2 * f32(0.35) + f32(0.08)
+            fade = np.clip(np.minimum(ww, wh) * ifp * f32(0.125) - f32(0.5), f32(0.0), f32(1.0))
+            pane_val = fade * (glass - f32(0.2)) + f32(0.2) + f32(0.02) * noise[wi]
+            base = albedo[wi] + delta[wi]
+            delta[wi] += pane * (pane_val - base)
+        return delta
+
+    def _ground(self, px, pz, inv_fp):
+        """Albedo change from crisp-edged patches (repairs, stains): corners on the road surface."""
+        f32 = np.float32
+        pn = self.noise.sample(self.noise.patch_tile, (px + f32(311.0)) * f32(1 / 0.6), (pz - f32(127.0)) * f32(1 / 0.6))
+        edge_m = f32(0.6 * 0.25)  # metres per unit of noise near a level crossing (~2-cell slope)
+        patch = _edge((pn - f32(1.0)) * edge_m, inv_fp)
+        stain = _edge((f32(-1.2) - pn) * edge_m, inv_fp)
+        return stain * f32(0.12) - patch * f32(0.1)

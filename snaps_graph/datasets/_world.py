@@ -67,9 +67,16 @@ class FaceTable:
     """Per-face attributes, one row per face (struct of arrays, float32 unless noted)."""
 
     kind: np.ndarray  # uint8, GROUND/FACADE/ROOF/BACKDROP
-    origin: np.ndarray  # (F, 3) texture origin; tu = (p - origin).tangent, tv = origin_y - p_y
-    tangent: np.ndarray  # (F, 3) unit horizontal direction along the face
-    offset: np.ndarray  # (F, 2) random texture offset (m), decorrelates surfaces
+    # Texture coordinates (m) of a hit p: tu = tu_x*p_x + tu_z*p_z + tu_c and
+    # tv = -p_y + tv_c on vertical faces (height), p_z + tv_c on horizontal ones. They include
+    # a random per-surface offset (tu_off, tv_off) that decorrelates surfaces; without it, tu
+    # runs along a facade from its corner and tv is the height above the facade's ground.
+    tu_x: np.ndarray
+    tu_z: np.ndarray
+    tu_c: np.ndarray
+    tv_c: np.ndarray
+    tu_off: np.ndarray
+    tv_off: np.ndarray
     albedo: np.ndarray  # base brightness 0..1
     noise_amp: np.ndarray  # amplitude of the multi-scale noise
     win_w: np.ndarray  # window cell width (m); 0 = no windows
@@ -393,8 +400,18 @@ def _table(rows: list[dict]) -> FaceTable:
     def col(name: str, dtype=np.float32) -> np.ndarray:
         return np.array([r[name] for r in rows], dtype=dtype)
 
+    origin = np.array([r["origin"] for r in rows], dtype=np.float64)
+    tangent = np.array([r["tangent"] for r in rows], dtype=np.float64)
+    offset = np.array([r["offset"] for r in rows], dtype=np.float64)
+    kind = col("kind", np.uint8)
+    vertical = (kind == FACADE) | (kind == BACKDROP)
+    # horizontal faces: tu = x + off_u, tv = z + off_v (the tangent is (1, 0, 0), origin 0)
+    tu_c = offset[:, 0] - (origin[:, 0] * tangent[:, 0] + origin[:, 2] * tangent[:, 2])
+    tv_c = np.where(vertical, origin[:, 1], 0.0) + offset[:, 1]
+    f32 = np.float32
     return FaceTable(
-        kind=col("kind", np.uint8), origin=col("origin"), tangent=col("tangent"), offset=col("offset"),
+        kind=kind, tu_x=tangent[:, 0].astype(f32), tu_z=tangent[:, 2].astype(f32), tu_c=tu_c.astype(f32),
+        tv_c=tv_c.astype(f32), tu_off=offset[:, 0].astype(f32), tv_off=offset[:, 1].astype(f32),
         albedo=col("albedo"), noise_amp=col("noise_amp"), win_w=col("win_w"), win_h=col("win_h"),
         win_fx=col("win_fx"), win_fy=col("win_fy"), top=col("top"), brick_w=col("brick_w"),
         brick_h=col("brick_h"), brick_amp=col("brick_amp"), ident=col("ident", np.uint32),

@@ -153,7 +153,7 @@ class SyntheticSequence:
         """Exact z-depth (m) of the left camera at frame ``i``, float32 (H, W); 0 = no hit (sky)."""
         i = self._index(i)
         T = self._poses[i]
-        return Renderer.depth(self._renderer.cast(T[:3, :3], T[:3, 3]))
+        return self._renderer.depth(self._renderer.cast(T[:3, :3], T[:3, 3]))
 
     # ---- rendering ----
     def render(self, i: int, with_depth: bool = True) -> RenderedFrame:
@@ -177,7 +177,7 @@ class SyntheticSequence:
                 grey = grey + rng.standard_normal(grey.shape, dtype=np.float32) * np.float32(self.noise_std)
             images.append(np.clip(np.rint(grey), 0, 255).astype(np.uint8))
             if side == 0 and with_depth:
-                depth = Renderer.depth(hit)
+                depth = self._renderer.depth(hit)
             t2 = time.perf_counter()
             timings["cast"] += (t1 - t0) * 1e3
             timings["shade"] += (t2 - t1) * 1e3

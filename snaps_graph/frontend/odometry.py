@@ -323,11 +323,14 @@ class StereoOdometry:
         pts3d = self.camera.backproject(uv[:, 0], uv[:, 1], z).astype(np.float32)
         t0 = time.perf_counter()
         m = len(uv)
-        # Loop features: an evenly spread subset, strongest-first order where there is one.
-        pick = np.arange(m) if m <= cfg.loop_features else np.linspace(0, m - 1, cfg.loop_features).astype(np.int64)
+        # Loop features. Detected keypoints come strongest first, so the first loop_features are
+        # the ones most likely to be detected again when the place is revisited; tracked corners
+        # have no such order, so an evenly spread subset is kept.
         if desc is not None:
+            pick = np.arange(min(m, cfg.loop_features))
             fdesc = desc[pick]
         else:
+            pick = np.arange(m) if m <= cfg.loop_features else np.linspace(0, m - 1, cfg.loop_features).astype(np.int64)
             keep, fdesc = feat.orb_at(frame.left, uv[pick])
             pick = pick[keep]
         features = FrameFeatures(np.ascontiguousarray(uv[pick]), np.ascontiguousarray(pts3d[pick]), np.ascontiguousarray(fdesc))

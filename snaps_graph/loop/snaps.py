@@ -183,11 +183,13 @@ class SnapsLoopCloser:
         thumb = make_thumbnail(left, self.cfg.thumbnail_scale)
         if self._thumbs and thumb.shape != self._thumbs[0].shape:
             raise SnapsGraphError(
-                f"SNAPS: frame {index}: image size {np.shape(left)[1]}x{np.shape(left)[0]} differs from the first frame's"
+                f"SNAPS: frame {index}: image size {np.shape(left)[1]}x{np.shape(left)[0]} "
+                "differs from the first frame's"
             )
         if min(thumb.shape) < self.cfg.window:
             raise SnapsGraphError(
-                f"SNAPS: frame {index}: thumbnail {thumb.shape[1]}x{thumb.shape[0]} is smaller than the UIQI window {self.cfg.window}"
+                f"SNAPS: frame {index}: thumbnail {thumb.shape[1]}x{thumb.shape[0]} "
+                f"is smaller than the UIQI window {self.cfg.window}"
             )
         self._grow(n + 1)
         if n == 0:

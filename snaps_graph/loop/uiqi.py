@@ -132,7 +132,8 @@ def window_stats(image: np.ndarray, window: int = 8) -> WindowStats:
     src = image if image.dtype == np.uint8 else image.astype(np.float64)
     # Sums straight from uint8 into float64: integer sums, exact and cheaper than converting first.
     s = _window_sums(src, window)
-    nss = n * cv2.sqrBoxFilter(src, cv2.CV_64F, (window, window), anchor=(0, 0), normalize=False)[: h - window + 1, : w - window + 1]
+    sq = cv2.sqrBoxFilter(src, cv2.CV_64F, (window, window), anchor=(0, 0), normalize=False)
+    nss = n * sq[: h - window + 1, : w - window + 1]
     v = nss - s * s
     if image.dtype == np.uint8:  # integer sums: v is exact, flat means v == 0
         special = not (v.all() and s.all())
@@ -181,7 +182,9 @@ def similarity(a: WindowStats, b: WindowStats, return_maps: bool = False) -> UIQ
     """The full index (Q and its three factors) of two prepared images."""
     corr, lum, con = _factor_maps(a, b, _cross(a, b))
     q = corr * lum * con
-    res = dict(q=float(q.mean()), correlation=float(corr.mean()), luminance=float(lum.mean()), contrast=float(con.mean()))
+    res = dict(
+        q=float(q.mean()), correlation=float(corr.mean()), luminance=float(lum.mean()), contrast=float(con.mean())
+    )
     if return_maps:
         res.update(q_map=q, correlation_map=corr, luminance_map=lum, contrast_map=con)
     return UIQI(**res)

@@ -73,7 +73,8 @@ class CloudMap:
         return k % self.cfg.keyframe_every == 0
 
     def add_keyframe(self, k: int, depth: np.ndarray, image: np.ndarray | None = None) -> int:
-        """Back-project keyframe ``k``'s depth (metres, 0 = invalid) and store it; returns the
+        """Back-project keyframe ``k``'s depth (metres, (H, W); 0 = invalid) and store it; the
+        optional ``image`` (uint8 (H, W) grey or (H, W, 3)) gives the points' intensity. Returns the
         number of points kept after the per-keyframe voxel. Adding ``k`` again replaces it."""
         k = _check_index(k)
         depth = np.asarray(depth)
@@ -110,7 +111,11 @@ class CloudMap:
 
         if self.cfg.keyframe_voxel_size_m > 0 and len(xyz):
             xyz, colour = _voxel_downsample(xyz, colour, self.cfg.keyframe_voxel_size_m)
-        self._clouds[k] = (np.ascontiguousarray(xyz, np.float32), colour)
+        xyz = np.ascontiguousarray(xyz, np.float32)
+        for arr in (xyz, colour):  # read-only: a re-pose must never alter the stored clouds
+            if arr is not None:
+                arr.flags.writeable = False
+        self._clouds[k] = (xyz, colour)
         return len(xyz)
 
     def keyframe_cloud(self, k: int) -> tuple[np.ndarray, np.ndarray | None]:
@@ -133,6 +138,7 @@ class CloudMap:
         return sum(xyz.nbytes + (c.nbytes if c is not None else 0) for xyz, c in self._clouds.values())
 
     def num_stored_points(self) -> int:
+        """Points held over all keyframes (before the map voxel)."""
         return sum(len(xyz) for xyz, _ in self._clouds.values())
 
     # ---- global map ----
@@ -141,7 +147,10 @@ class CloudMap:
         ``poses[k]``, for ``keyframes`` (default all). Returns (xyz float64 (n, 3), RGB float64
         in [0, 1] or None), no voxel step. Colours are present when any keyframe has them."""
         poses = self._check_poses(poses)
-        ks = self.keyframes if keyframes is None else keyframes
+        ks = self.keyframes if keyframes is None else list(keyframes)
+        missing = [k for k in ks if k not in self._clouds]
+        if missing:
+            raise SnapsGraphError(f"keyframe {missing[0]} is not in the map")
         have_colour = any(c is not None for _, c in self._clouds.values())
         n_total = sum(len(self._clouds[k][0]) for k in ks)
         out = np.empty((n_total, 3), np.float64)
@@ -177,7 +186,7 @@ class CloudMap:
         for group in self._chunks():
             merged += _to_o3d(*self.posed_points(poses, group), voxel)
             n_chunks += 1
-        if n_chunks <= 1 or voxel <= 0:
+        if n_chunks <= 1 or voxel <= 0 or len(merged.points) == 0:
             return merged
         pts = np.asarray(merged.points)
         cols = np.asarray(merged.colors) if merged.has_colors() else None
