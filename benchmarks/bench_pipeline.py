@@ -120,6 +120,7 @@ def main() -> None:
     wall = time.perf_counter() - t0
     result = pipe.finish()
     tb = time.perf_counter()
+    pipe.graph.set_initial_estimates(result.trajectories["snaps"])
     batch = pipe.graph.optimize_batch()
     t_batch = time.perf_counter() - tb
     result.trajectories["batch"] = batch

@@ -109,7 +109,7 @@ class GraphConfig:
     loop_sigma_scale_max: float = 10.0  # clip of (1 - loop_q_floor) / (Q - loop_q_floor)
     robust_kernel: str = "cauchy"  # huber | cauchy | none (loop factors only)
     robust_param: float = 3.0  # kernel width on the whitened 6-vector norm (an inlier's is ~2.4)
-    isam2_factorization: str = "QR"  # QR | CHOLESKY (Cholesky failed on long chains here)
+    isam2_factorization: str = "QR"  # QR | CHOLESKY (SPEC: Cholesky threw on long chains)
     isam2_relinearize_threshold: float = 0.01
     isam2_relinearize_skip: int = 1
     # Extra iSAM2 steps right after an update that carried a loop (the robust weight converges

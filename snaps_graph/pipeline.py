@@ -197,7 +197,7 @@ class SlamPipeline:
         pose = heuristic
         if self.refine == "isam2":
             est = self.graph.estimate(k)
-            if est is not None and np.all(np.isfinite(est)):
+            if np.all(np.isfinite(est)):
                 pose = est
         return FrameOutput(k, frame.index, pose, vo, loop)
 
@@ -233,14 +233,19 @@ class SlamPipeline:
 
     # ---- end of run ----
     def finish(self) -> RunResult:
+        self.vo.close()
         trajs: dict[str, np.ndarray] = {"vo": np.array(self._vo_poses)}
         if self.snaps is not None:
             # The loop closer's trajectory, with every eq. 6 correction applied (a pose stored at
             # its arrival would miss the corrections of later loops).
             trajs["snaps"] = self.snaps.poses
         if self.refine == "isam2":
+            # iSAM2 takes one step per update; a robust loop near the end needs a few more.
+            self.graph.converge()
             trajs["isam2"] = self.graph.estimates()
         elif self.refine == "batch":
+            if "snaps" in trajs:
+                self.graph.set_initial_estimates(trajs["snaps"])
             trajs["batch"] = self.graph.optimize_batch()
         for name, poses in trajs.items():
             if not np.all(np.isfinite(poses)):  # never a NaN pose in any output
@@ -276,13 +281,15 @@ class SlamPipeline:
         metrics = run_metrics(result, gt_poses)
         atomic_write_text(out / "metrics.json", _json_text(metrics))
 
-        if self.map is not None and len(self.map) > 0:
+        if self.map is not None and self.map.num_stored_points() > 0:
             name = self._map_trajectory_name(result)
-            self.map.write_ply(out / "map.ply", result.trajectories[name])
+            poses = result.trajectories[name]
+            cloud = self.map.build(poses)  # built once, for both the PLY and the picture
+            self.map.write_ply(out / "map.ply", poses, cloud=cloud)
             trajs = dict(result.trajectories)
             if gt_poses is not None:
                 trajs = {"gt": gt_poses, **trajs}
-            self.map.render_topdown_png(out / "map.png", result.trajectories[name], trajs)
+            self.map.render_topdown_png(out / "map.png", poses, trajs, cloud=cloud)
             metrics["map"] = {"trajectory": name, "keyframes": len(self.map), "bytes": self.map.memory_bytes()}
             atomic_write_text(out / "metrics.json", _json_text(metrics))
         return metrics

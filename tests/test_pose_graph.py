@@ -328,3 +328,23 @@ def test_none_mode_keeps_initial_and_t_rel_defaults_to_initial_relative():
     assert np.array_equal(g.estimates(), init)
     assert np.abs(g.optimize_batch() - init).max() < 1e-9  # consistent chain: nothing to move
     assert np.array_equal(g.estimates(), init)  # "none" keeps reporting the initial poses
+
+
+class _NaNEstimateISAM2(_FailingISAM2):
+    """Delegates to a real ISAM2 but reports a NaN pose for key 3 in the full estimate."""
+
+    def calculateEstimate(self):
+        values = gtsam.Values(self.real.calculateEstimate())
+        values.update(3, gtsam.Pose3(gtsam.Rot3(), np.full(3, np.nan)))
+        return values
+
+
+def test_non_finite_estimate_falls_back_to_initial():
+    gt, rel, init = square()
+    g = PoseGraph(GraphConfig(), mode="isam2")
+    feed(g, rel, init[:10], online=True)
+    g._isam = _NaNEstimateISAM2(g._isam)
+    est = g.estimates()
+    assert np.all(np.isfinite(est))
+    assert np.array_equal(est[3], init[3])
+    assert (3, "non-finite estimate replaced by the initial pose") in g.failures

@@ -5,10 +5,10 @@ passes 4x4 numpy poses (T_world_cam, KITTI camera axes) through :class:`PoseGrap
 
 Decisions, and why:
 
-* **Keys.** One Pose3 variable per frame, keyed by the frame's *stream position* k = 0, 1, 2, ...
-  (the order frames reach the graph, not a file index), so a run over a frame range ``A:B`` still
-  starts at key 0. Frames must arrive in order; key 0 gets a tight prior (frame 0 is the identity
-  in our convention, but any given initial pose is held).
+* **Keys.** One Pose3 variable per frame (not per keyframe), keyed by the frame's *stream
+  position* k = 0, 1, 2, ... (the order frames reach the graph, not a file index), so a run over
+  a frame range ``A:B`` still starts at key 0. Frames must arrive in order; key 0 gets a tight
+  prior (frame 0 is the identity in our convention, but any given initial pose is held).
 * **Noise order.** GTSAM's Pose3 tangent is (rotation rad, translation m): every sigma vector
   here is ``[rx, ry, rz, tx, ty, tz]`` in that order (a swapped order silently makes rotation
   100x too stiff or too loose).
@@ -42,16 +42,16 @@ Decisions, and why:
   residuals, whereas Huber's stays constant (measured on the square test: a false loop moved the
   result 0.006 m under Cauchy, 0.5 m under Huber, 9.9 m without a kernel).
   ``robust_kernel = "none"`` exists for comparisons.
-* **iSAM2.** QR factorisation by default: with Cholesky, ISAM2 threw
-  IndeterminantLinearSystemException after ~1080 chained Pose3 factors at 0.01 rad sigmas on this
-  machine (SPEC pitfalls). Each :meth:`PoseGraph.update` passes only the factors and values added
-  since the previous call. iSAM2 takes one Gauss-Newton step per update, and a robust loop is an
-  IRLS problem, so a fresh loop is only partly applied; later frames' updates finish it (on KITTI
-  00 extra iterations at loop time cost 4-10x the loop update and changed the final ATE by
-  < 1 mm), so they are off by default (``isam2_loop_iterations``) and :meth:`PoseGraph.converge`
-  iterates once at the end of a run. The full estimate is O(N) to compute, so it is computed lazily on
-  :meth:`PoseGraph.estimates` and cached until the next update; :meth:`update` checks only the
-  newest pose for finiteness.
+* **iSAM2.** QR factorisation by default: SPEC records ISAM2 with Cholesky throwing
+  IndeterminantLinearSystemException after ~1080 chained Pose3 factors at 0.01 rad sigmas. (A
+  curved 1500-step chain ran clean with either here; QR costs the same, so it stays.) Each
+  :meth:`PoseGraph.update` passes only the factors and values added since the previous call.
+  iSAM2 takes one Gauss-Newton step per update, and a robust loop is an IRLS problem, so a fresh
+  loop is only partly applied; later frames' updates finish it (on KITTI 00, extra iterations at
+  loop time cost 4-10x the loop update and changed the final ATE by < 1 mm), so they are off by
+  default (``isam2_loop_iterations``) and :meth:`PoseGraph.converge` iterates once at the end of
+  a run. The full estimate is O(N), so :meth:`PoseGraph.estimates` computes it lazily and caches
+  it until the next update; :meth:`update` checks only the newest pose for finiteness.
 * **Failures never raise.** gtsam's C++ exceptions (IndeterminantLinearSystemException, ...)
   surface as ``RuntimeError``. :meth:`update` catches them, records ``(k, reason)`` in
   ``failures``, rebuilds iSAM2 (always with QR) from all factors except the loop factors of the
@@ -224,21 +224,23 @@ class PoseGraph:
     per :meth:`update` call) or "batch" (Levenberg-Marquardt or GNC over the whole graph on
     :meth:`optimize_batch`). Default ``cfg.refine``. The graph is built in every mode, so
     :meth:`optimize_batch` and :meth:`save_g2o` always work.
+
+    Public state: ``failures`` (list of (k, reason) for every solver failure or fallback),
+    ``loops`` (one :class:`LoopFactorInfo` per :meth:`add_loop` call), ``stats``
+    (:class:`GraphStats`), ``isam2_disabled`` (True once an iSAM2 rebuild failed too).
     """
 
     def __init__(self, cfg: GraphConfig, mode: str | None = None) -> None:
         self.cfg = cfg
         self.mode = cfg.refine if mode is None else mode
-        if self.mode not in MODES:
-            raise SnapsGraphError(f"graph refine mode '{self.mode}': expected one of {', '.join(MODES)}")
-        if cfg.robust_kernel not in KERNELS:
-            raise SnapsGraphError(f"graph.robust_kernel '{cfg.robust_kernel}': expected one of {', '.join(KERNELS)}")
-        if cfg.batch_solver not in BATCH_SOLVERS:
-            raise SnapsGraphError(f"graph.batch_solver '{cfg.batch_solver}': expected one of {', '.join(BATCH_SOLVERS)}")
-        if cfg.isam2_factorization.upper() not in FACTORIZATIONS:
-            raise SnapsGraphError(
-                f"graph.isam2_factorization '{cfg.isam2_factorization}': expected one of {', '.join(FACTORIZATIONS)}"
-            )
+        for name, value, allowed in (
+            ("graph refine mode", self.mode, MODES),
+            ("graph.robust_kernel", cfg.robust_kernel, KERNELS),
+            ("graph.batch_solver", cfg.batch_solver, BATCH_SOLVERS),
+            ("graph.isam2_factorization", cfg.isam2_factorization.upper(), FACTORIZATIONS),
+        ):
+            if value not in allowed:
+                raise SnapsGraphError(f"{name} '{value}': expected one of {', '.join(allowed)}")
         if not cfg.robust_param > 0:
             raise SnapsGraphError(f"graph.robust_param must be > 0, got {cfg.robust_param}")
 
@@ -251,8 +253,10 @@ class PoseGraph:
         self._loops: list[_Loop] = []
         self._initial_values = gtsam.Values()
         # iSAM2 state: pending factors/values since the last update, the solver, cached estimate.
-        self._isam: gtsam.ISAM2 | None = self._new_isam2(cfg.isam2_factorization) if self.mode == "isam2" else None
-        self._isam_disabled = False
+        self._isam: gtsam.ISAM2 | None = None
+        if self.mode == "isam2":
+            self._isam = self._new_isam2(cfg.isam2_factorization)
+        self.isam2_disabled = False
         self._pending_factors = gtsam.NonlinearFactorGraph()
         self._pending_values = gtsam.Values()
         self._pending_loops: list[_Loop] = []
@@ -291,7 +295,8 @@ class PoseGraph:
                 T_rel = np.linalg.solve(self._initial[k - 1], T)
             T_rel = _check_pose(T_rel, f"graph frame {k} relative pose")
             sig = odometry_sigmas(self.cfg, int(inliers), bool(ok))
-            factor = gtsam.BetweenFactorPose3(k - 1, k, _to_pose3(T_rel), gtsam.noiseModel.Diagonal.Sigmas(sig))
+            noise = gtsam.noiseModel.Diagonal.Sigmas(sig)
+            factor = gtsam.BetweenFactorPose3(k - 1, k, _to_pose3(T_rel), noise)
             self.stats.n_odometry_factors += 1
             self.stats.n_flagged_odometry += int(not ok)
         # Validated: only now touch the state, so a rejected frame leaves no trace.
@@ -476,7 +481,7 @@ class PoseGraph:
         except RuntimeError as exc:
             self.failures.append((k, f"isam2 rebuild failed, isam2 off: {_one_line(exc)}"))
             self._isam = None
-            self._isam_disabled = True
+            self.isam2_disabled = True
 
     def optimize_batch(self) -> np.ndarray:
         """Optimise the whole graph from the initial (heuristic) estimates; returns (N, 4, 4).
@@ -544,6 +549,26 @@ class PoseGraph:
                 poses[i] = self._initial[i]
             self._estimate_cache = poses
         return self._estimate_cache.copy()
+
+    def estimate(self, k: int) -> np.ndarray:
+        """Best available pose of key k now (iSAM2's once k was updated, else its initial pose)."""
+        return self._current_pose(k).copy()
+
+    def set_initial_estimates(self, poses: np.ndarray) -> None:
+        """Replace the initial estimates of all keys (used by :meth:`optimize_batch`; iSAM2 keeps
+        its own linearisation points).
+
+        SNAPS corrects the last K poses at every loop, after they were added; the pipeline hands
+        the final heuristic trajectory here so the batch starts from every correction.
+        """
+        poses = np.asarray(poses, float)
+        if poses.shape != (len(self._initial), 4, 4) or not np.all(np.isfinite(poses)):
+            raise SnapsGraphError(f"graph: set_initial_estimates needs {len(self._initial)} finite 4x4 poses")
+        self._initial = [T.copy() for T in poses]
+        values = gtsam.Values()
+        for k, T in enumerate(poses):
+            values.insert(k, _to_pose3(T))
+        self._initial_values = values
 
     def initial_estimates(self) -> np.ndarray:
         """The initial (heuristic) poses as given to :meth:`add_frame`, (N, 4, 4)."""

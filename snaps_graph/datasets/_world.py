@@ -48,12 +48,12 @@ class WorldConfig:
     ground_far_smooth_m: float = 40.0  # sigma of the fallback average far from the path
     ground_margin_m: float = 150.0  # ground extends this far beyond the path's bounding box
     corridor_m: float = 5.0  # no building footprint within this distance of any path point
-    setback_max_m: float = 6.0  # front faces stand corridor_m .. corridor_m + this from the path
+    setback_max_m: float = 4.0  # front faces stand corridor_m .. corridor_m + this from the path
     frontage_m: tuple[float, float] = (7.0, 24.0)  # building length along the street
     depth_m: tuple[float, float] = (6.0, 16.0)  # building depth away from the street
     height_m: tuple[float, float] = (4.0, 24.0)  # building height above the ground
-    gap_m: tuple[float, float] = (1.5, 10.0)  # gap between neighbours, when there is one
-    gap_probability: float = 0.6  # chance of a gap after a building
+    gap_m: tuple[float, float] = (2.0, 9.0)  # gap between neighbours, when there is one
+    gap_probability: float = 0.5  # chance of a gap after a building (else they nearly touch)
     wall_probability: float = 0.2  # chance a slot holds a low wall (1-2.5 m) instead
     post_spacing_m: float = 18.0  # mean spacing of thin posts at the corridor edge (0: none)
     second_row_offset_m: float = 26.0  # setback of a second row of buildings (0: none)
@@ -62,35 +62,45 @@ class WorldConfig:
     occupancy_cell_m: float = 0.5  # raster cell for the corridor and overlap checks
 
 
+# Per-face attributes the shader reads, packed as rows of two float32 blocks so that one
+# ``np.take(block, face, axis=1)`` fetches them all for every pixel (one gather instead of many).
+#
+# Texture coordinates (m) of a hit p: tu = tu_x*p_x + tu_z*p_z + tu_c, and tv = -p_y + tv_c on
+# vertical faces (height), p_z + tv_c on horizontal ones. Both include a random per-surface
+# offset (tu_off, tv_off) that decorrelates surfaces; without it, tu runs along a facade from its
+# corner and tv is the height above the facade's ground.
+MAIN_FIELDS = (
+    "tu_x", "tu_z", "tu_c", "tv_c",
+    "albedo",  # base brightness 0..1
+    "noise_amp",  # amplitude of the multi-scale noise
+)
+DETAIL_FIELDS = (  # facades only
+    "tu_off", "tv_off",
+    "brick_w",  # brick / stone / plank length (m); 0 = no bricks
+    "brick_h",  # brick course height (m)
+    "brick_amp",  # per-brick brightness spread
+    "win_w",  # window cell width (m); 0 = no windows
+    "win_h",  # floor height (m)
+    "win_fx",  # window width as a fraction of the cell
+    "win_fy",  # window height as a fraction of the floor
+    "top",  # facade height above its ground (m); windows stop below it
+    "ident",  # surface identity (an integer < 2**24, exact in float32) for per-brick/window hashes
+)
+
+
 @dataclass
 class FaceTable:
-    """Per-face attributes, one row per face (struct of arrays, float32 unless noted)."""
-
-    kind: np.ndarray  # uint8, GROUND/FACADE/ROOF/BACKDROP
-    # Texture coordinates (m) of a hit p: tu = tu_x*p_x + tu_z*p_z + tu_c and
-    # tv = -p_y + tv_c on vertical faces (height), p_z + tv_c on horizontal ones. They include
-    # a random per-surface offset (tu_off, tv_off) that decorrelates surfaces; without it, tu
-    # runs along a facade from its corner and tv is the height above the facade's ground.
-    tu_x: np.ndarray
-    tu_z: np.ndarray
-    tu_c: np.ndarray
-    tv_c: np.ndarray
-    tu_off: np.ndarray
-    tv_off: np.ndarray
-    albedo: np.ndarray  # base brightness 0..1
-    noise_amp: np.ndarray  # amplitude of the multi-scale noise
-    win_w: np.ndarray  # window cell width (m); 0 = no windows
-    win_h: np.ndarray  # floor height (m)
-    win_fx: np.ndarray  # window width as a fraction of the cell
-    win_fy: np.ndarray  # window height as a fraction of the floor
-    top: np.ndarray  # facade height above its ground (m); windows stop below it
-    brick_w: np.ndarray  # brick / stone / plank length (m); 0 = no bricks
-    brick_h: np.ndarray  # brick course height (m)
-    brick_amp: np.ndarray  # per-brick brightness spread
-    ident: np.ndarray  # uint32 surface identity for per-window / per-brick hashing
+    kind: np.ndarray  # (F,) uint8: GROUND / FACADE / ROOF / BACKDROP
+    main: np.ndarray  # (len(MAIN_FIELDS), F) float32
+    detail: np.ndarray  # (len(DETAIL_FIELDS), F) float32
 
     def __len__(self) -> int:
         return len(self.kind)
+
+    def column(self, name: str) -> np.ndarray:
+        if name in MAIN_FIELDS:
+            return self.main[MAIN_FIELDS.index(name)]
+        return self.detail[DETAIL_FIELDS.index(name)]
 
 
 @dataclass
@@ -269,14 +279,16 @@ class World:
             boxes.append(Box(corners, float(np.min(gy)), float(np.max(gy)) + 1.0, height, style))
             return True
 
+        def at(arc: float) -> int:  # index of the path sample at an arc length
+            return min(max(int(round(arc / cfg.path_step_m)), 0), len(self.samples) - 1)
+
         rows = [(0.0, cfg.setback_max_m)]
         if cfg.second_row_offset_m > 0:
             rows.append((cfg.second_row_offset_m, cfg.second_row_offset_m + 10.0))
         for row, (off_lo, off_hi) in enumerate(rows):
             for side in (1.0, -1.0):
-                s = rng.uniform(0, 10.0)
+                s = rng.uniform(0, 10.0)  # arc length where the next slot starts
                 while s < s_total:
-                    k = min(int(s / cfg.path_step_m), len(self.samples) - 1)
                     frontage = rng.uniform(*cfg.frontage_m)
                     is_wall = row == 0 and rng.random() < cfg.wall_probability
                     if is_wall:
@@ -284,17 +296,18 @@ class World:
                     else:
                         depth, height = rng.uniform(*cfg.depth_m), rng.uniform(*cfg.height_m)
                     offset = cfg.corridor_m + 0.6 + off_lo + rng.uniform(0, off_hi - off_lo)
-                    placed = try_box(k, side, frontage, offset, depth, height, "wall" if is_wall else "building")
-                    if not placed:  # on a bend the slot may touch the corridor: try shorter, further out
-                        placed = try_box(k, side, frontage * 0.6, offset + 3.0, depth, height, "wall" if is_wall else "building")
+                    style = "wall" if is_wall else "building"
+                    placed = try_box(at(s + frontage / 2), side, frontage, offset, depth, height, style)
+                    if not placed:  # on a bend a long slot may touch the corridor: try a shorter one
+                        placed = try_box(at(s + frontage / 4), side, frontage / 2, offset, depth, height, style) or \
+                            try_box(at(s + frontage / 4), side, frontage / 2, offset + 3.0, depth, height, style)
                     gap = rng.uniform(*cfg.gap_m) if rng.random() < cfg.gap_probability else 1.2
-                    s += (frontage if placed else 4.0) + gap
+                    s += frontage + gap
         if cfg.post_spacing_m > 0:
             for side in (1.0, -1.0):
                 s = rng.uniform(0, cfg.post_spacing_m)
                 while s < s_total:
-                    k = min(int(s / cfg.path_step_m), len(self.samples) - 1)
-                    try_box(k, side, 0.3, cfg.corridor_m + 0.4 + rng.uniform(0, 1.0), 0.3, rng.uniform(3.0, 6.0), "post")
+                    try_box(at(s), side, 0.3, cfg.corridor_m + 0.4 + rng.uniform(0, 1.0), 0.3, rng.uniform(3.0, 6.0), "post")
                     s += rng.uniform(0.5, 1.5) * cfg.post_spacing_m
         return boxes
 
@@ -393,29 +406,28 @@ class World:
         return dict(kind=kind, origin=origin, tangent=tangent, offset=offset, albedo=albedo, noise_amp=noise_amp,
                     win_w=win_w, win_h=win_h, win_fx=win_fx, win_fy=win_fy, top=top,
                     brick_w=brick_w, brick_h=brick_h, brick_amp=brick_amp,
-                    ident=int(self.rng.integers(1, 2**31)))
+                    ident=int(self.rng.integers(1, 2**24)))
 
 
 def _table(rows: list[dict]) -> FaceTable:
-    def col(name: str, dtype=np.float32) -> np.ndarray:
-        return np.array([r[name] for r in rows], dtype=dtype)
-
     origin = np.array([r["origin"] for r in rows], dtype=np.float64)
     tangent = np.array([r["tangent"] for r in rows], dtype=np.float64)
     offset = np.array([r["offset"] for r in rows], dtype=np.float64)
-    kind = col("kind", np.uint8)
+    kind = np.array([r["kind"] for r in rows], dtype=np.uint8)
     vertical = (kind == FACADE) | (kind == BACKDROP)
-    # horizontal faces: tu = x + off_u, tv = z + off_v (the tangent is (1, 0, 0), origin 0)
-    tu_c = offset[:, 0] - (origin[:, 0] * tangent[:, 0] + origin[:, 2] * tangent[:, 2])
-    tv_c = np.where(vertical, origin[:, 1], 0.0) + offset[:, 1]
-    f32 = np.float32
-    return FaceTable(
-        kind=kind, tu_x=tangent[:, 0].astype(f32), tu_z=tangent[:, 2].astype(f32), tu_c=tu_c.astype(f32),
-        tv_c=tv_c.astype(f32), tu_off=offset[:, 0].astype(f32), tv_off=offset[:, 1].astype(f32),
-        albedo=col("albedo"), noise_amp=col("noise_amp"), win_w=col("win_w"), win_h=col("win_h"),
-        win_fx=col("win_fx"), win_fy=col("win_fy"), top=col("top"), brick_w=col("brick_w"),
-        brick_h=col("brick_h"), brick_amp=col("brick_amp"), ident=col("ident", np.uint32),
-    )
+    cols = {
+        "tu_x": tangent[:, 0], "tu_z": tangent[:, 2],
+        # horizontal faces have tangent (1, 0, 0) and origin 0: tu = x + off_u, tv = z + off_v
+        "tu_c": offset[:, 0] - (origin[:, 0] * tangent[:, 0] + origin[:, 2] * tangent[:, 2]),
+        "tv_c": np.where(vertical, origin[:, 1], 0.0) + offset[:, 1],
+        "tu_off": offset[:, 0], "tv_off": offset[:, 1],
+    }
+    for name in MAIN_FIELDS + DETAIL_FIELDS:
+        if name not in cols:
+            cols[name] = np.array([r[name] for r in rows], dtype=np.float64)
+    main = np.stack([cols[n] for n in MAIN_FIELDS]).astype(np.float32)
+    detail = np.stack([cols[n] for n in DETAIL_FIELDS]).astype(np.float32)
+    return FaceTable(kind, main, detail)
 
 
 def _resample_path(positions: np.ndarray, ground_y: np.ndarray, step: float):
