@@ -82,6 +82,10 @@ class LoopConfig:
     window: int = 8  # UIQI sliding window B (Wang & Bovik)
     discount_offset: float = 3.0  # the 3 in gamma = 1 - exp(-(3 - alpha*0.01*s'))
     discount_rate: float = 0.01  # the 0.01 in the same formula
+    # Where geometric verification gives T_ref_cur, eq. 6's delta aims at p_ref + R_ref t_ref_cur
+    # (where frame N really stands) instead of p_ref (the paper's same-place assumption).
+    # false = the paper exactly.
+    use_verified_offset: bool = True
     # UIQI window sums kept per thumbnail (LRU) so a comparison only computes the cross term;
     # ~180 KB per 207x63 thumbnail, so 512 frames ~ 92 MB. 0 disables the cache.
     stats_cache_frames: int = 512

@@ -155,7 +155,7 @@ class SlamPipeline:
         candidates = 0
         t_loop_ms = 0.0
         if self.snaps is not None:
-            step = self.snaps.step(frame.index, vo.T_rel, frame.left)
+            step = self.snaps.step(frame.index, vo.T_rel, frame.left, verify=lambda ref: self._verify(ref, vo))
             heuristic = step.pose
             loop, candidates, t_loop_ms = step.loop, step.candidates, step.t_ms
         else:
@@ -201,24 +201,27 @@ class SlamPipeline:
                 pose = est
         return FrameOutput(k, frame.index, pose, vo, loop)
 
-    def _add_loop_factor(self, loop: LoopEvent, vo: VOResult) -> None:
+    def _verify(self, ref_index: int, vo: VOResult):
+        """Geometric verification of a SNAPS loop: PnP from the reference frame's 3D points to
+        this frame's keypoints. Returns (T_ref_cur, inliers) or None; never raises."""
         from .frontend.verify import verify_loop
 
-        k_ref = self._k_of_frame.get(loop.reference)
+        k_ref = self._k_of_frame.get(ref_index)
+        ref_feat = None if k_ref is None else self._features[k_ref]
+        if ref_feat is None or vo.features is None:
+            return None
+        try:
+            return verify_loop(ref_feat, vo.features, self.camera, self.cfg.frontend)
+        except Exception as exc:  # best effort: the fallback is the paper's same-place assumption
+            self.graph.failures.append((len(self._frame_ids) - 1, f"loop verification raised {type(exc).__name__}: {exc}"))
+            return None
+
+    def _add_loop_factor(self, loop: LoopEvent, vo: VOResult) -> None:
+        """A loop-closure factor for a SNAPS loop: measured by verification when it succeeded
+        (done once, inside the SNAPS step), else the paper's same-place assumption."""
+        k_ref = self._k_of_frame.get(loop.reference, -1)
         k_cur = self._k_of_frame[loop.frame]
-        T_ref_cur = None
-        if k_ref is not None:
-            ref_feat, cur_feat = self._features[k_ref], vo.features
-            if ref_feat is not None and cur_feat is not None:
-                try:
-                    verified = verify_loop(ref_feat, cur_feat, self.camera, self.cfg.frontend)
-                except Exception as exc:  # verification is best effort; the fallback is the paper's
-                    verified = None
-                    self.graph.failures.append((k_cur, f"loop verification raised {type(exc).__name__}: {exc}"))
-                if verified is not None:
-                    T_ref_cur, inliers = verified
-                    loop.verified, loop.verify_inliers, loop.T_ref_cur = True, int(inliers), T_ref_cur
-        self.graph.add_loop(-1 if k_ref is None else k_ref, k_cur, loop.q, T_ref_cur)
+        self.graph.add_loop(k_ref, k_cur, loop.q, loop.T_ref_cur if loop.verified else None)
         self.loops.append(loop)
 
     def _add_map_keyframe(self, k: int, frame: StereoFrame) -> None:

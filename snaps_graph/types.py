@@ -56,10 +56,11 @@ class LoopEvent:
     alpha: int  # loops closed so far, this one included
     candidates: int  # similarities computed on this frame
     t_ms: float  # detection + correction time
-    # Filled by the graph stage:
+    # Geometric verification (PnP from the reference's 3D points to this frame's keypoints):
     verified: bool = False  # measurement from geometric verification (else same-place assumption)
     verify_inliers: int = 0
     T_ref_cur: np.ndarray | None = None  # measured relative pose when verified
+    t_verify_ms: float = 0.0  # geometric verification time (not part of t_ms)
 
     def to_json(self) -> dict:
         d = {
@@ -78,6 +79,7 @@ class LoopEvent:
             "t_ms": self.t_ms,
             "verified": self.verified,
             "verify_inliers": self.verify_inliers,
+            "t_verify_ms": self.t_verify_ms,
         }
         if self.T_ref_cur is not None:
             d["T_ref_cur"] = [float(v) for v in np.asarray(self.T_ref_cur)[:3, :4].reshape(-1)]

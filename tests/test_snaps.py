@@ -291,3 +291,42 @@ def test_default_thumbnail_scale_on_full_size_frames():
     assert closer.thumbnail(0).shape == (63, 207) and closer.thumbnail(0).dtype == np.uint8
     np.testing.assert_array_equal(s.pose, np.eye(4))
     assert closer.indices.tolist() == [7]
+
+
+# ---------------------------------------------------------------- verified offset
+@pytest.mark.parametrize("use_offset", [True, False])
+def test_verified_offset_aims_at_measured_position(use_offset):
+    """With a verifier, delta aims at p_ref + R_ref t_ref_cur (use_verified_offset) or p_ref."""
+    closer = SnapsLoopCloser(cfg(use_verified_offset=use_offset))
+    poses = [pose(z=k) for k in range(6)]
+    images = [tex(k) for k in range(6)]
+    images[5] = tex(0) // 2  # frame 5 revisits frame 0 with Q = 0.64
+    T_meas = pose(z=1.5, x=-0.5)  # the current frame stands 1.5 m ahead, 0.5 m left of frame 0
+    asked = []
+
+    def verify(ref_index):
+        asked.append(ref_index)
+        return T_meas, 42
+
+    for k in range(6):
+        T_rel = np.eye(4) if k == 0 else inv(poses[k - 1]) @ poses[k]
+        step = closer.step(10 + k, T_rel, images[k], verify=verify)
+    ev = step.loop
+    assert asked == [10]  # only the winning reference is verified, once
+    assert ev.verified and ev.verify_inliers == 42
+    np.testing.assert_allclose(ev.T_ref_cur, T_meas)
+    target = np.array([-0.5, 0.0, 1.5]) if use_offset else np.zeros(3)
+    np.testing.assert_allclose(ev.delta, target - [0, 0, 5.0], atol=1e-12)
+    np.testing.assert_allclose(closer.positions[5], [0, 0, 5.0] + 0.64 * gamma(1, 0) * ev.delta, atol=1e-12)
+
+
+def test_failed_verification_falls_back_to_same_place():
+    closer = SnapsLoopCloser(cfg())
+    poses = [pose(z=k) for k in range(6)]
+    images = [tex(k) for k in range(6)]
+    images[5] = tex(0) // 2
+    for k in range(6):
+        T_rel = np.eye(4) if k == 0 else inv(poses[k - 1]) @ poses[k]
+        step = closer.step(k, T_rel, images[k], verify=lambda ref: None)
+    assert step.loop is not None and not step.loop.verified
+    np.testing.assert_allclose(step.loop.delta, [0, 0, -5.0], atol=1e-12)

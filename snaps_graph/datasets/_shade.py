@@ -33,7 +33,7 @@ TILE = 256  # noise tile side, cells
 CHUNK = 24576  # pixels shaded at a time: 96 KB float32 temporaries (see Renderer)
 # (scale m per tile cell, relative amplitude): incommensurate scales, from 5 cm grain to 6 m
 # blotches; each octave costs one remap per image, four are enough next to bricks and windows.
-OCTAVES = ((0.053, 0.5), (0.23, 0.6), (0.97, 0.65), (4.3, 0.6))
+OCTAVES = ((0.053, 0.55), (0.23, 0.6), (0.97, 0.55), (4.3, 0.35))
 SUN_DIR = np.array([0.45, -0.75, 0.48])  # towards the sun, world axes (y down): high, front-right
 SUN_DIR = (SUN_DIR / np.linalg.norm(SUN_DIR)).astype(np.float32)
 AMBIENT, DIFFUSE = 0.55, 0.5

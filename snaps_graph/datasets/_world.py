@@ -297,10 +297,13 @@ class World:
                         depth, height = rng.uniform(*cfg.depth_m), rng.uniform(*cfg.height_m)
                     offset = cfg.corridor_m + 0.6 + off_lo + rng.uniform(0, off_hi - off_lo)
                     style = "wall" if is_wall else "building"
-                    placed = try_box(at(s + frontage / 2), side, frontage, offset, depth, height, style)
-                    if not placed:  # on a bend a long slot may touch the corridor: try a shorter one
-                        placed = try_box(at(s + frontage / 4), side, frontage / 2, offset, depth, height, style) or \
-                            try_box(at(s + frontage / 4), side, frontage / 2, offset + 3.0, depth, height, style)
+                    # On a bend a long slot may touch the corridor (inside of the bend: its ends
+                    # swing in) or a neighbour (its back converges): try shallower, then shorter.
+                    shallow = min(depth, 6.0)
+                    for f, off, dep in ((frontage, offset, depth), (frontage, offset, shallow),
+                                        (frontage / 2, offset, shallow), (frontage / 2, offset + 3.0, shallow)):
+                        if try_box(at(s + f / 2), side, f, off, dep, height, style):
+                            break
                     gap = rng.uniform(*cfg.gap_m) if rng.random() < cfg.gap_probability else 1.2
                     s += frontage + gap
         if cfg.post_spacing_m > 0:

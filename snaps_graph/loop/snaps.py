@@ -49,6 +49,7 @@ from __future__ import annotations
 from collections import OrderedDict
 from dataclasses import dataclass
 from time import perf_counter
+from typing import Callable
 
 import numpy as np
 
@@ -57,6 +58,10 @@ from ..errors import SnapsGraphError
 from ..geometry import wrap_deg, yaw_deg
 from ..types import LoopEvent
 from .uiqi import WindowStats, make_thumbnail, similarity, similarity_q, window_stats
+
+# Geometric verification, injected by the pipeline (loop/ never imports the front end):
+# reference dataset index -> (T_ref_cur, inliers) or None.
+Verifier = Callable[[int], "tuple[np.ndarray, int] | None"]
 
 # Grid cell keys are packed into one Python int (mixed radix with balanced digits): unique while
 # every cell coordinate stays within ±2^30 cells.
@@ -172,11 +177,13 @@ class SnapsLoopCloser:
         return T
 
     # ---- the per-frame step ----
-    def step(self, index: int, T_rel: np.ndarray, left: np.ndarray) -> SnapsStep:
+    def step(self, index: int, T_rel: np.ndarray, left: np.ndarray, verify: Verifier | None = None) -> SnapsStep:
         """Process one frame: compose the pose, store the thumbnail, detect and close a loop.
 
         ``T_rel`` is T_prev_cur from the VO (ignored for the first frame, which is the identity);
-        ``left`` is the full left grey image. Raises SnapsGraphError for a non-finite or
+        ``left`` is the full left grey image. ``verify``, when given, is called with the dataset
+        index of a loop's reference and returns ``(T_ref_cur, inliers)`` from geometric
+        verification or None (see :meth:`_try_close`). Raises SnapsGraphError for a non-finite or
         malformed ``T_rel`` and for an image whose size differs from the first frame's.
         """
         n = self._n
@@ -215,9 +222,10 @@ class SnapsLoopCloser:
             ids, dists = self.search(n)
             ids, dists = ids[: self.cfg.attempts], dists[: self.cfg.attempts]
             if ids.size:
-                loop, computed = self._try_close(n, ids, dists)
+                loop, computed = self._try_close(n, ids, dists, verify)
         t_ms = (perf_counter() - t0) * 1e3
         if loop is not None:
+            t_ms -= loop.t_verify_ms  # verification is the graph's work, timed on its own
             loop.t_ms = t_ms
         return SnapsStep(pose=self.pose(n), loop=loop, candidates=computed, t_ms=t_ms)
 
@@ -247,7 +255,17 @@ class SnapsLoopCloser:
         order = np.lexsort((ids, d))
         return ids[order], d[order]
 
-    def _try_close(self, n: int, ids: np.ndarray, dists: np.ndarray) -> tuple[LoopEvent | None, int]:
+    def _try_close(
+        self, n: int, ids: np.ndarray, dists: np.ndarray, verify: Verifier | None = None
+    ) -> tuple[LoopEvent | None, int]:
+        """Compare candidates, pick the loop, correct (eq. 6).
+
+        δ aims at the reference position p_ref (the paper's same-place assumption). With
+        ``use_verified_offset`` and a verifier that succeeds, δ aims instead at where the current
+        frame really stands relative to the reference, p_ref + R_ref·t_ref_cur: revisits are
+        metres apart along and across the road, and pulling N onto p_ref would add that offset
+        as error. Orientations still keep their VO values.
+        """
         cur = self._window_stats(n)
         qs = np.array([similarity_q(cur, self._window_stats(int(j))) for j in ids])
         self.similarities_computed += len(ids)
@@ -256,7 +274,18 @@ class SnapsLoopCloser:
             return None, len(ids)
         ref = int(ids[best])
         sim = similarity(cur, self._window_stats(ref))  # the winner's factors, same arithmetic
-        delta = self._p[ref] - self._p[n]
+        target = self._p[ref].copy()
+        verified, T_ref_cur, inliers, t_verify_ms = False, None, 0, 0.0
+        if verify is not None:
+            tv = perf_counter()
+            result = verify(int(self._index[ref]))
+            t_verify_ms = (perf_counter() - tv) * 1e3
+            if result is not None:
+                T_ref_cur, inliers = result
+                verified = True
+                if self.cfg.use_verified_offset:
+                    target = target + self._R[ref] @ np.asarray(T_ref_cur, float)[:3, 3]
+        delta = target - self._p[n]
         alpha = len(self._loops) + 1
         n_corrected = self._correct(n, sim.q, delta, alpha)
         self._last_pinned = n
@@ -274,6 +303,10 @@ class SnapsLoopCloser:
             alpha=alpha,
             candidates=len(ids),
             t_ms=0.0,  # set by step() once the frame's detection + correction is over
+            verified=verified,
+            verify_inliers=int(inliers),
+            T_ref_cur=None if T_ref_cur is None else np.asarray(T_ref_cur, float).copy(),
+            t_verify_ms=t_verify_ms,
         )
         self._loops.append(event)
         return event, len(ids)
