@@ -38,7 +38,8 @@ def synth(
     seed: int = typer.Option(0, "--seed", help="World and noise seed (same seed, same images)."),
     noise: float = typer.Option(0.0, "--noise", help="Sensor noise, grey-level standard deviation."),
     exposure: float = typer.Option(0.0, "--exposure", help="Exposure change between passes (0 = none)."),
-    depth: bool = typer.Option(False, "--depth/--no-depth", help="Also write exact depth of the left camera."),
+    depth: bool = typer.Option(False, "--depth/--no-depth", help="Also write exact depth of the left camera (depth_0/, uint16 mm)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Write into a folder that already holds images."),
 ) -> None:
     """Render a synthetic stereo sequence along a trajectory, in KITTI layout."""
     from .datasets.synthetic import SyntheticSequence, load_trajectory, render_to_folder
@@ -48,7 +49,7 @@ def synth(
     poses, ts = load_trajectory(trajectory, frames, times=str(times) if times else None)
     seq = SyntheticSequence(poses, width=width, height=height, seed=seed, noise_std=noise, exposure_change=exposure, times=ts)
     with _progress(len(seq), "render") as bar:
-        render_to_folder(seq, out, progress=lambda *_: bar.update(1), write_depth=depth)
+        render_to_folder(seq, out, progress=lambda *_: bar.update(1), write_depth=depth, overwrite=overwrite)
     typer.echo(f"wrote {len(seq)} stereo pairs to {out}")
 
 
@@ -191,3 +192,7 @@ def main() -> None:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         sys.exit(130)
+
+
+if __name__ == "__main__":
+    main()

@@ -25,7 +25,7 @@ def run_demo(out: str | Path, frames: int = 300, width: int = 1241, height: int 
     t0 = time.perf_counter()
     poses = builtin_loop_trajectory(frames)
     synth = SyntheticSequence(poses, width=width, height=height, seed=0)
-    _with_bar(progress, len(synth), "render", lambda cb: render_to_folder(synth, seq_dir, progress=cb))
+    _with_bar(progress, len(synth), "render", lambda cb: render_to_folder(synth, seq_dir, progress=cb, overwrite=True))
     t_render = time.perf_counter() - t0
 
     seq = KittiSequence(seq_dir)

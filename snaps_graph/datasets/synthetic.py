@@ -69,7 +69,7 @@ class RenderedFrame:
 
     left: np.ndarray  # uint8 (H, W)
     right: np.ndarray  # uint8 (H, W)
-    depth: np.ndarray  # float32 (H, W) z-depth of the left camera, m; 0 = no hit (sky)
+    depth: np.ndarray  # float32 (H, W) z-depth of the left camera, m; 0 = no hit (sky); (0, 0) if not asked
     timings_ms: dict[str, float] = field(default_factory=dict)  # "cast", "shade"
 
 
@@ -276,16 +276,20 @@ def builtin_loop_trajectory(n_frames: int = 300) -> np.ndarray:
     return np.linalg.inv(poses[0]) @ poses
 
 
-def load_trajectory(spec: str, frames: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+def load_trajectory(spec: str, frames: str | None = None, times: str | Path | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Poses (N, 4, 4) and timestamps (N,) from ``spec``: a KITTI pose file, ``loop`` or ``loop:N``.
 
-    ``loop`` is the built-in loop of 300 frames (``loop:N`` for N frames). For a pose file the
-    timestamps come from, in order: ``<stem>_times.txt`` beside it (the kitti_gt layout),
-    ``times.txt`` beside it (what ``render_to_folder`` writes), ``../sequences/<stem>/times.txt``
-    (the official KITTI layout); otherwise 10 Hz. ``frames`` (``A:B``) selects part of the path.
-    Poses are returned as read (the sequence rebases them).
+    ``loop`` is the built-in loop of 300 frames (``loop:N`` for N frames). Timestamps come from
+    the ``times`` file when given (one per pose of the whole path), else, for a pose file, from
+    ``<stem>_times.txt`` beside it (the kitti_gt layout), ``times.txt`` beside it (what
+    ``render_to_folder`` writes) or ``../sequences/<stem>/times.txt`` (the official KITTI
+    layout); otherwise 10 Hz. ``frames`` (``A:B``) selects part of the path. Poses are returned
+    as read (the sequence rebases them).
     """
     spec = str(spec)
+    given_times = None
+    if times is not None:
+        given_times = read_times(times)
     if spec == "loop" or spec.startswith("loop:"):
         n_text = spec.partition(":")[2] or "300"
         try:
@@ -293,27 +297,31 @@ def load_trajectory(spec: str, frames: str | None = None) -> tuple[np.ndarray, n
         except ValueError:
             raise SnapsGraphError(f"trajectory '{spec}': expected loop or loop:N with N a whole number") from None
         poses = builtin_loop_trajectory(n)
-        times = np.arange(len(poses)) * FRAME_PERIOD_S
+        stamps = np.arange(len(poses)) * FRAME_PERIOD_S
     else:
         path = Path(spec)
         if not path.is_file():
             raise SnapsGraphError(f"{path}: trajectory file not found (give a KITTI pose file or 'loop')")
         poses = read_kitti_poses(path)
-        times = None
+        stamps = None
         for cand in (path.with_name(f"{path.stem}_times.txt"), path.with_name("times.txt"),
                      path.parent.parent / "sequences" / path.stem / "times.txt"):
-            if cand.is_file():
-                times = read_times(cand)
-                if len(times) != len(poses):
-                    raise SnapsGraphError(f"{cand}: {len(times)} timestamps for {len(poses)} poses in {path}")
+            if given_times is None and cand.is_file():
+                stamps = read_times(cand)
+                if len(stamps) != len(poses):
+                    raise SnapsGraphError(f"{cand}: {len(stamps)} timestamps for {len(poses)} poses in {path}")
                 break
-        if times is None:
-            times = np.arange(len(poses)) * FRAME_PERIOD_S
+        if stamps is None:
+            stamps = np.arange(len(poses)) * FRAME_PERIOD_S
+    if given_times is not None:
+        if len(given_times) != len(poses):
+            raise SnapsGraphError(f"{times}: {len(given_times)} timestamps for {len(poses)} poses of '{spec}'")
+        stamps = given_times
     rng = parse_frame_range(frames, len(poses))
     if rng is not None:
         start, stop = rng
-        poses, times = poses[start:stop], times[start:stop]
-    return poses, times
+        poses, stamps = poses[start:stop], stamps[start:stop]
+    return poses, stamps
 
 
 # ---------------------------------------------------------------- writing
@@ -346,7 +354,7 @@ def render_to_folder(
     for d in dirs + [out / "depth_0"]:
         old = sorted(d.glob("*.png")) if d.is_dir() else []
         if old and not overwrite:
-            raise SnapsGraphError(f"{d}: already holds {len(old)} images; choose an empty folder (or overwrite)")
+            raise SnapsGraphError(f"{d}: already holds {len(old)} images; choose an empty folder")
         for p in old:
             p.unlink()
     for d in dirs:
