@@ -61,7 +61,7 @@ def run(
     config: Optional[Path] = typer.Option(None, "--config", help="A TOML config (see `snaps-graph config`)."),
     gt: Optional[Path] = typer.Option(None, "--gt", help="Ground-truth poses (default: SEQ/poses.txt or ROOT/poses/XX.txt)."),
     loops: Optional[str] = typer.Option(None, "--loops", help="snaps | none (default from config: snaps)."),
-    refine: Optional[str] = typer.Option(None, "--refine", help="none | isam2 | batch (default from config: none)."),
+    refine: Optional[str] = typer.Option(None, "--refine", help="none | isam2 | batch | both (default from config: none)."),
     map_: Optional[bool] = typer.Option(None, "--map/--no-map", help="Build the point-cloud map (default from config: off)."),
     mode: Optional[str] = typer.Option(None, "--mode", help="Front-end mode override: klt | orb | sift."),
 ) -> None:

@@ -14,7 +14,7 @@ Results folder (every file written atomically, after the run)::
     poses_vo.txt / .tum        pure VO chain
     poses_snaps.txt / .tum     SNAPS heuristic trajectory (loops = snaps)
     poses_isam2.txt / .tum     iSAM2 estimate after the last frame (refine = isam2)
-    poses_batch.txt / .tum     batch optimisation (refine = batch)
+    poses_batch.txt / .tum     batch optimisation (refine = batch; both = isam2 and batch)
     poses_gt.txt               ground truth of the processed frames, re-based (when known)
     frames.csv                 one row per frame: timings, VO quality, loop columns
     loops.jsonl                one JSON object per closed loop
@@ -47,7 +47,7 @@ from .evaluation.trajectory import write_kitti_poses, write_tum_poses
 from .io_utils import atomic_write_text
 from .types import FrameFeatures, LoopEvent, VOResult
 
-REFINE_MODES = ("none", "isam2", "batch")
+REFINE_MODES = ("none", "isam2", "batch", "both")  # both = iSAM2 online + batch at the end
 LOOP_MODES = ("snaps", "none")
 
 FRAME_COLUMNS = [
@@ -96,9 +96,12 @@ class SlamPipeline:
         loops: str | None = None,
         refine: str | None = None,
         build_map: bool | None = None,
+        frontend=None,
     ):
+        """``frontend``: any object with ``process(frame) -> VOResult`` and ``close()`` (the
+        paper: "it is possible to substitute the visual odometry part with any desired model");
+        default: ``StereoOdometry`` configured by ``cfg.frontend``."""
         from .backend.pose_graph import PoseGraph
-        from .frontend.odometry import StereoOdometry
 
         self.cfg = cfg or Config()
         self.loops_mode = loops or self.cfg.loops
@@ -114,13 +117,17 @@ class SlamPipeline:
             self.cfg.map.enabled = bool(build_map)
 
         self.camera = camera
-        self.vo = StereoOdometry(camera, self.cfg.frontend)
+        if frontend is None:
+            from .frontend.odometry import StereoOdometry
+
+            frontend = StereoOdometry(camera, self.cfg.frontend)
+        self.vo = frontend
         self.snaps = None
         if self.loops_mode == "snaps":
             from .loop.snaps import SnapsLoopCloser
 
             self.snaps = SnapsLoopCloser(self.cfg.loop)
-        self.graph = PoseGraph(self.cfg.graph, mode=self.refine)
+        self.graph = PoseGraph(self.cfg.graph, mode="isam2" if self.refine == "both" else self.refine)
         self.map = None
         if self.cfg.map.enabled:
             from .mapping.cloud_map import CloudMap
@@ -195,7 +202,7 @@ class SlamPipeline:
             }
         )
         pose = heuristic
-        if self.refine == "isam2":
+        if self.refine in ("isam2", "both"):
             est = self.graph.estimate(k)
             if np.all(np.isfinite(est)):
                 pose = est
@@ -242,12 +249,12 @@ class SlamPipeline:
             # The loop closer's trajectory, with every eq. 6 correction applied (a pose stored at
             # its arrival would miss the corrections of later loops).
             trajs["snaps"] = self.snaps.poses
-        if self.refine == "isam2":
+        if self.refine in ("isam2", "both"):
             # iSAM2 takes one step per update; a robust loop near the end needs a few more.
             self.graph.converge()
             trajs["isam2"] = self.graph.estimates()
-        elif self.refine == "batch":
-            if "snaps" in trajs:
+        if self.refine in ("batch", "both"):
+            if "snaps" in trajs:  # start from every SNAPS correction, not the poses at arrival
                 self.graph.set_initial_estimates(trajs["snaps"])
             trajs["batch"] = self.graph.optimize_batch()
         for name, poses in trajs.items():

@@ -1,0 +1,117 @@
+"""Shared by the experiment scripts: data, a VO cache, and replays of SNAPS + graph over it.
+
+The front end is the expensive stage and does not depend on SNAPS or graph parameters, so an
+experiment runs it once per sequence (``vo_cache``) and replays the cached VO results through the
+real pipeline (``SlamPipeline(frontend=CachedOdometry(...))``) for every setting it sweeps. The
+replay feeds SNAPS the stored thumbnails (with thumbnail scale 1), which gives exactly the
+thumbnails a full run computes. Latency figures of a replay cover SNAPS and the graph only.
+"""
+
+from __future__ import annotations
+
+import copy
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from snaps_graph.config import Config  # noqa: E402
+from snaps_graph.datasets.kitti import KittiSequence, StereoFrame  # noqa: E402
+from snaps_graph.loop.uiqi import make_thumbnail  # noqa: E402
+from snaps_graph.pipeline import SlamPipeline  # noqa: E402
+from snaps_graph.types import VOResult  # noqa: E402
+
+RESULTS = ROOT / "results" / "experiments"
+SHARED = ROOT.parent / "shared" / "data"
+PATHS = {"00": SHARED / "kitti_gt" / "00.txt", "07": SHARED / "kitti_gt" / "07.txt", "loop": "loop"}
+
+
+def synthetic_dir(path: str, width: int = 1241, height: int = 376, seed: int = 0, frames: str | None = None) -> Path:
+    """Render a synthetic sequence along a KITTI path (or the built-in loop) once; reuse it after."""
+    from tqdm import tqdm
+
+    from snaps_graph.datasets.synthetic import SyntheticSequence, load_trajectory, render_to_folder
+
+    tag = f"{path}_{width}x{height}_s{seed}" + (f"_{frames.replace(':', '-')}" if frames else "")
+    out = RESULTS / "data" / tag
+    if (out / "poses.txt").is_file():
+        return out
+    poses, times = load_trajectory(str(PATHS.get(path, path)), frames)
+    seq = SyntheticSequence(poses, width=width, height=height, seed=seed, times=times)
+    with tqdm(total=len(seq), desc=f"render {tag}", unit="frame", mininterval=2) as bar:
+        render_to_folder(seq, out, progress=lambda *_: bar.update(1), overwrite=True)
+    return out
+
+
+@dataclass
+class VOCache:
+    camera: object
+    indices: np.ndarray
+    timestamps: np.ndarray
+    gt: np.ndarray | None
+    results: dict[int, VOResult]
+    thumbs: dict[int, np.ndarray]
+    vo_ms: np.ndarray  # front-end time per frame, ms
+
+
+def vo_cache(seq: KittiSequence, cfg: Config) -> VOCache:
+    from tqdm import tqdm
+
+    from snaps_graph.frontend.odometry import StereoOdometry
+
+    vo = StereoOdometry(seq.camera, cfg.frontend)
+    results, thumbs, times = {}, {}, []
+    for f in tqdm(seq, total=len(seq), desc="vo", unit="frame", mininterval=2):
+        t0 = time.perf_counter()
+        results[f.index] = vo.process(f)
+        times.append((time.perf_counter() - t0) * 1e3)
+        thumbs[f.index] = make_thumbnail(f.left, cfg.loop.thumbnail_scale)
+    vo.close()
+    return VOCache(seq.camera, seq.indices, seq.timestamps, seq.gt_poses, results, thumbs, np.array(times))
+
+
+class CachedOdometry:
+    """A front end that returns stored results (the pipeline's pluggable front-end interface)."""
+
+    def __init__(self, cache: VOCache):
+        self.cache = cache
+
+    def process(self, frame: StereoFrame) -> VOResult:
+        return copy.copy(self.cache.results[frame.index])
+
+    def close(self) -> None:
+        pass
+
+
+def replay(cache: VOCache, cfg: Config, refine: str = "batch", loops: str = "snaps"):
+    """Run SNAPS + graph over cached VO; returns (RunResult, pipeline)."""
+    cfg = copy.deepcopy(cfg)
+    cfg.loop.thumbnail_scale = 1.0  # the cached thumbnails are already at the configured scale
+    pipe = SlamPipeline(cache.camera, cfg, loops=loops, refine=refine, build_map=False, frontend=CachedOdometry(cache))
+    for idx, t in zip(cache.indices, cache.timestamps):
+        th = cache.thumbs[int(idx)]
+        pipe.process(StereoFrame(int(idx), float(t), th, th))
+    return pipe.finish(), pipe
+
+
+def false_loops(loops, gt: np.ndarray, indices: np.ndarray, radius_m: float) -> int:
+    k_of = {int(i): k for k, i in enumerate(indices)}
+    return sum(
+        np.linalg.norm(gt[k_of[l.reference], :3, 3] - gt[k_of[l.frame], :3, 3]) > radius_m for l in loops
+    )
+
+
+def md_table(header: list[str], rows: list[list]) -> str:
+    def fmt(v):
+        if isinstance(v, float):
+            return "n/a" if v != v else f"{v:.3f}"
+        return str(v)
+
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(fmt(v) for v in r) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
