@@ -64,6 +64,7 @@ def run(
     refine: Optional[str] = typer.Option(None, "--refine", help="none | isam2 | batch | both (default from config: none)."),
     map_: Optional[bool] = typer.Option(None, "--map/--no-map", help="Build the point-cloud map (default from config: off)."),
     mode: Optional[str] = typer.Option(None, "--mode", help="Front-end mode override: klt | orb | sift."),
+    map_all: bool = typer.Option(False, "--map-all", help="With --map: also map_<trajectory>.ply for every trajectory."),
 ) -> None:
     """Run stereo VO (+ SNAPS, + graph refinement, + map) over a sequence and write a results folder."""
     from .config import Config
@@ -73,6 +74,8 @@ def run(
     cfg = Config.load(config) if config else Config()
     if mode is not None:
         cfg.frontend.mode = mode
+    if map_all:
+        cfg.map.per_trajectory = True
     seq = KittiSequence(seq_dir, frames=frames, gt=gt)
     n_loops = 0
     with _progress(len(seq), "slam") as bar:
@@ -176,6 +179,9 @@ def _print_summary(metrics: dict, out: Path) -> None:
     )
     if "trajectories" in metrics:
         typer.echo(_metrics_table(metrics["trajectories"]))
+    if "map" in metrics:
+        typer.echo(f"map: {metrics['map']['keyframes']} keyframes, {metrics['map']['bytes'] / 2**20:.0f} MiB of clouds, posed by {metrics['map']['trajectory']}")
+    typer.echo(f"peak memory {metrics.get('peak_rss_mb', 0):.0f} MiB")
     if metrics.get("graph_failures"):
         typer.echo(f"graph: {len(metrics['graph_failures'])} flagged updates (see metrics.json)")
     typer.echo(f"results in {out}")

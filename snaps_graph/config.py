@@ -145,6 +145,7 @@ class MapConfig:
     topdown_colour_by: str = "height"  # top-down PNG: "height" (-y, metres) or "intensity"
     topdown_dpi: int = 150  # top-down PNG resolution (a 8x8 inch figure)
     trajectory: str = "best"  # vo | snaps | isam2 | batch | best (the most refined available)
+    per_trajectory: bool = False  # also write map_<trajectory>.ply for every trajectory of the run
 
 
 @dataclass

@@ -300,7 +300,11 @@ class SlamPipeline:
             if gt_poses is not None:
                 trajs = {"gt": gt_poses, **trajs}
             self.map.render_topdown_png(out / "map.png", poses, trajs, cloud=cloud)
+            if self.cfg.map.per_trajectory:  # re-posed from the stored keyframe clouds
+                for tname, tposes in result.trajectories.items():
+                    self.map.write_ply(out / f"map_{tname}.ply", tposes)
             metrics["map"] = {"trajectory": name, "keyframes": len(self.map), "bytes": self.map.memory_bytes()}
+            metrics["peak_rss_mb"] = peak_rss_mb()
             atomic_write_text(out / "metrics.json", _json_text(metrics))
         return metrics
 
@@ -325,8 +329,16 @@ def run_metrics(result: RunResult, gt_poses: np.ndarray | None) -> dict:
 
         metrics["trajectories"] = {name: evaluate(p, gt_poses) for name, p in result.trajectories.items()}
     metrics["latency_ms"] = latency_summary(result.rows)
+    metrics["peak_rss_mb"] = peak_rss_mb()
     metrics["graph_failures"] = [{"k": k, "reason": r} for k, r in result.graph_failures]
     return metrics
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process so far, MiB (Linux reports ru_maxrss in KiB)."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def latency_summary(rows: list[dict]) -> dict:
