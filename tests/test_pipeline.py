@@ -169,3 +169,31 @@ def test_synthetic_loop_closes_and_helps(tmp_path):
     first = json.loads(lines[0])
     for key in ("frame", "reference", "distance_m", "yaw_diff_deg", "q", "correlation", "luminance", "contrast", "delta", "n_corrected", "t_ms", "verified"):
         assert key in first
+
+
+def test_synth_run_compare_cli_roundtrip(tmp_path):
+    """synth -> run -> eval -> compare through the CLI; the rendered poses evaluate to zero error."""
+    seq = tmp_path / "seq"
+    cli("synth", "--trajectory", "loop", "--frames", "0:12", "--width", "320", "--height", "96", "--out", str(seq))
+    assert len(list((seq / "image_0").glob("*.png"))) == 12 and (seq / "poses.txt").is_file()
+    again = cli("synth", "--trajectory", "loop", "--frames", "0:12", "--width", "320", "--height", "96", "--out", str(seq), check=False)
+    assert again.returncode == 2 and "error:" in again.stderr  # refuses to overwrite without --overwrite
+    m = json.loads(cli("eval", str(seq / "poses.txt"), "--gt", str(seq / "poses.txt"), "--json").stdout)
+    assert m["mean_deviation"] == 0.0 and m["ate_rmse"] < 1e-9
+    run = tmp_path / "run"
+    cli("run", str(seq), "--out", str(run), "--refine", "batch", "--map", "--map-all")
+    for name in ("poses_vo.txt", "poses_batch.txt", "map.ply", "map.png", "map_vo.ply", "map_batch.ply"):
+        assert (run / name).is_file(), name
+    cli("compare", str(run))
+    report = (run / "report.md").read_text()
+    assert "| vo |" in report and "| batch |" in report
+    assert (run / "trajectories.png").stat().st_size > 1000
+
+
+def test_demo_smoke(tmp_path):
+    """The demo's whole chain at a tiny size (make demo runs it at full size)."""
+    proc = cli("demo", "--out", str(tmp_path / "demo"), "--frames", "70", "--width", "320", "--height", "96")
+    assert "mean deviation" in proc.stdout
+    run = tmp_path / "demo" / "run"
+    for name in ("report.md", "map.ply", "map.png", "poses_isam2.txt", "trajectories.png"):
+        assert (run / name).is_file(), name
