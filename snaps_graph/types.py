@@ -61,6 +61,8 @@ class LoopEvent:
     verify_inliers: int = 0
     T_ref_cur: np.ndarray | None = None  # measured relative pose when verified
     t_verify_ms: float = 0.0  # geometric verification time (not part of t_ms)
+    shift_px: int = 0  # horizontal thumbnail shift at which Q was highest
+    weight: float = 0.0  # the weight eq. 6 applied (Q, or 1 for a verified loop)
 
     def to_json(self) -> dict:
         d = {
@@ -80,6 +82,8 @@ class LoopEvent:
             "verified": self.verified,
             "verify_inliers": self.verify_inliers,
             "t_verify_ms": self.t_verify_ms,
+            "shift_px": self.shift_px,
+            "weight": self.weight,
         }
         if self.T_ref_cur is not None:
             d["T_ref_cur"] = [float(v) for v in np.asarray(self.T_ref_cur)[:3, :4].reshape(-1)]

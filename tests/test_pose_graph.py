@@ -99,14 +99,18 @@ def test_square_loop_batch_and_isam2_close_the_loop():
 
 def test_loop_noise_tightens_with_q():
     cfg = GraphConfig()
-    qs = np.linspace(0.5, 1.0, 51)
+    qs = np.linspace(0.05, 1.0, 96)
     scales = np.array([loop_sigma_scale(cfg, q) for q in qs])
     assert np.all(np.diff(scales) <= 0)  # monotone: higher Q, tighter (or equal) noise
     assert scales[-1] == 1.0 and scales[0] == cfg.loop_sigma_scale_max
-    # (1 - 0.7) / (0.85 - 0.7) = 2: verified base sigmas (0.01 rad, 0.1 m) doubled, rotation first.
-    s = loop_sigmas(cfg, 0.85, verified=True)
+    assert loop_sigma_scale(cfg, 0.5) == pytest.approx(2.0)  # default floor 0: sigma = base / Q
+    assert loop_sigma_scale(cfg, 0.25) == pytest.approx(4.0)
+    # 1 / 0.5 = 2: verified base sigmas (0.01 rad, 0.1 m) doubled, rotation first.
+    s = loop_sigmas(cfg, 0.5, verified=True)
     assert np.allclose(s, [0.02, 0.02, 0.02, 0.2, 0.2, 0.2])
-    assert loop_sigma_scale(cfg, 0.75) == pytest.approx(6.0)
+    assert loop_sigma_scale(cfg, 0.75) == pytest.approx(4 / 3)
+    floored = GraphConfig(loop_q_floor=0.7)  # a floor just under the paper's threshold
+    assert loop_sigma_scale(floored, 0.75) == pytest.approx(6.0) and loop_sigma_scale(floored, 0.6) == 10.0
     u = loop_sigmas(cfg, 1.0, verified=False)
     assert np.allclose(u, [0.5, 0.5, 0.5, 2.0, 2.0, 2.0])
 

@@ -32,6 +32,8 @@ def cfg(**kw) -> LoopConfig:
         max_yaw_deg=10.0,
         thumbnail_scale=1.0,
         window=4,
+        shift_px=0,  # the candidate-rule tests compare unshifted thumbnails (shift: own tests)
+        correction_weight="q",  # eq. 6 exactly as the paper weighs it (verified weight: own test)
     )
     base.update(kw)
     return LoopConfig(**base)
@@ -318,6 +320,41 @@ def test_verified_offset_aims_at_measured_position(use_offset):
     target = np.array([-0.5, 0.0, 1.5]) if use_offset else np.zeros(3)
     np.testing.assert_allclose(ev.delta, target - [0, 0, 5.0], atol=1e-12)
     np.testing.assert_allclose(closer.positions[5], [0, 0, 5.0] + 0.64 * gamma(1, 0) * ev.delta, atol=1e-12)
+
+
+def test_verified_loop_moves_with_weight_one():
+    """correction_weight = "verified": a verified loop moves N by gamma_0 * delta (weight 1)."""
+    closer = SnapsLoopCloser(cfg(correction_weight="verified"))
+    poses = [pose(z=k) for k in range(6)]
+    images = [tex(k) for k in range(6)]
+    images[5] = tex(0) // 2
+    T_meas = pose(z=1.0)
+    for k in range(6):
+        T_rel = np.eye(4) if k == 0 else inv(poses[k - 1]) @ poses[k]
+        step = closer.step(k, T_rel, images[k], verify=lambda ref: (T_meas, 30))
+    ev = step.loop
+    assert ev.weight == 1.0 and ev.q == pytest.approx(0.64)
+    np.testing.assert_allclose(closer.positions[5], [0, 0, 5.0 + gamma(1, 0) * (1.0 - 5.0)], atol=1e-12)
+    np.testing.assert_allclose(closer.positions[4], [0, 0, 4.0 + gamma(1, 1) * (1.0 - 5.0)], atol=1e-12)
+
+
+def test_shifted_revisit_found_at_its_shift():
+    """A revisit seen with a heading offset (its thumbnail shifted by 6 px) scores Q = 1 at
+    dx = 6 with the shift search, and far less without it."""
+    big = (2 * np.random.default_rng(7).integers(1, 128, (16, 40))).astype(np.uint8)
+    first, again = big[:, 6:34].copy(), big[:, 12:40].copy()  # same place, content moved 6 px left
+    others = [(2 * np.random.default_rng(100 + k).integers(1, 128, (16, 28))).astype(np.uint8) for k in range(5)]
+    images = [first] + others[:4] + [again]
+    poses = [pose(z=k) for k in range(6)]
+    results = {}
+    for shift in (0, 8):
+        closer = SnapsLoopCloser(cfg(shift_px=shift, shift_step_px=2, min_similarity=0.9))
+        steps = drive(closer, poses, images)
+        results[shift] = steps[5].loop
+    assert results[0] is None  # unshifted: the windows do not line up
+    ev = results[8]
+    assert ev is not None and ev.reference == 0 and ev.shift_px == 6  # current[:, x] = reference[:, x + 6]
+    assert ev.q == pytest.approx(1.0, abs=1e-12)
 
 
 def test_failed_verification_falls_back_to_same_place():

@@ -174,3 +174,20 @@ def test_bad_input_is_a_clear_error():
         uiqi(np.zeros((10, 10, 3)), np.zeros((10, 10, 3)))
     with pytest.raises(SnapsGraphError, match="window"):
         uiqi(x, x, window=1)
+
+
+def test_shifted_similarity_equals_uiqi_on_the_overlap():
+    from snaps_graph.loop.uiqi import similarity_shifted, window_stats
+
+    rng = np.random.default_rng(3)
+    a = rng.integers(0, 256, (20, 50), dtype=np.uint8)
+    b = rng.integers(0, 256, (20, 50), dtype=np.uint8)
+    A, B = window_stats(a, 8), window_stats(b, 8)
+    q, dx = similarity_shifted(A, B, max_shift=6, step=1)
+    expect = {d: uiqi(a[:, : 50 - d], b[:, d:], 8).q if d >= 0 else uiqi(a[:, -d:], b[:, : 50 + d], 8).q for d in range(-6, 7)}
+    best = max(expect, key=expect.get)
+    assert dx == best and q == pytest.approx(expect[best], abs=1e-12)
+    # A pure horizontal shift of the same content is found exactly, with Q = 1.
+    wide = rng.integers(0, 256, (20, 60), dtype=np.uint8)
+    q, dx = similarity_shifted(window_stats(wide[:, 4:54], 8), window_stats(wide[:, 0:50], 8), max_shift=8, step=2)
+    assert (q, dx) == (pytest.approx(1.0, abs=1e-12), 4)  # a[:, x] = b[:, x + 4]

@@ -57,7 +57,7 @@ from ..config import LoopConfig
 from ..errors import SnapsGraphError
 from ..geometry import wrap_deg, yaw_deg
 from ..types import LoopEvent
-from .uiqi import WindowStats, make_thumbnail, similarity, similarity_q, window_stats
+from .uiqi import WindowStats, make_thumbnail, shifted_pair, similarity, similarity_q, similarity_shifted, window_stats
 
 # Geometric verification, injected by the pipeline (loop/ never imports the front end):
 # reference dataset index -> (T_ref_cur, inliers) or None.
@@ -100,6 +100,9 @@ def validate_loop_config(cfg: LoopConfig) -> None:
         (cfg.discount_offset > 0, f"loop.discount_offset must be > 0, got {cfg.discount_offset}"),
         (cfg.discount_rate >= 0, f"loop.discount_rate must be >= 0, got {cfg.discount_rate}"),
         (cfg.stats_cache_frames >= 0, f"loop.stats_cache_frames must be >= 0, got {cfg.stats_cache_frames}"),
+        (cfg.shift_px >= 0, f"loop.shift_px must be >= 0, got {cfg.shift_px}"),
+        (cfg.shift_step_px >= 1, f"loop.shift_step_px must be >= 1, got {cfg.shift_step_px}"),
+        (cfg.correction_weight in ("q", "verified"), f"loop.correction_weight must be 'q' or 'verified', got '{cfg.correction_weight}'"),
     ]
     for ok, msg in checks:
         if not ok:
@@ -267,13 +270,20 @@ class SnapsLoopCloser:
         as error. Orientations still keep their VO values.
         """
         cur = self._window_stats(n)
-        qs = np.array([similarity_q(cur, self._window_stats(int(j))) for j in ids])
+        if self.cfg.shift_px > 0:  # best horizontal shift per candidate (heading differences)
+            scored = [similarity_shifted(cur, self._window_stats(int(j)), self.cfg.shift_px, self.cfg.shift_step_px) for j in ids]
+            qs = np.array([q for q, _ in scored])
+            shifts = [dx for _, dx in scored]
+        else:
+            qs = np.array([similarity_q(cur, self._window_stats(int(j))) for j in ids])
+            shifts = [0] * len(ids)
         self.similarities_computed += len(ids)
         best = int(np.argmax(qs))  # first maximum = nearest among equal Q
         if qs[best] < self.cfg.min_similarity:
             return None, len(ids)
         ref = int(ids[best])
-        sim = similarity(cur, self._window_stats(ref))  # the winner's factors, same arithmetic
+        # The winner's factors, same arithmetic, at its best shift.
+        sim = similarity(*shifted_pair(cur, self._window_stats(ref), shifts[best]))
         target = self._p[ref].copy()
         verified, T_ref_cur, inliers, t_verify_ms = False, None, 0, 0.0
         if verify is not None:
@@ -287,7 +297,11 @@ class SnapsLoopCloser:
                     target = target + self._R[ref] @ np.asarray(T_ref_cur, float)[:3, 3]
         delta = target - self._p[n]
         alpha = len(self._loops) + 1
-        n_corrected = self._correct(n, sim.q, delta, alpha)
+        # Eq. 6 weighs the move by Q: the confidence that N stands where the reference stood. A
+        # verified loop measured where N stands, so with correction_weight = "verified" it moves
+        # with weight 1 (gamma still discounts older poses); "q" is the paper's rule everywhere.
+        weight = 1.0 if (verified and self.cfg.correction_weight == "verified") else sim.q
+        n_corrected = self._correct(n, weight, delta, alpha)
         self._last_pinned = n
         event = LoopEvent(
             frame=int(self._index[n]),
@@ -304,6 +318,8 @@ class SnapsLoopCloser:
             candidates=len(ids),
             t_ms=0.0,  # set by step() once the frame's detection + correction is over
             verified=verified,
+            shift_px=int(shifts[best]),
+            weight=float(weight),
             verify_inliers=int(inliers),
             T_ref_cur=None if T_ref_cur is None else np.asarray(T_ref_cur, float).copy(),
             t_verify_ms=t_verify_ms,
@@ -313,7 +329,8 @@ class SnapsLoopCloser:
 
     # ---- eq. 6 ----
     def _correct(self, n: int, q: float, delta: np.ndarray, alpha: int) -> int:
-        """Eq. 6 (our reading): p_s += Q·γ_s·δ for s in [N−K, N]; returns how many moved."""
+        """Eq. 6 (our reading): p_s += w·γ_s·δ for s in [N−K, N], w = Q (or 1 for a verified loop
+        under correction_weight = "verified"); returns how many moved."""
         lo = max(0, n - self.cfg.discount_length)
         gamma = discount(self.cfg, alpha, n - np.arange(lo, n + 1, dtype=float))
         self._p[lo : n + 1] += (q * gamma)[:, None] * delta
