@@ -283,7 +283,8 @@ class SnapsLoopCloser:
             return None, len(ids)
         ref = int(ids[best])
         # The winner's factors, same arithmetic, at its best shift.
-        sim = similarity(*shifted_pair(cur, self._window_stats(ref), shifts[best]))
+        margin = min(self.cfg.shift_px, (cur.shape[1] - cur.window) // 2)
+        sim = similarity(*shifted_pair(cur, self._window_stats(ref), shifts[best], margin))
         target = self._p[ref].copy()
         verified, T_ref_cur, inliers, t_verify_ms = False, None, 0, 0.0
         if verify is not None:
