@@ -29,6 +29,9 @@ SWEEPS = {
     "attempts": [1, 2, 5, 10, 20],
     "max_yaw_deg": [5.0, 10.0, 20.0, 45.0],
     "use_verified_offset": [False, True],
+    "shift_px": [0, 4, 8, 12],
+    "window": [8, 16],
+    "correction_weight": ["q", "verified"],
 }
 
 

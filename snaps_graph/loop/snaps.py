@@ -46,6 +46,7 @@ pipeline times as part of the frame.
 
 from __future__ import annotations
 
+import math
 from collections import OrderedDict
 from dataclasses import dataclass
 from time import perf_counter
@@ -250,6 +251,8 @@ class SnapsLoopCloser:
                 found.extend(members)
         if not found:
             return np.empty(0, dtype=np.int64), np.empty(0)
+        if len(found) <= 32:  # few neighbours (most frames): scalar Python beats numpy's call overhead
+            return self._search_small(n, found)
         ids = np.array(found, dtype=np.int64)
         ids = ids[ids <= n - cfg.frame_distance]  # the grid holds only these, unless n is in the past
         d = np.linalg.norm(self._p[ids] - p, axis=1)
@@ -257,6 +260,29 @@ class SnapsLoopCloser:
         ids, d = ids[ok], d[ok]
         order = np.lexsort((ids, d))
         return ids[order], d[order]
+
+    def _search_small(self, n: int, found: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`search`'s rules for a short member list, without numpy arrays."""
+        cfg = self.cfg
+        px, py, pz = self._p[n].tolist()
+        yaw_n = float(self._yaw[n])
+        r2 = cfg.radius_m * cfg.radius_m
+        last = n - cfg.frame_distance
+        hits = []
+        for j in found:
+            if j > last:
+                continue
+            x, y, z = self._p[j].tolist()
+            d2 = (x - px) ** 2 + (y - py) ** 2 + (z - pz) ** 2
+            if d2 > r2:
+                continue
+            dyaw = (float(self._yaw[j]) - yaw_n + 180.0) % 360.0 - 180.0  # wrap to [-180, 180)
+            if abs(dyaw) <= cfg.max_yaw_deg or (dyaw == -180.0 and cfg.max_yaw_deg >= 180.0):
+                hits.append((math.sqrt(d2), j))
+        if not hits:
+            return np.empty(0, dtype=np.int64), np.empty(0)
+        hits.sort()  # nearest first, ties by older frame
+        return np.array([j for _, j in hits], dtype=np.int64), np.array([d for d, _ in hits])
 
     def _try_close(
         self, n: int, ids: np.ndarray, dists: np.ndarray, verify: Verifier | None = None
