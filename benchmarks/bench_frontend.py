@@ -36,8 +36,9 @@ from snaps_graph.geometry import inv  # noqa: E402
 
 MODES = {
     "default": dict(),  # klt tracking + sparse stereo
-    "sift": dict(mode="sift", disparity="bm_wls"),  # the paper's faithful front end
-    "sift_sparse": dict(mode="sift", disparity="sparse"),
+    "sift": dict(mode="sift", disparity="bm_wls", sift_first_octave=-1),  # the paper's front end, faithfully
+    "sift_sparse": dict(mode="sift", disparity="sparse"),  # what mode = "sift" runs by default
+    "sift_fo-1": dict(mode="sift", disparity="sparse", sift_first_octave=-1),
     "orb": dict(mode="orb"),
 }
 

@@ -36,10 +36,23 @@ def _kp_arrays(kps, desc) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def detect_sift(img: np.ndarray, cfg: FrontendConfig) -> tuple[np.ndarray, np.ndarray]:
-    """SIFT (paper §II-C) on ``img``: (uv float32 (N,2), descriptors float32 (N,128)), N <= sift_features."""
+    """SIFT (paper §II-C) on ``img``: (uv float32 (N,2), descriptors float32 (N,128)), N <= sift_features.
+
+    ``sift_first_octave``: -1 is OpenCV's SIFT as the paper ran it (the image is doubled first,
+    so the finest octave has 4x the pixels and costs most of the time); 0 starts at the image's
+    own resolution (Lowe's scale space without the doubling, VLFeat's default). OpenCV has no
+    switch for it, so octave 0 is run as OpenCV's SIFT on the half-size image (whose doubled
+    octave is the full-resolution one) with keypoints scaled back by 2.
+    """
     sift = cv2.SIFT.create(cfg.sift_features)
-    kps, desc = sift.detectAndCompute(img, None)
-    uv, _, desc = _kp_arrays(kps, desc)
+    if cfg.sift_first_octave == 0:
+        half = cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2), interpolation=cv2.INTER_AREA)
+        kps, desc = sift.detectAndCompute(half, None)
+        uv, _, desc = _kp_arrays(kps, desc)
+        uv = uv * 2.0 + 0.5  # centre of half-size pixel i lies at full-size 2i + 0.5
+    else:
+        kps, desc = sift.detectAndCompute(img, None)
+        uv, _, desc = _kp_arrays(kps, desc)
     if desc is None:
         desc = np.zeros((0, 128), np.float32)
     return uv, np.ascontiguousarray(desc, np.float32)

@@ -66,6 +66,8 @@ def check_frontend_config(cfg: FrontendConfig) -> None:
         raise SnapsGraphError(f"frontend.ratio_test must be in (0, 1], got {cfg.ratio_test}")
     if cfg.pnp_reprojection_px <= 0 or cfg.pnp_iterations < 1 or not 0 < cfg.pnp_confidence < 1:
         raise SnapsGraphError("frontend: pnp_reprojection_px > 0, pnp_iterations >= 1 and 0 < pnp_confidence < 1 are required")
+    if cfg.sift_first_octave not in (-1, 0):
+        raise SnapsGraphError(f"frontend.sift_first_octave must be -1 (OpenCV, image doubled) or 0, got {cfg.sift_first_octave}")
     if cfg.min_inliers < 6:
         raise SnapsGraphError(f"frontend.min_inliers must be at least 6 (PnP needs them), got {cfg.min_inliers}")
     for name in ("stereo_window_px", "klt_window_px"):
