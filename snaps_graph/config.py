@@ -97,6 +97,11 @@ class LoopConfig:
     # Weight of eq. 6's move: "q" = the paper (Q); "verified" = 1 for a verified loop (its target
     # is measured, not assumed), Q otherwise.
     correction_weight: str = "verified"
+    # With a verifier (the pipeline always has one): a loop must pass geometric verification;
+    # candidates at or above min_similarity are tried in order of Q, at most verify_attempts.
+    # false = the paper: the highest Q is a loop even when unverified (same-place assumption).
+    require_verification: bool = True
+    verify_attempts: int = 3
     # UIQI window sums kept per thumbnail (LRU) so a comparison only computes the cross term;
     # ~180 KB per 207x63 thumbnail, so 512 frames ~ 92 MB. 0 disables the cache.
     stats_cache_frames: int = 512

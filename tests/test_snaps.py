@@ -357,8 +357,41 @@ def test_shifted_revisit_found_at_its_shift():
     assert ev.q == pytest.approx(1.0, abs=1e-12)
 
 
+def test_failed_verification_rejects_or_falls_back():
+    """require_verification: no loop when no candidate verifies; the paper's rule otherwise."""
+    poses = [pose(z=k) for k in range(6)]
+    images = [tex(k) for k in range(6)]
+    images[5] = tex(0) // 2
+    closer = SnapsLoopCloser(cfg(require_verification=True))
+    for k in range(6):
+        T_rel = np.eye(4) if k == 0 else inv(poses[k - 1]) @ poses[k]
+        step = closer.step(k, T_rel, images[k], verify=lambda ref: None)
+    assert step.loop is None and closer.rejected_unverified == 1 and step.candidates > 0
+    np.testing.assert_allclose(closer.positions[5], [0, 0, 5.0])  # nothing moved
+
+
+def test_next_candidate_verified_when_best_fails():
+    """Frame 6 resembles frames 0 (Q 1) and 1 (Q 0.64); 0 fails verification, 1 passes."""
+    poses = [pose(z=0.5 * k) for k in range(7)]
+    images = [tex(k) for k in range(7)]
+    images[1] = tex(0) // 2
+    images[6] = tex(0).copy()
+    closer = SnapsLoopCloser(cfg(frame_distance=3, min_similarity=0.5, require_verification=True))
+    tried = []
+
+    def verify(ref):
+        tried.append(ref)
+        return (np.eye(4), 25) if ref == 1 else None
+
+    for k in range(7):
+        T_rel = np.eye(4) if k == 0 else inv(poses[k - 1]) @ poses[k]
+        step = closer.step(k, T_rel, images[k], verify=verify)
+    assert tried == [0, 1]  # highest Q first
+    assert step.loop is not None and step.loop.reference == 1 and step.loop.verified
+
+
 def test_failed_verification_falls_back_to_same_place():
-    closer = SnapsLoopCloser(cfg())
+    closer = SnapsLoopCloser(cfg(require_verification=False))
     poses = [pose(z=k) for k in range(6)]
     images = [tex(k) for k in range(6)]
     images[5] = tex(0) // 2

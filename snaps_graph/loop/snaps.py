@@ -102,6 +102,7 @@ def validate_loop_config(cfg: LoopConfig) -> None:
         (cfg.discount_rate >= 0, f"loop.discount_rate must be >= 0, got {cfg.discount_rate}"),
         (cfg.stats_cache_frames >= 0, f"loop.stats_cache_frames must be >= 0, got {cfg.stats_cache_frames}"),
         (cfg.shift_px >= 0, f"loop.shift_px must be >= 0, got {cfg.shift_px}"),
+        (cfg.verify_attempts >= 1, f"loop.verify_attempts must be >= 1, got {cfg.verify_attempts}"),
         (cfg.shift_step_px >= 1, f"loop.shift_step_px must be >= 1, got {cfg.shift_step_px}"),
         (cfg.correction_weight in ("q", "verified"), f"loop.correction_weight must be 'q' or 'verified', got '{cfg.correction_weight}'"),
     ]
@@ -135,6 +136,8 @@ class SnapsLoopCloser:
         self._last_pinned: int | None = None
         self._loops: list[LoopEvent] = []
         self.similarities_computed = 0
+        self.rejected_unverified = 0  # loops refused because no candidate verified
+        self._t_verify_ms = 0.0  # verification time inside the current step (excluded from t_ms)
         self.stats_computed = 0
 
     # ---- accessors ----
@@ -227,9 +230,10 @@ class SnapsLoopCloser:
             ids, dists = ids[: self.cfg.attempts], dists[: self.cfg.attempts]
             if ids.size:
                 loop, computed = self._try_close(n, ids, dists, verify)
-        t_ms = (perf_counter() - t0) * 1e3
+        # Verification (tried or successful) is the graph's work, timed on its own.
+        t_ms = (perf_counter() - t0) * 1e3 - self._t_verify_ms
+        self._t_verify_ms = 0.0
         if loop is not None:
-            t_ms -= loop.t_verify_ms  # verification is the graph's work, timed on its own
             loop.t_ms = t_ms
         return SnapsStep(pose=self.pose(n), loop=loop, candidates=computed, t_ms=t_ms)
 
@@ -304,24 +308,35 @@ class SnapsLoopCloser:
             qs = np.array([similarity_q(cur, self._window_stats(int(j))) for j in ids])
             shifts = [0] * len(ids)
         self.similarities_computed += len(ids)
-        best = int(np.argmax(qs))  # first maximum = nearest among equal Q
-        if qs[best] < self.cfg.min_similarity:
+        # Candidates at or above the threshold, highest Q first (stable: nearer first on ties).
+        passing = [int(i) for i in np.argsort(-qs, kind="stable") if qs[i] >= self.cfg.min_similarity]
+        if not passing:
             return None, len(ids)
+        best = passing[0]
+        verified, T_ref_cur, inliers, t_verify_ms = False, None, 0, 0.0
+        if verify is not None:
+            # Geometric verification of the best candidates in turn: the first that verifies is
+            # the loop. With require_verification, none verifying means no loop (a same-place
+            # assumption up to the radius away does more harm than a missed loop); otherwise the
+            # paper's rule: the highest Q, unverified.
+            tv = perf_counter()
+            for i in passing[: max(1, self.cfg.verify_attempts)]:
+                result = verify(int(self._index[int(ids[i])]))
+                if result is not None:
+                    best, (T_ref_cur, inliers), verified = i, result, True
+                    break
+            t_verify_ms = (perf_counter() - tv) * 1e3
+            self._t_verify_ms = t_verify_ms
+            if not verified and self.cfg.require_verification:
+                self.rejected_unverified += 1
+                return None, len(ids)
         ref = int(ids[best])
         # The winner's factors, same arithmetic, at its best shift.
         margin = min(self.cfg.shift_px, (cur.shape[1] - cur.window) // 2)
         sim = similarity(*shifted_pair(cur, self._window_stats(ref), shifts[best], margin))
         target = self._p[ref].copy()
-        verified, T_ref_cur, inliers, t_verify_ms = False, None, 0, 0.0
-        if verify is not None:
-            tv = perf_counter()
-            result = verify(int(self._index[ref]))
-            t_verify_ms = (perf_counter() - tv) * 1e3
-            if result is not None:
-                T_ref_cur, inliers = result
-                verified = True
-                if self.cfg.use_verified_offset:
-                    target = target + self._R[ref] @ np.asarray(T_ref_cur, float)[:3, 3]
+        if verified and self.cfg.use_verified_offset:
+            target = target + self._R[ref] @ np.asarray(T_ref_cur, float)[:3, 3]
         delta = target - self._p[n]
         alpha = len(self._loops) + 1
         # Eq. 6 weighs the move by Q: the confidence that N stands where the reference stood. A
