@@ -246,7 +246,9 @@ class SnapsLoopCloser:
         """
         cfg = self.cfg
         p = self._p[n]
-        base = _cell_key(np.floor(p / cfg.radius_m))
+        r = cfg.radius_m
+        x, y, z = p.tolist()  # plain floats: numpy's per-call overhead dominates at this size
+        base = (math.floor(x / r) * _RADIX + math.floor(y / r)) * _RADIX + math.floor(z / r)
         grid = self._grid
         found: list[int] = []
         for off in _NEIGHBOUR_OFFSETS:
@@ -392,9 +394,10 @@ class SnapsLoopCloser:
 
     # ---- storage ----
     def _insert(self, j: int) -> None:
-        c = np.floor(self._p[j] / self.cfg.radius_m).astype(np.int64)
+        r = self.cfg.radius_m
+        c = [math.floor(v / r) for v in self._p[j].tolist()]
         self._cell[j] = c
-        self._grid.setdefault(_cell_key(c), []).append(j)
+        self._grid.setdefault((c[0] * _RADIX + c[1]) * _RADIX + c[2], []).append(j)
         self._n_indexed = j + 1
 
     def _window_stats(self, k: int) -> WindowStats:
