@@ -86,7 +86,10 @@ class LoopConfig:
     max_yaw_deg: float = 10.0  # |yaw_j - yaw_N| limit
     thumbnail_scale: float = 1.0 / 6.0  # thumbnails: left image rescaled by this (INTER_AREA)
     window: int = 16  # UIQI sliding window B (Wang & Bovik use 8; 16 separates revisits better)
-    shift_px: int = 8  # compare thumbnails at horizontal shifts up to this (0 = the paper: none)
+    # Compare thumbnails also at horizontal shifts up to this (heading differences between
+    # passes); 0 = the paper (unshifted). Measured on synthetic KITTI 00 with verification on:
+    # 0 -> 15 loops, 1.0 ms on candidate frames; 8 -> 16 loops, 3.3 ms; no false loop either way.
+    shift_px: int = 0
     shift_step_px: int = 2  # ...in steps of this many thumbnail pixels
     discount_offset: float = 3.0  # the 3 in gamma = 1 - exp(-(3 - alpha*0.01*s'))
     discount_rate: float = 0.01  # the 0.01 in the same formula
