@@ -41,10 +41,12 @@ def test_config_roundtrip(tmp_path):
 
 
 def test_config_table1_defaults():
+    """Table I's values, except the similarity settings tuned for the exact index (README)."""
     c = Config().loop
-    assert (c.radius_m, c.frame_distance, c.discount_length, c.min_similarity) == (10.0, 100, 100, 0.75)
-    assert (c.inter_frame_pause, c.attempts, c.max_yaw_deg, c.window) == (50, 5, 10.0, 8)
+    assert (c.radius_m, c.frame_distance, c.discount_length) == (10.0, 100, 100)
+    assert (c.inter_frame_pause, c.attempts, c.max_yaw_deg) == (50, 5, 10.0)
     assert c.thumbnail_scale == pytest.approx(1 / 6)
+    assert (c.min_similarity, c.window, c.shift_px, c.require_verification) == (0.15, 16, 0, True)
 
 
 @pytest.mark.parametrize(
