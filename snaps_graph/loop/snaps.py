@@ -29,7 +29,7 @@ frame number, which differs when a frame range is processed) is what :class:`Loo
 ``frame`` and ``reference``; :attr:`indices` maps one to the other.
 
 Spatial look-up. A uniform grid hash with cell = radius maps a cell to the frames inside it, so a
-query reads the 27 cells around p_N and checks exact distances only there: the cost does not grow
+query reads the 9 ground-plane (x, z) cells around p_N and checks exact distances only there: the cost does not grow
 with the trajectory, only with the local density of frames. Frame N − M enters the grid when frame
 N arrives (younger frames can never be candidates), and a correction re-files the moved frames that
 are already in the grid, so the index always holds the corrected positions.
@@ -64,16 +64,16 @@ from .uiqi import WindowStats, make_thumbnail, shifted_pair, similarity, similar
 # reference dataset index -> (T_ref_cur, inliers) or None.
 Verifier = Callable[[int], "tuple[np.ndarray, int] | None"]
 
-# Grid cell keys are packed into one Python int (mixed radix with balanced digits): unique while
-# every cell coordinate stays within ±2^30 cells.
+# Grid cell keys pack (x, z) cell numbers into one Python int: unique while every cell
+# coordinate stays within ±2^30 cells.
 _RADIX = 1 << 32
-_NEIGHBOUR_OFFSETS = tuple(
-    (dx * _RADIX + dy) * _RADIX + dz for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)
-)
+# The grid hashes the ground plane (x, z; KITTI's y points down): a query reads 9 cells instead
+# of 27, and height differences are left to the exact distance test.
+_NEIGHBOUR_OFFSETS = tuple(dx * _RADIX + dz for dx in (-1, 0, 1) for dz in (-1, 0, 1))
 
 
-def _cell_key(c: np.ndarray) -> int:
-    return (int(c[0]) * _RADIX + int(c[1])) * _RADIX + int(c[2])
+def _cell_key(c) -> int:
+    return int(c[0]) * _RADIX + int(c[2])
 
 
 @dataclass
@@ -248,7 +248,7 @@ class SnapsLoopCloser:
         p = self._p[n]
         r = cfg.radius_m
         x, y, z = p.tolist()  # plain floats: numpy's per-call overhead dominates at this size
-        base = (math.floor(x / r) * _RADIX + math.floor(y / r)) * _RADIX + math.floor(z / r)
+        base = math.floor(x / r) * _RADIX + math.floor(z / r)
         grid = self._grid
         found: list[int] = []
         for off in _NEIGHBOUR_OFFSETS:
@@ -397,7 +397,7 @@ class SnapsLoopCloser:
         r = self.cfg.radius_m
         c = [math.floor(v / r) for v in self._p[j].tolist()]
         self._cell[j] = c
-        self._grid.setdefault((c[0] * _RADIX + c[1]) * _RADIX + c[2], []).append(j)
+        self._grid.setdefault(_cell_key(c), []).append(j)
         self._n_indexed = j + 1
 
     def _window_stats(self, k: int) -> WindowStats:
