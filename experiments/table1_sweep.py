@@ -87,9 +87,10 @@ def _plot(curves, vo_md, path) -> None:
     n = len(curves)
     fig, axes = plt.subplots(2, (n + 1) // 2, figsize=(4 * ((n + 1) // 2), 7))
     for ax, (param, pts) in zip(axes.ravel(), curves.items()):
-        x = [float(p[0]) for p in pts]
+        x = list(range(len(pts)))  # categorical: values may be numbers, booleans or names
         ax.plot(x, [p[1] for p in pts], "o-", label="SNAPS")
         ax.plot(x, [p[2] for p in pts], "s-", label="batch")
+        ax.set_xticks(x, [str(p[0]) for p in pts])
         ax.axhline(vo_md, color="k", ls="--", lw=0.8, label="VO")
         ax.set_title(param)
         ax.set_ylabel("mean deviation [m]")
