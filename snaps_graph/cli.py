@@ -102,7 +102,9 @@ def eval_(
 
     m = evaluate(read_poses(est), read_poses(gt))
     if as_json:
-        typer.echo(json.dumps({k: (None if isinstance(v, float) and v != v else v) for k, v in m.items()}))
+        from .evaluation.report import json_clean
+
+        typer.echo(json.dumps(json_clean(m)))  # a metric that cannot be computed is null
         return
     typer.echo(_metrics_table({est.name: m}))
 

@@ -367,19 +367,9 @@ def _rows_csv(rows: list[dict]) -> str:
 
 def _json_text(obj) -> str:
     """Strict JSON: a metric that cannot be computed (NaN) is written as null."""
-    from .evaluation.report import _json_clean
+    from .evaluation.report import json_clean
 
-    return json.dumps(_json_clean(obj), indent=2, default=_json_default) + "\n"
-
-
-def _json_default(o):
-    if isinstance(o, (np.floating,)):
-        return float(o)
-    if isinstance(o, (np.integer,)):
-        return int(o)
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    raise TypeError(type(o))
+    return json.dumps(json_clean(obj), indent=2) + "\n"
 
 
 def run_sequence(

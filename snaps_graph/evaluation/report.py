@@ -406,14 +406,14 @@ def _summary_lines(metrics: dict | None, corrections: list[dict], trajs: dict) -
     return lines
 
 
-def _json_clean(obj: Any) -> Any:
+def json_clean(obj: Any) -> Any:
     """NaN/inf -> None and numpy scalars -> Python, so metrics.json is strict JSON."""
     if isinstance(obj, dict):
-        return {str(k): _json_clean(v) for k, v in obj.items()}
+        return {str(k): json_clean(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_json_clean(v) for v in obj]
+        return [json_clean(v) for v in obj]
     if isinstance(obj, np.ndarray):
-        return _json_clean(obj.tolist())
+        return json_clean(obj.tolist())
     if isinstance(obj, (bool, np.bool_)):
         return bool(obj)
     if isinstance(obj, (int, np.integer)):
@@ -538,6 +538,6 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None) -> dict:
     metrics["latency_ms"] = latency
     metrics["loop_corrections"] = corrections
     metrics["report"] = {"markdown": "report.md", "figures": figures}
-    metrics = _json_clean(metrics)
+    metrics = json_clean(metrics)
     atomic_write_text(metrics_path, json.dumps(metrics, indent=2) + "\n")
     return metrics
