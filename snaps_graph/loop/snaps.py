@@ -8,8 +8,10 @@
 3. searches loop candidates (§III-B): earlier frames j with ‖p_j − p_N‖ ≤ radius (current,
    corrected positions), N − j ≥ frame distance M, |wrap(yaw_j − yaw_N)| ≤ max yaw difference, and
    only if N − last pinned frame > inter-frame pause; nearest first (ties: older frame first), at
-   most ``attempts`` of them are compared by UIQI (eq. 4) on thumbnails; the loop is the candidate
-   with the highest Q among those with Q ≥ minimum similarity;
+   most ``attempts`` of them are compared by UIQI (eq. 4) on thumbnails; candidates with
+   Q ≥ minimum similarity are, highest Q first, the loop. With a verifier (the pipeline always has
+   one), they are tried in that order and the first that passes geometric verification is the
+   loop; with ``require_verification`` none passing means no loop (see :meth:`_try_close`);
 4. on a loop corrects positions with our reading of eq. 6 (SPEC "SNAPS loop closure"): with
    δ = p_ref − p_N and α the number of loops closed so far (this one included), for
    s ∈ [N − K, N] (clipped at 0), s' = N − s::
