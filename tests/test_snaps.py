@@ -17,6 +17,7 @@ from snaps_graph.config import LoopConfig
 from snaps_graph.errors import SnapsGraphError
 from snaps_graph.geometry import inv, wrap_deg, yaw_deg
 from snaps_graph.loop import SnapsLoopCloser
+from snaps_graph.loop.snaps import _NEIGHBOUR_OFFSETS
 
 SHAPE = (16, 20)
 
@@ -263,6 +264,12 @@ def test_spatial_index_tracks_corrected_positions():
             after = closer.positions
             moved_cells += int(np.any(np.floor(before[j] / 3.0) != np.floor(after[j] / 3.0), axis=1).sum())
         np.testing.assert_array_equal(closer.search(k)[0], brute_force(closer, k))
+        # The neighbourhood counts that short-cut empty searches agree with the grid itself.
+        expect: dict[int, int] = {}
+        for key in closer._grid:
+            for off in _NEIGHBOUR_OFFSETS:
+                expect[key + off] = expect.get(key + off, 0) + 1
+        assert closer._near == expect
     assert len(closer.loops) >= 3
     assert moved_cells > 0  # the index really had to re-file frames
 

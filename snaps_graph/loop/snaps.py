@@ -78,6 +78,13 @@ def _cell_key(c) -> int:
     return int(c[0]) * _RADIX + int(c[2])
 
 
+# What a search with no candidate returns (read-only, shared: the no-candidate path allocates nothing).
+_NO_IDS = np.empty(0, dtype=np.int64)
+_NO_IDS.flags.writeable = False
+_NO_DISTS = np.empty(0)
+_NO_DISTS.flags.writeable = False
+
+
 @dataclass
 class SnapsStep:
     """What :meth:`SnapsLoopCloser.step` returns for one frame."""
@@ -133,6 +140,9 @@ class SnapsLoopCloser:
         self._n = 0  # frames processed
         self._n_indexed = 0  # frames 0 .. _n_indexed-1 are in the grid
         self._grid: dict[int, list[int]] = {}
+        # key -> how many non-empty grid cells lie in its 3x3 neighbourhood. Most frames have no
+        # indexed frame nearby, and one look-up here answers that instead of nine in _grid.
+        self._near: dict[int, int] = {}
         self._thumbs: list[np.ndarray] = []
         self._stats: OrderedDict[int, WindowStats] = OrderedDict()
         self._last_pinned: int | None = None
@@ -229,9 +239,9 @@ class SnapsLoopCloser:
         loop, computed = None, 0
         if self._last_pinned is None or n - self._last_pinned > self.cfg.inter_frame_pause:
             ids, dists = self.search(n)
-            ids, dists = ids[: self.cfg.attempts], dists[: self.cfg.attempts]
             if ids.size:
-                loop, computed = self._try_close(n, ids, dists, verify)
+                a = self.cfg.attempts
+                loop, computed = self._try_close(n, ids[:a], dists[:a], verify)
         # Verification (tried or successful) is the graph's work, timed on its own.
         t_ms = (perf_counter() - t0) * 1e3 - self._t_verify_ms
         self._t_verify_ms = 0.0
@@ -251,6 +261,8 @@ class SnapsLoopCloser:
         r = cfg.radius_m
         x, y, z = p.tolist()  # plain floats: numpy's per-call overhead dominates at this size
         base = math.floor(x / r) * _RADIX + math.floor(z / r)
+        if base not in self._near:  # no indexed frame in the 9 cells: the common case
+            return _NO_IDS, _NO_DISTS
         grid = self._grid
         found: list[int] = []
         for off in _NEIGHBOUR_OFFSETS:
@@ -258,7 +270,7 @@ class SnapsLoopCloser:
             if members:
                 found.extend(members)
         if not found:
-            return np.empty(0, dtype=np.int64), np.empty(0)
+            return _NO_IDS, _NO_DISTS
         if len(found) <= 32:  # few neighbours (most frames): scalar Python beats numpy's call overhead
             return self._search_small(n, found)
         ids = np.array(found, dtype=np.int64)
@@ -288,7 +300,7 @@ class SnapsLoopCloser:
             if abs(dyaw) <= cfg.max_yaw_deg or (dyaw == -180.0 and cfg.max_yaw_deg >= 180.0):
                 hits.append((math.sqrt(d2), j))
         if not hits:
-            return np.empty(0, dtype=np.int64), np.empty(0)
+            return _NO_IDS, _NO_DISTS
         hits.sort()  # nearest first, ties by older frame
         return np.array([j for _, j in hits], dtype=np.int64), np.array([d for d, _ in hits])
 
@@ -390,8 +402,9 @@ class SnapsLoopCloser:
                 members.remove(j)
                 if not members:
                     del self._grid[old_key]
+                    self._count_near(old_key, -1)
                 self._cell[j] = new[k]
-                self._grid.setdefault(_cell_key(new[k]), []).append(j)
+                self._file(_cell_key(new[k]), j)
         return int(np.count_nonzero(gamma > 0.0))
 
     # ---- storage ----
@@ -399,8 +412,26 @@ class SnapsLoopCloser:
         r = self.cfg.radius_m
         c = [math.floor(v / r) for v in self._p[j].tolist()]
         self._cell[j] = c
-        self._grid.setdefault(_cell_key(c), []).append(j)
+        self._file(_cell_key(c), j)
         self._n_indexed = j + 1
+
+    def _file(self, key: int, j: int) -> None:
+        members = self._grid.get(key)
+        if members is None:
+            self._grid[key] = [j]
+            self._count_near(key, +1)
+        else:
+            members.append(j)
+
+    def _count_near(self, key: int, step: int) -> None:
+        """A cell became non-empty (+1) or empty (-1): update its 3x3 neighbourhood's counts."""
+        near = self._near
+        for off in _NEIGHBOUR_OFFSETS:
+            c = near.get(key + off, 0) + step
+            if c:
+                near[key + off] = c
+            else:
+                del near[key + off]
 
     def _window_stats(self, k: int) -> WindowStats:
         cache = self._stats

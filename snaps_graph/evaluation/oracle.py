@@ -1,0 +1,94 @@
+"""How much could *any* loop closure fix? A ground-truth loop oracle for a VO trajectory.
+
+Loop closure can only remove the part of the odometry error that a revisit observes: a loop
+constrains the relative pose of two frames, so an error that leaves every revisited pair's relative
+pose right (a heading error before the first revisit turns the whole rest of the path about a
+point the loops cannot see; a stretch driven once carries the error it had when it started) is
+invisible to every loop, however good the detector. The unaligned mean deviation (the paper's
+figure) counts that error in full.
+
+:func:`loop_oracle` bounds what our loops could reach. It builds the same pose graph as a run
+(the VO steps with their inlier-based noise, from :class:`~snaps_graph.backend.pose_graph.PoseGraph`)
+and adds a loop factor at *every* true revisit (ground truth: within ``radius_m``, at least
+``frame_distance`` frames back, heading within ``max_yaw_deg``, one every ``step`` frames) whose
+measurement is the exact ground-truth relative pose at full weight, then optimises it in batch.
+No detector can give more or better loops than that, so its mean deviation is (up to the
+odometry noise model) the floor for SNAPS and for the refinement on this VO.
+
+It is an evaluation tool only: it reads ground truth, and nothing in a run uses it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..backend.pose_graph import PoseGraph
+from ..config import Config
+from ..geometry import wrap_deg, yaw_deg
+from .metrics import ate_rmse, mean_deviation
+
+
+@dataclass
+class OracleResult:
+    poses: np.ndarray  # (N, 4, 4) optimised with every true revisit closed exactly
+    pairs: list[tuple[int, int]] = field(default_factory=list)  # (reference, current) loop pairs
+    mean_deviation: float = float("nan")
+    ate_rmse: float = float("nan")
+
+
+def true_revisit_pairs(
+    gt: np.ndarray, radius_m: float, frame_distance: int, max_yaw_deg: float, step: int = 5
+) -> list[tuple[int, int]]:
+    """(reference, current) pairs at the true revisits of a ground-truth path.
+
+    Every ``step``-th frame k that has an earlier frame j <= k - frame_distance within
+    ``radius_m`` and ``max_yaw_deg`` of it gets one pair, to the nearest such j.
+    """
+    if step < 1:
+        raise ValueError("step must be >= 1")
+    p = gt[:, :3, 3]
+    yaw = yaw_deg(gt[:, :3, :3])
+    pairs = []
+    for k in range(frame_distance, len(p), step):
+        d = np.linalg.norm(p[: k - frame_distance + 1] - p[k], axis=1)
+        ok = (d <= radius_m) & (np.abs(wrap_deg(yaw[: k - frame_distance + 1] - yaw[k])) <= max_yaw_deg)
+        if ok.any():
+            cand = np.flatnonzero(ok)
+            pairs.append((int(cand[np.argmin(d[cand])]), k))
+    return pairs
+
+
+def loop_oracle(
+    vo: np.ndarray,
+    gt: np.ndarray,
+    cfg: Config | None = None,
+    inliers: np.ndarray | None = None,
+    ok: np.ndarray | None = None,
+    step: int = 5,
+) -> OracleResult:
+    """Batch-optimise the VO chain with an exact loop factor at every true revisit.
+
+    ``vo`` and ``gt`` are (N, 4, 4) T_world_cam for the same frames; ``inliers`` and ``ok`` are the
+    per-frame VO inlier counts and flags (as in ``frames.csv``) for the odometry noise model
+    (default: the reference sigmas, all frames good). The candidate geometry (radius, frame
+    distance, yaw) is ``cfg.loop``'s, so the oracle sees exactly the revisits SNAPS may close.
+    """
+    vo = np.asarray(vo, dtype=float)
+    gt = np.asarray(gt, dtype=float)
+    if vo.shape != gt.shape or vo.ndim != 3 or vo.shape[1:] != (4, 4):
+        raise ValueError(f"vo {vo.shape} and gt {gt.shape} must both be (N, 4, 4)")
+    cfg = cfg or Config()
+    n = len(vo)
+    inliers = np.zeros(n, int) if inliers is None else np.asarray(inliers, int)
+    ok = np.ones(n, bool) if ok is None else np.asarray(ok, bool)
+    graph = PoseGraph(cfg.graph, mode="batch")
+    for k in range(n):
+        T_rel = None if k == 0 else np.linalg.solve(vo[k - 1], vo[k])
+        graph.add_frame(k, vo[k], T_rel, inliers=int(inliers[k]), ok=bool(ok[k]))
+    pairs = true_revisit_pairs(gt, cfg.loop.radius_m, cfg.loop.frame_distance, cfg.loop.max_yaw_deg, step)
+    for j, k in pairs:
+        graph.add_loop(j, k, 1.0, np.linalg.solve(gt[j], gt[k]))
+    poses = graph.optimize_batch()
+    return OracleResult(poses, pairs, mean_deviation(poses, gt), ate_rmse(poses, gt))

@@ -1,0 +1,96 @@
+"""The ground-truth loop oracle (snaps_graph.evaluation.oracle)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from snaps_graph.config import Config
+from snaps_graph.evaluation.metrics import mean_deviation
+from snaps_graph.evaluation.oracle import loop_oracle, true_revisit_pairs
+
+
+def yaw_pose(x: float, z: float, yaw_deg: float) -> np.ndarray:
+    a = math.radians(yaw_deg)
+    T = np.eye(4)
+    T[:3, :3] = [[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]]
+    T[0, 3], T[2, 3] = x, z
+    return T
+
+
+def square_laps(laps: int = 2, side: int = 20) -> np.ndarray:
+    """A square driven ``laps`` times, 1 m steps, turning 90 degrees at each corner."""
+    poses, x, z, yaw = [], 0.0, 0.0, 0.0
+    for _ in range(laps):
+        for _ in range(4):
+            for _ in range(side):
+                poses.append(yaw_pose(x, z, yaw))
+                x += math.sin(math.radians(yaw))
+                z += math.cos(math.radians(yaw))
+            yaw += 90.0
+    return np.array(poses)
+
+
+def drifted(gt: np.ndarray, yaw_bias_deg: float) -> np.ndarray:
+    """Chain the true steps with a constant yaw bias per step (VO heading drift)."""
+    out = [gt[0]]
+    bias = yaw_pose(0.0, 0.0, yaw_bias_deg)
+    for k in range(1, len(gt)):
+        out.append(out[-1] @ np.linalg.solve(gt[k - 1], gt[k]) @ bias)
+    return np.array(out)
+
+
+def cfg() -> Config:
+    c = Config()
+    c.loop.frame_distance = 50
+    c.loop.radius_m = 3.0
+    return c
+
+
+def test_true_revisit_pairs_are_the_second_lap():
+    gt = square_laps()
+    c = cfg()
+    pairs = true_revisit_pairs(gt, c.loop.radius_m, c.loop.frame_distance, c.loop.max_yaw_deg, step=1)
+    assert pairs, "the second lap revisits the first"
+    for j, k in pairs:
+        assert k >= 80 and k - j >= c.loop.frame_distance
+        assert np.linalg.norm(gt[j, :3, 3] - gt[k, :3, 3]) <= c.loop.radius_m
+    # Every second-lap frame k >= 80 lies on a first-lap frame (k - 80), which is the nearest one.
+    assert all(j == k - 80 for j, k in pairs)
+    assert len(pairs) == 80
+
+
+def test_oracle_removes_drift_that_loops_observe():
+    gt = square_laps()
+    vo = drifted(gt, 0.2)  # 0.2 deg per metre: ~16 deg over the 160 m
+    before = mean_deviation(vo, gt)
+    res = loop_oracle(vo, gt, cfg())
+    assert before > 2.0
+    assert res.mean_deviation < 0.5 * before
+    assert np.all(np.isfinite(res.poses))
+
+
+def test_oracle_keeps_error_that_no_loop_observes():
+    # A 30 m lead-in driven once, then the square twice. A heading error on a lead-in step turns
+    # everything after it rigidly; every revisited pair lies after the error, so the exact loops
+    # agree with the VO: the oracle cannot (and must not) remove that error.
+    lead = np.array([yaw_pose(0.0, float(z), 0.0) for z in range(-30, 0)])
+    gt = np.concatenate([lead, square_laps()])
+    vo = [gt[0]]
+    for k in range(1, len(gt)):
+        step = np.linalg.solve(gt[k - 1], gt[k])
+        vo.append(vo[-1] @ step @ (yaw_pose(0.0, 0.0, 2.0) if k == 10 else np.eye(4)))
+    vo = np.array(vo)
+    before = mean_deviation(vo, gt)
+    res = loop_oracle(vo, gt, cfg())
+    assert before > 0.5
+    assert res.pairs and min(j for j, _ in res.pairs) >= 30  # loops only on the square
+    assert abs(res.mean_deviation - before) < 0.05 * before
+    # The same error on the square (frame 40, revisited by frame 120) is observed and removed.
+    vo2 = [gt[0]]
+    for k in range(1, len(gt)):
+        step = np.linalg.solve(gt[k - 1], gt[k])
+        vo2.append(vo2[-1] @ step @ (yaw_pose(0.0, 0.0, 2.0) if k == 40 else np.eye(4)))
+    vo2 = np.array(vo2)
+    assert loop_oracle(vo2, gt, cfg()).mean_deviation < 0.5 * mean_deviation(vo2, gt)
