@@ -127,11 +127,11 @@ def main() -> None:
 
     figures: dict = {"frames": len(seq), "wall_s": wall, "batch_s": t_batch, "trajectories": {}}
     print(f"\n{len(seq)} frames of {seq_dir}, {wall:.1f} s ({len(seq) / wall:.1f} frames/s), mode {cfg.frontend.mode}")
-    print(f"{'trajectory':<10}{'mean dev m':>12}{'ATE m':>10}{'t_rel %':>10}{'r_rel deg/100m':>16}{'end drift %':>13}")
+    print(f"{'trajectory':<10}{'mean dev m':>12}{'horiz m':>9}{'vert m':>8}{'ATE m':>10}{'t_rel %':>10}{'r_rel deg/100m':>16}{'end drift %':>13}")
     for name, poses in result.trajectories.items():
         m = evaluate(poses, gt)
         figures["trajectories"][name] = m
-        print(f"{name:<10}{m['mean_deviation']:>12.3f}{m['ate_rmse']:>10.3f}{m['t_rel']:>10.3f}{m['r_rel']:>16.4f}{m['end_drift_percent']:>13.3f}")
+        print(f"{name:<10}{m['mean_deviation']:>12.3f}{m['mean_deviation_horizontal']:>9.3f}{m['mean_deviation_vertical']:>8.3f}{m['ate_rmse']:>10.3f}{m['t_rel']:>10.3f}{m['r_rel']:>16.4f}{m['end_drift_percent']:>13.3f}")
     tr = figures["trajectories"]
     if "snaps" in tr:
         red = 1 - tr["snaps"]["mean_deviation"] / tr["vo"]["mean_deviation"]

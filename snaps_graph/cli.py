@@ -161,11 +161,13 @@ def _fmt(v, nd=3) -> str:
 
 
 def _metrics_table(per_traj: dict[str, dict]) -> str:
-    head = f"{'trajectory':<14}{'frames':>8}{'mean dev m':>12}{'ATE m':>10}{'t_rel %':>9}{'r_rel °/100m':>14}{'end drift %':>13}"
+    head = (f"{'trajectory':<14}{'frames':>8}{'mean dev m':>12}{'horiz':>8}{'vert':>8}{'ATE m':>10}{'t_rel %':>9}"
+            f"{'r_rel °/100m':>14}{'end drift %':>13}")
     lines = [head, "-" * len(head)]
     for name, m in per_traj.items():
         lines.append(
-            f"{name:<14}{m.get('frames', ''):>8}{_fmt(m.get('mean_deviation')):>12}{_fmt(m.get('ate_rmse')):>10}"
+            f"{name:<14}{m.get('frames', ''):>8}{_fmt(m.get('mean_deviation')):>12}"
+            f"{_fmt(m.get('mean_deviation_horizontal')):>8}{_fmt(m.get('mean_deviation_vertical')):>8}{_fmt(m.get('ate_rmse')):>10}"
             f"{_fmt(m.get('t_rel'), 2):>9}{_fmt(m.get('r_rel'), 3):>14}{_fmt(m.get('end_drift_percent'), 2):>13}"
         )
     return "\n".join(lines)

@@ -246,3 +246,14 @@ def test_bad_input_is_a_one_line_user_error():
         mean_deviation(gt[:, :3, :], gt)
     with pytest.raises(SnapsGraphError, match="lengths must match"):
         kitti_relative_errors(gt, gt[:-1])
+
+
+def test_mean_deviation_splits_into_horizontal_and_vertical():
+    gt = straight_line(50)
+    est = gt.copy()
+    est[:, 0, 3] += 3.0  # sideways (x)
+    est[:, 1, 3] += 4.0  # down (KITTI y): 5 m in all
+    m = evaluate(est, gt)
+    assert m["mean_deviation"] == pytest.approx(5.0)
+    assert m["mean_deviation_horizontal"] == pytest.approx(3.0)
+    assert m["mean_deviation_vertical"] == pytest.approx(4.0)

@@ -200,7 +200,11 @@ def evaluate(est: np.ndarray, gt: np.ndarray) -> dict:
 
     Keys: mean_deviation (m), ate_rmse (m), t_rel (%), r_rel (deg/100 m), frames,
     path_length_m (ground-truth path), end_error_m (final position error, no alignment) and
-    end_drift_percent (end error / path length * 100). t_rel / r_rel are NaN on paths shorter
+    end_drift_percent (end error / path length * 100), plus the mean deviation split into
+    mean_deviation_horizontal (m, in the x-z plane) and mean_deviation_vertical (m, |y|): KITTI's
+    world frame is the first camera's, whose y axis points down, so for a level first camera this
+    separates drift along the ground from drift in height (loops observe the first far better
+    than a tilt of the whole path). t_rel / r_rel are NaN on paths shorter
     than 100 m, and end_drift_percent is NaN for a path of length zero; callers write NaN as
     null / "n/a".
     """
@@ -209,8 +213,11 @@ def evaluate(est: np.ndarray, gt: np.ndarray) -> dict:
     t_rel, r_rel = kitti_relative_errors(est, gt)
     length = path_length(gt)
     end_error = float(errors[-1])
+    d = est[:, :3, 3] - gt[:, :3, 3]
     return {
         "mean_deviation": float(errors.mean()),
+        "mean_deviation_horizontal": float(np.hypot(d[:, 0], d[:, 2]).mean()),
+        "mean_deviation_vertical": float(np.abs(d[:, 1]).mean()),
         "ate_rmse": ate_rmse(est, gt),
         "t_rel": t_rel,
         "r_rel": r_rel,

@@ -339,8 +339,8 @@ def _trajectory_lines(trajs: dict, metrics: dict | None, paths: dict) -> list[st
             for name in trajs
         ]
         return _table(header, rows)
-    header = ["trajectory", "frames", "mean deviation [m]", "vs vo", "ATE RMSE [m]", "t_rel [%]",
-              "r_rel [deg/100 m]", "end error [m]", "end drift [%]"]
+    header = ["trajectory", "frames", "mean deviation [m]", "vs vo", "horizontal / vertical [m]", "ATE RMSE [m]",
+              "t_rel [%]", "r_rel [deg/100 m]", "end error [m]", "end drift [%]"]
     md_vo = metrics["vo"]["mean_deviation"]
     rows = []
     for name, m in metrics.items():
@@ -348,7 +348,8 @@ def _trajectory_lines(trajs: dict, metrics: dict | None, paths: dict) -> list[st
             change = "reference"
         else:
             change = "n/a" if md_vo <= 0 else f"{(m['mean_deviation'] - md_vo) / md_vo * 100.0:+.1f}%"
-        rows.append([name, str(m["frames"]), _f(m["mean_deviation"], 3), change, _f(m["ate_rmse"], 3),
+        split = f"{_f(m.get('mean_deviation_horizontal'), 3)} / {_f(m.get('mean_deviation_vertical'), 3)}"
+        rows.append([name, str(m["frames"]), _f(m["mean_deviation"], 3), change, split, _f(m["ate_rmse"], 3),
                      _f(m["t_rel"], 3), _f(m["r_rel"], 4), _f(m["end_error_m"], 3), _f(m["end_drift_percent"], 3)])
     return _table(header, rows)
 
