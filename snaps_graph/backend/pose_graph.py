@@ -20,15 +20,16 @@ Decisions, and why:
   constant-velocity guess) is multiplied by ``flagged_sigma_scale`` so loops can bend it freely.
 * **Loop noise from the UIQI Q** (paper eq. 4; SPEC: a higher Q gives a tighter model). Q is a
   similarity, not a calibrated probability; what it tells us is how far the match clears the
-  acceptance threshold. We take the margin above a floor ``q0 = loop_q_floor`` (just below the
-  paper's 0.75 minimum similarity, so a loop at the threshold still has a finite weight) and let
-  the information 1/sigma^2 grow with the square of that margin, full weight at Q = 1::
+  acceptance threshold. We take the margin above a floor ``q0 = loop_q_floor`` and let the
+  information 1/sigma^2 grow with the square of that margin, full weight at Q = 1::
 
       scale(Q) = clip((1 - q0) / (Q - q0), 1, loop_sigma_scale_max)   (scale_max when Q <= q0)
       sigma(Q) = base_sigma * scale(Q)
 
-  With q0 = 0.7: Q = 1 -> 1x, 0.95 -> 1.2x, 0.85 -> 2x, 0.75 -> 6x. It is monotone
-  (non-increasing) in Q by construction.
+  The default q0 = 0 suits the exact UIQI, where true revisits score 0.15-0.6: sigma = base / Q,
+  at most 10x (Q = 0.5 -> 2x, 0.2 -> 5x). With the paper's index scale (threshold 0.75) a floor
+  just below it, q0 = 0.7, gives Q = 1 -> 1x, 0.95 -> 1.2x, 0.85 -> 2x, 0.75 -> 6x. Either way it
+  is monotone (non-increasing) in Q by construction.
 * **Loop measurement.** A geometrically verified loop (``T_ref_cur`` given) uses the measured
   relative pose with the ``loop_sigma_*`` base sigmas. Otherwise the paper's own assumption (SNAPS
   only says the two frames show the same place, §III) is written as a factor: zero translation,
