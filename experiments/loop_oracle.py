@@ -9,7 +9,9 @@ of poses_snaps / poses_isam2 / poses_batch it has) and the ground truth, then pr
   optimised; under the run's candidate geometry (radius, frame distance, yaw), and under a
   generous one (30 m, any heading) with 100x tighter loop factors and no robust kernel;
 * how the VO's mean deviation falls when its pose at frame k is re-anchored on the ground truth,
-  i.e. without the heading and position error it had accrued by frame k.
+  i.e. without the heading and position error it had accrued by frame k;
+* the run's own graph (VO steps, the loops of loops.jsonl) rebuilt and batch-optimised without
+  and with the level-vehicle gravity prior (``[graph] gravity_prior``), from the SNAPS poses.
 
 No detector can give more or better loops than the oracle, so its reduction is what loop
 closure can reach on this VO; the rest is error the loops do not observe. Writes
@@ -25,9 +27,12 @@ import csv
 import sys
 from pathlib import Path
 
+import json
+
 import numpy as np
 from _common import md_table
 
+from snaps_graph.backend.pose_graph import PoseGraph
 from snaps_graph.config import Config
 from snaps_graph.errors import SnapsGraphError
 from snaps_graph.evaluation.metrics import ate_rmse, mean_deviation
@@ -41,6 +46,30 @@ def frame_columns(run: Path, n: int) -> tuple[np.ndarray, np.ndarray]:
     if len(rows) != n:
         raise SnapsGraphError(f"{run / 'frames.csv'} has {len(rows)} rows, poses_vo.txt {n}")
     return np.array([int(r["vo_inliers"]) for r in rows]), np.array([r["vo_ok"] == "1" for r in rows])
+
+
+def rebuilt_batch(run: Path, cfg: Config, vo: np.ndarray, inliers: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """The run's graph rebuilt from its files (VO steps, loops.jsonl), batch-optimised from the
+    SNAPS poses (the initial estimates a run uses)."""
+    init = read_poses(run / "poses_snaps.txt") if (run / "poses_snaps.txt").is_file() else vo
+    graph = PoseGraph(cfg.graph, mode="batch")
+    for k in range(len(vo)):
+        graph.add_frame(k, init[k], None if k == 0 else np.linalg.solve(vo[k - 1], vo[k]), int(inliers[k]), bool(ok[k]))
+    k_of = {f: k for k, f in enumerate(frame_ids(run, len(vo)))}
+    if (run / "loops.jsonl").is_file():
+        for line in (run / "loops.jsonl").read_text().splitlines():
+            loop = json.loads(line)
+            T = None
+            if loop.get("verified") and loop.get("T_ref_cur"):
+                T = np.eye(4)
+                T[:3, :4] = np.array(loop["T_ref_cur"], float).reshape(3, 4)
+            graph.add_loop(k_of[loop["reference"]], k_of[loop["frame"]], loop["q"], T)
+    return graph.optimize_batch()
+
+
+def frame_ids(run: Path, n: int) -> list[int]:
+    with open(run / "frames.csv", newline="") as f:
+        return [int(r["frame"]) for r in csv.DictReader(f)][:n]
 
 
 def main() -> None:
@@ -79,6 +108,14 @@ def main() -> None:
     ow = loop_oracle(vo, gt, wide, inliers, ok, step=args.step)
     rows.append(["oracle, generous", f"{len(ow.pairs)} exact loops, 30 m, any heading, 100x tighter",
                  ow.mean_deviation, 100 * (ow.mean_deviation / vo_md - 1), ow.ate_rmse])
+
+    for on in (False, True):
+        gcfg = Config.load(run / "config.toml") if (run / "config.toml").is_file() else Config()
+        gcfg.graph.gravity_prior = on
+        est = rebuilt_batch(run, gcfg, vo, inliers, ok)
+        md = mean_deviation(est, gt)
+        rows.append([f"batch, rebuilt, gravity prior {'on' if on else 'off'}", "the run's", md,
+                     100 * (md / vo_md - 1), ate_rmse(est, gt)])
 
     anchor_rows = []
     for k in (0, 10, 50, 100, 200, 400):

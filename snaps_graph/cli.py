@@ -65,6 +65,10 @@ def run(
     map_: Optional[bool] = typer.Option(None, "--map/--no-map", help="Build the point-cloud map (default from config: off)."),
     mode: Optional[str] = typer.Option(None, "--mode", help="Front-end mode override: klt | orb | sift."),
     map_all: bool = typer.Option(False, "--map-all", help="With --map: also map_<trajectory>.ply for every trajectory."),
+    gravity_prior: Optional[bool] = typer.Option(
+        None, "--gravity-prior/--no-gravity-prior",
+        help="Batch refinement: level-vehicle prior on every frame's attitude (default from config: off).",
+    ),
 ) -> None:
     """Run stereo VO (+ SNAPS, + graph refinement, + map) over a sequence and write a results folder."""
     from .config import Config
@@ -76,6 +80,8 @@ def run(
         cfg.frontend.mode = mode
     if map_all:
         cfg.map.per_trajectory = True
+    if gravity_prior is not None:
+        cfg.graph.gravity_prior = gravity_prior
     seq = KittiSequence(seq_dir, frames=frames, gt=gt)
     n_loops = 0
     with _progress(len(seq), "slam") as bar:

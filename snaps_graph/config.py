@@ -145,6 +145,14 @@ class GraphConfig:
     batch_solver: str = "lm"  # lm | gnc
     batch_max_iterations: int = 100
     gnc_inlier_probability: float = 0.99  # GNC: chi-square inlier threshold at this probability
+    # Level-vehicle (gravity) prior, batch only, off by default (README "gravity prior"): each
+    # frame's camera down axis, through a camera-frame gravity direction shared by all frames
+    # (the mounting), points along a world gravity direction shared by all frames, within
+    # gravity_sigma_deg (the spread of road grade and camber). Both directions are re-estimated
+    # from the poses before each of gravity_rounds Levenberg-Marquardt solves.
+    gravity_prior: bool = False
+    gravity_sigma_deg: float = 2.0
+    gravity_rounds: int = 3
 
 
 @dataclass

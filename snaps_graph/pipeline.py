@@ -296,6 +296,7 @@ class SlamPipeline:
             result.graph_failures.append((-1, f"graph.g2o not written: {exc}"))
 
         metrics = run_metrics(result, gt_poses)
+        metrics["graph"] = self.graph.stats.summary()  # factor counts, solve times, gravity directions
         atomic_write_text(out / "metrics.json", _json_text(metrics))
 
         if self.map is not None and self.map.num_stored_points() > 0:

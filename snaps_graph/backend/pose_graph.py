@@ -120,6 +120,9 @@ class GraphStats:
     loop_update_ms: list[float] = field(default_factory=list)  # updates that carried a loop
     batch_ms: float = 0.0
     batch_iterations: int = 0
+    # Gravity prior (batch): the shared directions of the last round, None when off.
+    gravity_world: list[float] | None = None  # gravity ("down") in the world (first camera) frame
+    gravity_camera: list[float] | None = None  # gravity in the camera frame (the mounting)
 
     @property
     def n_factors(self) -> int:
@@ -148,6 +151,8 @@ class GraphStats:
             "loop_update_ms_max": max(self.loop_update_ms, default=0.0),
             "batch_ms": self.batch_ms,
             "batch_iterations": self.batch_iterations,
+            "gravity_world": self.gravity_world,
+            "gravity_camera": self.gravity_camera,
         }
 
 
@@ -244,6 +249,10 @@ class PoseGraph:
                 raise SnapsGraphError(f"{name} '{value}': expected one of {', '.join(allowed)}")
         if not cfg.robust_param > 0:
             raise SnapsGraphError(f"graph.robust_param must be > 0, got {cfg.robust_param}")
+        if not (math.isfinite(cfg.gravity_sigma_deg) and cfg.gravity_sigma_deg > 0):
+            raise SnapsGraphError(f"graph.gravity_sigma_deg must be > 0, got {cfg.gravity_sigma_deg}")
+        if int(cfg.gravity_rounds) < 1:
+            raise SnapsGraphError(f"graph.gravity_rounds must be >= 1, got {cfg.gravity_rounds}")
 
         self.failures: list[tuple[int, str]] = []
         self.loops: list[LoopFactorInfo] = []
@@ -516,6 +525,12 @@ class PoseGraph:
             poses = _values_to_array(result, len(self._initial))
             if not np.all(np.isfinite(poses)):
                 raise RuntimeError("non-finite result")
+            if self.cfg.gravity_prior:
+                try:
+                    poses, more = self._gravity_rounds(poses, lm)
+                    iterations += more
+                except RuntimeError as exc:  # keep the plain batch result
+                    self.failures.append((k, f"gravity prior failed, batch result without it: {_one_line(exc)}"))
         except RuntimeError as exc:
             self.failures.append((k, f"batch optimisation failed: {_one_line(exc)}"))
             poses = self._initial_array()
@@ -524,6 +539,43 @@ class PoseGraph:
         self.stats.batch_iterations = iterations
         self._batch_estimate = poses
         return poses.copy()
+
+    def _gravity_rounds(self, poses: np.ndarray, lm: gtsam.LevenbergMarquardtParams) -> tuple[np.ndarray, int]:
+        """The level-vehicle prior (``gravity_prior``), applied to a solved batch estimate.
+
+        Loops observe drift that breaks a cycle's consistency, but a constant pitch bias of the
+        VO bends a closed drive into a closed path on a tilted plane, which every loop accepts.
+        A car's camera keeps a fixed attitude to the car, and the car's attitude to gravity varies
+        only with road grade and camber, which average out along a drive: so each frame gets an
+        AttitudeFactorPose3 saying that its camera-frame gravity direction ``c`` (shared, the
+        mounting) points along the world gravity direction ``g`` (shared), with
+        ``gravity_sigma_deg``. ``c`` and ``g`` minimise sum_k |R_k c - g|^2 over the current
+        poses (alternating closed-form steps), then Levenberg-Marquardt solves the whole graph
+        with those factors; ``gravity_rounds`` times. It straightens the shape (tilts that vary
+        along the path); a tilt of the whole path relative to the first frame stays, since the
+        first frame's own gravity direction is unknown.
+        """
+        n = len(poses)
+        noise = gtsam.noiseModel.Isotropic.Sigma(2, math.radians(self.cfg.gravity_sigma_deg))
+        iterations = 0
+        c = g = np.array([0.0, 1.0, 0.0])
+        for _ in range(int(self.cfg.gravity_rounds)):
+            c, g = _gravity_directions(poses[:, :3, :3], c)
+            graph, _ = self._graph(robust=True)
+            for k in range(n):
+                graph.add(gtsam.AttitudeFactorPose3(k, gtsam.Unit3(g), noise, gtsam.Unit3(c)))
+            values = gtsam.Values()
+            for k in range(n):
+                values.insert(k, _to_pose3(poses[k]))
+            opt = gtsam.LevenbergMarquardtOptimizer(graph, values, lm)
+            result = opt.optimize()
+            iterations += opt.iterations()
+            poses = _values_to_array(result, n)
+            if not np.all(np.isfinite(poses)):
+                raise RuntimeError("non-finite result with the gravity prior")
+        self.stats.gravity_world = [float(v) for v in g]
+        self.stats.gravity_camera = [float(v) for v in c]
+        return poses, iterations
 
     # ------------------------------------------------------------------ results
     def estimates(self) -> np.ndarray:
@@ -618,6 +670,24 @@ class PoseGraph:
         if self.mode == "batch" and self._batch_estimate is not None and k < len(self._batch_estimate):
             return self._batch_estimate[k]
         return self._initial[k]
+
+
+def _gravity_directions(R: np.ndarray, c0: np.ndarray, iterations: int = 20) -> tuple[np.ndarray, np.ndarray]:
+    """Unit c (camera frame) and g (world) minimising sum_k |R_k c - g|^2, from c0.
+
+    Alternating closed-form steps: g = normalise(mean_k R_k c), c = normalise(mean_k R_k^T g).
+    A set of nearly equal rotations (a straight drive) leaves c where it started.
+    """
+    c = np.asarray(c0, dtype=float) / np.linalg.norm(c0)
+    g = c
+    for _ in range(iterations):
+        g = (R @ c).mean(axis=0)
+        c_new = (np.transpose(R, (0, 2, 1)) @ (g / max(np.linalg.norm(g), 1e-300))).mean(axis=0)
+        if not (np.linalg.norm(g) > 1e-6 and np.linalg.norm(c_new) > 1e-6):
+            raise RuntimeError("gravity directions undefined (attitudes spread over every direction)")
+        g /= np.linalg.norm(g)
+        c = c_new / np.linalg.norm(c_new)
+    return c, g
 
 
 def _values_to_array(values: gtsam.Values, n: int | None) -> np.ndarray:
