@@ -1,0 +1,107 @@
+"""Where does the VO's pitch bias come from? Tracking and stereo against exact synthetic depth.
+
+Renders pairs of consecutive frames along a KITTI ground-truth path (default: KITTI 00, frames
+0-400, every 30th), detects corners as the front end does, and compares, by image row band:
+
+* **stereo**: the sparse LK disparity at each corner against the exact disparity from the
+  renderer's depth (fx * baseline / z);
+* **tracking**: the KLT position of each corner in the next frame against its exact position
+  (its exact 3D point moved by the ground-truth relative pose and projected), for each LK window
+  size given.
+
+With ``--run RUN`` it also prints the mean per-step rotation error (pitch, yaw, roll) and vertical
+translation error of a results folder's VO against its ground truth, with standard errors.
+
+    python experiments/tracking_bias.py [--trajectory ../shared/data/kitti_gt/00.txt] [--windows 7 11 21] [--run results/bench/run00]
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from snaps_graph.config import Config
+from snaps_graph.datasets.synthetic import SyntheticSequence, load_trajectory
+from snaps_graph.evaluation.trajectory import read_poses
+from snaps_graph.frontend import depth as depth_mod
+from snaps_graph.frontend import features as feat
+
+ROOT = Path(__file__).resolve().parents[1]
+BANDS = ((0, 100), (100, 180), (180, 220), (220, 280), (280, 10_000))
+
+
+def exact_depth_at(depth: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    return depth[np.rint(uv[:, 1]).astype(int), np.rint(uv[:, 0]).astype(int)]
+
+
+def band_table(title: str, v: np.ndarray, err: np.ndarray) -> None:
+    print(title)
+    for lo, hi in BANDS:
+        m = (v >= lo) & (v < hi) & (np.abs(err) < 2)
+        if m.any():
+            sem = err[m].std() / np.sqrt(m.sum())
+            print(f"  rows {lo:>3}-{min(hi, 999):<3}  n {m.sum():5d}  median {np.median(err[m]):+.4f}  mean {err[m].mean():+.4f} (+- {sem:.4f}) px")
+
+
+def rotvec(R: np.ndarray) -> np.ndarray:
+    angle = np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))
+    if angle < 1e-12:
+        return np.zeros(3)
+    return np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / (2 * np.sin(angle)) * angle
+
+
+def run_bias(run: Path) -> None:
+    gt, vo = read_poses(run / "poses_gt.txt"), read_poses(run / "poses_vo.txt")
+    E = [np.linalg.solve(np.linalg.solve(gt[k - 1], gt[k]), np.linalg.solve(vo[k - 1], vo[k])) for k in range(1, len(vo))]
+    rot = np.degrees([rotvec(e[:3, :3]) for e in E]) * 1e3  # millidegrees
+    ty = np.array([e[1, 3] for e in E]) * 1e3  # mm
+    n = len(E)
+    print(f"{run}: per-step VO error over {n} steps (mean +- standard error)")
+    for i, name in enumerate(("pitch (x)", "yaw (y)", "roll (z)")):
+        print(f"  {name:<10} {rot[:, i].mean():+.2f} +- {rot[:, i].std() / np.sqrt(n):.2f} millideg")
+    print(f"  vertical   {ty.mean():+.3f} +- {ty.std() / np.sqrt(n):.3f} mm (camera y)")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--trajectory", default=str(ROOT.parent / "shared/data/kitti_gt/00.txt"))
+    ap.add_argument("--frames", default="0:400")
+    ap.add_argument("--every", type=int, default=30)
+    ap.add_argument("--windows", type=int, nargs="*", default=[7, 11, 21])
+    ap.add_argument("--run", type=Path, default=None)
+    args = ap.parse_args()
+    if args.run:
+        run_bias(args.run)
+    poses, times = load_trajectory(args.trajectory, args.frames)
+    seq = SyntheticSequence(poses, width=1241, height=376, seed=0, times=times)
+    cam, cfg = seq.camera, Config().frontend
+    stereo_v, stereo_err = [], []
+    track: dict[int, list[np.ndarray]] = {w: [] for w in args.windows}
+    for i in range(0, len(seq) - 1, args.every):
+        f0, f1 = seq.render(i), seq.render(i + 1, with_depth=False)
+        uv = feat.detect_corners(f0.left, cfg.klt_features, cfg, avoid=np.zeros((0, 2), np.float32))
+        z = exact_depth_at(f0.depth, uv)
+        uv, z = uv[z > 0], z[z > 0]
+        # stereo
+        zs, d = depth_mod.sparse_depth(f0.left, f0.right, uv, cam, cfg)
+        ok = zs > 0
+        stereo_v.append(uv[ok, 1])
+        stereo_err.append(d[ok] - cam.fx * cam.baseline_m / z[ok])
+        # tracking
+        P = np.c_[(uv[:, 0] - cam.cx) / cam.fx * z, (uv[:, 1] - cam.cy) / cam.fy * z, z, np.ones(len(z))]
+        Q = (np.linalg.solve(seq.gt_poses[i + 1], seq.gt_poses[i]) @ P.T).T
+        true = np.c_[cam.fx * Q[:, 0] / Q[:, 2] + cam.cx, cam.fy * Q[:, 1] / Q[:, 2] + cam.cy]
+        for w in args.windows:
+            cfg.klt_window_px = w
+            p1, okt = feat.track_klt(f0.left, f1.left, uv, cfg, None)
+            track[w].append(np.c_[uv[okt, 1], p1[okt, 1] - true[okt, 1]])
+    band_table("stereo: sparse LK disparity - exact disparity", np.concatenate(stereo_v), np.concatenate(stereo_err))
+    for w, parts in track.items():
+        a = np.concatenate(parts)
+        band_table(f"tracking, {w} px window: KLT row - exact row (positive = too low in the image)", a[:, 0], a[:, 1])
+
+
+if __name__ == "__main__":
+    main()
