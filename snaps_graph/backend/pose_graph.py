@@ -499,8 +499,10 @@ class PoseGraph:
         ``batch_solver`` "lm": Levenberg-Marquardt on the graph with robust loop factors.
         "gnc": GncLMOptimizer on the Gaussian graph, prior and odometry as known inliers and the
         loop factors as the outlier candidates (GNC supplies its own robust loss, so the loop
-        factors are not wrapped twice). On a solver failure: the initial estimates, and the
-        reason in ``failures``.
+        factors are not wrapped twice). With ``gravity_prior``, :meth:`_gravity_rounds` then
+        re-solves with a level-vehicle attitude factor per frame. On a solver failure: the initial
+        estimates, and the reason in ``failures`` (a failure of the gravity rounds alone keeps the
+        plain batch result).
         """
         if not self._initial:
             raise SnapsGraphError("graph: optimize_batch on an empty graph")
@@ -553,7 +555,9 @@ class PoseGraph:
         poses (alternating closed-form steps), then Levenberg-Marquardt solves the whole graph
         with those factors; ``gravity_rounds`` times. It straightens the shape (tilts that vary
         along the path); a tilt of the whole path relative to the first frame stays, since the
-        first frame's own gravity direction is unknown.
+        first frame's own gravity direction is unknown. It also pulls real changes of grade
+        toward level: with the default odometry sigmas, t_rel / r_rel got 2-4x worse on KITTI 00
+        while the ATE fell 4x (README), which is why it is off by default.
         """
         n = len(poses)
         noise = gtsam.noiseModel.Isotropic.Sigma(2, math.radians(self.cfg.gravity_sigma_deg))
