@@ -477,9 +477,7 @@ class PoseGraph:
             loop.active = False
             self.stats.n_loops_dropped += 1
             self.failures.append((k, f"dropped loop factor {loop.ref}->{loop.cur}"))
-        values = gtsam.Values()
-        for i, T in enumerate(seed):
-            values.insert(i, _to_pose3(T))
+        values = _array_to_values(seed)
         graph, _ = self._graph(robust=True)
         try:
             isam = self._new_isam2("QR")
@@ -563,15 +561,13 @@ class PoseGraph:
         noise = gtsam.noiseModel.Isotropic.Sigma(2, math.radians(self.cfg.gravity_sigma_deg))
         iterations = 0
         c = g = np.array([0.0, 1.0, 0.0])
+        base, _ = self._graph(robust=True)
         for _ in range(int(self.cfg.gravity_rounds)):
             c, g = _gravity_directions(poses[:, :3, :3], c)
-            graph, _ = self._graph(robust=True)
+            graph = gtsam.NonlinearFactorGraph(base)
             for k in range(n):
                 graph.add(gtsam.AttitudeFactorPose3(k, gtsam.Unit3(g), noise, gtsam.Unit3(c)))
-            values = gtsam.Values()
-            for k in range(n):
-                values.insert(k, _to_pose3(poses[k]))
-            opt = gtsam.LevenbergMarquardtOptimizer(graph, values, lm)
+            opt = gtsam.LevenbergMarquardtOptimizer(graph, _array_to_values(poses), lm)
             result = opt.optimize()
             iterations += opt.iterations()
             poses = _values_to_array(result, n)
@@ -622,10 +618,7 @@ class PoseGraph:
         if poses.shape != (len(self._initial), 4, 4) or not np.all(np.isfinite(poses)):
             raise SnapsGraphError(f"graph: set_initial_estimates needs {len(self._initial)} finite 4x4 poses")
         self._initial = [T.copy() for T in poses]
-        values = gtsam.Values()
-        for k, T in enumerate(poses):
-            values.insert(k, _to_pose3(T))
-        self._initial_values = values
+        self._initial_values = _array_to_values(poses)
 
     def initial_estimates(self) -> np.ndarray:
         """The initial (heuristic) poses as given to :meth:`add_frame`, (N, 4, 4)."""
@@ -642,9 +635,7 @@ class PoseGraph:
         if not self._initial:
             raise SnapsGraphError(f"{path}: cannot write an empty graph")
         graph, _ = self._graph(robust=False)
-        values = gtsam.Values()
-        for i, T in enumerate(self.estimates()):
-            values.insert(i, _to_pose3(T))
+        values = _array_to_values(self.estimates())
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
         os.close(fd)
@@ -682,16 +673,26 @@ def _gravity_directions(R: np.ndarray, c0: np.ndarray, iterations: int = 20) -> 
     Alternating closed-form steps: g = normalise(mean_k R_k c), c = normalise(mean_k R_k^T g).
     A set of nearly equal rotations (a straight drive) leaves c where it started.
     """
+    def unit(v: np.ndarray) -> np.ndarray:
+        norm = np.linalg.norm(v)
+        if not norm > 1e-6:
+            raise RuntimeError("gravity directions undefined (attitudes spread over every direction)")
+        return v / norm
+
     c = np.asarray(c0, dtype=float) / np.linalg.norm(c0)
     g = c
     for _ in range(iterations):
-        g = (R @ c).mean(axis=0)
-        c_new = (np.transpose(R, (0, 2, 1)) @ (g / max(np.linalg.norm(g), 1e-300))).mean(axis=0)
-        if not (np.linalg.norm(g) > 1e-6 and np.linalg.norm(c_new) > 1e-6):
-            raise RuntimeError("gravity directions undefined (attitudes spread over every direction)")
-        g /= np.linalg.norm(g)
-        c = c_new / np.linalg.norm(c_new)
+        g = unit((R @ c).mean(axis=0))
+        c = unit((np.transpose(R, (0, 2, 1)) @ g).mean(axis=0))
     return c, g
+
+
+def _array_to_values(poses) -> gtsam.Values:
+    """Keys 0..N-1 holding the (N, 4, 4) poses (rotations projected onto SO(3), see _to_pose3)."""
+    values = gtsam.Values()
+    for k, T in enumerate(poses):
+        values.insert(k, _to_pose3(T))
+    return values
 
 
 def _values_to_array(values: gtsam.Values, n: int | None) -> np.ndarray:
