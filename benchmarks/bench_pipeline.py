@@ -25,8 +25,7 @@ sys.path.insert(0, str(ROOT))
 from snaps_graph.config import Config  # noqa: E402
 from snaps_graph.datasets.kitti import KittiSequence  # noqa: E402
 from snaps_graph.evaluation.metrics import evaluate  # noqa: E402
-from snaps_graph.evaluation.oracle import loop_oracle  # noqa: E402
-from snaps_graph.geometry import wrap_deg, yaw_deg  # noqa: E402
+from snaps_graph.evaluation.oracle import loop_oracle, true_revisit_pairs  # noqa: E402
 from snaps_graph.pipeline import SlamPipeline, latency_summary  # noqa: E402
 
 
@@ -51,14 +50,9 @@ def ensure_sequence(args) -> Path:
 def revisit_stats(gt: np.ndarray, loops, frame_ids, cfg) -> dict:
     """True revisits (ground truth) found versus missed, and false loops."""
     p = gt[:, :3, 3]
-    yaw = yaw_deg(gt[:, :3, :3])
-    n = len(p)
-    M = cfg.loop.frame_distance
-    revisit = np.zeros(n, bool)
-    for k in range(M, n):
-        d = np.linalg.norm(p[: k - M + 1] - p[k], axis=1)
-        ok = (d <= cfg.loop.radius_m) & (np.abs(wrap_deg(yaw[: k - M + 1] - yaw[k])) <= cfg.loop.max_yaw_deg)
-        revisit[k] = ok.any()
+    revisit = np.zeros(len(p), bool)
+    for _, k in true_revisit_pairs(gt, cfg.loop.radius_m, cfg.loop.frame_distance, cfg.loop.max_yaw_deg, step=1):
+        revisit[k] = True
     # Segments: maximal runs of revisit frames (a gap of < 10 frames joins runs).
     segs, start, last = [], None, None
     for k in np.flatnonzero(revisit):

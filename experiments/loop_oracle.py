@@ -23,6 +23,7 @@ closure can reach on this VO; the rest is error the loops do not observe. Writes
 from __future__ import annotations
 
 import argparse
+import copy
 import csv
 import sys
 from pathlib import Path
@@ -32,30 +33,32 @@ import json
 import numpy as np
 from _common import md_table
 
-from snaps_graph.backend.pose_graph import PoseGraph
 from snaps_graph.config import Config
 from snaps_graph.errors import SnapsGraphError
 from snaps_graph.evaluation.metrics import ate_rmse, mean_deviation
-from snaps_graph.evaluation.oracle import loop_oracle
+from snaps_graph.evaluation.oracle import loop_oracle, odometry_graph
 from snaps_graph.evaluation.trajectory import read_poses
+from snaps_graph.geometry import rotation_angle_deg
 
 
-def frame_columns(run: Path, n: int) -> tuple[np.ndarray, np.ndarray]:
+def frame_columns(run: Path, n: int) -> tuple[np.ndarray, np.ndarray, list[int]]:
+    """frames.csv's VO inlier counts, VO flags and dataset frame numbers."""
     with open(run / "frames.csv", newline="") as f:
         rows = list(csv.DictReader(f))
     if len(rows) != n:
         raise SnapsGraphError(f"{run / 'frames.csv'} has {len(rows)} rows, poses_vo.txt {n}")
-    return np.array([int(r["vo_inliers"]) for r in rows]), np.array([r["vo_ok"] == "1" for r in rows])
+    inliers = np.array([int(r["vo_inliers"]) for r in rows])
+    ok = np.array([r["vo_ok"] == "1" for r in rows])
+    return inliers, ok, [int(r["frame"]) for r in rows]
 
 
-def rebuilt_batch(run: Path, cfg: Config, vo: np.ndarray, inliers: np.ndarray, ok: np.ndarray) -> np.ndarray:
+def rebuilt_batch(run: Path, cfg: Config, vo: np.ndarray, inliers: np.ndarray, ok: np.ndarray,
+                  frame_ids: list[int]) -> np.ndarray:
     """The run's graph rebuilt from its files (VO steps, loops.jsonl), batch-optimised from the
     SNAPS poses (the initial estimates a run uses)."""
     init = read_poses(run / "poses_snaps.txt") if (run / "poses_snaps.txt").is_file() else vo
-    graph = PoseGraph(cfg.graph, mode="batch")
-    for k in range(len(vo)):
-        graph.add_frame(k, init[k], None if k == 0 else np.linalg.solve(vo[k - 1], vo[k]), int(inliers[k]), bool(ok[k]))
-    k_of = {f: k for k, f in enumerate(frame_ids(run, len(vo)))}
+    graph = odometry_graph(vo, cfg, inliers, ok, initial=init)
+    k_of = {f: k for k, f in enumerate(frame_ids)}
     if (run / "loops.jsonl").is_file():
         for line in (run / "loops.jsonl").read_text().splitlines():
             loop = json.loads(line)
@@ -65,11 +68,6 @@ def rebuilt_batch(run: Path, cfg: Config, vo: np.ndarray, inliers: np.ndarray, o
                 T[:3, :4] = np.array(loop["T_ref_cur"], float).reshape(3, 4)
             graph.add_loop(k_of[loop["reference"]], k_of[loop["frame"]], loop["q"], T)
     return graph.optimize_batch()
-
-
-def frame_ids(run: Path, n: int) -> list[int]:
-    with open(run / "frames.csv", newline="") as f:
-        return [int(r["frame"]) for r in csv.DictReader(f)][:n]
 
 
 def main() -> None:
@@ -84,7 +82,7 @@ def main() -> None:
         vo = read_poses(run / "poses_vo.txt")
         if len(gt) != len(vo):
             raise SnapsGraphError(f"ground truth has {len(gt)} poses, poses_vo.txt {len(vo)}")
-        inliers, ok = frame_columns(run, len(vo))
+        inliers, ok, frame_ids = frame_columns(run, len(vo))
         cfg = Config.load(run / "config.toml") if (run / "config.toml").is_file() else Config()
     except (OSError, SnapsGraphError) as exc:
         sys.exit(f"error: {exc}")
@@ -101,7 +99,7 @@ def main() -> None:
     o = loop_oracle(vo, gt, cfg, inliers, ok, step=args.step)
     rows.append(["oracle", f"{len(o.pairs)} exact loops, run's geometry", o.mean_deviation,
                  100 * (o.mean_deviation / vo_md - 1), o.ate_rmse])
-    wide = Config.load(run / "config.toml") if (run / "config.toml").is_file() else Config()
+    wide = copy.deepcopy(cfg)
     wide.loop.radius_m, wide.loop.max_yaw_deg = 30.0, 180.0
     wide.graph.robust_kernel = "none"
     wide.graph.loop_sigma_rot_rad, wide.graph.loop_sigma_trans_m = 1e-4, 1e-3
@@ -110,9 +108,9 @@ def main() -> None:
                  ow.mean_deviation, 100 * (ow.mean_deviation / vo_md - 1), ow.ate_rmse])
 
     for on in (False, True):
-        gcfg = Config.load(run / "config.toml") if (run / "config.toml").is_file() else Config()
+        gcfg = copy.deepcopy(cfg)
         gcfg.graph.gravity_prior = on
-        est = rebuilt_batch(run, gcfg, vo, inliers, ok)
+        est = rebuilt_batch(run, gcfg, vo, inliers, ok, frame_ids)
         md = mean_deviation(est, gt)
         rows.append([f"batch, rebuilt, gravity prior {'on' if on else 'off'}", "the run's", md,
                      100 * (md / vo_md - 1), ate_rmse(est, gt)])
@@ -122,8 +120,7 @@ def main() -> None:
         if k >= len(vo):
             break
         A = gt[k] @ np.linalg.inv(vo[k])
-        R = gt[k][:3, :3].T @ vo[k][:3, :3]
-        heading = np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1)))
+        heading = rotation_angle_deg(gt[k][:3, :3].T @ vo[k][:3, :3])
         md = mean_deviation(A @ vo, gt)
         anchor_rows.append([k, heading, md, 100 * (md / vo_md - 1)])
 

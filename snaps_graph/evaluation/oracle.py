@@ -60,6 +60,27 @@ def true_revisit_pairs(
     return pairs
 
 
+def odometry_graph(
+    vo: np.ndarray,
+    cfg: Config,
+    inliers: np.ndarray | None = None,
+    ok: np.ndarray | None = None,
+    initial: np.ndarray | None = None,
+) -> PoseGraph:
+    """A batch-mode graph of a run's VO steps, as the pipeline builds it: frame k gets the step
+    from ``vo`` with the noise of its ``inliers`` / ``ok`` (frames.csv; default: reference
+    sigmas, all good) and the initial estimate ``initial[k]`` (default: the VO pose)."""
+    n = len(vo)
+    inliers = np.zeros(n, int) if inliers is None else np.asarray(inliers, int)
+    ok = np.ones(n, bool) if ok is None else np.asarray(ok, bool)
+    initial = vo if initial is None else initial
+    graph = PoseGraph(cfg.graph, mode="batch")
+    for k in range(n):
+        T_rel = None if k == 0 else np.linalg.solve(vo[k - 1], vo[k])
+        graph.add_frame(k, initial[k], T_rel, inliers=int(inliers[k]), ok=bool(ok[k]))
+    return graph
+
+
 def loop_oracle(
     vo: np.ndarray,
     gt: np.ndarray,
@@ -80,13 +101,7 @@ def loop_oracle(
     if vo.shape != gt.shape or vo.ndim != 3 or vo.shape[1:] != (4, 4):
         raise ValueError(f"vo {vo.shape} and gt {gt.shape} must both be (N, 4, 4)")
     cfg = cfg or Config()
-    n = len(vo)
-    inliers = np.zeros(n, int) if inliers is None else np.asarray(inliers, int)
-    ok = np.ones(n, bool) if ok is None else np.asarray(ok, bool)
-    graph = PoseGraph(cfg.graph, mode="batch")
-    for k in range(n):
-        T_rel = None if k == 0 else np.linalg.solve(vo[k - 1], vo[k])
-        graph.add_frame(k, vo[k], T_rel, inliers=int(inliers[k]), ok=bool(ok[k]))
+    graph = odometry_graph(vo, cfg, inliers, ok)
     pairs = true_revisit_pairs(gt, cfg.loop.radius_m, cfg.loop.frame_distance, cfg.loop.max_yaw_deg, step)
     for j, k in pairs:
         graph.add_loop(j, k, 1.0, np.linalg.solve(gt[j], gt[k]))
