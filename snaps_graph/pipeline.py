@@ -142,7 +142,6 @@ class SlamPipeline:
         self._vo_poses: list[np.ndarray] = []
         self.loops: list[LoopEvent] = []
         self.rows: list[dict] = []
-        self._t_verify_ms = 0.0  # geometric verification time within the current frame
         self._t_start = time.perf_counter()
 
     # ---- streaming ----
@@ -162,12 +161,11 @@ class SlamPipeline:
 
         loop: LoopEvent | None = None
         candidates = 0
-        t_loop_ms = 0.0
-        self._t_verify_ms = 0.0
+        t_loop_ms = t_verify_ms = 0.0
         if self.snaps is not None:
             step = self.snaps.step(frame.index, vo.T_rel, frame.left, verify=lambda ref: self._verify(ref, vo))
             heuristic = step.pose
-            loop, candidates, t_loop_ms = step.loop, step.candidates, step.t_ms
+            loop, candidates, t_loop_ms, t_verify_ms = step.loop, step.candidates, step.t_ms, step.t_verify_ms
         else:
             heuristic = vo.pose
 
@@ -199,7 +197,7 @@ class SlamPipeline:
                 "t_loop_ms": t_loop_ms,
                 "loop_candidates": candidates,
                 "loop_closed": int(loop is not None),
-                "t_verify_ms": self._t_verify_ms,
+                "t_verify_ms": t_verify_ms,
                 "t_graph_ms": t_graph_ms,
                 "graph_ok": int(graph_ok),
                 "t_map_ms": t_map_ms,
@@ -221,14 +219,11 @@ class SlamPipeline:
         ref_feat = None if k_ref is None else self._features[k_ref]
         if ref_feat is None or vo.features is None:
             return None
-        t0 = time.perf_counter()
         try:
             return verify_loop(ref_feat, vo.features, self.camera, self.cfg.frontend)
         except Exception as exc:  # best effort: an unverifiable candidate is not a loop
             self.graph.failures.append((len(self._frame_ids) - 1, f"loop verification raised {type(exc).__name__}: {exc}"))
             return None
-        finally:
-            self._t_verify_ms += (time.perf_counter() - t0) * 1e3
 
     def _add_loop_factor(self, loop: LoopEvent, vo: VOResult) -> None:
         """A loop-closure factor for a SNAPS loop: measured by verification when it succeeded

@@ -93,6 +93,7 @@ class SnapsStep:
     loop: LoopEvent | None  # the loop closed at this frame, if any
     candidates: int  # similarities computed on this frame
     t_ms: float  # detection + correction time (see module docstring)
+    t_verify_ms: float = 0.0  # geometric verification time on this frame (tried or successful)
 
 
 def validate_loop_config(cfg: LoopConfig) -> None:
@@ -243,11 +244,11 @@ class SnapsLoopCloser:
                 a = self.cfg.attempts
                 loop, computed = self._try_close(n, ids[:a], dists[:a], verify)
         # Verification (tried or successful) is the graph's work, timed on its own.
-        t_ms = (perf_counter() - t0) * 1e3 - self._t_verify_ms
-        self._t_verify_ms = 0.0
+        t_verify_ms, self._t_verify_ms = self._t_verify_ms, 0.0
+        t_ms = (perf_counter() - t0) * 1e3 - t_verify_ms
         if loop is not None:
             loop.t_ms = t_ms
-        return SnapsStep(pose=self.pose(n), loop=loop, candidates=computed, t_ms=t_ms)
+        return SnapsStep(pose=self.pose(n), loop=loop, candidates=computed, t_ms=t_ms, t_verify_ms=t_verify_ms)
 
     # ---- candidates ----
     def search(self, n: int) -> tuple[np.ndarray, np.ndarray]:
