@@ -27,9 +27,9 @@ import numpy as np
 from snaps_graph.backend import PoseGraph
 from snaps_graph.config import GraphConfig
 from snaps_graph.evaluation.trajectory import read_kitti_poses
-from snaps_graph.geometry import wrap_deg, yaw_deg
 
 from snaps_graph.evaluation.metrics import ate_rmse, kitti_relative_errors, mean_deviation
+from snaps_graph.evaluation.oracle import true_revisit_pairs
 
 
 DEFAULT_GT = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti_gt" / "00.txt"
@@ -73,17 +73,10 @@ def simulate_vo(gt: np.ndarray, args, rng: np.random.Generator) -> tuple[np.ndar
 
 
 def find_loops(gt: np.ndarray, args) -> list[tuple[int, int]]:
-    """(ref, cur) at true revisits, at most one every ``loop_every`` frames."""
-    p = gt[:, :3, 3]
-    yaw = yaw_deg(gt[:, :3, :3])
+    """(ref, cur) at true revisits (nearest reference), at most one every ``loop_every`` frames."""
     loops, last = [], -10**9
-    for j in range(args.min_gap, len(gt)):
-        if j - last < args.loop_every:
-            continue
-        d = np.linalg.norm(p[: j - args.min_gap + 1] - p[j], axis=1)
-        ok = (d <= args.loop_radius_m) & (np.abs(wrap_deg(yaw[: j - args.min_gap + 1] - yaw[j])) <= args.loop_yaw_deg)
-        if ok.any():
-            i = int(np.flatnonzero(ok)[np.argmin(d[ok])])
+    for i, j in true_revisit_pairs(gt, args.loop_radius_m, args.min_gap, args.loop_yaw_deg, step=1):
+        if j - last >= args.loop_every:
             loops.append((i, j))
             last = j
     return loops

@@ -32,10 +32,6 @@ ROOT = Path(__file__).resolve().parents[1]
 BANDS = ((0, 100), (100, 180), (180, 220), (220, 280), (280, 10_000))
 
 
-def exact_depth_at(depth: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    return depth[np.rint(uv[:, 1]).astype(int), np.rint(uv[:, 0]).astype(int)]
-
-
 def band_table(title: str, v: np.ndarray, err: np.ndarray) -> None:
     print(title)
     for lo, hi in BANDS:
@@ -82,7 +78,7 @@ def main() -> None:
     for i in range(0, len(seq) - 1, args.every):
         f0, f1 = seq.render(i), seq.render(i + 1, with_depth=False)
         uv = feat.detect_corners(f0.left, cfg.klt_features, cfg, avoid=np.zeros((0, 2), np.float32))
-        z = exact_depth_at(f0.depth, uv)
+        z = depth_mod.sample_depth(f0.depth, uv)
         uv, z = uv[z > 0], z[z > 0]
         # stereo
         zs, d = depth_mod.sparse_depth(f0.left, f0.right, uv, cam, cfg)
