@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -246,3 +247,16 @@ def test_latency_box_keeps_a_slot_for_a_stage_without_positive_samples(tmp_path)
     data = path.read_bytes()
     assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 5_000
     assert [p.name for p in tmp_path.iterdir()] == ["lat.png"]  # no temporary file left behind
+
+
+def test_snaps_step_uses_the_weight_eq6_applied(run07, tmp_path, kitti_gt_dir):
+    # A verified loop under correction_weight = "verified" moves with weight 1, not Q.
+    run = tmp_path / "run"
+    shutil.copytree(run07["run"], run)
+    loop = json.loads((run / "loops.jsonl").read_text())
+    loop["weight"] = 1.0
+    (run / "loops.jsonl").write_text(json.dumps(loop) + "\n")
+    compare_run(run, kitti_gt_dir / "07.txt")
+    (row,) = table_rows((run / "report.md").read_text(), "frame")
+    assert row["SNAPS step [m]"] == f"{GAMMA0 * np.linalg.norm(run07['delta']):.3f}"
+    assert row["Q"] == "0.8000"

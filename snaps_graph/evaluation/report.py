@@ -31,8 +31,9 @@ poses (a refined trajectory's frame 0 may sit a prior sigma away from the identi
 belongs to its error).
 
 Corrections compared per loop (the point of this report):
-- *SNAPS step* = |Q gamma_0 delta|, the move eq. 6 prescribes for the loop frame itself
-  (s' = 0, gamma_0 = 1 - exp(-discount_offset)), from loops.jsonl's q and delta;
+- *SNAPS step* = |w gamma_0 delta|, the move eq. 6 prescribes for the loop frame itself
+  (s' = 0, gamma_0 = 1 - exp(-discount_offset)), from loops.jsonl's weight w (Q, or 1 for a
+  verified loop under correction_weight = "verified"; Q when a file has no weight) and delta;
 - *heuristic correction* = |p_snaps - p_vo| at the loop frame: the displacement of that frame's
   position between the pure VO chain and the SNAPS trajectory (for the first loop it equals the
   SNAPS step; later loops also carry the earlier loops' corrections, which are composed forward);
@@ -286,10 +287,11 @@ def _loop_corrections(loops: list[dict], trajs: dict[str, np.ndarray], gt: np.nd
     for lp in loops:
         row = lp["row"]
         q = lp.get("q")
+        weight = lp.get("weight", q)  # what eq. 6 applied: Q, or 1 for a verified loop (older files: Q)
         delta = lp.get("delta")
         step = None
-        if q is not None and delta is not None and len(delta) == 3:
-            step = abs(float(q)) * gamma0 * float(np.linalg.norm(np.asarray(delta, float)))
+        if weight is not None and delta is not None and len(delta) == 3:
+            step = abs(float(weight)) * gamma0 * float(np.linalg.norm(np.asarray(delta, float)))
         entry: dict[str, Any] = {
             "frame": int(lp["frame"]),
             "reference": int(lp["reference"]),
@@ -507,8 +509,9 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None) -> dict:
     md += ["## Loops: heuristic vs optimised corrections", ""]
     if corrections:
         md += [
-            f"SNAPS step = |Q gamma_0 delta|, the move eq. 6 applies to the loop frame itself (gamma_0 = "
-            f"1 - exp(-{offset:g}) = {gamma0:.4f}, delta = p_reference - p_frame). "
+            f"SNAPS step = |w gamma_0 delta|, the move eq. 6 applies to the loop frame itself (w = the "
+            f"loop's weight: Q, or 1 for a verified loop; gamma_0 = 1 - exp(-{offset:g}) = {gamma0:.4f}; "
+            "delta = the eq. 6 target - p_frame). "
             "Heuristic = |p_snaps - p_vo|: how far the loop frame's position moved between the VO chain "
             "and the SNAPS trajectory (equal to the step for the first loop; later loops also carry the "
             "earlier corrections). Optimised = |p_refined - p_vo| at the same frame for each refined "
