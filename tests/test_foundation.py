@@ -22,7 +22,7 @@ from snaps_graph.evaluation.trajectory import (
     write_tum_poses,
 )
 from snaps_graph.geometry import wrap_deg, yaw_deg
-from snaps_graph.io_utils import parse_frame_range
+from snaps_graph.io_utils import atomic_output, atomic_write_text, parse_frame_range
 
 
 # ---- config ----
@@ -235,3 +235,23 @@ def test_yaw_and_wrap():
     assert yaw_deg(R) == pytest.approx(30.0)
     assert wrap_deg(190.0) == pytest.approx(-170.0)
     assert wrap_deg(-180.0) == pytest.approx(180.0)
+
+
+# ---- atomic outputs ----
+def test_atomic_output_gives_ordinary_files_and_cleans_up(tmp_path):
+    import os
+
+    umask = os.umask(0)
+    os.umask(umask)
+    atomic_write_text(tmp_path / "a" / "x.txt", "hello\n")
+    assert (tmp_path / "a" / "x.txt").read_text() == "hello\n"
+    assert (tmp_path / "a" / "x.txt").stat().st_mode & 0o777 == 0o666 & ~umask
+    with atomic_output(tmp_path / "a" / "m.ply", suffix=".ply") as tmp:
+        assert tmp.suffix == ".ply" and tmp.parent == tmp_path / "a"
+        tmp.write_bytes(b"ply")
+    assert (tmp_path / "a" / "m.ply").stat().st_mode & 0o777 == 0o666 & ~umask
+    with pytest.raises(RuntimeError):
+        with atomic_output(tmp_path / "a" / "bad.g2o") as tmp:
+            tmp.write_bytes(b"half")
+            raise RuntimeError("writer failed")
+    assert sorted(p.name for p in (tmp_path / "a").iterdir()) == ["m.ply", "x.txt"]  # nothing half-written

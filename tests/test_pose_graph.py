@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import gtsam
 import numpy as np
 import pytest
@@ -240,6 +242,9 @@ def test_g2o_written_and_readable(tmp_path):
     path = tmp_path / "sub" / "graph.g2o"
     g.save_g2o(path)
     assert [p.name for p in path.parent.iterdir()] == ["graph.g2o"]  # no temp file left
+    umask = os.umask(0)
+    os.umask(umask)
+    assert path.stat().st_mode & 0o777 == 0o666 & ~umask  # an ordinary file, like the pose files
     graph, values = gtsam.readG2o(str(path), True)
     assert values.size() == n + 1
     assert graph.size() == n + 1  # n odometry + 1 loop; the prior is not a g2o edge

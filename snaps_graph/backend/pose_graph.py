@@ -68,8 +68,6 @@ Decisions, and why:
 from __future__ import annotations
 
 import math
-import os
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -79,6 +77,7 @@ import numpy as np
 
 from ..config import GraphConfig
 from ..errors import SnapsGraphError
+from ..io_utils import atomic_output
 
 MODES = ("none", "isam2", "batch")
 KERNELS = ("huber", "cauchy", "none")
@@ -636,16 +635,8 @@ class PoseGraph:
             raise SnapsGraphError(f"{path}: cannot write an empty graph")
         graph, _ = self._graph(robust=False)
         values = _array_to_values(self.estimates())
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        os.close(fd)
-        try:
-            gtsam.writeG2o(graph, values, tmp)
-            os.replace(tmp, path)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
+        with atomic_output(path) as tmp:
+            gtsam.writeG2o(graph, values, str(tmp))
 
     # ------------------------------------------------------------------ helpers
     def _initial_array(self) -> np.ndarray:

@@ -24,8 +24,6 @@ Decisions and why:
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -34,6 +32,7 @@ import numpy as np
 from ..camera import StereoCamera
 from ..config import MapConfig
 from ..errors import SnapsGraphError
+from ..io_utils import atomic_output
 
 if TYPE_CHECKING:  # pragma: no cover
     import open3d
@@ -234,17 +233,10 @@ class CloudMap:
         pcd = self.build(poses) if cloud is None else cloud
         if len(pcd.points) == 0:
             raise SnapsGraphError(f"{path}: the map is empty (no keyframe with valid depth), nothing to write")
-        path.parent.mkdir(parents=True, exist_ok=True)
         # open3d picks the format from the suffix, so the temporary file must end in .ply too.
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".ply", dir=path.parent)
-        os.close(fd)
-        try:
-            if not o3d.io.write_point_cloud(tmp, pcd, write_ascii=False, compressed=False):
+        with atomic_output(path, suffix=".ply") as tmp:
+            if not o3d.io.write_point_cloud(str(tmp), pcd, write_ascii=False, compressed=False):
                 raise SnapsGraphError(f"{path}: open3d could not write the point cloud")
-            os.replace(tmp, path)
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
         return len(pcd.points)
 
     def render_topdown_png(
@@ -308,15 +300,8 @@ class CloudMap:
                      f"{len(self)} keyframes", fontsize=9)
         fig.tight_layout()
 
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".png", dir=path.parent)
-        os.close(fd)
-        try:
+        with atomic_output(path, suffix=".png") as tmp:
             fig.savefig(tmp, dpi=self.cfg.topdown_dpi, format="png")
-            os.replace(tmp, path)
-        finally:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
         return len(xyz)
 
     # ---- helpers ----
