@@ -38,10 +38,19 @@ def atomic_output(path: str | Path, suffix: str = ".tmp") -> Iterator[Path]:
         raise
 
 
-def _umask() -> int:
+def _read_umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return mask
+
+
+# Read once: os.umask can only be read by setting it, and setting it while another thread creates
+# a file would give that file the wrong mode (outputs are written from worker threads).
+_UMASK = _read_umask()
+
+
+def _umask() -> int:
+    return _UMASK
 
 
 def parse_frame_range(text: str | None, n_total: int | None = None) -> tuple[int, int | None] | None:

@@ -42,7 +42,7 @@ import numpy as np
 from ..camera import StereoCamera, kitti00_camera
 from ..errors import SnapsGraphError
 from ..evaluation.trajectory import read_kitti_poses, read_times, write_kitti_poses, write_times
-from ..io_utils import parse_frame_range
+from ..io_utils import atomic_write_bytes, parse_frame_range
 from ._shade import Renderer
 from ._world import World, WorldConfig
 from .kitti import StereoFrame
@@ -369,14 +369,19 @@ def render_to_folder(
         f = seq.render(i, with_depth=write_depth)
         t0 = time.perf_counter()
         name = f"{i:06d}.png"
-        ok = cv2.imwrite(str(out / "image_0" / name), f.left, params)
-        ok &= cv2.imwrite(str(out / "image_1" / name), f.right, params)
+        images = {"image_0": f.left, "image_1": f.right}
         if write_depth:
             mm = np.rint(f.depth * DEPTH_PNG_SCALE)
             mm[(mm > 65535) | (mm < 0)] = 0
-            ok &= cv2.imwrite(str(out / "depth_0" / name), mm.astype(np.uint16), params)
-        if not ok:
-            raise SnapsGraphError(f"{out}: could not write frame {name}")
+            images["depth_0"] = mm.astype(np.uint16)
+        for folder, img in images.items():  # encoded in memory, written atomically
+            ok, png = cv2.imencode(".png", img, params)
+            try:
+                if not ok:
+                    raise OSError("PNG encoding failed")
+                atomic_write_bytes(out / folder / name, png.tobytes())
+            except OSError as exc:
+                raise SnapsGraphError(f"{out}: could not write frame {name} ({exc})") from None
         f.timings_ms["write"] = (time.perf_counter() - t0) * 1e3
         return f.timings_ms
 
