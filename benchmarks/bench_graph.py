@@ -26,7 +26,7 @@ import numpy as np
 
 from snaps_graph.backend import PoseGraph
 from snaps_graph.config import GraphConfig
-from snaps_graph.evaluation.trajectory import read_kitti_poses
+from snaps_graph.trajectory_io import read_kitti_poses
 
 from snaps_graph.evaluation.metrics import ate_rmse, kitti_relative_errors, mean_deviation
 from snaps_graph.evaluation.oracle import true_revisit_pairs

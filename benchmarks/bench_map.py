@@ -69,7 +69,7 @@ print(f"write_ply {1e3*(t1-t0):.0f} ms ({npts} points, {(out/'cloud_map_kitti06.
 print(f"peak RSS (KITTI 06 part) {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss/1e3:.0f} MB")
 
 if a.gt00 and Path(a.gt00).is_file():
-    from snaps_graph.evaluation.trajectory import read_kitti_poses
+    from snaps_graph.trajectory_io import read_kitti_poses
     gt00 = np.asarray(read_kitti_poses(a.gt00))
     m00 = CloudMap(cam, cfg)
     t0 = time.perf_counter()

@@ -26,7 +26,8 @@ from snaps_graph.config import Config  # noqa: E402
 from snaps_graph.datasets.kitti import KittiSequence  # noqa: E402
 from snaps_graph.evaluation.metrics import evaluate  # noqa: E402
 from snaps_graph.evaluation.oracle import loop_oracle, true_revisit_pairs  # noqa: E402
-from snaps_graph.pipeline import SlamPipeline, latency_summary  # noqa: E402
+from snaps_graph.pipeline import SlamPipeline  # noqa: E402
+from snaps_graph.runner import latency_summary, write_results  # noqa: E402
 
 
 def ensure_sequence(args) -> Path:
@@ -137,8 +138,8 @@ def main() -> None:
                 figures[f"{name}_over_snaps_mean_deviation"] = ratio
                 print(f"{name} mean deviation / SNAPS mean deviation = {ratio:.3f} (target <= 0.5)")
         # What any loop closure could reach on this VO: exact ground-truth loops at every revisit.
-        rows = result.rows
-        o = loop_oracle(result.trajectories["vo"], gt, cfg, [r["vo_inliers"] for r in rows], [r["vo_ok"] for r in rows])
+        rows = result.records
+        o = loop_oracle(result.trajectories["vo"], gt, cfg, [r.vo_inliers for r in rows], [r.vo_ok for r in rows])
         ored = 1 - o.mean_deviation / tr["vo"]["mean_deviation"]
         figures["oracle"] = {"loops": len(o.pairs), "mean_deviation": o.mean_deviation, "ate_rmse": o.ate_rmse, "reduction": ored}
         print(f"oracle ({len(o.pairs)} exact ground-truth loops at the true revisits, same graph): mean deviation "
@@ -151,20 +152,20 @@ def main() -> None:
     )
     verified = sum(l.verified for l in result.loops)
     print(f"loop factors verified geometrically: {verified}/{len(result.loops)}")
-    lat = latency_summary(result.rows)
+    lat = latency_summary(result.records)
     figures["latency_ms"] = lat
     print("latency (ms): median / p95")
     for key in ("total", "vo", "loop_no_candidate", "loop_with_candidates", "loop_closed", "graph"):
         s = lat[key]
         if s.get("n"):
             print(f"  {key:<22}{s['median']:>10.4f}{s['p95']:>10.4f}   (n={s['n']})")
-    loop_graph = [r["t_graph_ms"] for r in result.rows if r["loop_closed"]]
+    loop_graph = [r.t_graph_ms for r in result.records if r.loop_closed]
     if loop_graph:
         print(f"  graph update on loop frames: median {np.median(loop_graph):.2f} ms, max {np.max(loop_graph):.2f} ms")
         figures["graph_loop_update_ms"] = {"median": float(np.median(loop_graph)), "max": float(np.max(loop_graph))}
     print(f"  batch optimisation of {len(batch)} poses: {t_batch:.2f} s")
     if args.out:
-        pipe.write_results(args.out, result, gt)
+        write_results(args.out, pipe, result, gt, overwrite=True)
         print(f"results in {args.out}")  # before the false loops below touch the graph
     if args.naive_frames:
         from bench_frontend import NaiveVO  # the paper's front end written plainly (benchmarks/)

@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 
 from snaps_graph.config import LoopConfig
-from snaps_graph.evaluation.trajectory import read_kitti_poses
+from snaps_graph.trajectory_io import read_kitti_poses
 from snaps_graph.geometry import inv, yaw_deg
 from snaps_graph.loop import SnapsLoopCloser, similarity_q, uiqi, window_stats
 

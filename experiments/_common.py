@@ -21,7 +21,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from snaps_graph.config import Config  # noqa: E402
-from snaps_graph.datasets.kitti import KittiSequence, StereoFrame  # noqa: E402
+from snaps_graph.datasets.kitti import KittiSequence  # noqa: E402
+from snaps_graph.types import StereoFrame  # noqa: E402
 from snaps_graph.loop.uiqi import make_thumbnail  # noqa: E402
 from snaps_graph.pipeline import SlamPipeline  # noqa: E402
 from snaps_graph.types import VOResult  # noqa: E402

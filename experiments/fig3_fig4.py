@@ -17,7 +17,7 @@ from _common import RESULTS, md_table, synthetic_dir, false_loops
 from snaps_graph.config import Config
 from snaps_graph.datasets.kitti import KittiSequence
 from snaps_graph.evaluation.report import compare_run
-from snaps_graph.pipeline import run_sequence
+from snaps_graph.runner import run_sequence
 
 
 def main() -> None:

@@ -37,7 +37,7 @@ from snaps_graph.config import Config
 from snaps_graph.errors import SnapsGraphError
 from snaps_graph.evaluation.metrics import ate_rmse, mean_deviation
 from snaps_graph.evaluation.oracle import loop_oracle, odometry_graph
-from snaps_graph.evaluation.trajectory import read_poses
+from snaps_graph.trajectory_io import read_poses
 from snaps_graph.geometry import rotation_angle_deg
 
 

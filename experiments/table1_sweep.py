@@ -58,11 +58,11 @@ def main() -> None:
             result, pipe = replay(cache, cfg, refine="batch")
             wall = time.perf_counter() - t0
             tr = result.trajectories
-            t_loop = [r["t_loop_ms"] for r in result.rows if r["loop_candidates"] > 0]
+            t_loop = [r.t_loop_ms for r in result.records if r.loop_candidates > 0]
             row = [param, v, len(result.loops), false_loops(result.loops, gt, cache.indices, base.loop.radius_m),
                    mean_deviation(tr["snaps"], gt), ate_rmse(tr["snaps"], gt),
                    mean_deviation(tr["batch"], gt), ate_rmse(tr["batch"], gt),
-                   float(np.median(t_loop)) if t_loop else float("nan"), sum(r["loop_candidates"] for r in result.rows)]
+                   float(np.median(t_loop)) if t_loop else float("nan"), sum(r.loop_candidates for r in result.records)]
             rows.append(row)
             curves.setdefault(param, []).append((v, row[4], row[6]))
             print(f"{param}={v}: loops {row[2]} (false {row[3]}), SNAPS mean dev {row[4]:.2f} m, batch {row[6]:.2f} m, {wall:.1f} s")

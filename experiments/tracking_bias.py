@@ -24,7 +24,7 @@ import numpy as np
 
 from snaps_graph.config import Config
 from snaps_graph.datasets.synthetic import SyntheticSequence, load_trajectory
-from snaps_graph.evaluation.trajectory import read_poses
+from snaps_graph.trajectory_io import read_poses
 from snaps_graph.frontend import depth as depth_mod
 from snaps_graph.frontend import features as feat
 

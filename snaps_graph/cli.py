@@ -1,7 +1,9 @@
 """Command line: ``snaps-graph synth | run | eval | compare | demo | config``.
 
-Thin: each command parses its options, calls the package and prints. A user error
-(``SnapsGraphError``) prints one line ``error: ...`` and exits with status 2, never a traceback.
+Thin: each command parses its options, calls the package and prints. Exit status: 0 done; 2 a
+user error (``SnapsGraphError``: one line ``error: ...`` naming the file, never a traceback; also
+a usage error); 3 ``run`` finished and wrote its folder but the front end flagged more than half
+of the frames (one ``warning:`` line); 130 interrupted (Ctrl-C: one line, no results folder).
 """
 
 from __future__ import annotations
@@ -21,10 +23,16 @@ app = typer.Typer(
 )
 
 
+EXIT_USER_ERROR = 2
+EXIT_MOSTLY_FLAGGED = 3
+EXIT_INTERRUPTED = 130
+
+
 def _progress(total: int, desc: str):
     from tqdm import tqdm
 
-    return tqdm(total=total, desc=desc, unit="frame", dynamic_ncols=True, file=sys.stderr, mininterval=0.5)
+    # disable=None: no bar when stderr is not a terminal (logs and pipes get only the summary)
+    return tqdm(total=total, desc=desc, unit="frame", dynamic_ncols=True, file=sys.stderr, mininterval=0.5, disable=None)
 
 
 @app.command()
@@ -39,17 +47,19 @@ def synth(
     noise: float = typer.Option(0.0, "--noise", help="Sensor noise, grey-level standard deviation."),
     exposure: float = typer.Option(0.0, "--exposure", help="Exposure change between passes (0 = none)."),
     depth: bool = typer.Option(False, "--depth/--no-depth", help="Also write exact depth of the left camera (depth_0/, uint16 mm)."),
-    overwrite: bool = typer.Option(False, "--overwrite", help="Write into a folder that already holds images."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty OUT folder (whole)."),
 ) -> None:
     """Render a synthetic stereo sequence along a trajectory, in KITTI layout."""
     from .datasets.synthetic import SyntheticSequence, load_trajectory, render_to_folder
+    from .io_utils import check_output_folder, output_folder
 
     if width < 32 or height < 32:
         raise_user(f"--width/--height too small: {width}x{height}")
+    check_output_folder(out, overwrite)
     poses, ts = load_trajectory(trajectory, frames, times=str(times) if times else None)
     seq = SyntheticSequence(poses, width=width, height=height, seed=seed, noise_std=noise, exposure_change=exposure, times=ts)
-    with _progress(len(seq), "render") as bar:
-        render_to_folder(seq, out, progress=lambda *_: bar.update(1), write_depth=depth, overwrite=overwrite)
+    with _progress(len(seq), "render") as bar, output_folder(out, overwrite) as tmp:
+        render_to_folder(seq, tmp, progress=lambda *_: bar.update(1), write_depth=depth, overwrite=True)
     typer.echo(f"wrote {len(seq)} stereo pairs to {out}")
 
 
@@ -60,6 +70,7 @@ def run(
     frames: Optional[str] = typer.Option(None, "--frames", help="Frame range A:B (A included, B excluded)."),
     config: Optional[Path] = typer.Option(None, "--config", help="A TOML config (see `snaps-graph config`)."),
     gt: Optional[Path] = typer.Option(None, "--gt", help="Ground-truth poses (default: SEQ/poses.txt or ROOT/poses/XX.txt)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty OUT folder (whole, at the end of the run)."),
     loops: Optional[str] = typer.Option(None, "--loops", help="snaps | none (default from config: snaps)."),
     refine: Optional[str] = typer.Option(None, "--refine", help="none | isam2 | batch | both (default from config: none)."),
     map_: Optional[bool] = typer.Option(None, "--map/--no-map", help="Build the point-cloud map (default from config: off)."),
@@ -71,17 +82,25 @@ def run(
     ),
 ) -> None:
     """Run stereo VO (+ SNAPS, + graph refinement, + map) over a sequence and write a results folder."""
-    from .config import Config
+    from .config import Config, FrontendMode, LoopMode, RefineMode
     from .datasets.kitti import KittiSequence
-    from .pipeline import run_sequence
+    from .io_utils import check_output_folder
+    from .pipeline import resolve_config
+    from .runner import mostly_flagged, run_sequence
 
+    _check_choice("--loops", loops, LoopMode)
+    _check_choice("--refine", refine, RefineMode)
+    _check_choice("--mode", mode, FrontendMode)
     cfg = Config.load(config) if config else Config()
     if mode is not None:
-        cfg.frontend.mode = mode
+        cfg.frontend.mode = mode  # type: ignore[assignment]
     if map_all:
         cfg.map.per_trajectory = True
     if gravity_prior is not None:
         cfg.graph.gravity_prior = gravity_prior
+    # Before anything is read: the configuration that will run, and the output folder.
+    resolve_config(cfg, loops=loops, refine=refine, build_map=map_)
+    check_output_folder(out, overwrite)
     seq = KittiSequence(seq_dir, frames=frames, gt=gt)
     n_loops = 0
     with _progress(len(seq), "slam") as bar:
@@ -92,8 +111,17 @@ def run(
             bar.set_postfix(loops=n_loops, refresh=False)
             bar.update(1)
 
-        result, metrics = run_sequence(seq, out, cfg, loops=loops, refine=refine, build_map=map_, on_frame=on_frame)
+        result, metrics = run_sequence(
+            seq, out, cfg, loops=loops, refine=refine, build_map=map_, overwrite=overwrite, on_frame=on_frame
+        )
     _print_summary(metrics, out)
+    if mostly_flagged(metrics):
+        print(
+            f"warning: the front end flagged {metrics['flagged_frames']} of {metrics['frames']} frames "
+            f"(their poses are constant-velocity guesses); exit status {EXIT_MOSTLY_FLAGGED}",
+            file=sys.stderr,
+        )
+        raise typer.Exit(EXIT_MOSTLY_FLAGGED)
 
 
 @app.command("eval")
@@ -104,7 +132,7 @@ def eval_(
 ) -> None:
     """Mean deviation, ATE RMSE (SE(3)-aligned), KITTI t_rel / r_rel of a trajectory."""
     from .evaluation.metrics import evaluate
-    from .evaluation.trajectory import read_poses
+    from .trajectory_io import read_poses
 
     m = evaluate(read_poses(est), read_poses(gt))
     if as_json:
@@ -158,6 +186,14 @@ def raise_user(msg: str) -> None:
     raise SnapsGraphError(msg)
 
 
+def _check_choice(option: str, value: str | None, literal) -> None:
+    from .config import choices
+
+    allowed = choices(literal) or ()
+    if value is not None and value not in allowed:
+        raise_user(f"{option} must be one of {', '.join(allowed)}, not '{value}'")
+
+
 def _fmt(v, nd=3) -> str:
     if v is None or (isinstance(v, float) and v != v):
         return "n/a"
@@ -183,7 +219,7 @@ def _print_summary(metrics: dict, out: Path) -> None:
     lat = metrics.get("latency_ms", {})
     fps = lat.get("frames_per_s")
     typer.echo(
-        f"{metrics['frames']} frames, {metrics['loops']} loops, "
+        f"{metrics['frames']} frames ({metrics.get('flagged_frames', 0)} flagged), {metrics['loops']} loops, "
         f"median {_fmt(lat.get('total', {}).get('median'), 1)} ms/frame"
         + (f" ({fps:.1f} frames/s)" if fps else "")
     )
@@ -197,17 +233,37 @@ def _print_summary(metrics: dict, out: Path) -> None:
     typer.echo(f"results in {out}")
 
 
+class Interrupted(BaseException):
+    """Ctrl-C, raised by our SIGINT handler: click turns a KeyboardInterrupt into "Aborted!" and
+    exit 1, so SIGINT raises this instead, which passes through click (and through every
+    ``except Exception``) to :func:`main`; cleanup handlers (``except BaseException``) still run."""
+
+
+def _on_sigint(signum, frame) -> None:
+    raise Interrupted()
+
+
 def main() -> None:
+    import signal
+
+    import click
+
     from .errors import SnapsGraphError
 
+    signal.signal(signal.SIGINT, _on_sigint)
     try:
-        app()
+        rc = app(standalone_mode=False)
     except SnapsGraphError as exc:
         print(f"error: {exc}", file=sys.stderr)
-        sys.exit(2)
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        sys.exit(130)
+        sys.exit(EXIT_USER_ERROR)
+    except (Interrupted, KeyboardInterrupt, click.exceptions.Abort):
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not interrupt the exit
+        print("interrupted: no results written", file=sys.stderr)
+        sys.exit(EXIT_INTERRUPTED)
+    except click.exceptions.ClickException as exc:
+        exc.show()
+        sys.exit(exc.exit_code)
+    sys.exit(rc if isinstance(rc, int) else 0)
 
 
 if __name__ == "__main__":

@@ -14,20 +14,50 @@ import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, get_args, get_origin, get_type_hints
 
 from .errors import SnapsGraphError
 
+# The one vocabulary of modes (the CLI's --mode/--loops/--refine use the same lists).
+FrontendMode = Literal["sift", "orb", "klt"]
+DisparityMethod = Literal["bm_wls", "sgbm", "sparse"]
+LoopMode = Literal["snaps", "none"]
+RefineMode = Literal["none", "isam2", "batch", "both"]  # both = iSAM2 online + batch at the end
+
+
+class _Section:
+    """Validation shared by the config sections: every field is checked against its type (a
+    ``Literal`` is an enumeration) and its range in ``RULES``, at construction and on demand."""
+
+    _name = "config"
+
+    def __post_init__(self) -> None:
+        self.validate()
+
+    def validate(self, source: str = "config") -> None:
+        """A one-line SnapsGraphError naming ``source`` and the key for the first bad value."""
+        hints = _hints(type(self))
+        for f in dataclasses.fields(self):  # type: ignore[arg-type]
+            key = f"{self._name}.{f.name}"
+            _check_value(getattr(self, f.name), hints[f.name], RULES.get(key), f"{source}: {key}")
+        self._cross_checks(source)
+
+    def _cross_checks(self, source: str) -> None:
+        pass
+
+
 
 @dataclass
-class FrontendConfig:
+class FrontendConfig(_Section):
     """Stereo visual odometry (SPEC "Front end")."""
 
+    _name = "frontend"
+
     # Feature mode: "sift" is the paper's (faithful, slower); "orb" and "klt" are fast modes.
-    mode: str = "klt"
+    mode: FrontendMode = "klt"
     # Dense disparity: "bm_wls" (paper: StereoBM + WLS filter), "sgbm", or "sparse" (depth only
     # at keypoints, found by matching along the epipolar line; the fast default).
-    disparity: str = "sparse"
+    disparity: DisparityMethod = "sparse"
     num_disparities: int = 128  # BM/SGBM disparity search range, pixels (multiple of 16)
     block_size: int = 15  # BM block size, pixels (odd)
     wls_lambda: float = 8000.0  # WLS smoothness
@@ -37,7 +67,7 @@ class FrontendConfig:
     sift_features: int = 2000
     # SIFT scale space: -1 = OpenCV's (image doubled first, as the paper ran it), 0 = from the
     # image's own resolution (Lowe without doubling, VLFeat's default; about 3x faster).
-    sift_first_octave: int = 0
+    sift_first_octave: Literal[-1, 0] = 0
     orb_features: int = 2000
     klt_features: int = 1500  # corners detected when re-detecting in KLT mode
     klt_min_tracks: int = 600  # re-detect when fewer tracks than this survive
@@ -69,10 +99,18 @@ class FrontendConfig:
     verify_max_translation_m: float = 30.0  # verify_loop: a larger relative pose is implausible
     verify_max_rotation_deg: float = 90.0
 
+    def _cross_checks(self, source: str) -> None:
+        if not self.min_depth_m < self.max_depth_m:
+            raise SnapsGraphError(
+                f"{source}: frontend.min_depth_m must be < frontend.max_depth_m, got {self.min_depth_m} and {self.max_depth_m}"
+            )
+
 
 @dataclass
-class LoopConfig:
+class LoopConfig(_Section):
     """SNAPS loop closure (paper §III, Table I; SPEC "SNAPS loop closure")."""
+
+    _name = "loop"
 
     radius_m: float = 10.0  # candidates lie within this distance of the current position
     frame_distance: int = 100  # M: candidate j must satisfy N - j >= M
@@ -100,7 +138,7 @@ class LoopConfig:
     use_verified_offset: bool = True
     # Weight of eq. 6's move: "q" = the paper (Q); "verified" = 1 for a verified loop (its target
     # is measured, not assumed), Q otherwise.
-    correction_weight: str = "verified"
+    correction_weight: Literal["q", "verified"] = "verified"
     # With a verifier (the pipeline always has one): a loop must pass geometric verification;
     # candidates at or above min_similarity are tried in order of Q, at most verify_attempts.
     # false = the paper: the highest Q is a loop even when unverified (same-place assumption).
@@ -112,10 +150,12 @@ class LoopConfig:
 
 
 @dataclass
-class GraphConfig:
+class GraphConfig(_Section):
     """GTSAM factor graph (SPEC "Factor graph")."""
 
-    refine: str = "none"  # none | isam2 | batch
+    _name = "graph"
+
+    refine: RefineMode = "none"  # none | isam2 | batch | both (iSAM2 online + batch at the end)
     prior_sigma_rot_rad: float = 1e-4
     prior_sigma_trans_m: float = 1e-3
     odom_sigma_rot_rad: float = 0.005  # VO step noise at the reference inlier count
@@ -133,9 +173,9 @@ class GraphConfig:
     # 0 for the exact UIQI (true revisits score 0.15-0.6): sigma = base / Q, at most 10x.
     loop_q_floor: float = 0.0
     loop_sigma_scale_max: float = 10.0  # clip of (1 - loop_q_floor) / (Q - loop_q_floor)
-    robust_kernel: str = "cauchy"  # huber | cauchy | none (loop factors only)
+    robust_kernel: Literal["huber", "cauchy", "none"] = "cauchy"  # loop factors only
     robust_param: float = 3.0  # kernel width on the whitened 6-vector norm (an inlier's is ~2.4)
-    isam2_factorization: str = "QR"  # QR | CHOLESKY (SPEC: Cholesky threw on long chains)
+    isam2_factorization: Literal["QR", "CHOLESKY"] = "QR"  # SPEC: Cholesky threw on long chains
     isam2_relinearize_threshold: float = 0.01
     isam2_relinearize_skip: int = 1
     # Extra iSAM2 steps right after an update that carried a loop (the robust weight converges
@@ -143,7 +183,7 @@ class GraphConfig:
     # converge it anyway, so 0 online; PoseGraph.converge() finishes the job at the end.
     isam2_loop_iterations: int = 0
     isam2_final_iterations: int = 10  # PoseGraph.converge(): at most this many extra steps
-    batch_solver: str = "lm"  # lm | gnc
+    batch_solver: Literal["lm", "gnc"] = "lm"
     batch_max_iterations: int = 100
     gnc_inlier_probability: float = 0.99  # GNC: chi-square inlier threshold at this probability
     # Level-vehicle (gravity) prior, experimental, batch only, off by default. On KITTI 00 it cut the
@@ -156,10 +196,19 @@ class GraphConfig:
     gravity_sigma_deg: float = 2.0
     gravity_rounds: int = 3
 
+    def _cross_checks(self, source: str) -> None:
+        if not self.odom_sigma_scale_min <= self.odom_sigma_scale_max:
+            raise SnapsGraphError(
+                f"{source}: graph.odom_sigma_scale_min must be <= graph.odom_sigma_scale_max, "
+                f"got {self.odom_sigma_scale_min} and {self.odom_sigma_scale_max}"
+            )
+
 
 @dataclass
-class MapConfig:
+class MapConfig(_Section):
     """Point-cloud map (SPEC "Map")."""
+
+    _name = "map"
 
     enabled: bool = False
     keyframe_every: int = 5  # one keyframe cloud every this many frames
@@ -173,9 +222,9 @@ class MapConfig:
     # union of the chunks once more: bounds peak memory on long runs (KITTI 00: ~10 M points).
     build_chunk_points: int = 2_000_000
     build_tile_m: float = 100.0  # ...and the union is voxelised again in x-z tiles of this size
-    topdown_colour_by: str = "height"  # top-down PNG: "height" (-y, metres) or "intensity"
+    topdown_colour_by: Literal["height", "intensity"] = "height"  # top-down PNG: "height" (-y, metres) or "intensity"
     topdown_dpi: int = 150  # top-down PNG resolution (a 8x8 inch figure)
-    trajectory: str = "best"  # vo | snaps | isam2 | batch | best (the most refined available)
+    trajectory: Literal["vo", "snaps", "isam2", "batch", "best"] = "best"  # best: the most refined available
     per_trajectory: bool = False  # also write map_<trajectory>.ply for every trajectory of the run
 
 
@@ -185,16 +234,49 @@ class Config:
     loop: LoopConfig = field(default_factory=LoopConfig)
     graph: GraphConfig = field(default_factory=GraphConfig)
     map: MapConfig = field(default_factory=MapConfig)
-    loops: str = "snaps"  # snaps | none
+    loops: LoopMode = "snaps"
+
+    def __post_init__(self) -> None:
+        self.source = "config"  # the file it was loaded from, named in validation errors
+        self.validate()
+
+    def validate(self, source: str | None = None) -> None:
+        """Every field (types, enumerations, ranges) and the rules across fields; a one-line
+        SnapsGraphError naming the config file and the key. ``snaps-graph config FILE`` and
+        ``run`` (before the first frame) both call this on the configuration that would run."""
+        source = source or self.source
+        for section in (self.frontend, self.loop, self.graph, self.map):
+            section.validate(source)
+        hints = _hints(type(self))
+        _check_value(self.loops, hints["loops"], None, f"{source}: loops")
+        if self.map.enabled and self.map.trajectory != "best":
+            need = {
+                "vo": True,
+                "snaps": self.loops == "snaps",
+                "isam2": self.graph.refine in ("isam2", "both"),
+                "batch": self.graph.refine in ("batch", "both"),
+            }[self.map.trajectory]
+            if not need:
+                what = "loops = 'snaps'" if self.map.trajectory == "snaps" else f"graph.refine = '{self.map.trajectory}' or 'both'"
+                raise SnapsGraphError(
+                    f"{source}: map.trajectory = '{self.map.trajectory}' needs {what} "
+                    f"(this run has loops = '{self.loops}', graph.refine = '{self.graph.refine}')"
+                )
 
     # ---- TOML ----
     @classmethod
     def load(cls, path: str | Path) -> "Config":
         path = Path(path)
         try:
-            data = tomllib.loads(path.read_text())
+            data = tomllib.loads(path.read_bytes().decode("utf-8"))
         except FileNotFoundError:
             raise SnapsGraphError(f"{path}: config file not found") from None
+        except IsADirectoryError:
+            raise SnapsGraphError(f"{path}: is a folder, not a config file") from None
+        except OSError as exc:
+            raise SnapsGraphError(f"{path}: cannot read ({exc.strerror or exc})") from None
+        except UnicodeDecodeError:
+            raise SnapsGraphError(f"{path}: not a text (UTF-8) file") from None
         except tomllib.TOMLDecodeError as exc:
             raise SnapsGraphError(f"{path}: malformed TOML ({exc})") from None
         return cls.from_dict(data, source=str(path))
@@ -202,6 +284,7 @@ class Config:
     @classmethod
     def from_dict(cls, data: dict[str, Any], source: str = "config") -> "Config":
         cfg = cls()
+        cfg.source = source
         for key, value in data.items():
             if not hasattr(cfg, key):
                 raise SnapsGraphError(f"{source}: unknown key '{key}'")
@@ -215,6 +298,7 @@ class Config:
                     setattr(current, sub, _coerce(getattr(current, sub), subval, f"{source}: {key}.{sub}"))
             else:
                 setattr(cfg, key, _coerce(current, value, f"{source}: {key}"))
+        cfg.validate()
         return cfg
 
     def to_dict(self) -> dict[str, Any]:
@@ -272,3 +356,179 @@ def _toml_value(value: Any) -> str:
     if isinstance(value, str):
         return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
     raise TypeError(f"cannot write {value!r} to TOML")
+
+
+# ---- validation ----
+@dataclass(frozen=True)
+class Range:
+    """Allowed values of a number: bounds (open or closed), odd, a multiple of ``multiple``."""
+
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+    odd: bool = False
+    multiple: int | None = None
+
+    def describe(self) -> str:
+        if self.lo is not None and self.hi is not None:
+            text = f"in {'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}{')' if self.hi_open else ']'}"
+        elif self.lo is not None:
+            text = f"{'>' if self.lo_open else '>='} {self.lo:g}"
+        elif self.hi is not None:
+            text = f"{'<' if self.hi_open else '<='} {self.hi:g}"
+        else:
+            text = "a number"
+        if self.odd:
+            text = "odd and " + text
+        if self.multiple:
+            text = f"a multiple of {self.multiple} and " + text
+        return text
+
+    def ok(self, v: float) -> bool:
+        if self.lo is not None and (v <= self.lo if self.lo_open else v < self.lo):
+            return False
+        if self.hi is not None and (v >= self.hi if self.hi_open else v > self.hi):
+            return False
+        if self.odd and int(v) % 2 == 0:
+            return False
+        return not (self.multiple and int(v) % self.multiple)
+
+
+def _gt(lo: float) -> Range:
+    return Range(lo=lo, lo_open=True)
+
+
+def _ge(lo: float) -> Range:
+    return Range(lo=lo)
+
+
+POSITIVE = _gt(0)
+NON_NEGATIVE = _ge(0)
+AT_LEAST_1 = _ge(1)
+FRACTION = Range(0, 1, lo_open=True)  # (0, 1]
+PROBABILITY = Range(0, 1, lo_open=True, hi_open=True)  # (0, 1)
+ANGLE = Range(0, 180, lo_open=True)  # (0, 180] degrees
+
+# The range of every numeric field, keyed "section.field" (booleans and Literal fields are checked
+# by their type). A new numeric field needs a line here (tests/test_config.py checks it).
+RULES: dict[str, Range] = {
+    "frontend.num_disparities": Range(16, 1024, multiple=16),
+    "frontend.block_size": Range(5, 255, odd=True),
+    "frontend.wls_lambda": NON_NEGATIVE,
+    "frontend.wls_sigma": POSITIVE,
+    "frontend.min_depth_m": POSITIVE,
+    "frontend.max_depth_m": POSITIVE,
+    "frontend.sift_features": AT_LEAST_1,
+    "frontend.orb_features": AT_LEAST_1,
+    "frontend.klt_features": AT_LEAST_1,
+    "frontend.klt_min_tracks": NON_NEGATIVE,
+    "frontend.ratio_test": FRACTION,
+    "frontend.pnp_reprojection_px": POSITIVE,
+    "frontend.pnp_iterations": AT_LEAST_1,
+    "frontend.pnp_confidence": PROBABILITY,
+    "frontend.min_inliers": _ge(6),  # PnP needs at least 6
+    "frontend.max_step_m": POSITIVE,
+    "frontend.max_step_deg": ANGLE,
+    "frontend.min_frame_std": NON_NEGATIVE,
+    "frontend.threads": Range(1, 256),
+    "frontend.sgbm_block_size": Range(1, 255, odd=True),
+    "frontend.stereo_window_px": _ge(3),
+    "frontend.stereo_levels": NON_NEGATIVE,
+    "frontend.stereo_max_dy_px": NON_NEGATIVE,
+    "frontend.stereo_lr_check_px": NON_NEGATIVE,
+    "frontend.klt_window_px": _ge(3),
+    "frontend.klt_levels": NON_NEGATIVE,
+    "frontend.klt_quality": FRACTION,
+    "frontend.klt_min_distance_px": AT_LEAST_1,
+    "frontend.klt_border_px": NON_NEGATIVE,
+    "frontend.loop_features": AT_LEAST_1,
+    "frontend.min_stereo_points": _ge(6),
+    "frontend.min_sharpness_ratio": NON_NEGATIVE,
+    "frontend.ransac_seed": NON_NEGATIVE,
+    "frontend.verify_max_translation_m": POSITIVE,
+    "frontend.verify_max_rotation_deg": ANGLE,
+    "loop.radius_m": POSITIVE,
+    "loop.frame_distance": AT_LEAST_1,
+    "loop.discount_length": NON_NEGATIVE,
+    "loop.min_similarity": FRACTION,
+    "loop.inter_frame_pause": NON_NEGATIVE,
+    "loop.attempts": NON_NEGATIVE,
+    "loop.max_yaw_deg": Range(0, 180),
+    "loop.thumbnail_scale": FRACTION,
+    "loop.window": _ge(2),  # eq. 5 divides by N - 1
+    "loop.shift_px": NON_NEGATIVE,
+    "loop.shift_step_px": AT_LEAST_1,
+    "loop.discount_offset": POSITIVE,
+    "loop.discount_rate": NON_NEGATIVE,
+    "loop.verify_attempts": AT_LEAST_1,
+    "loop.stats_cache_frames": NON_NEGATIVE,
+    "graph.prior_sigma_rot_rad": POSITIVE,
+    "graph.prior_sigma_trans_m": POSITIVE,
+    "graph.odom_sigma_rot_rad": POSITIVE,
+    "graph.odom_sigma_trans_m": POSITIVE,
+    "graph.odom_ref_inliers": AT_LEAST_1,
+    "graph.odom_min_inliers": AT_LEAST_1,
+    "graph.odom_sigma_scale_min": POSITIVE,
+    "graph.odom_sigma_scale_max": POSITIVE,
+    "graph.flagged_sigma_scale": AT_LEAST_1,
+    "graph.loop_sigma_rot_rad": POSITIVE,
+    "graph.loop_sigma_trans_m": POSITIVE,
+    "graph.unverified_sigma_rot_rad": POSITIVE,
+    "graph.unverified_sigma_trans_m": POSITIVE,
+    "graph.loop_q_floor": Range(0, 1, hi_open=True),
+    "graph.loop_sigma_scale_max": AT_LEAST_1,
+    "graph.robust_param": POSITIVE,
+    "graph.isam2_relinearize_threshold": NON_NEGATIVE,
+    "graph.isam2_relinearize_skip": AT_LEAST_1,
+    "graph.isam2_loop_iterations": NON_NEGATIVE,
+    "graph.isam2_final_iterations": NON_NEGATIVE,
+    "graph.batch_max_iterations": AT_LEAST_1,
+    "graph.gnc_inlier_probability": PROBABILITY,
+    "graph.gravity_sigma_deg": Range(0, 90, lo_open=True),
+    "graph.gravity_rounds": AT_LEAST_1,
+    "map.keyframe_every": AT_LEAST_1,
+    "map.pixel_step": AT_LEAST_1,
+    "map.max_range_m": POSITIVE,
+    "map.voxel_size_m": NON_NEGATIVE,
+    "map.keyframe_voxel_size_m": NON_NEGATIVE,
+    "map.build_chunk_points": AT_LEAST_1,
+    "map.build_tile_m": POSITIVE,
+    "map.topdown_dpi": Range(10, 1200),
+}
+
+
+_HINTS: dict[type, dict[str, Any]] = {}
+
+
+def _hints(cls: type) -> dict[str, Any]:
+    if cls not in _HINTS:
+        _HINTS[cls] = get_type_hints(cls)
+    return _HINTS[cls]
+
+
+def choices(hint: Any) -> tuple | None:
+    """The allowed values of a ``Literal`` type, else None."""
+    return get_args(hint) if get_origin(hint) is Literal else None
+
+
+def _check_value(value: Any, hint: Any, rule: Range | None, where: str) -> None:
+    allowed = choices(hint)
+    if allowed is not None:
+        if isinstance(value, bool) or value not in allowed:
+            raise SnapsGraphError(f"{where} must be one of {', '.join(repr(a) for a in allowed)}, got {value!r}")
+        return
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise SnapsGraphError(f"{where}: expected true/false, got {value!r}")
+        return
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise SnapsGraphError(f"{where}: expected an integer, got {value!r}")
+    elif hint is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise SnapsGraphError(f"{where}: expected a finite number, got {value!r}")
+    else:
+        return  # a section or a string
+    if rule is not None and not rule.ok(value):
+        raise SnapsGraphError(f"{where} must be {rule.describe()}, got {value!r}")

@@ -17,7 +17,7 @@ def run_demo(out: str | Path, frames: int = 300, width: int = 1241, height: int 
     from .datasets.kitti import KittiSequence
     from .datasets.synthetic import SyntheticSequence, builtin_loop_trajectory, render_to_folder
     from .evaluation.report import compare_run
-    from .pipeline import run_sequence
+    from .runner import run_sequence
 
     out = Path(out)
     seq_dir = out / "sequence"
@@ -33,7 +33,9 @@ def run_demo(out: str | Path, frames: int = 300, width: int = 1241, height: int 
     cfg.map.enabled = True
     t1 = time.perf_counter()
     result, metrics = _with_bar(
-        progress, len(seq), "slam", lambda cb: run_sequence(seq, run_dir, cfg, loops="snaps", refine=refine, build_map=True, on_frame=cb)
+        progress, len(seq), "slam", lambda cb: run_sequence(
+            seq, run_dir, cfg, loops="snaps", refine=refine, build_map=True, overwrite=True, on_frame=cb
+        ),
     )
     t_run = time.perf_counter() - t1
     compare_run(run_dir)

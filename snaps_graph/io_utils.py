@@ -1,8 +1,10 @@
-"""Small file helpers: atomic writes, so an interrupted run never leaves a half-written file."""
+"""Small file helpers: atomic writes and whole-or-absent output folders, so an interrupted run
+never leaves a half-written file or a folder that looks complete."""
 
 from __future__ import annotations
 
 import os
+import shutil
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -51,6 +53,56 @@ _UMASK = _read_umask()
 
 def _umask() -> int:
     return _UMASK
+
+
+def check_output_folder(path: str | Path, overwrite: bool = False) -> Path:
+    """Refuse, with a one-line SnapsGraphError, an output folder a run could not replace whole:
+    a path that is a file or lies under a file, a folder whose parent cannot be written, or a
+    non-empty folder without ``overwrite``. Call it before any work; returns the path."""
+    from .errors import SnapsGraphError
+
+    out = Path(path)
+    if out.exists() and not out.is_dir():
+        raise SnapsGraphError(f"{out}: exists and is not a folder")
+    for parent in out.absolute().parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise SnapsGraphError(f"{parent}: is a file, cannot create the folder {out} under it")
+            if not os.access(parent, os.W_OK | os.X_OK):
+                raise SnapsGraphError(f"{parent}: not writable, cannot create {out}")
+            break
+    if out.is_dir() and any(out.iterdir()) and not overwrite:
+        raise SnapsGraphError(f"{out}: folder exists and is not empty (use --overwrite to replace it)")
+    return out
+
+
+@contextmanager
+def output_folder(path: str | Path, overwrite: bool = False) -> Iterator[Path]:
+    """A temporary sibling folder ``.NAME.tmp-PID`` to fill; on success it is renamed onto
+    ``path`` (an old folder, with ``overwrite``, is moved aside first and then deleted), on any
+    error or Ctrl-C it is deleted. So ``path`` is either the whole new result or untouched."""
+    out = check_output_folder(path, overwrite)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    old: Path | None = None
+    try:
+        yield tmp
+        check_output_folder(out, overwrite)  # nothing appeared there meanwhile
+        if out.is_dir() and any(out.iterdir()):
+            old = out.parent / f".{out.name}.old-{os.getpid()}"
+            os.replace(out, old)
+        elif out.is_dir():
+            out.rmdir()
+        os.replace(tmp, out)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        if old is not None and not out.exists():  # the swap failed half-way: put the old one back
+            os.replace(old, out)
+        raise
 
 
 def parse_frame_range(text: str | None, n_total: int | None = None) -> tuple[int, int | None] | None:

@@ -5,9 +5,20 @@ Plain dataclasses with numpy fields; no stage imports another stage's internals,
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
+
+
+@dataclass
+class StereoFrame:
+    """One rectified stereo pair, as every dataset yields it and the pipeline consumes it."""
+
+    index: int  # the dataset's frame number (the image file's number)
+    timestamp: float  # seconds
+    left: np.ndarray  # uint8 grey, H x W
+    right: np.ndarray  # uint8 grey, H x W
 
 
 @dataclass
@@ -88,3 +99,26 @@ class LoopEvent:
         if self.T_ref_cur is not None:
             d["T_ref_cur"] = [float(v) for v in np.asarray(self.T_ref_cur)[:3, :4].reshape(-1)]
         return d
+
+
+@dataclass
+class FrameRecord:
+    """One processed frame: what ``frames.csv`` holds, one row per frame, columns in field order."""
+
+    frame: int  # the dataset's frame number
+    timestamp: float  # seconds
+    t_total_ms: float
+    t_vo_ms: float
+    vo_ok: int  # 1, or 0 for a flagged frame
+    vo_inliers: int
+    vo_reason: str  # why the frame was flagged ("" when ok)
+    t_loop_ms: float
+    loop_candidates: int
+    loop_closed: int
+    t_verify_ms: float
+    t_graph_ms: float
+    graph_ok: int
+    t_map_ms: float
+
+
+FRAME_COLUMNS: tuple[str, ...] = tuple(f.name for f in dataclasses.fields(FrameRecord))

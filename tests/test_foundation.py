@@ -13,7 +13,7 @@ from snaps_graph.camera import StereoCamera, kitti00_camera
 from snaps_graph.config import Config
 from snaps_graph.datasets.kitti import KittiSequence
 from snaps_graph.errors import SnapsGraphError
-from snaps_graph.evaluation.trajectory import (
+from snaps_graph.trajectory_io import (
     read_kitti_poses,
     read_tum_poses,
     rotation_to_quaternion,

@@ -10,7 +10,8 @@ import pytest
 
 from snaps_graph.camera import StereoCamera
 from snaps_graph.config import FrontendConfig
-from snaps_graph.datasets.kitti import KittiSequence, StereoFrame
+from snaps_graph.datasets.kitti import KittiSequence
+from snaps_graph.types import StereoFrame
 from snaps_graph.errors import SnapsGraphError
 from snaps_graph.frontend import StereoOdometry, dense_depth, sparse_depth, verify_loop
 from snaps_graph.frontend import features as feat

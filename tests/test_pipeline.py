@@ -14,12 +14,14 @@ import numpy as np
 import pytest
 
 from snaps_graph.config import Config
-from snaps_graph.datasets.kitti import KittiSequence, StereoFrame
+from snaps_graph.datasets.kitti import KittiSequence
 from snaps_graph.datasets.synthetic import SyntheticSequence, builtin_loop_trajectory
 from snaps_graph.errors import SnapsGraphError
 from snaps_graph.evaluation.metrics import mean_deviation
-from snaps_graph.evaluation.trajectory import read_kitti_poses
-from snaps_graph.pipeline import SlamPipeline, run_sequence
+from snaps_graph.trajectory_io import read_kitti_poses
+from snaps_graph.pipeline import SlamPipeline
+from snaps_graph.runner import run_sequence, write_results
+from snaps_graph.types import StereoFrame
 
 CLI = [sys.executable, "-m", "snaps_graph.cli"]
 
@@ -65,7 +67,7 @@ def test_eval_json_and_table(kitti06_dir, tmp_path):
     gt = KittiSequence(kitti06_dir).gt_poses
     est = gt.copy()
     est[:, 0, 3] += 1.0  # a constant 1 m offset: mean deviation exactly 1, ATE 0 after alignment
-    from snaps_graph.evaluation.trajectory import write_kitti_poses
+    from snaps_graph.trajectory_io import write_kitti_poses
 
     write_kitti_poses(tmp_path / "est.txt", est)
     write_kitti_poses(tmp_path / "gt.txt", gt)
@@ -142,7 +144,7 @@ def test_duplicate_frame_is_user_error(kitti06_dir):
     pipe = SlamPipeline(seq.camera, Config(), loops="none", refine="none")
     f = seq[0]
     pipe.process(f)
-    with pytest.raises(SnapsGraphError, match="already processed"):
+    with pytest.raises(SnapsGraphError, match="frame numbers must increase"):
         pipe.process(f)
 
 

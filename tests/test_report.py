@@ -14,7 +14,7 @@ import pytest
 from snaps_graph.errors import SnapsGraphError
 from snaps_graph.evaluation.metrics import ate_rmse, kitti_relative_errors, mean_deviation
 from snaps_graph.evaluation.report import compare_run, latency_summary
-from snaps_graph.evaluation.trajectory import read_kitti_poses, write_kitti_poses
+from snaps_graph.trajectory_io import read_kitti_poses, write_kitti_poses
 from snaps_graph.geometry import inv
 
 FIRST = 50  # the fake run processed dataset frames 50..1100 of KITTI 07

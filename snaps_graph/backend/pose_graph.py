@@ -1,6 +1,6 @@
 """GTSAM pose graph: odometry factors, UIQI-weighted loop factors, iSAM2 or batch refinement.
 
-This is the only module in the package that imports gtsam (SPEC "Factor graph"); everything else
+The backend package is the only one that imports gtsam (SPEC "Factor graph"); everything else
 passes 4x4 numpy poses (T_world_cam, KITTI camera axes) through :class:`PoseGraph`.
 
 Decisions, and why:
@@ -78,11 +78,13 @@ import numpy as np
 from ..config import GraphConfig
 from ..errors import SnapsGraphError
 from ..io_utils import atomic_output
+from ._values import array_to_values as _array_to_values
+from ._values import to_pose3 as _to_pose3
+from ._values import values_to_array as _values_to_array
+from .gnc import solve_gnc
+from .gravity import gravity_rounds
 
-MODES = ("none", "isam2", "batch")
-KERNELS = ("huber", "cauchy", "none")
-BATCH_SOLVERS = ("lm", "gnc")
-FACTORIZATIONS = ("QR", "CHOLESKY")
+MODES = ("none", "isam2", "batch")  # graph.refine's values but "both" (= isam2 here + optimize_batch)
 
 
 @dataclass
@@ -164,17 +166,6 @@ class _Loop:
     active: bool = True
 
 
-def _to_pose3(T: np.ndarray) -> gtsam.Pose3:
-    """A Pose3 from a 4x4 whose rotation is projected onto SO(3) (SVD), so tiny numerical
-    non-orthogonality from chained float products never reaches GTSAM's retractions."""
-    U, _, Vt = np.linalg.svd(T[:3, :3])
-    R = U @ Vt
-    if np.linalg.det(R) < 0:  # a reflection: flip the weakest axis
-        U[:, -1] *= -1
-        R = U @ Vt
-    return gtsam.Pose3(gtsam.Rot3(R), np.asarray(T[:3, 3], dtype=float))
-
-
 def _check_pose(T: np.ndarray | None, what: str) -> np.ndarray:
     if T is None:
         raise SnapsGraphError(f"{what}: missing pose")
@@ -237,22 +228,12 @@ class PoseGraph:
 
     def __init__(self, cfg: GraphConfig, mode: str | None = None) -> None:
         self.cfg = cfg
-        self.mode = cfg.refine if mode is None else mode
-        for name, value, allowed in (
-            ("graph refine mode", self.mode, MODES),
-            ("graph.robust_kernel", cfg.robust_kernel, KERNELS),
-            ("graph.batch_solver", cfg.batch_solver, BATCH_SOLVERS),
-            ("graph.isam2_factorization", cfg.isam2_factorization.upper(), FACTORIZATIONS),
-        ):
-            if value not in allowed:
-                raise SnapsGraphError(f"{name} '{value}': expected one of {', '.join(allowed)}")
-        if not cfg.robust_param > 0:
-            raise SnapsGraphError(f"graph.robust_param must be > 0, got {cfg.robust_param}")
-        if not (math.isfinite(cfg.gravity_sigma_deg) and cfg.gravity_sigma_deg > 0):
-            raise SnapsGraphError(f"graph.gravity_sigma_deg must be > 0, got {cfg.gravity_sigma_deg}")
-        if int(cfg.gravity_rounds) < 1:
-            raise SnapsGraphError(f"graph.gravity_rounds must be >= 1, got {cfg.gravity_rounds}")
-
+        if mode is None:  # "both" = iSAM2 online; the batch runs on optimize_batch()
+            mode = "isam2" if cfg.refine == "both" else cfg.refine
+        self.mode = mode
+        cfg.validate()
+        if self.mode not in MODES:
+            raise SnapsGraphError(f"graph refine mode '{self.mode}': expected one of {', '.join(MODES)}")
         self.failures: list[tuple[int, str]] = []
         self.loops: list[LoopFactorInfo] = []
         self.stats = GraphStats()
@@ -496,7 +477,7 @@ class PoseGraph:
         ``batch_solver`` "lm": Levenberg-Marquardt on the graph with robust loop factors.
         "gnc": GncLMOptimizer on the Gaussian graph, prior and odometry as known inliers and the
         loop factors as the outlier candidates (GNC supplies its own robust loss, so the loop
-        factors are not wrapped twice). With ``gravity_prior``, :meth:`_gravity_rounds` then
+        factors are not wrapped twice). With ``gravity_prior``, :func:`gravity.gravity_rounds` then
         re-solves with a level-vehicle attitude factor per frame. On a solver failure: the initial
         estimates, and the reason in ``failures`` (a failure of the gravity rounds alone keeps the
         plain batch result).
@@ -510,11 +491,7 @@ class PoseGraph:
             lm.setMaxIterations(self.cfg.batch_max_iterations)
             if self.cfg.batch_solver == "gnc" and any(loop.active for loop in self._loops):
                 graph, n_base = self._graph(robust=False)
-                params = gtsam.GncLMParams(lm)
-                params.setKnownInliers(list(range(n_base)))  # GNC's own outer-iteration cap stays
-                opt = gtsam.GncLMOptimizer(graph, self._initial_values, params)
-                opt.setInlierCostThresholdsAtProbability(self.cfg.gnc_inlier_probability)
-                result = opt.optimize()
+                result = solve_gnc(graph, self._initial_values, n_base, lm, self.cfg.gnc_inlier_probability)
                 iterations = 0
             else:
                 graph, _ = self._graph(robust=True)
@@ -526,8 +503,11 @@ class PoseGraph:
                 raise RuntimeError("non-finite result")
             if self.cfg.gravity_prior:
                 try:
-                    poses, more = self._gravity_rounds(poses, lm)
+                    base, _ = self._graph(robust=True)
+                    poses, more, c, g = gravity_rounds(base, poses, lm, self.cfg.gravity_sigma_deg, self.cfg.gravity_rounds)
                     iterations += more
+                    self.stats.gravity_world = [float(v) for v in g]
+                    self.stats.gravity_camera = [float(v) for v in c]
                 except RuntimeError as exc:  # keep the plain batch result
                     self.failures.append((k, f"gravity prior failed, batch result without it: {_one_line(exc)}"))
         except RuntimeError as exc:
@@ -538,43 +518,6 @@ class PoseGraph:
         self.stats.batch_iterations = iterations
         self._batch_estimate = poses
         return poses.copy()
-
-    def _gravity_rounds(self, poses: np.ndarray, lm: gtsam.LevenbergMarquardtParams) -> tuple[np.ndarray, int]:
-        """The level-vehicle prior (``gravity_prior``), applied to a solved batch estimate.
-
-        Loops observe drift that breaks a cycle's consistency, but a constant pitch bias of the
-        VO bends a closed drive into a closed path on a tilted plane, which every loop accepts.
-        A car's camera keeps a fixed attitude to the car, and the car's attitude to gravity varies
-        only with road grade and camber, which average out along a drive: so each frame gets an
-        AttitudeFactorPose3 saying that its camera-frame gravity direction ``c`` (shared, the
-        mounting) points along the world gravity direction ``g`` (shared), with
-        ``gravity_sigma_deg``. ``c`` and ``g`` minimise sum_k |R_k c - g|^2 over the current
-        poses (alternating closed-form steps), then Levenberg-Marquardt solves the whole graph
-        with those factors; ``gravity_rounds`` times. It straightens the shape (tilts that vary
-        along the path); a tilt of the whole path relative to the first frame stays, since the
-        first frame's own gravity direction is unknown. It also pulls real changes of grade
-        toward level: with the default odometry sigmas, t_rel / r_rel got 2-4x worse on KITTI 00
-        while the ATE fell 4x (README), which is why it is off by default.
-        """
-        n = len(poses)
-        noise = gtsam.noiseModel.Isotropic.Sigma(2, math.radians(self.cfg.gravity_sigma_deg))
-        iterations = 0
-        c = g = np.array([0.0, 1.0, 0.0])
-        base, _ = self._graph(robust=True)
-        for _ in range(int(self.cfg.gravity_rounds)):
-            c, g = _gravity_directions(poses[:, :3, :3], c)
-            graph = gtsam.NonlinearFactorGraph(base)
-            for k in range(n):
-                graph.add(gtsam.AttitudeFactorPose3(k, gtsam.Unit3(g), noise, gtsam.Unit3(c)))
-            opt = gtsam.LevenbergMarquardtOptimizer(graph, _array_to_values(poses), lm)
-            result = opt.optimize()
-            iterations += opt.iterations()
-            poses = _values_to_array(result, n)
-            if not np.all(np.isfinite(poses)):
-                raise RuntimeError("non-finite result with the gravity prior")
-        self.stats.gravity_world = [float(v) for v in g]
-        self.stats.gravity_camera = [float(v) for v in c]
-        return poses, iterations
 
     # ------------------------------------------------------------------ results
     def estimates(self) -> np.ndarray:
@@ -656,49 +599,6 @@ class PoseGraph:
         if self.mode == "batch" and self._batch_estimate is not None and k < len(self._batch_estimate):
             return self._batch_estimate[k]
         return self._initial[k]
-
-
-def _gravity_directions(R: np.ndarray, c0: np.ndarray, iterations: int = 20) -> tuple[np.ndarray, np.ndarray]:
-    """Unit c (camera frame) and g (world) minimising sum_k |R_k c - g|^2, from c0.
-
-    Alternating closed-form steps: g = normalise(mean_k R_k c), c = normalise(mean_k R_k^T g).
-    A set of nearly equal rotations (a straight drive) leaves c where it started.
-    """
-    def unit(v: np.ndarray) -> np.ndarray:
-        norm = np.linalg.norm(v)
-        if not norm > 1e-6:
-            raise RuntimeError("gravity directions undefined (attitudes spread over every direction)")
-        return v / norm
-
-    c = np.asarray(c0, dtype=float) / np.linalg.norm(c0)
-    g = c
-    for _ in range(iterations):
-        g = unit((R @ c).mean(axis=0))
-        c = unit((np.transpose(R, (0, 2, 1)) @ g).mean(axis=0))
-    return c, g
-
-
-def _array_to_values(poses) -> gtsam.Values:
-    """Keys 0..N-1 holding the (N, 4, 4) poses (rotations projected onto SO(3), see _to_pose3)."""
-    values = gtsam.Values()
-    for k, T in enumerate(poses):
-        values.insert(k, _to_pose3(T))
-    return values
-
-
-def _values_to_array(values: gtsam.Values, n: int | None) -> np.ndarray:
-    """Poses of keys 0..n-1 as (n, 4, 4) (n None: all); extractPose3 gives rows [R row-major (9),
-    t (3)] in key order, and our keys are exactly 0..n-1."""
-    flat = gtsam.utilities.extractPose3(values)
-    if n is None:
-        n = flat.shape[0]
-    if flat.shape[0] != n:
-        raise RuntimeError(f"expected {n} poses in the estimate, found {flat.shape[0]}")
-    out = np.zeros((n, 4, 4))
-    out[:, :3, :3] = flat[:, :9].reshape(n, 3, 3)
-    out[:, :3, 3] = flat[:, 9:]
-    out[:, 3, 3] = 1.0
-    return out
 
 
 def _one_line(exc: BaseException) -> str:

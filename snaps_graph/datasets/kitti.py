@@ -16,7 +16,6 @@ part of the sequence; frame indices stay those of the files. Every user error is
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
 
@@ -25,18 +24,11 @@ import numpy as np
 
 from ..camera import StereoCamera
 from ..errors import SnapsGraphError
-from ..evaluation.trajectory import read_kitti_poses, read_times
 from ..io_utils import parse_frame_range
+from ..trajectory_io import read_kitti_poses, read_times
+from ..types import StereoFrame
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".pgm", ".bmp", ".tif", ".tiff")
-
-
-@dataclass
-class StereoFrame:
-    index: int  # frame index in the sequence (file number order)
-    timestamp: float  # seconds
-    left: np.ndarray  # uint8 grey, H x W
-    right: np.ndarray  # uint8 grey, H x W
 
 
 def _list_images(folder: Path) -> list[Path]:

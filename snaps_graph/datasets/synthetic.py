@@ -41,11 +41,11 @@ import numpy as np
 
 from ..camera import StereoCamera, kitti00_camera
 from ..errors import SnapsGraphError
-from ..evaluation.trajectory import read_kitti_poses, read_times, write_kitti_poses, write_times
 from ..io_utils import atomic_write_bytes, parse_frame_range
+from ..trajectory_io import read_kitti_poses, read_times, write_kitti_poses, write_times
+from ..types import StereoFrame
 from ._shade import Renderer
 from ._world import World, WorldConfig
-from .kitti import StereoFrame
 
 __all__ = [
     "SyntheticSequence",

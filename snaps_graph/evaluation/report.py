@@ -58,8 +58,8 @@ from ..config import LoopConfig
 from ..errors import SnapsGraphError
 from ..geometry import inv
 from ..io_utils import atomic_write_text
+from ..trajectory_io import read_kitti_poses, read_poses
 from .metrics import evaluate, path_length, position_errors
-from .trajectory import read_kitti_poses, read_poses
 
 TRAJECTORY_NAMES = ("vo", "snaps", "isam2", "batch")  # report order: raw -> heuristic -> optimised
 REFINED_NAMES = ("isam2", "batch")

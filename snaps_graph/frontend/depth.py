@@ -23,8 +23,7 @@ from ..camera import StereoCamera
 from ..config import FrontendConfig
 from ..errors import SnapsGraphError
 
-DENSE_METHODS = ("bm_wls", "sgbm")
-DISPARITY_METHODS = DENSE_METHODS + ("sparse",)
+DENSE_METHODS = ("bm_wls", "sgbm")  # the dense values of FrontendConfig.disparity
 
 
 def check_stereo_pair(left: np.ndarray, right: np.ndarray) -> None:
@@ -41,15 +40,6 @@ def check_stereo_pair(left: np.ndarray, right: np.ndarray) -> None:
         )
 
 
-def _check_dense_config(cfg: FrontendConfig) -> None:
-    if cfg.num_disparities <= 0 or cfg.num_disparities % 16:
-        raise SnapsGraphError(f"frontend.num_disparities must be a positive multiple of 16, got {cfg.num_disparities}")
-    if cfg.block_size < 5 or cfg.block_size % 2 == 0 or cfg.block_size > 255:
-        raise SnapsGraphError(f"frontend.block_size must be odd and in 5..255, got {cfg.block_size}")
-    if cfg.sgbm_block_size < 1 or cfg.sgbm_block_size % 2 == 0:
-        raise SnapsGraphError(f"frontend.sgbm_block_size must be odd and positive, got {cfg.sgbm_block_size}")
-
-
 def dense_disparity(left: np.ndarray, right: np.ndarray, cfg: FrontendConfig, method: str | None = None) -> np.ndarray:
     """Dense disparity of the left image, float32 pixels, <= 0 where unknown.
 
@@ -63,7 +53,7 @@ def dense_disparity(left: np.ndarray, right: np.ndarray, cfg: FrontendConfig, me
     OpenCV returns fixed-point disparities (x16); this returns them in pixels.
     """
     check_stereo_pair(left, right)
-    _check_dense_config(cfg)
+    cfg.validate()
     method = method or (cfg.disparity if cfg.disparity in DENSE_METHODS else "bm_wls")
     if method == "bm_wls":
         bm = cv2.StereoBM.create(cfg.num_disparities, cfg.block_size)

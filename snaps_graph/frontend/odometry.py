@@ -42,44 +42,11 @@ import numpy as np
 
 from ..camera import StereoCamera
 from ..config import FrontendConfig
-from ..datasets.kitti import StereoFrame
 from ..errors import SnapsGraphError
 from ..geometry import inv, rotation_angle_deg
-from ..types import FrameFeatures, VOResult
+from ..types import FrameFeatures, StereoFrame, VOResult
 from . import depth as depth_mod
 from . import features as feat
-
-MODES = ("sift", "orb", "klt")
-
-
-def check_frontend_config(cfg: FrontendConfig) -> None:
-    """A one-line SnapsGraphError for a front-end setting that cannot work."""
-    if cfg.mode not in MODES:
-        raise SnapsGraphError(f"frontend.mode: unknown mode '{cfg.mode}' (use one of {', '.join(MODES)})")
-    if cfg.disparity not in depth_mod.DISPARITY_METHODS:
-        raise SnapsGraphError(
-            f"frontend.disparity: unknown method '{cfg.disparity}' (use one of {', '.join(depth_mod.DISPARITY_METHODS)})"
-        )
-    if not 0 < cfg.min_depth_m < cfg.max_depth_m:
-        raise SnapsGraphError(f"frontend: need 0 < min_depth_m < max_depth_m, got {cfg.min_depth_m}, {cfg.max_depth_m}")
-    if not 0 < cfg.ratio_test <= 1:
-        raise SnapsGraphError(f"frontend.ratio_test must be in (0, 1], got {cfg.ratio_test}")
-    if cfg.pnp_reprojection_px <= 0 or cfg.pnp_iterations < 1 or not 0 < cfg.pnp_confidence < 1:
-        raise SnapsGraphError("frontend: pnp_reprojection_px > 0, pnp_iterations >= 1 and 0 < pnp_confidence < 1 are required")
-    if cfg.sift_first_octave not in (-1, 0):
-        raise SnapsGraphError(f"frontend.sift_first_octave must be -1 (OpenCV, image doubled) or 0, got {cfg.sift_first_octave}")
-    if cfg.min_inliers < 6:
-        raise SnapsGraphError(f"frontend.min_inliers must be at least 6 (PnP needs them), got {cfg.min_inliers}")
-    for name in ("stereo_window_px", "klt_window_px"):
-        w = getattr(cfg, name)
-        if w < 3:
-            raise SnapsGraphError(f"frontend.{name} must be at least 3, got {w}")
-    for name in ("sift_features", "orb_features", "klt_features", "loop_features", "threads"):
-        if getattr(cfg, name) < 1:
-            raise SnapsGraphError(f"frontend.{name} must be at least 1, got {getattr(cfg, name)}")
-    if cfg.disparity in depth_mod.DENSE_METHODS:
-        depth_mod._check_dense_config(cfg)
-
 
 def pose_from_rvec(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     T = np.eye(4)
@@ -193,7 +160,7 @@ class StereoOdometry:
 
     def __init__(self, camera: StereoCamera, cfg: FrontendConfig | None = None):
         self.cfg = cfg or FrontendConfig()
-        check_frontend_config(self.cfg)
+        self.cfg.validate()
         self.camera = camera
         self._pool = ThreadPoolExecutor(max_workers=self.cfg.threads - 1) if self.cfg.threads > 1 else None
         self._ref: _Keyframe | None = None

@@ -1,6 +1,6 @@
 """Loop closure: UIQI similarity (uiqi.py) and the SNAPS loop closer (snaps.py)."""
 
-from .snaps import SnapsLoopCloser, SnapsStep, discount, validate_loop_config
+from .snaps import SnapsLoopCloser, SnapsStep, discount
 from .uiqi import UIQI, WindowStats, make_thumbnail, similarity, similarity_q, uiqi, window_stats
 
 __all__ = [
@@ -13,6 +13,5 @@ __all__ = [
     "similarity",
     "similarity_q",
     "uiqi",
-    "validate_loop_config",
     "window_stats",
 ]

@@ -96,31 +96,6 @@ class SnapsStep:
     t_verify_ms: float = 0.0  # geometric verification time on this frame (tried or successful)
 
 
-def validate_loop_config(cfg: LoopConfig) -> None:
-    """One-line SnapsGraphError for a LoopConfig that would make SNAPS misbehave."""
-    checks = [
-        (cfg.radius_m > 0, f"loop.radius_m must be > 0, got {cfg.radius_m}"),
-        (cfg.frame_distance >= 1, f"loop.frame_distance must be >= 1, got {cfg.frame_distance}"),
-        (cfg.discount_length >= 0, f"loop.discount_length must be >= 0, got {cfg.discount_length}"),
-        (0 < cfg.min_similarity <= 1, f"loop.min_similarity must be in (0, 1], got {cfg.min_similarity}"),
-        (cfg.inter_frame_pause >= 0, f"loop.inter_frame_pause must be >= 0, got {cfg.inter_frame_pause}"),
-        (cfg.attempts >= 0, f"loop.attempts must be >= 0, got {cfg.attempts}"),
-        (cfg.max_yaw_deg >= 0, f"loop.max_yaw_deg must be >= 0, got {cfg.max_yaw_deg}"),
-        (0 < cfg.thumbnail_scale <= 1, f"loop.thumbnail_scale must be in (0, 1], got {cfg.thumbnail_scale}"),
-        (cfg.window >= 2, f"loop.window must be >= 2, got {cfg.window}"),
-        (cfg.discount_offset > 0, f"loop.discount_offset must be > 0, got {cfg.discount_offset}"),
-        (cfg.discount_rate >= 0, f"loop.discount_rate must be >= 0, got {cfg.discount_rate}"),
-        (cfg.stats_cache_frames >= 0, f"loop.stats_cache_frames must be >= 0, got {cfg.stats_cache_frames}"),
-        (cfg.shift_px >= 0, f"loop.shift_px must be >= 0, got {cfg.shift_px}"),
-        (cfg.verify_attempts >= 1, f"loop.verify_attempts must be >= 1, got {cfg.verify_attempts}"),
-        (cfg.shift_step_px >= 1, f"loop.shift_step_px must be >= 1, got {cfg.shift_step_px}"),
-        (cfg.correction_weight in ("q", "verified"), f"loop.correction_weight must be 'q' or 'verified', got '{cfg.correction_weight}'"),
-    ]
-    for ok, msg in checks:
-        if not ok:
-            raise SnapsGraphError(msg)
-
-
 def discount(cfg: LoopConfig, alpha: int, s_prime: np.ndarray) -> np.ndarray:
     """γ of eq. 6 for offsets s' = N − s, clamped at 0 (see module docstring)."""
     return np.maximum(0.0, 1.0 - np.exp(-(cfg.discount_offset - alpha * cfg.discount_rate * s_prime)))
@@ -131,7 +106,7 @@ class SnapsLoopCloser:
 
     def __init__(self, cfg: LoopConfig | None = None):
         self.cfg = cfg if cfg is not None else LoopConfig()
-        validate_loop_config(self.cfg)
+        self.cfg.validate()
         cap = 1024
         self._R = np.empty((cap, 3, 3))
         self._p = np.empty((cap, 3))
@@ -460,4 +435,4 @@ class SnapsLoopCloser:
             setattr(self, name, arr)
 
 
-__all__ = ["SnapsLoopCloser", "SnapsStep", "discount", "validate_loop_config"]
+__all__ = ["SnapsLoopCloser", "SnapsStep", "discount"]

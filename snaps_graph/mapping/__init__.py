@@ -5,5 +5,6 @@ methods, so ``import snaps_graph`` does not load it.
 """
 
 from .cloud_map import CloudMap
+from .outputs import write_map_outputs
 
-__all__ = ["CloudMap"]
+__all__ = ["CloudMap", "write_map_outputs"]

@@ -45,22 +45,7 @@ class CloudMap:
 
     def __init__(self, camera: StereoCamera, cfg: MapConfig | None = None) -> None:
         cfg = cfg if cfg is not None else MapConfig()
-        if cfg.keyframe_every < 1:
-            raise SnapsGraphError(f"map.keyframe_every must be >= 1, got {cfg.keyframe_every}")
-        if cfg.pixel_step < 1:
-            raise SnapsGraphError(f"map.pixel_step must be >= 1, got {cfg.pixel_step}")
-        if not cfg.max_range_m > 0:
-            raise SnapsGraphError(f"map.max_range_m must be > 0, got {cfg.max_range_m}")
-        if cfg.voxel_size_m < 0 or cfg.keyframe_voxel_size_m < 0:
-            raise SnapsGraphError("map.voxel_size_m and map.keyframe_voxel_size_m must be >= 0")
-        if cfg.build_chunk_points < 1:
-            raise SnapsGraphError(f"map.build_chunk_points must be >= 1, got {cfg.build_chunk_points}")
-        if not cfg.build_tile_m > 0:
-            raise SnapsGraphError(f"map.build_tile_m must be > 0, got {cfg.build_tile_m}")
-        if cfg.topdown_colour_by not in ("height", "intensity"):
-            raise SnapsGraphError(
-                f"map.topdown_colour_by must be 'height' or 'intensity', got '{cfg.topdown_colour_by}'"
-            )
+        cfg.validate()
         self.camera = camera
         self.cfg = cfg
         # k -> (xyz float32 (n, 3) in camera k's frame, intensity uint8 (n,) or (n, 3) or None)

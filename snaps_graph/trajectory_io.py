@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import SnapsGraphError
-from ..io_utils import atomic_write_text
+from .errors import SnapsGraphError
+from .io_utils import atomic_write_text
 
 
 def read_kitti_poses(path: str | Path) -> np.ndarray:

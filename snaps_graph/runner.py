@@ -1,0 +1,175 @@
+"""A run: read a dataset, drive :class:`~snaps_graph.pipeline.SlamPipeline`, write the results folder.
+
+The folder contract: the output folder is checked before the first frame (a file, a folder under
+a file, or a non-empty folder without ``overwrite`` is a one-line error at once); the files are
+written into a temporary sibling folder ``.NAME.tmp-PID`` that is renamed onto the output folder
+at the end, so a results folder is whole or absent (Ctrl-C or an error deletes the temporary
+folder; ``overwrite`` replaces an old folder whole). One writer per file, metrics.json last::
+
+    poses_vo.txt / .tum        pure VO chain
+    poses_snaps.txt / .tum     SNAPS heuristic trajectory (loops = snaps)
+    poses_isam2.txt / .tum     iSAM2 estimate after the last frame (refine = isam2 or both)
+    poses_batch.txt / .tum     batch optimisation (refine = batch or both)
+    poses_gt.txt               ground truth of the processed frames, re-based (when known)
+    frames.csv                 one row per frame (``types.FrameRecord``): timings, VO quality, loops
+    loops.jsonl                one JSON object per closed loop
+    graph.g2o                  the factor graph (gtsam's writer)
+    config.toml                every parameter used
+    map.ply, map.png           the point-cloud map and its top-down picture (with --map)
+    metrics.json               metrics per trajectory (with ground truth), latency, flagged frames
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+import json
+import resource
+from collections.abc import Callable, Iterable
+from pathlib import Path
+
+import numpy as np
+
+from .config import Config
+from .evaluation.metrics import evaluate
+from .evaluation.report import json_clean
+from .evaluation.report import latency_summary as _latency_summary
+from .io_utils import atomic_write_text, check_output_folder, output_folder
+from .mapping.outputs import write_map_outputs
+from .pipeline import FrameOutput, RunResult, SlamPipeline, resolve_config
+from .trajectory_io import write_kitti_poses, write_tum_poses
+from .types import FRAME_COLUMNS, FrameRecord, LoopEvent
+
+# Exit status of `snaps-graph run` when more than this fraction of the frames was flagged by the
+# front end (the results are written; the run is suspect). See cli.EXIT_MOSTLY_FLAGGED.
+FLAGGED_FRACTION_LIMIT = 0.5
+
+
+def run_sequence(
+    dataset,
+    out_dir: str | Path,
+    cfg: Config | None = None,
+    *,
+    loops: str | None = None,
+    refine: str | None = None,
+    build_map: bool | None = None,
+    overwrite: bool = False,
+    on_frame: Callable[[FrameOutput], None] | None = None,
+) -> tuple[RunResult, dict]:
+    """Run a whole dataset (KittiSequence or SyntheticSequence) and write the results folder.
+
+    Everything that can be checked before the first frame is: the configuration (with the
+    overrides) and the output folder."""
+    resolve_config(cfg, loops=loops, refine=refine, build_map=build_map)
+    check_output_folder(out_dir, overwrite)
+    pipe = SlamPipeline(dataset.camera, cfg, loops=loops, refine=refine, build_map=build_map)
+    for frame in dataset:
+        out = pipe.process(frame)
+        if on_frame is not None:
+            on_frame(out)
+    result = pipe.finish()
+    metrics = write_results(out_dir, pipe, result, dataset.gt_poses, overwrite=overwrite)
+    return result, metrics
+
+
+def write_results(
+    out_dir: str | Path, pipe: SlamPipeline, result: RunResult, gt_poses: np.ndarray | None = None, *, overwrite: bool = False
+) -> dict:
+    """Write the results folder, whole or not at all; returns the metrics (also metrics.json)."""
+    with output_folder(out_dir, overwrite) as tmp:
+        return _write_all(tmp, pipe, result, gt_poses)
+
+
+def _write_all(out: Path, pipe: SlamPipeline, result: RunResult, gt_poses: np.ndarray | None) -> dict:
+    for name, poses in result.trajectories.items():
+        write_kitti_poses(out / f"poses_{name}.txt", poses)
+        write_tum_poses(out / f"poses_{name}.tum", poses, result.timestamps)
+    if gt_poses is not None:
+        write_kitti_poses(out / "poses_gt.txt", gt_poses)
+    write_frames_csv(out / "frames.csv", result.records)
+    write_loops_jsonl(out / "loops.jsonl", result.loops)
+    pipe.cfg.dump(out / "config.toml")
+    failures = list(result.graph_failures)
+    try:
+        pipe.graph.save_g2o(out / "graph.g2o")
+    except Exception as exc:  # the graph file is a convenience; never lose the run for it
+        failures.append((-1, f"graph.g2o not written: {exc}"))
+
+    metrics = run_metrics(result, gt_poses, failures)
+    if pipe.map is not None:
+        map_metrics = write_map_outputs(out, pipe.map, result.trajectories, gt_poses, pipe.cfg.map)
+        if map_metrics is not None:
+            metrics["map"] = map_metrics
+    metrics["peak_rss_mb"] = peak_rss_mb()
+    atomic_write_text(out / "metrics.json", json_text(metrics))
+    return metrics
+
+
+def run_metrics(result: RunResult, gt_poses: np.ndarray | None, graph_failures: Iterable | None = None) -> dict:
+    """Per-trajectory metrics (with ground truth), latency summaries, flagged frames."""
+    n = len(result.records)
+    metrics: dict = {
+        "frames": n,
+        "flagged_frames": result.n_flagged,
+        "loops": len(result.loops),
+        "wall_s": result.wall_s,
+    }
+    if gt_poses is not None:
+        metrics["trajectories"] = {name: evaluate(p, gt_poses) for name, p in result.trajectories.items()}
+    metrics["latency_ms"] = latency_summary(result.records)
+    metrics["peak_rss_mb"] = peak_rss_mb()
+    failures = result.graph_failures if graph_failures is None else graph_failures
+    metrics["graph_failures"] = [{"k": k, "reason": r} for k, r in failures]
+    metrics["graph"] = result.graph_stats  # factor counts, solve times, gravity directions
+    return metrics
+
+
+def mostly_flagged(metrics: dict) -> bool:
+    """More than FLAGGED_FRACTION_LIMIT of the frames flagged by the front end."""
+    return metrics.get("flagged_frames", 0) > FLAGGED_FRACTION_LIMIT * max(metrics.get("frames", 0), 1)
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process so far, MiB (Linux reports ru_maxrss in KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def latency_summary(records: list[FrameRecord]) -> dict:
+    """metrics.json's ``latency_ms`` from the per-frame records (one implementation: the report's)."""
+    cols = ("t_total_ms", "t_vo_ms", "t_loop_ms", "loop_candidates", "loop_closed", "t_graph_ms")
+    return _latency_summary({c: np.array([getattr(r, c) for r in records], float) for c in cols})
+
+
+def frames_csv_text(records: list[FrameRecord]) -> str:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(FRAME_COLUMNS)
+    for r in records:
+        row = dataclasses.astuple(r)
+        w.writerow([f"{v:.4f}" if isinstance(v, float) and c != "timestamp" else v for c, v in zip(FRAME_COLUMNS, row)])
+    return buf.getvalue()
+
+
+def write_frames_csv(path: str | Path, records: list[FrameRecord]) -> None:
+    atomic_write_text(path, frames_csv_text(records))
+
+
+def write_loops_jsonl(path: str | Path, loops: list[LoopEvent]) -> None:
+    atomic_write_text(path, "".join(json.dumps(lp.to_json()) + "\n" for lp in loops))
+
+
+def json_text(obj) -> str:
+    """Strict JSON: a metric that cannot be computed (NaN) is written as null."""
+    return json.dumps(json_clean(obj), indent=2) + "\n"
+
+
+__all__ = [
+    "FLAGGED_FRACTION_LIMIT",
+    "json_text",
+    "latency_summary",
+    "mostly_flagged",
+    "run_metrics",
+    "run_sequence",
+    "write_results",
+]
