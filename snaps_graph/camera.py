@@ -18,6 +18,10 @@ KITTI00_P1 = np.array(
 )
 KITTI00_SIZE = (1241, 376)  # width, height
 
+# Plausible calibration: anything outside is a malformed calib.txt, not a camera.
+MIN_FOCAL_PX, MAX_FOCAL_PX = 1.0, 1e5
+MIN_BASELINE_M, MAX_BASELINE_M = 0.0, 10.0
+
 
 @dataclass(frozen=True)
 class StereoCamera:
@@ -64,14 +68,32 @@ class StereoCamera:
         fx, fy, cx, cy = P0[0, 0], P0[1, 1], P0[0, 2], P0[1, 2]
         if not np.all(np.isfinite(P0)) or not np.all(np.isfinite(P1)):
             raise SnapsGraphError(f"{source}: P0/P1 contain non-finite numbers")
-        if fx <= 0 or fy <= 0 or P1[0, 0] <= 0:
-            raise SnapsGraphError(f"{source}: focal length must be positive (P0[0,0]={fx})")
-        baseline = -P1[0, 3] / P1[0, 0]
-        if not baseline > 0:
+        for f, name in ((fx, "P0[0,0] (fx)"), (fy, "P0[1,1] (fy)")):
+            if not MIN_FOCAL_PX < f <= MAX_FOCAL_PX:
+                raise SnapsGraphError(f"{source}: focal length {name} = {f:.6g} px is not in ({MIN_FOCAL_PX:g}, {MAX_FOCAL_PX:g}]")
+        if not (abs(cx) <= MAX_FOCAL_PX and abs(cy) <= MAX_FOCAL_PX):
+            raise SnapsGraphError(f"{source}: principal point ({cx:.6g}, {cy:.6g}) px is absurd")
+        # A rectified pair shares K: P1 = K [I | -B e_x] (a different focal length would silently
+        # scale the baseline and every depth).
+        for (i, j), name in (((0, 0), "fx"), ((1, 1), "fy"), ((0, 2), "cx"), ((1, 2), "cy")):
+            if not np.isclose(P1[i, j], P0[i, j], rtol=1e-4, atol=1e-6):
+                raise SnapsGraphError(
+                    f"{source}: P1's {name} = {P1[i, j]:.6g} differs from P0's {P0[i, j]:.6g} "
+                    "(a rectified stereo pair shares its intrinsics)"
+                )
+        baseline = (P0[0, 3] - P1[0, 3]) / fx  # P0[0,3] is 0 for KITTI's left grey camera
+        if not MIN_BASELINE_M < baseline <= MAX_BASELINE_M:
             raise SnapsGraphError(
-                f"{source}: baseline -P1[0,3]/P1[0,0] = {baseline:.6g} m is not positive"
+                f"{source}: baseline (P0[0,3] - P1[0,3]) / fx = {baseline:.6g} m is not in ({MIN_BASELINE_M:g}, {MAX_BASELINE_M:g}]"
             )
         return cls(float(fx), float(fy), float(cx), float(cy), float(baseline), width, height)
+
+    def check_image_size(self, width: int, height: int, source: str = "calib") -> None:
+        """SnapsGraphError unless the principal point lies inside a ``width`` x ``height`` image."""
+        if not (0 <= self.cx <= width and 0 <= self.cy <= height):
+            raise SnapsGraphError(
+                f"{source}: principal point ({self.cx:.6g}, {self.cy:.6g}) lies outside the {width}x{height} images"
+            )
 
     @classmethod
     def from_calib_file(cls, path: str | Path) -> "StereoCamera":

@@ -83,10 +83,7 @@ def run(
 ) -> None:
     """Run stereo VO (+ SNAPS, + graph refinement, + map) over a sequence and write a results folder."""
     from .config import Config, FrontendMode, LoopMode, RefineMode
-    from .datasets.kitti import KittiSequence
     from .io_utils import check_output_folder
-    from .pipeline import resolve_config
-    from .runner import mostly_flagged, run_sequence
 
     _check_choice("--loops", loops, LoopMode)
     _check_choice("--refine", refine, RefineMode)
@@ -99,8 +96,11 @@ def run(
     if gravity_prior is not None:
         cfg.graph.gravity_prior = gravity_prior
     # Before anything is read: the configuration that will run, and the output folder.
-    resolve_config(cfg, loops=loops, refine=refine, build_map=map_)
+    cfg.resolved(loops=loops, refine=refine, build_map=map_)
     check_output_folder(out, overwrite)
+    from .datasets.kitti import KittiSequence  # the heavy imports (OpenCV, gtsam) after the checks
+    from .runner import mostly_flagged, run_sequence
+
     seq = KittiSequence(seq_dir, frames=frames, gt=gt)
     n_loops = 0
     with _progress(len(seq), "slam") as bar:

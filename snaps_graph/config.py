@@ -9,6 +9,7 @@ are a one-line error, so a typo never passes silently).
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 import tomllib
@@ -262,6 +263,20 @@ class Config:
                     f"{source}: map.trajectory = '{self.map.trajectory}' needs {what} "
                     f"(this run has loops = '{self.loops}', graph.refine = '{self.graph.refine}')"
                 )
+
+    def resolved(self, *, loops: str | None = None, refine: str | None = None, build_map: bool | None = None) -> "Config":
+        """A validated copy with a run's overrides (``--loops``, ``--refine``, ``--map``) applied:
+        what runs. The pipeline uses it (it never changes the caller's config), and so does the
+        CLI's check before the first frame."""
+        out = copy.deepcopy(self)
+        if loops is not None:
+            out.loops = loops  # type: ignore[assignment]
+        if refine is not None:
+            out.graph.refine = refine  # type: ignore[assignment]
+        if build_map is not None:
+            out.map.enabled = bool(build_map)
+        out.validate()
+        return out
 
     # ---- TOML ----
     @classmethod

@@ -20,7 +20,6 @@ fields of the records vary between runs.
 
 from __future__ import annotations
 
-import copy
 import math
 import time
 from dataclasses import dataclass, field
@@ -84,7 +83,7 @@ class SlamPipeline:
         copy (``self.cfg``, what ran). ``frontend``: any object with ``process(frame) -> VOResult``
         and ``close()`` (the paper: "it is possible to substitute the visual odometry part with
         any desired model"); default: ``StereoOdometry`` configured by ``cfg.frontend``."""
-        self.cfg = resolve_config(cfg, loops=loops, refine=refine, build_map=build_map)
+        self.cfg = (cfg or Config()).resolved(loops=loops, refine=refine, build_map=build_map)
         self.loops_mode = self.cfg.loops
         self.refine = self.cfg.graph.refine
 
@@ -259,18 +258,3 @@ class SlamPipeline:
     def timestamps(self) -> np.ndarray:
         return np.array(self._timestamps)
 
-
-def resolve_config(
-    cfg: Config | None, *, loops: str | None = None, refine: str | None = None, build_map: bool | None = None
-) -> Config:
-    """A copy of ``cfg`` (default: the defaults) with the run's overrides applied, validated.
-    Both the pipeline and the runner's up-front check use this, so they agree on what runs."""
-    out = copy.deepcopy(cfg) if cfg is not None else Config()
-    if loops is not None:
-        out.loops = loops
-    if refine is not None:
-        out.graph.refine = refine
-    if build_map is not None:
-        out.map.enabled = bool(build_map)
-    out.validate()
-    return out

@@ -37,7 +37,7 @@ from .evaluation.report import json_clean
 from .evaluation.report import latency_summary as _latency_summary
 from .io_utils import atomic_write_text, check_output_folder, output_folder
 from .mapping.outputs import write_map_outputs
-from .pipeline import FrameOutput, RunResult, SlamPipeline, resolve_config
+from .pipeline import FrameOutput, RunResult, SlamPipeline
 from .trajectory_io import write_kitti_poses, write_tum_poses
 from .types import FRAME_COLUMNS, FrameRecord, LoopEvent
 
@@ -61,7 +61,7 @@ def run_sequence(
 
     Everything that can be checked before the first frame is: the configuration (with the
     overrides) and the output folder."""
-    resolve_config(cfg, loops=loops, refine=refine, build_map=build_map)
+    (cfg or Config()).resolved(loops=loops, refine=refine, build_map=build_map)
     check_output_folder(out_dir, overwrite)
     pipe = SlamPipeline(dataset.camera, cfg, loops=loops, refine=refine, build_map=build_map)
     for frame in dataset:

@@ -6,6 +6,7 @@ evo's ``evo_ape kitti`` / ``evo_ape tum`` read.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -14,12 +15,31 @@ from .errors import SnapsGraphError
 from .io_utils import atomic_write_text
 
 
+def read_text_lines(path: str | Path, what: str) -> list[str]:
+    """The lines of a text file; a one-line SnapsGraphError naming it when it is missing, a
+    folder, unreadable or not text (binary, not UTF-8)."""
+    path = Path(path)
+    if path.is_dir():
+        raise SnapsGraphError(f"{path}: is a folder, expected a {what} file")
+    if not path.is_file():
+        raise SnapsGraphError(f"{path}: {what} file not found")
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise SnapsGraphError(f"{path}: cannot read the {what} file ({exc.strerror or exc})") from None
+    if b"\0" in data:
+        raise SnapsGraphError(f"{path}: binary data, expected a text {what} file")
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError:
+        raise SnapsGraphError(f"{path}: not a text (UTF-8) file, expected a {what} file") from None
+    return text.splitlines()
+
+
 def read_kitti_poses(path: str | Path) -> np.ndarray:
     path = Path(path)
-    if not path.is_file():
-        raise SnapsGraphError(f"{path}: pose file not found")
     poses = []
-    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+    for lineno, line in enumerate(read_text_lines(path, "pose"), 1):
         if not line.strip():
             continue
         try:
@@ -116,15 +136,15 @@ def write_tum_poses(path: str | Path, poses: np.ndarray, times: np.ndarray | Non
         raise ValueError("refusing to write non-finite poses")
     if times is not None and len(times) != len(poses):
         raise ValueError("times and poses differ in length")
+    if times is not None and not np.all(np.isfinite(times)):
+        raise ValueError("refusing to write non-finite timestamps")
     atomic_write_text(path, tum_text(poses, times))
 
 
 def read_tum_poses(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     path = Path(path)
-    if not path.is_file():
-        raise SnapsGraphError(f"{path}: pose file not found")
     times, poses = [], []
-    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+    for lineno, line in enumerate(read_text_lines(path, "pose"), 1):
         if not line.strip() or line.lstrip().startswith("#"):
             continue
         try:
@@ -133,6 +153,10 @@ def read_tum_poses(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
             raise SnapsGraphError(f"{path}:{lineno}: not a number in a TUM line") from None
         if len(vals) != 8:
             raise SnapsGraphError(f"{path}:{lineno}: a TUM line needs 8 numbers, found {len(vals)}")
+        if not all(math.isfinite(v) for v in vals):
+            raise SnapsGraphError(f"{path}:{lineno}: non-finite number in a TUM line")
+        if not np.linalg.norm(vals[4:8]) > 1e-9:
+            raise SnapsGraphError(f"{path}:{lineno}: zero quaternion")
         T = np.eye(4)
         T[:3, :3] = quaternion_to_rotation(vals[4:8])
         T[:3, 3] = vals[1:4]
@@ -152,19 +176,27 @@ def read_poses(path: str | Path) -> np.ndarray:
 
 
 def read_times(path: str | Path) -> np.ndarray:
+    """Timestamps (s), one a line (first number of the line); they must be finite and increase."""
     path = Path(path)
-    if not path.is_file():
-        raise SnapsGraphError(f"{path}: times file not found")
-    out = []
-    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+    out: list[float] = []
+    for lineno, line in enumerate(read_text_lines(path, "times"), 1):
         if not line.strip():
             continue
         try:
-            out.append(float(line.split()[0]))
+            t = float(line.split()[0])
         except ValueError:
             raise SnapsGraphError(f"{path}:{lineno}: not a number") from None
+        if not math.isfinite(t):
+            raise SnapsGraphError(f"{path}:{lineno}: timestamp {t} is not finite")
+        if out and not t > out[-1]:
+            raise SnapsGraphError(f"{path}:{lineno}: timestamp {t} does not increase (previous {out[-1]})")
+        out.append(t)
+    if not out:
+        raise SnapsGraphError(f"{path}: no timestamps")
     return np.array(out)
 
 
 def write_times(path: str | Path, times: np.ndarray) -> None:
+    if not np.all(np.isfinite(times)):
+        raise ValueError("refusing to write non-finite timestamps")
     atomic_write_text(path, "".join(f"{t:.6e}\n" for t in times))

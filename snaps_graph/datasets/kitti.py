@@ -9,8 +9,11 @@ Layout of a sequence folder ``SEQ``::
     SEQ/poses.txt            optional ground truth (KITTI pose format); for the official layout
                              ROOT/sequences/XX, ground truth is found at ROOT/poses/XX.txt
 
-Frames are read lazily, one at a time. A frame range ``A:B`` (Python slice semantics) selects
-part of the sequence; frame indices stay those of the files. Every user error is a
+Frames are read lazily, one at a time, in file-number order (numeric: 0.png, 2.png, 10.png); a
+frame's number is its file's number (positions when some stem is not a number). A frame range
+``A:B`` (Python slice semantics) selects positions A..B-1 in that order (for KITTI's contiguous
+000000.png... these are the file numbers); times.txt and poses.txt hold one line per image, in the
+same order. Every user error is a
 ``SnapsGraphError`` whose one-line message names the file.
 """
 
@@ -32,7 +35,23 @@ IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".pgm", ".bmp", ".tif", ".tiff")
 
 
 def _list_images(folder: Path) -> list[Path]:
-    return sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXTS)
+    """Image files in file-number order: stems that are whole numbers sort as numbers (0.png,
+    2.png, 10.png), others after them, by name."""
+    files = [p for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXTS and p.is_file()]
+    return sorted(files, key=lambda p: (0, int(p.stem), p.name) if p.stem.isdigit() else (1, 0, p.name))
+
+
+def _frame_numbers(files: list[Path]) -> np.ndarray:
+    """The frames' numbers: the files' numbers when every stem is a whole number (KITTI's
+    000000.png), else positions 0, 1, 2, ... A number used twice (1.png, 01.png) is an error."""
+    if not all(p.stem.isdigit() for p in files):
+        return np.arange(len(files))
+    numbers = np.array([int(p.stem) for p in files])
+    dup = np.flatnonzero(np.diff(numbers) == 0)
+    if len(dup):
+        a, b = files[dup[0]], files[dup[0] + 1]
+        raise SnapsGraphError(f"{b}: frame number {numbers[dup[0]]} is also {a.name}")
+    return numbers
 
 
 def read_grey(path: Path) -> np.ndarray:
@@ -73,6 +92,7 @@ class KittiSequence:
         for lp, rp in zip(self._left, self._right):
             if lp.stem != rp.stem:
                 raise SnapsGraphError(f"{rp}: right image does not pair with left image {lp.name}")
+        self._numbers = _frame_numbers(self._left)
         n_all = len(self._left)
         self.camera = StereoCamera.from_calib_file(self.path / "calib.txt")
 
@@ -100,6 +120,7 @@ class KittiSequence:
         # The image size is read once from the first frame; every frame must match it.
         first = read_grey(self._left[start])
         self.camera = self.camera.with_size(first.shape[1], first.shape[0])
+        self.camera.check_image_size(first.shape[1], first.shape[0], source=str(self.path / "calib.txt"))
 
     def _find_gt(self, gt: str | Path | None) -> Path | None:
         if gt is not None:
@@ -121,7 +142,8 @@ class KittiSequence:
 
     @property
     def indices(self) -> np.ndarray:
-        return np.arange(self.start, self.stop)
+        """The selected frames' numbers (the files' numbers)."""
+        return self._numbers[self.start : self.stop]
 
     @property
     def timestamps(self) -> np.ndarray:
@@ -151,7 +173,7 @@ class KittiSequence:
             raise SnapsGraphError(
                 f"{self._left[k]}: size {left.shape[1]}x{left.shape[0]} differs from the sequence's {self.camera.width}x{self.camera.height}"
             )
-        return StereoFrame(k, float(self._times_all[k]), left, right)
+        return StereoFrame(int(self._numbers[k]), float(self._times_all[k]), left, right)
 
     def __iter__(self) -> Iterator[StereoFrame]:
         for i in range(len(self)):

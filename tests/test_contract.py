@@ -1,0 +1,431 @@
+"""The run contract (issue 10): every bad input is one line ``error: <file>: ...`` with exit 2 (or
+a documented fallback), a results folder is whole or absent, the streaming pipeline survives a
+rejected frame, frame numbers are the files' numbers, a mostly flagged run says so (exit 3).
+
+Everything runs on a tiny sequence rendered by the package itself (no ../shared needed).
+"""
+
+from __future__ import annotations
+
+import copy
+import csv
+import json
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from snaps_graph.config import Config
+from snaps_graph.datasets.kitti import KittiSequence
+from snaps_graph.datasets.synthetic import SyntheticSequence, load_trajectory, render_to_folder
+from snaps_graph.errors import SnapsGraphError
+from snaps_graph.pipeline import SlamPipeline
+from snaps_graph.runner import write_results
+from snaps_graph.types import StereoFrame
+
+ROOT = Path(__file__).resolve().parents[1]
+CLI = [sys.executable, "-m", "snaps_graph.cli"]
+N_FRAMES = 8
+BINARY = bytes(range(256)) * 4  # not UTF-8, has NUL bytes
+
+
+def cli(*args, timeout: float = 300) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PYTHONWARNINGS="ignore")
+    return subprocess.run(CLI + [str(a) for a in args], capture_output=True, text=True, env=env, timeout=timeout)
+
+
+def assert_user_error(proc: subprocess.CompletedProcess, *names: str | Path) -> str:
+    """Exit 2, exactly one line of output, ``error: `` naming every one of ``names``, no traceback."""
+    text = proc.stdout + proc.stderr
+    assert "Traceback" not in text, text
+    assert proc.returncode == 2, text
+    lines = [line for line in text.splitlines() if line.strip()]
+    assert len(lines) == 1, text
+    assert lines[0].startswith("error: "), text
+    for name in names:
+        assert str(name) in lines[0], (name, lines[0])
+    return lines[0]
+
+
+@pytest.fixture(scope="session")
+def tiny_seq(tmp_path_factory) -> Path:
+    """8 stereo pairs of the built-in loop at 320x96, KITTI layout, with poses.txt and times.txt."""
+    out = tmp_path_factory.mktemp("contract") / "seq"
+    poses, times = load_trajectory("loop", f"0:{N_FRAMES}")
+    render_to_folder(SyntheticSequence(poses, width=320, height=96, seed=0, times=times), out)
+    return out
+
+
+@pytest.fixture
+def seq(tiny_seq, tmp_path) -> Path:
+    """A private, modifiable copy of the tiny sequence."""
+    dst = tmp_path / "seq"
+    shutil.copytree(tiny_seq, dst)
+    return dst
+
+
+def write_config(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
+
+
+# ------------------------------------------------------------------ results folder
+def test_out_naming_a_file_is_refused_before_the_first_frame(seq, tmp_path):
+    target = tmp_path / "results.txt"
+    target.write_text("not a folder\n")
+    (seq / "image_0" / "000003.png").write_bytes(b"corrupt")  # reached only if frames were read
+    proc = cli("run", seq, "--out", target)
+    assert_user_error(proc, target, "not a folder")
+    assert target.read_text() == "not a folder\n"
+
+
+def test_out_under_a_file_is_refused(seq, tmp_path):
+    blocker = tmp_path / "blocker"
+    blocker.write_text("x")
+    proc = cli("run", seq, "--out", blocker / "sub" / "run")
+    assert_user_error(proc, blocker, "is a file")
+
+
+def test_non_empty_out_is_refused_without_overwrite_and_replaced_whole_with_it(seq, tmp_path):
+    out = tmp_path / "run"
+    first = cli("run", seq, "--out", out, "--refine", "batch")
+    assert first.returncode == 0, first.stderr
+    assert (out / "poses_batch.txt").is_file()
+    again = cli("run", seq, "--out", out, "--frames", "0:5")
+    assert_user_error(again, out, "--overwrite")
+    assert len((out / "poses_vo.txt").read_text().splitlines()) == N_FRAMES  # untouched
+    replaced = cli("run", seq, "--out", out, "--frames", "0:5", "--overwrite")
+    assert replaced.returncode == 0, replaced.stderr
+    assert not (out / "poses_batch.txt").exists()  # nothing of the old run is left beside the new
+    assert len((out / "poses_vo.txt").read_text().splitlines()) == 5
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".run.")]  # no temp or old folder
+
+
+def test_empty_existing_out_folder_is_used(seq, tmp_path):
+    out = tmp_path / "empty"
+    out.mkdir()
+    proc = cli("run", seq, "--out", out, "--frames", "0:4")
+    assert proc.returncode == 0, proc.stderr
+    assert (out / "metrics.json").is_file()
+
+
+def _long_sequence(seq: Path, n: int) -> Path:
+    """The tiny sequence's 8 pairs repeated (hard links) to n frames: a run that lasts seconds."""
+    for side in ("image_0", "image_1"):
+        src = sorted((seq / side).glob("*.png"))
+        for i in range(len(src), n):
+            os.link(src[i % len(src)], seq / side / f"{i:06d}.png")
+    (seq / "times.txt").write_text("".join(f"{0.1 * i:.6e}\n" for i in range(n)))
+    (seq / "poses.txt").unlink()
+    return seq
+
+
+def test_ctrl_c_prints_one_line_exits_130_and_leaves_no_folder(seq, tmp_path):
+    _long_sequence(seq, 3000)
+    out = tmp_path / "run"
+    env = dict(os.environ, PYTHONWARNINGS="ignore")
+    proc = subprocess.Popen(CLI + ["run", str(seq), "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=env)
+    time.sleep(6.0)  # imports (~2 s) done, frames being processed
+    assert proc.poll() is None, "the run ended before it could be interrupted"
+    proc.send_signal(signal.SIGINT)
+    stdout, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 130, stderr
+    lines = [line for line in (stdout + stderr).splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("interrupted"), lines
+    assert "Traceback" not in stderr
+    assert not out.exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".run")]  # no temp folder either
+
+
+def test_synth_out_contract(tmp_path):
+    target = tmp_path / "file"
+    target.write_text("x")
+    assert_user_error(cli("synth", "--out", target, "--frames", "0:3", "--width", "64", "--height", "48"), target)
+    out = tmp_path / "seq"
+    ok = cli("synth", "--out", out, "--frames", "0:3", "--width", "64", "--height", "48")
+    assert ok.returncode == 0, ok.stderr
+    (out / "stale.txt").write_text("old")
+    assert_user_error(cli("synth", "--out", out, "--frames", "0:2", "--width", "64", "--height", "48"), out, "--overwrite")
+    again = cli("synth", "--out", out, "--frames", "0:2", "--width", "64", "--height", "48", "--overwrite")
+    assert again.returncode == 0, again.stderr
+    assert not (out / "stale.txt").exists() and len(list((out / "image_0").glob("*.png"))) == 2
+
+
+# ------------------------------------------------------------------ binary / non-text files
+def test_eval_binary_estimate(tmp_path, tiny_seq):
+    est = tmp_path / "est.txt"
+    est.write_bytes(BINARY)
+    assert_user_error(cli("eval", est, "--gt", tiny_seq / "poses.txt"), est)
+
+
+def test_eval_binary_ground_truth(tmp_path, tiny_seq):
+    gt = tmp_path / "gt.tum"
+    gt.write_bytes(BINARY)
+    assert_user_error(cli("eval", tiny_seq / "poses.txt", "--gt", gt), gt)
+
+
+def test_run_binary_gt(seq, tmp_path):
+    gt = tmp_path / "gt.txt"
+    gt.write_bytes(BINARY)
+    assert_user_error(cli("run", seq, "--out", tmp_path / "run", "--gt", gt), gt)
+    assert not (tmp_path / "run").exists()
+
+
+def test_synth_binary_trajectory(tmp_path):
+    traj = tmp_path / "traj.txt"
+    traj.write_bytes(BINARY)
+    assert_user_error(cli("synth", "--out", tmp_path / "s", "--trajectory", traj), traj)
+
+
+def test_synth_binary_times(tmp_path, tiny_seq):
+    times = tmp_path / "times.txt"
+    times.write_bytes("\u00e9".encode("latin-1") * 10)
+    assert_user_error(cli("synth", "--out", tmp_path / "s", "--trajectory", tiny_seq / "poses.txt", "--times", times), times)
+
+
+def test_binary_config(tmp_path):
+    cfg = tmp_path / "c.toml"
+    cfg.write_bytes(BINARY)
+    assert_user_error(cli("config", cfg), cfg)
+
+
+def test_binary_times_txt(seq, tmp_path):
+    (seq / "times.txt").write_bytes(BINARY)
+    assert_user_error(cli("run", seq, "--out", tmp_path / "run"), seq / "times.txt")
+
+
+# ------------------------------------------------------------------ times.txt
+@pytest.mark.parametrize("bad,line", [("nan", 3), ("inf", 3), ("-inf", 3), ("0.1", 3)])
+def test_times_nan_inf_or_not_increasing(seq, tmp_path, bad, line):
+    """Line 3 holds nan/inf or repeats line 2's 0.1 (not increasing)."""
+    times = [f"{0.1 * i:.6e}" for i in range(N_FRAMES)]
+    times[line - 1] = bad
+    (seq / "times.txt").write_text("\n".join(times) + "\n")
+    msg = assert_user_error(cli("run", seq, "--out", tmp_path / "run"), f"{seq / 'times.txt'}:{line}")
+    assert "finite" in msg or "increase" in msg
+
+
+# ------------------------------------------------------------------ calibration
+def _calib(seq: Path, p0: list[float], p1: list[float]) -> None:
+    (seq / "calib.txt").write_text("P0: " + " ".join(map(str, p0)) + "\nP1: " + " ".join(map(str, p1)) + "\n")
+
+
+def _p(f: float, cx: float, cy: float, tx: float = 0.0, fy: float | None = None) -> list[float]:
+    return [f, 0, cx, tx, 0, f if fy is None else fy, cy, 0, 0, 0, 1, 0]
+
+
+@pytest.mark.parametrize(
+    "p0,p1,expect",
+    [
+        (_p(180, 160, 48), _p(360, 160, 48, -97.2), "P1's fx"),  # P1's focal doubled
+        (_p(180, 160, 48), _p(180, 150, 48, -97.2), "P1's cx"),  # principal points differ
+        (_p(0, 160, 48), _p(0, 160, 48, -97.2), "focal length"),
+        (_p(-180, 160, 48), _p(-180, 160, 48, 97.2), "focal length"),
+        (_p(1e7, 160, 48), _p(1e7, 160, 48, -5.4e6), "focal length"),
+        (_p(180, 160, 48), _p(180, 160, 48, 97.2), "baseline"),  # negative baseline
+        (_p(180, 160, 48), _p(180, 160, 48, 0.0), "baseline"),  # zero baseline
+        (_p(180, 160, 48), _p(180, 160, 48, -1e5), "baseline"),  # 555 m
+        (_p(180, 5000, 48), _p(180, 5000, 48, -97.2), "principal point"),  # outside the image
+    ],
+)
+def test_bad_calibration(seq, tmp_path, p0, p1, expect):
+    _calib(seq, p0, p1)
+    msg = assert_user_error(cli("run", seq, "--out", tmp_path / "run"), seq / "calib.txt")
+    assert expect in msg
+
+
+def test_calibration_with_p0_offset_gives_the_true_baseline():
+    from snaps_graph.camera import StereoCamera
+
+    cam = StereoCamera.from_projections(np.array(_p(700, 600, 180, 70.0)).reshape(3, 4), np.array(_p(700, 600, 180, -308.0)).reshape(3, 4))
+    assert cam.baseline_m == pytest.approx(0.54)
+
+
+# ------------------------------------------------------------------ configuration
+BAD_CONFIGS = [
+    ("[frontend]\nmax_step_m = -1.0\n", "frontend.max_step_m must be > 0, got -1.0"),
+    ("[graph]\nodom_sigma_trans_m = -1.0\n", "graph.odom_sigma_trans_m must be > 0, got -1.0"),
+    ("[graph]\nprior_sigma_rot_rad = 0.0\n", "graph.prior_sigma_rot_rad must be > 0"),
+    ("[graph]\nloop_sigma_trans_m = -0.1\n", "graph.loop_sigma_trans_m must be > 0"),
+    ("[frontend]\nmode = \"fast\"\n", "frontend.mode must be one of 'sift', 'orb', 'klt', got 'fast'"),
+    ("[graph]\nrefine = \"turbo\"\n", "graph.refine must be one of"),
+    ("[graph]\nrobust_kernel = \"tukey\"\n", "graph.robust_kernel must be one of"),
+    ("loops = \"maybe\"\n", "loops must be one of 'snaps', 'none'"),
+    ("[frontend]\nmin_depth_m = 90.0\n", "frontend.min_depth_m must be < frontend.max_depth_m"),
+    ("[loop]\nmin_similarity = 1.5\n", "loop.min_similarity must be in (0, 1]"),
+    ("[frontend]\nblock_size = 8\n", "frontend.block_size must be odd"),
+    ("[map]\nenabled = true\ntrajectory = \"batch\"\n", "map.trajectory = 'batch' needs graph.refine"),
+    ("[graph]\nodom_sigma_scale_min = 5.0\n", "odom_sigma_scale_min must be <="),
+    ("[frontend]\nthreads = 0\n", "frontend.threads must be in [1, 256]"),
+    ("[nonsense]\nx = 1\n", "unknown key 'nonsense'"),
+]
+
+
+@pytest.mark.parametrize("text,expect", BAD_CONFIGS)
+def test_config_command_checks_what_run_checks(tmp_path, tiny_seq, text, expect):
+    """`snaps-graph config FILE` and `run --config FILE` fail alike, naming the file and the key;
+    run fails before the first frame (the sequence path does not even exist)."""
+    cfg = write_config(tmp_path / "my.toml", text)
+    msg = assert_user_error(cli("config", cfg), cfg)
+    assert expect in msg, msg
+    run = cli("run", tmp_path / "no-such-seq", "--out", tmp_path / "run", "--config", cfg)
+    assert assert_user_error(run, cfg) == msg
+
+
+def test_map_trajectory_batch_without_refinement_fails_before_the_first_frame(seq, tmp_path):
+    cfg = write_config(tmp_path / "m.toml", '[map]\ntrajectory = "batch"\n')
+    assert cli("config", cfg).returncode == 0  # no map, nothing to check
+    (seq / "image_0" / "000000.png").write_bytes(b"corrupt")  # reading any frame would fail differently
+    msg = assert_user_error(cli("run", seq, "--out", tmp_path / "run", "--config", cfg, "--map"), cfg, "map.trajectory")
+    assert "needs graph.refine" in msg
+    assert cli("run", seq, "--out", tmp_path / "r2", "--config", cfg, "--map", "--refine", "both").returncode == 2  # the image
+
+
+@pytest.mark.parametrize("opt,value", [("--refine", "fast"), ("--loops", "maybe"), ("--mode", "surf")])
+def test_cli_mode_options(seq, tmp_path, opt, value):
+    assert_user_error(cli("run", seq, "--out", tmp_path / "run", opt, value), opt, value)
+
+
+def test_config_validated_at_construction_and_never_mutated():
+    from snaps_graph.config import GraphConfig
+
+    with pytest.raises(SnapsGraphError, match=r"^config: graph.odom_sigma_trans_m must be > 0, got -1.0$"):
+        GraphConfig(odom_sigma_trans_m=-1.0)
+    cfg = Config()
+    before = copy.deepcopy(cfg)
+    poses, times = load_trajectory("loop", "0:3")
+    syn = SyntheticSequence(poses, width=320, height=96, times=times)
+    pipe = SlamPipeline(syn.camera, cfg, loops="none", refine="batch", build_map=True)
+    assert cfg == before  # the caller's config is untouched
+    assert pipe.cfg.graph.refine == "batch" and pipe.cfg.map.enabled and pipe.cfg.loops == "none"
+    cfg.graph.odom_sigma_trans_m = -1.0  # a later change cannot slip past construction either
+    with pytest.raises(SnapsGraphError, match="odom_sigma_trans_m"):
+        SlamPipeline(syn.camera, cfg)
+
+
+def test_every_numeric_config_field_has_a_range():
+    import dataclasses
+    from typing import get_type_hints
+
+    from snaps_graph.config import RULES, choices
+
+    cfg = Config()
+    missing = []
+    for section in ("frontend", "loop", "graph", "map"):
+        obj = getattr(cfg, section)
+        hints = get_type_hints(type(obj))
+        for f in dataclasses.fields(obj):
+            hint = hints[f.name]
+            if hint in (int, float) and choices(hint) is None and f"{section}.{f.name}" not in RULES:
+                missing.append(f"{section}.{f.name}")
+    assert not missing, f"add a range to config.RULES for {missing}"
+
+
+def test_dumped_config_loads_back(tmp_path):
+    path = tmp_path / "c.toml"
+    Config().dump(path)
+    assert Config.load(path) == Config()
+
+
+# ------------------------------------------------------------------ streaming API
+def test_rejected_frame_leaves_the_pipeline_usable(tiny_seq, tmp_path):
+    seq = KittiSequence(tiny_seq)
+    pipe = SlamPipeline(seq.camera, Config(), loops="snaps", refine="isam2")
+    frames = list(seq)
+    pipe.process(frames[0])
+    small = StereoFrame(1, 0.1, frames[1].left[:50, :100].copy(), frames[1].right[:50, :100].copy())
+    with pytest.raises(SnapsGraphError, match="differs from"):
+        pipe.process(small)
+    with pytest.raises(SnapsGraphError, match="2-D uint8"):
+        pipe.process(StereoFrame(1, 0.1, frames[1].left.astype(float), frames[1].right))
+    with pytest.raises(SnapsGraphError, match="must increase"):
+        pipe.process(frames[0])  # a repeated frame
+    with pytest.raises(SnapsGraphError, match="not finite"):
+        pipe.process(StereoFrame(1, float("nan"), frames[1].left, frames[1].right))
+    for f in frames[1:]:
+        out = pipe.process(f)
+        assert out.vo.ok and np.all(np.isfinite(out.pose))
+    result = pipe.finish()
+    assert result.frame_ids == list(range(N_FRAMES))
+    metrics = write_results(tmp_path / "run", pipe, result, seq.gt_poses)
+    assert metrics["frames"] == N_FRAMES and metrics["flagged_frames"] == 0
+    assert len((tmp_path / "run" / "poses_isam2.txt").read_text().splitlines()) == N_FRAMES
+
+
+# ------------------------------------------------------------------ frame numbers
+def _renumber(seq: Path, numbers: list[int]) -> None:
+    """Rename the pairs 000000.png... to unpadded numbers."""
+    for side in ("image_0", "image_1"):
+        files = sorted((seq / side).glob("*.png"))
+        for f, n in zip(files, numbers):
+            f.rename(seq / side / f"tmp_{n}.png")
+        for n in numbers:
+            (seq / side / f"tmp_{n}.png").rename(seq / side / f"{n}.png")
+
+
+def test_unpadded_file_numbers_sort_as_numbers_and_name_the_frames(seq, tmp_path):
+    numbers = [0, 1, 2, 5, 9, 10, 11, 50]  # text order would be 0 1 10 11 2 5 50 9
+    _renumber(seq, numbers)
+    ks = KittiSequence(seq)
+    assert list(ks.indices) == numbers
+    truth = KittiSequence(seq, frames="3:4")[0]
+    assert truth.index == 5
+    out = tmp_path / "run"
+    proc = cli("run", seq, "--out", out)
+    assert proc.returncode == 0, proc.stderr
+    with open(out / "frames.csv") as fh:
+        assert [int(r["frame"]) for r in csv.DictReader(fh)] == numbers
+    # the images were taken in numeric order: VO tracked the real motion (text order would jump)
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["flagged_frames"] == 0
+    assert metrics["trajectories"]["vo"]["ate_rmse"] < 0.5
+
+
+def test_duplicate_file_numbers_are_an_error(seq, tmp_path):
+    for side in ("image_0", "image_1"):
+        shutil.copy(seq / side / "000001.png", seq / side / "1.png")
+    assert_user_error(cli("run", seq, "--out", tmp_path / "run"), "1.png")
+
+
+# ------------------------------------------------------------------ flagged frames
+def test_summary_counts_flagged_frames(tiny_seq, tmp_path):
+    proc = cli("run", tiny_seq, "--out", tmp_path / "run", "--frames", "0:4")
+    assert proc.returncode == 0
+    assert re.search(r"4 frames \(0 flagged\)", proc.stdout), proc.stdout
+
+
+def test_mostly_flagged_run_warns_and_exits_3(seq, tmp_path):
+    for side in ("image_0", "image_1"):  # frames 2..7 black: 6 of 8 flagged
+        for f in sorted((seq / side).glob("*.png"))[2:]:
+            import cv2
+
+            cv2.imwrite(str(f), np.zeros((96, 320), np.uint8))
+    out = tmp_path / "run"
+    proc = cli("run", seq, "--out", out)
+    assert proc.returncode == 3, proc.stderr
+    assert "Traceback" not in proc.stderr
+    warnings = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert len(warnings) == 1 and warnings[0].startswith("warning: ") and "6 of 8 frames" in warnings[0]
+    assert "(6 flagged)" in proc.stdout
+    assert json.loads((out / "metrics.json").read_text())["flagged_frames"] == 6  # the folder is whole
+
+
+# ------------------------------------------------------------------ make bench
+def test_make_bench_calls_a_script_that_exists():
+    make = (ROOT / "Makefile").read_text()
+    target = re.search(r"^bench:.*\n\t(.+)$", make, re.M)
+    assert target, "no bench target"
+    script = re.search(r"(benchmarks/\S+\.py)", target.group(1))
+    assert script and (ROOT / script.group(1)).is_file()
+    proc = subprocess.run([sys.executable, str(ROOT / script.group(1)), "--list"], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    for name in re.findall(r"benchmarks/bench_\w+\.py|bench_\w+\.py", proc.stdout):
+        assert (ROOT / "benchmarks" / Path(name).name).is_file(), name
