@@ -1,12 +1,13 @@
 # Two commands do everything on a fresh machine (Python 3.11, Debian):
 #   make demo   -- set up .venv, then run the demo on built-in synthetic data
-#   make test   -- set up .venv, then run the test suite
+#   make test   -- set up .venv, then lint (ruff, mypy) and run the test suite
+#   make quick  -- the tests without the slow ones (pytest -m "not slow"), for a local loop
 PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup demo test bench clean sysdeps
+.PHONY: setup demo test quick lint bench clean sysdeps
 
 setup: sysdeps $(STAMP)
 
@@ -23,8 +24,15 @@ $(STAMP): pyproject.toml
 demo: setup
 	$(BIN)/snaps-graph demo --out results/demo
 
-test: setup
+lint: setup
+	$(BIN)/ruff check snaps_graph tests benchmarks experiments
+	$(BIN)/mypy
+
+test: lint
 	$(BIN)/python -m pytest -q
+
+quick: setup
+	$(BIN)/python -m pytest -q -m "not slow"
 
 bench: setup
 	$(BIN)/python benchmarks/run_all.py

@@ -26,11 +26,9 @@ import numpy as np
 
 from snaps_graph.backend import PoseGraph
 from snaps_graph.config import GraphConfig
-from snaps_graph.trajectory_io import read_kitti_poses
-
 from snaps_graph.evaluation.metrics import ate_rmse, kitti_relative_errors, mean_deviation
 from snaps_graph.evaluation.oracle import true_revisit_pairs
-
+from snaps_graph.trajectory_io import read_kitti_poses
 
 DEFAULT_GT = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti_gt" / "00.txt"
 

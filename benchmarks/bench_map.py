@@ -2,7 +2,9 @@
 projected memory for KITTI 00 (4541 frames, a keyframe every 5), build / re-pose / PLY times,
 and a top-down PNG. Depth comes from the package's dense_depth (BM + WLS) or OpenCV SGBM
 (--depth sgbm); only the map is timed. Usage: python bench_cloud_map.py [--frames N] [--out DIR]"""
-import argparse, resource, time
+import argparse
+import resource
+import time
 from pathlib import Path
 
 import cv2
@@ -30,6 +32,7 @@ sgbm = cv2.StereoSGBM_create(0, 128, 5, P1=8 * 25, P2=32 * 25, uniquenessRatio=1
 n = min(a.frames, len(seq))
 t_add, raw, kept, cache = 0.0, [], [], []
 import open3d  # noqa: F401  (import cost kept out of the per-keyframe time)
+
 for i in range(n):
     if not m.should_add(i):
         continue

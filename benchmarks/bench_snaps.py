@@ -28,9 +28,9 @@ import cv2
 import numpy as np
 
 from snaps_graph.config import LoopConfig
-from snaps_graph.trajectory_io import read_kitti_poses
 from snaps_graph.geometry import inv, yaw_deg
 from snaps_graph.loop import SnapsLoopCloser, similarity_q, uiqi, window_stats
+from snaps_graph.trajectory_io import read_kitti_poses
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_GT = ROOT.parent / "shared" / "data" / "kitti_gt" / "00.txt"

@@ -22,10 +22,12 @@ sys.path.insert(0, str(ROOT))
 
 from snaps_graph.config import Config  # noqa: E402
 from snaps_graph.datasets.kitti import KittiSequence  # noqa: E402
-from snaps_graph.types import StereoFrame  # noqa: E402
 from snaps_graph.loop.uiqi import make_thumbnail  # noqa: E402
 from snaps_graph.pipeline import SlamPipeline  # noqa: E402
-from snaps_graph.types import VOResult  # noqa: E402
+from snaps_graph.types import (
+    StereoFrame,  # noqa: E402
+    VOResult,  # noqa: E402
+)
 
 RESULTS = ROOT / "results" / "experiments"
 SHARED = ROOT.parent / "shared" / "data"

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import argparse
 
-from _common import RESULTS, md_table, synthetic_dir, false_loops
+from _common import RESULTS, false_loops, md_table, synthetic_dir
 
 from snaps_graph.config import Config
 from snaps_graph.datasets.kitti import KittiSequence

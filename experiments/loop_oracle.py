@@ -25,10 +25,9 @@ from __future__ import annotations
 import argparse
 import copy
 import csv
+import json
 import sys
 from pathlib import Path
-
-import json
 
 import numpy as np
 from _common import md_table
@@ -37,8 +36,8 @@ from snaps_graph.config import Config
 from snaps_graph.errors import SnapsGraphError
 from snaps_graph.evaluation.metrics import ate_rmse, mean_deviation
 from snaps_graph.evaluation.oracle import loop_oracle, odometry_graph
-from snaps_graph.trajectory_io import read_poses
 from snaps_graph.geometry import rotation_angle_deg
+from snaps_graph.trajectory_io import read_poses
 
 
 def frame_columns(run: Path, n: int) -> tuple[np.ndarray, np.ndarray, list[int]]:

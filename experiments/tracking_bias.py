@@ -24,9 +24,9 @@ import numpy as np
 
 from snaps_graph.config import Config
 from snaps_graph.datasets.synthetic import SyntheticSequence, load_trajectory
-from snaps_graph.trajectory_io import read_poses
 from snaps_graph.frontend import depth as depth_mod
 from snaps_graph.frontend import features as feat
+from snaps_graph.trajectory_io import read_poses
 
 ROOT = Path(__file__).resolve().parents[1]
 BANDS = ((0, 100), (100, 180), (180, 220), (220, 280), (280, 10_000))

@@ -105,7 +105,7 @@ def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
     return -q if q[3] < 0 else q
 
 
-def quaternion_to_rotation(q: np.ndarray) -> np.ndarray:
+def quaternion_to_rotation(q: np.ndarray | list[float]) -> np.ndarray:
     x, y, z, w = np.asarray(q, float) / np.linalg.norm(q)
     return np.array(
         [

@@ -13,16 +13,16 @@ from snaps_graph.camera import StereoCamera, kitti00_camera
 from snaps_graph.config import Config
 from snaps_graph.datasets.kitti import KittiSequence
 from snaps_graph.errors import SnapsGraphError
+from snaps_graph.geometry import wrap_deg, yaw_deg
+from snaps_graph.io_utils import atomic_output, atomic_write_text, parse_frame_range
 from snaps_graph.trajectory_io import (
+    quaternion_to_rotation,
     read_kitti_poses,
     read_tum_poses,
     rotation_to_quaternion,
-    quaternion_to_rotation,
     write_kitti_poses,
     write_tum_poses,
 )
-from snaps_graph.geometry import wrap_deg, yaw_deg
-from snaps_graph.io_utils import atomic_output, atomic_write_text, parse_frame_range
 
 
 # ---- config ----

@@ -11,12 +11,11 @@ import pytest
 from snaps_graph.camera import StereoCamera
 from snaps_graph.config import FrontendConfig
 from snaps_graph.datasets.kitti import KittiSequence
-from snaps_graph.types import StereoFrame
 from snaps_graph.errors import SnapsGraphError
 from snaps_graph.frontend import StereoOdometry, dense_depth, sparse_depth, verify_loop
 from snaps_graph.frontend import features as feat
 from snaps_graph.geometry import inv, rotation_angle_deg
-from snaps_graph.types import FrameFeatures
+from snaps_graph.types import FrameFeatures, StereoFrame
 
 CAM = StereoCamera(fx=500.0, fy=500.0, cx=320.0, cy=160.0, baseline_m=0.5, width=640, height=320)
 

@@ -20,8 +20,8 @@ from snaps_graph.evaluation.metrics import (
     path_length,
     umeyama_alignment,
 )
-from snaps_graph.trajectory_io import read_kitti_poses, write_kitti_poses, write_tum_poses
 from snaps_graph.geometry import inv
+from snaps_graph.trajectory_io import read_kitti_poses, write_kitti_poses, write_tum_poses
 
 LENGTHS = (100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0)
 

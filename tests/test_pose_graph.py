@@ -21,7 +21,7 @@ def yaw_rot(a: float) -> np.ndarray:
     return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
 
 
-def pose(R: np.ndarray = np.eye(3), t=(0.0, 0.0, 0.0)) -> np.ndarray:
+def pose(R: np.ndarray = np.eye(3), t=(0.0, 0.0, 0.0)) -> np.ndarray:  # noqa: B008 (never mutated)
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, t
     return T

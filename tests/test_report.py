@@ -14,8 +14,8 @@ import pytest
 from snaps_graph.errors import SnapsGraphError
 from snaps_graph.evaluation.metrics import ate_rmse, kitti_relative_errors, mean_deviation
 from snaps_graph.evaluation.report import compare_run, latency_summary
-from snaps_graph.trajectory_io import read_kitti_poses, write_kitti_poses
 from snaps_graph.geometry import inv
+from snaps_graph.trajectory_io import read_kitti_poses, write_kitti_poses
 
 FIRST = 50  # the fake run processed dataset frames 50..1100 of KITTI 07
 LOOP_FRAME, LOOP_REF = 1050, 60  # dataset indices

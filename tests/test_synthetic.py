@@ -14,8 +14,8 @@ from snaps_graph.datasets.synthetic import (
     render_to_folder,
 )
 from snaps_graph.errors import SnapsGraphError
-from snaps_graph.trajectory_io import read_kitti_poses
 from snaps_graph.geometry import rotation_angle_deg, wrap_deg, yaw_deg
+from snaps_graph.trajectory_io import read_kitti_poses
 
 W, H = 320, 96
 

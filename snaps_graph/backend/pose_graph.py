@@ -316,7 +316,7 @@ class PoseGraph:
             reason = "loop from a frame to itself"
         elif not math.isfinite(float(q)):
             reason = "non-finite similarity Q"
-        elif verified and (np.shape(T_ref_cur) != (4, 4) or not np.all(np.isfinite(T_ref_cur))):
+        elif verified and (T_ref_cur is None or np.shape(T_ref_cur) != (4, 4) or not np.all(np.isfinite(T_ref_cur))):
             reason = "measured relative pose is not a finite 4x4"
         if reason:
             info.reason = reason

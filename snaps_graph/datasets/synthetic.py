@@ -32,9 +32,9 @@ from __future__ import annotations
 import concurrent.futures as cf
 import time
 from collections import deque
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator
 
 import cv2
 import numpy as np
@@ -204,8 +204,8 @@ def _check_poses(poses) -> np.ndarray:
     if poses.ndim != 3 or poses.shape[1:] != (4, 4) or len(poses) == 0:
         raise SnapsGraphError(f"synthetic: poses must have shape (N, 4, 4), got {poses.shape}")
     if not np.all(np.isfinite(poses)):
-        bad = int(np.argmax(~np.isfinite(poses).reshape(len(poses), -1).all(1)))
-        raise SnapsGraphError(f"synthetic: pose {bad} is not finite")
+        first = int(np.argmax(~np.isfinite(poses).reshape(len(poses), -1).all(1)))
+        raise SnapsGraphError(f"synthetic: pose {first} is not finite")
     R = poses[:, :3, :3]
     err = np.abs(R @ np.swapaxes(R, 1, 2) - np.eye(3)).max(axis=(1, 2))
     det = np.linalg.det(R)
@@ -317,6 +317,7 @@ def load_trajectory(spec: str, frames: str | None = None, times: str | Path | No
         if len(given_times) != len(poses):
             raise SnapsGraphError(f"{times}: {len(given_times)} timestamps for {len(poses)} poses of '{spec}'")
         stamps = given_times
+    assert stamps is not None
     rng = parse_frame_range(frames, len(poses))
     if rng is not None:
         start, stop = rng

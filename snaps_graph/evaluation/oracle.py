@@ -49,7 +49,7 @@ def true_revisit_pairs(
     if step < 1:
         raise ValueError("step must be >= 1")
     p = gt[:, :3, 3]
-    yaw = yaw_deg(gt[:, :3, :3])
+    yaw = np.asarray(yaw_deg(gt[:, :3, :3]))
     pairs = []
     for k in range(frame_distance, len(p), step):
         d = np.linalg.norm(p[: k - frame_distance + 1] - p[k], axis=1)

@@ -108,7 +108,7 @@ def match_descriptors(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float) -> t
                 ib.append(p[0].trainIdx)
                 d1.append(p[0].distance)
                 d2.append(p[1].distance)
-        ia, ib = np.array(ia, np.int64), np.array(ib, np.int64)
+        ia, ib = np.array(ia, np.int64), np.array(ib, np.int64)  # type: ignore[assignment]
         keep = np.array(d1, np.float64) < ratio * np.array(d2, np.float64)
         return ia[keep], ib[keep]
     a = np.asarray(desc_a, np.float32)

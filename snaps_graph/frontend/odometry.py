@@ -33,9 +33,10 @@ beside matching + PnP. Each stage's inputs are fixed before it starts and RANSAC
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import cv2
 import numpy as np
@@ -47,6 +48,7 @@ from ..geometry import inv, rotation_angle_deg
 from ..types import FrameFeatures, StereoFrame, VOResult
 from . import depth as depth_mod
 from . import features as feat
+
 
 def pose_from_rvec(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     T = np.eye(4)
@@ -449,6 +451,6 @@ class StereoOdometry:
         gap = max(1, frame.index - ref.index)
         if result is None:
             self._conclude(kf, None, 0, gap, f"PnP failed ({n_matches} matches)")
-        T_cur_ref, inl = result
+        T_cur_ref, inl = result  # type: ignore[misc]  # _conclude raised when None
         T_ref_cur = self._conclude(kf, T_cur_ref, len(inl), gap, "")
         return kf, T_ref_cur, len(inl), n_matches

@@ -42,6 +42,7 @@ zero for integer images, and it absorbs the tiny (even negative) round-off of fl
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -182,7 +183,7 @@ def similarity(a: WindowStats, b: WindowStats, return_maps: bool = False) -> UIQ
     """The full index (Q and its three factors) of two prepared images."""
     corr, lum, con = _factor_maps(a, b, _cross(a, b))
     q = corr * lum * con
-    res = dict(
+    res: dict[str, Any] = dict(
         q=float(q.mean()), correlation=float(corr.mean()), luminance=float(lum.mean()), contrast=float(con.mean())
     )
     if return_maps:
