@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import SnapsGraphError
+from .io_utils import atomic_write_text
 
 # P0/P1 of KITTI odometry sequence 00 (grey cameras), the synthetic renderer's default camera.
 KITTI00_P0 = np.array(
@@ -131,8 +132,6 @@ class StereoCamera:
         return row("P0", self.P0) + "\n" + row("P1", self.P1) + "\n"
 
     def write_calib(self, path: str | Path) -> None:
-        from .io_utils import atomic_write_text
-
         atomic_write_text(path, self.calib_text())
 
     def depth_from_disparity(self, disparity: np.ndarray) -> np.ndarray:

@@ -9,11 +9,21 @@ of the frames (one ``warning:`` line); 130 interrupted (Ctrl-C: one line, no res
 from __future__ import annotations
 
 import json
+import signal
 import sys
 from pathlib import Path
 from typing import Optional
 
+import click
 import typer
+from tqdm import tqdm
+
+from .config import Config, FrontendMode, LoopMode, RefineMode, choices
+from .errors import SnapsGraphError
+from .io_utils import check_output_folder, output_folder
+
+# Heavy modules (OpenCV, gtsam, open3d, matplotlib) are imported inside the commands that use
+# them, after the cheap checks, so `config`, `--help` and a bad option answer at once.
 
 app = typer.Typer(
     add_completion=False,
@@ -29,8 +39,6 @@ EXIT_INTERRUPTED = 130
 
 
 def _progress(total: int, desc: str):
-    from tqdm import tqdm
-
     # disable=None: no bar when stderr is not a terminal (logs and pipes get only the summary)
     return tqdm(total=total, desc=desc, unit="frame", dynamic_ncols=True, file=sys.stderr, mininterval=0.5, disable=None)
 
@@ -51,11 +59,13 @@ def synth(
 ) -> None:
     """Render a synthetic stereo sequence along a trajectory, in KITTI layout."""
     from .datasets.synthetic import SyntheticSequence, load_trajectory, render_to_folder
-    from .io_utils import check_output_folder, output_folder
 
     if width < 32 or height < 32:
         raise_user(f"--width/--height too small: {width}x{height}")
     check_output_folder(out, overwrite)
+    for given in (Path(trajectory), times):
+        if given is not None and given.exists() and _inside(given, out):
+            raise_user(f"{out}: --out would replace the input {given}")
     poses, ts = load_trajectory(trajectory, frames, times=str(times) if times else None)
     seq = SyntheticSequence(poses, width=width, height=height, seed=seed, noise_std=noise, exposure_change=exposure, times=ts)
     with _progress(len(seq), "render") as bar, output_folder(out, overwrite) as tmp:
@@ -82,9 +92,6 @@ def run(
     ),
 ) -> None:
     """Run stereo VO (+ SNAPS, + graph refinement, + map) over a sequence and write a results folder."""
-    from .config import Config, FrontendMode, LoopMode, RefineMode
-    from .io_utils import check_output_folder
-
     _check_choice("--loops", loops, LoopMode)
     _check_choice("--refine", refine, RefineMode)
     _check_choice("--mode", mode, FrontendMode)
@@ -98,6 +105,8 @@ def run(
     # Before anything is read: the configuration that will run, and the output folder.
     cfg.resolved(loops=loops, refine=refine, build_map=map_)
     check_output_folder(out, overwrite)
+    if _inside(seq_dir, out):
+        raise_user(f"{out}: --out would replace the input sequence {seq_dir}")
     from .datasets.kitti import KittiSequence  # the heavy imports (OpenCV, gtsam) after the checks
     from .runner import mostly_flagged, run_sequence
 
@@ -164,6 +173,7 @@ def demo(
     refine: str = typer.Option("isam2", "--refine", help="none | isam2 | batch."),
 ) -> None:
     """Render the built-in loop, run VO + SNAPS + refinement + map, compare, print a summary."""
+    _check_choice("--refine", refine, RefineMode)
     from .demo import run_demo
 
     run_demo(out, frames=frames, width=width, height=height, refine=refine, progress=_progress)
@@ -174,21 +184,21 @@ def config_cmd(
     path: Optional[Path] = typer.Argument(None, help="A TOML config to check; default: print the defaults."),
 ) -> None:
     """Print the default configuration (or a checked, completed copy of PATH) as TOML."""
-    from .config import Config
-
     cfg = Config.load(path) if path else Config()
     typer.echo(cfg.dumps(), nl=False)
 
 
 def raise_user(msg: str) -> None:
-    from .errors import SnapsGraphError
-
     raise SnapsGraphError(msg)
 
 
-def _check_choice(option: str, value: str | None, literal) -> None:
-    from .config import choices
+def _inside(path: Path, folder: Path) -> bool:
+    """``path`` is ``folder`` or lies under it (links resolved)."""
+    p, f = path.resolve(), folder.resolve()
+    return p == f or f in p.parents
 
+
+def _check_choice(option: str, value: str | None, literal) -> None:
     allowed = choices(literal) or ()
     if value is not None and value not in allowed:
         raise_user(f"{option} must be one of {', '.join(allowed)}, not '{value}'")
@@ -244,12 +254,6 @@ def _on_sigint(signum, frame) -> None:
 
 
 def main() -> None:
-    import signal
-
-    import click
-
-    from .errors import SnapsGraphError
-
     signal.signal(signal.SIGINT, _on_sigint)
     try:
         rc = app(standalone_mode=False)

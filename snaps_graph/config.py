@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any, Literal, get_args, get_origin, get_type_hints
 
 from .errors import SnapsGraphError
+from .io_utils import atomic_write_text
 
 # The one vocabulary of modes (the CLI's --mode/--loops/--refine use the same lists).
 FrontendMode = Literal["sift", "orb", "klt"]
@@ -336,8 +337,6 @@ class Config:
         return "\n".join(lines) + "\n"
 
     def dump(self, path: str | Path) -> None:
-        from .io_utils import atomic_write_text
-
         atomic_write_text(path, self.dumps())
 
 

@@ -11,14 +11,13 @@ import time
 from pathlib import Path
 
 from .config import Config
+from .datasets.kitti import KittiSequence
+from .datasets.synthetic import SyntheticSequence, builtin_loop_trajectory, render_to_folder
+from .evaluation.report import compare_run
+from .runner import run_sequence
 
 
 def run_demo(out: str | Path, frames: int = 300, width: int = 1241, height: int = 376, refine: str = "isam2", progress=None) -> dict:
-    from .datasets.kitti import KittiSequence
-    from .datasets.synthetic import SyntheticSequence, builtin_loop_trajectory, render_to_folder
-    from .evaluation.report import compare_run
-    from .runner import run_sequence
-
     out = Path(out)
     seq_dir = out / "sequence"
     run_dir = out / "run"

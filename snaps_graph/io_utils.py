@@ -10,6 +10,8 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+from .errors import SnapsGraphError
+
 
 def atomic_write_text(path: str | Path, text: str) -> None:
     """Write ``text`` to ``path`` via a temporary file in the same folder and a rename."""
@@ -55,12 +57,30 @@ def _umask() -> int:
     return _UMASK
 
 
+def read_text(path: str | Path, what: str) -> str:
+    """A text file's content; a one-line SnapsGraphError naming it when it is missing, a folder,
+    unreadable or not text (NUL bytes, not UTF-8)."""
+    path = Path(path)
+    if path.is_dir():
+        raise SnapsGraphError(f"{path}: is a folder, expected a {what} file")
+    if not path.is_file():
+        raise SnapsGraphError(f"{path}: {what} file not found")
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise SnapsGraphError(f"{path}: cannot read the {what} file ({exc.strerror or exc})") from None
+    if b"\0" in data:
+        raise SnapsGraphError(f"{path}: binary data, expected a text {what} file")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError:
+        raise SnapsGraphError(f"{path}: not a text (UTF-8) file, expected a {what} file") from None
+
+
 def check_output_folder(path: str | Path, overwrite: bool = False) -> Path:
     """Refuse, with a one-line SnapsGraphError, an output folder a run could not replace whole:
     a path that is a file or lies under a file, a folder whose parent cannot be written, or a
     non-empty folder without ``overwrite``. Call it before any work; returns the path."""
-    from .errors import SnapsGraphError
-
     out = Path(path)
     if out.exists() and not out.is_dir():
         raise SnapsGraphError(f"{out}: exists and is not a folder")
@@ -110,8 +130,6 @@ def parse_frame_range(text: str | None, n_total: int | None = None) -> tuple[int
 
     Returns ``(start, stop)`` with ``stop`` None for open-ended ranges, or None for no range.
     """
-    from .errors import SnapsGraphError
-
     if text is None or text == "":
         return None
     parts = text.split(":")

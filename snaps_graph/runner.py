@@ -33,8 +33,8 @@ import numpy as np
 
 from .config import Config
 from .evaluation.metrics import evaluate
-from .evaluation.report import json_clean
 from .evaluation.report import latency_summary as _latency_summary
+from .evaluation.report import write_metrics_json
 from .io_utils import atomic_write_text, check_output_folder, output_folder
 from .mapping.outputs import write_map_outputs
 from .pipeline import FrameOutput, RunResult, SlamPipeline
@@ -102,7 +102,7 @@ def _write_all(out: Path, pipe: SlamPipeline, result: RunResult, gt_poses: np.nd
         if map_metrics is not None:
             metrics["map"] = map_metrics
     metrics["peak_rss_mb"] = peak_rss_mb()
-    atomic_write_text(out / "metrics.json", json_text(metrics))
+    write_metrics_json(out / "metrics.json", metrics)
     return metrics
 
 
@@ -159,14 +159,8 @@ def write_loops_jsonl(path: str | Path, loops: list[LoopEvent]) -> None:
     atomic_write_text(path, "".join(json.dumps(lp.to_json()) + "\n" for lp in loops))
 
 
-def json_text(obj) -> str:
-    """Strict JSON: a metric that cannot be computed (NaN) is written as null."""
-    return json.dumps(json_clean(obj), indent=2) + "\n"
-
-
 __all__ = [
     "FLAGGED_FRACTION_LIMIT",
-    "json_text",
     "latency_summary",
     "mostly_flagged",
     "run_metrics",

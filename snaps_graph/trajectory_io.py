@@ -12,34 +12,13 @@ from pathlib import Path
 import numpy as np
 
 from .errors import SnapsGraphError
-from .io_utils import atomic_write_text
-
-
-def read_text_lines(path: str | Path, what: str) -> list[str]:
-    """The lines of a text file; a one-line SnapsGraphError naming it when it is missing, a
-    folder, unreadable or not text (binary, not UTF-8)."""
-    path = Path(path)
-    if path.is_dir():
-        raise SnapsGraphError(f"{path}: is a folder, expected a {what} file")
-    if not path.is_file():
-        raise SnapsGraphError(f"{path}: {what} file not found")
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise SnapsGraphError(f"{path}: cannot read the {what} file ({exc.strerror or exc})") from None
-    if b"\0" in data:
-        raise SnapsGraphError(f"{path}: binary data, expected a text {what} file")
-    try:
-        text = data.decode("utf-8")
-    except UnicodeDecodeError:
-        raise SnapsGraphError(f"{path}: not a text (UTF-8) file, expected a {what} file") from None
-    return text.splitlines()
+from .io_utils import atomic_write_text, read_text
 
 
 def read_kitti_poses(path: str | Path) -> np.ndarray:
     path = Path(path)
     poses = []
-    for lineno, line in enumerate(read_text_lines(path, "pose"), 1):
+    for lineno, line in enumerate(read_text(path, "pose").splitlines(), 1):
         if not line.strip():
             continue
         try:
@@ -144,7 +123,7 @@ def write_tum_poses(path: str | Path, poses: np.ndarray, times: np.ndarray | Non
 def read_tum_poses(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     path = Path(path)
     times, poses = [], []
-    for lineno, line in enumerate(read_text_lines(path, "pose"), 1):
+    for lineno, line in enumerate(read_text(path, "pose").splitlines(), 1):
         if not line.strip() or line.lstrip().startswith("#"):
             continue
         try:
@@ -179,7 +158,7 @@ def read_times(path: str | Path) -> np.ndarray:
     """Timestamps (s), one a line (first number of the line); they must be finite and increase."""
     path = Path(path)
     out: list[float] = []
-    for lineno, line in enumerate(read_text_lines(path, "times"), 1):
+    for lineno, line in enumerate(read_text(path, "times").splitlines(), 1):
         if not line.strip():
             continue
         try:

@@ -179,6 +179,24 @@ def test_run_binary_gt(seq, tmp_path):
     assert not (tmp_path / "run").exists()
 
 
+def test_eval_folder_instead_of_a_file(tmp_path, tiny_seq):
+    assert_user_error(cli("eval", tmp_path, "--gt", tiny_seq / "poses.txt"), tmp_path, "is a folder")
+
+
+@pytest.mark.parametrize("name", ["frames.csv", "loops.jsonl", "config.toml", "metrics.json", "poses_snaps.txt"])
+def test_compare_binary_run_files(tiny_seq, tmp_path, name):
+    run = tmp_path / "run"
+    assert cli("run", tiny_seq, "--out", run, "--frames", "0:4").returncode == 0
+    (run / name).write_bytes(BINARY)
+    assert_user_error(cli("compare", run), run / name)
+
+
+def test_out_equal_to_the_input_sequence_is_refused(seq):
+    before = sorted(p.name for p in seq.iterdir())
+    assert_user_error(cli("run", seq, "--out", seq, "--overwrite"), "would replace the input")
+    assert sorted(p.name for p in seq.iterdir()) == before
+
+
 def test_synth_binary_trajectory(tmp_path):
     traj = tmp_path / "traj.txt"
     traj.write_bytes(BINARY)

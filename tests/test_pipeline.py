@@ -148,6 +148,7 @@ def test_duplicate_frame_is_user_error(kitti06_dir):
         pipe.process(f)
 
 
+@pytest.mark.slow  # ~60 s: 300 frames at 620x188
 def test_synthetic_loop_closes_and_helps(tmp_path):
     """The built-in loop at reduced size: SNAPS closes a true, verified loop, and the batch
     refinement pulls the end of the loop onto its start (measured: end error 0.24 m -> 0.03 m)."""

@@ -46,6 +46,7 @@ correction landed closer to the truth.
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 import tomllib
@@ -57,7 +58,7 @@ import numpy as np
 from ..config import LoopConfig
 from ..errors import SnapsGraphError
 from ..geometry import inv
-from ..io_utils import atomic_write_text
+from ..io_utils import atomic_write_text, read_text
 from ..trajectory_io import read_kitti_poses, read_poses
 from .metrics import evaluate, path_length, position_errors
 
@@ -79,15 +80,17 @@ def _read_frames_csv(path: Path) -> dict[str, np.ndarray]:
     """Columns of frames.csv as float arrays (empty or unparsable cells -> NaN, booleans -> 0/1)."""
     if not path.is_file():
         raise SnapsGraphError(f"{path}: not found (every run writes frames.csv)")
-    with path.open(newline="") as fh:
-        reader = csv.DictReader(fh)
-        if not reader.fieldnames:
-            raise SnapsGraphError(f"{path}: empty file, expected a header row")
-        names = [n.strip() for n in reader.fieldnames]
-        cells: dict[str, list[str]] = {n: [] for n in names}
+    reader = csv.DictReader(io.StringIO(read_text(path, "frames.csv"), newline=""))
+    if not reader.fieldnames:
+        raise SnapsGraphError(f"{path}: empty file, expected a header row")
+    names = [n.strip() for n in reader.fieldnames]
+    cells: dict[str, list[str]] = {n: [] for n in names}
+    try:
         for row in reader:
             for raw_name, n in zip(reader.fieldnames, names):
                 cells[n].append((row.get(raw_name) or "").strip())
+    except csv.Error as exc:
+        raise SnapsGraphError(f"{path}: malformed CSV ({exc})") from None
     return {n: _column(v) for n, v in cells.items()}
 
 
@@ -164,7 +167,7 @@ def _read_loops(path: Path, row_of_frame: dict[int, int]) -> list[dict]:
     if not path.is_file():
         return []
     loops = []
-    for lineno, line in enumerate(path.read_text().splitlines(), 1):
+    for lineno, line in enumerate(read_text(path, "loops.jsonl").splitlines(), 1):
         if not line.strip():
             continue
         try:
@@ -188,9 +191,12 @@ def _discount_offset(run: Path) -> float:
     if not p.is_file():
         return default
     try:
-        value = tomllib.loads(p.read_text()).get("loop", {}).get("discount_offset", default)
+        loop = tomllib.loads(read_text(p, "config")).get("loop", {})
     except tomllib.TOMLDecodeError as exc:
         raise SnapsGraphError(f"{p}: malformed TOML ({exc})") from None
+    value = loop.get("discount_offset", default) if isinstance(loop, dict) else default
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise SnapsGraphError(f"{p}: loop.discount_offset must be a finite number, got {value!r}")
     return float(value)
 
 
@@ -198,7 +204,7 @@ def _read_metrics_json(path: Path) -> dict:
     if not path.is_file():
         return {}
     try:
-        data = json.loads(path.read_text())
+        data = json.loads(read_text(path, "metrics.json"))
     except json.JSONDecodeError as exc:
         raise SnapsGraphError(f"{path}: malformed JSON ({exc.msg} at line {exc.lineno})") from None
     if not isinstance(data, dict):
@@ -426,6 +432,14 @@ def json_clean(obj: Any) -> Any:
     return obj
 
 
+def write_metrics_json(path: str | Path, metrics: dict) -> dict:
+    """The one writer of metrics.json (the runner's and this report's): strict JSON, atomic.
+    Returns what was written (NaN -> null)."""
+    clean = json_clean(metrics)
+    atomic_write_text(path, json.dumps(clean, indent=2) + "\n")
+    return clean
+
+
 # ---------------------------------------------------------------------------------------------
 # Entry point
 # ---------------------------------------------------------------------------------------------
@@ -542,6 +556,4 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None) -> dict:
     metrics["latency_ms"] = latency
     metrics["loop_corrections"] = corrections
     metrics["report"] = {"markdown": "report.md", "figures": figures}
-    metrics = json_clean(metrics)
-    atomic_write_text(metrics_path, json.dumps(metrics, indent=2) + "\n")
-    return metrics
+    return write_metrics_json(metrics_path, metrics)
