@@ -14,7 +14,6 @@ import sys
 from pathlib import Path
 from typing import Optional
 
-import click
 import typer
 from tqdm import tqdm
 
@@ -62,6 +61,10 @@ def synth(
 
     if width < 32 or height < 32:
         raise_user(f"--width/--height too small: {width}x{height}")
+    if width > 20000 or height > 20000:
+        raise_user(f"--width/--height too large: {width}x{height}")
+    if seed < 0:
+        raise_user(f"--seed must be >= 0, not {seed}")
     check_output_folder(out, overwrite)
     for given in (Path(trajectory), times):
         if given is not None and given.exists() and _inside(given, out):
@@ -244,8 +247,8 @@ def _print_summary(metrics: dict, out: Path) -> None:
 
 
 class Interrupted(BaseException):
-    """Ctrl-C, raised by our SIGINT handler: click turns a KeyboardInterrupt into "Aborted!" and
-    exit 1, so SIGINT raises this instead, which passes through click (and through every
+    """Ctrl-C, raised by our SIGINT handler: click turns a KeyboardInterrupt into "Aborted!", so
+    SIGINT raises this instead, which passes through click (and through every
     ``except Exception``) to :func:`main`; cleanup handlers (``except BaseException``) still run."""
 
 
@@ -260,14 +263,30 @@ def main() -> None:
     except SnapsGraphError as exc:
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(EXIT_USER_ERROR)
-    except (Interrupted, KeyboardInterrupt, click.exceptions.Abort):
-        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not interrupt the exit
-        print("interrupted: no results written", file=sys.stderr)
-        sys.exit(EXIT_INTERRUPTED)
-    except click.exceptions.ClickException as exc:
-        exc.show()
-        sys.exit(exc.exit_code)
+    except (Interrupted, KeyboardInterrupt):
+        _interrupted()
+    except Exception as exc:
+        # click's exceptions (typer >= 0.16 vendors its own click, so matched by their interface)
+        if type(exc).__name__ == "Abort":
+            _interrupted()
+        code = getattr(exc, "exit_code", None)
+        if hasattr(exc, "format_message") and isinstance(code, int):
+            if type(exc).__name__ == "NoArgsIsHelpError" or not code:
+                exc.show()  # type: ignore[attr-defined]  # the help text
+                sys.exit(code)
+            ctx = getattr(exc, "ctx", None)
+            where = f"{ctx.command_path}: " if ctx is not None else ""
+            hint = f" (see {ctx.command_path} --help)" if ctx is not None else ""
+            print(f"error: {where}{' '.join(exc.format_message().split())}{hint}", file=sys.stderr)  # type: ignore[attr-defined]
+            sys.exit(code)
+        raise
     sys.exit(rc if isinstance(rc, int) else 0)
+
+
+def _interrupted() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not interrupt the exit
+    print("interrupted: no results written", file=sys.stderr)
+    sys.exit(EXIT_INTERRUPTED)
 
 
 if __name__ == "__main__":

@@ -34,6 +34,7 @@ from .frontend.depth import check_stereo_pair, dense_depth
 from .frontend.odometry import StereoOdometry
 from .frontend.verify import verify_loop
 from .loop.snaps import SnapsLoopCloser
+from .loop.uiqi import make_thumbnail
 from .mapping.cloud_map import CloudMap
 from .types import FrameFeatures, FrameRecord, LoopEvent, StereoFrame, VOResult
 
@@ -124,6 +125,13 @@ class SlamPipeline:
         h, w = frame.left.shape  # the camera's size is the front end's check (a custom one may differ)
         if self._shape is not None and (h, w) != self._shape:
             raise SnapsGraphError(f"frame {index}: image {w}x{h} differs from the first frame's {self._shape[1]}x{self._shape[0]}")
+        if self._shape is None and self.snaps is not None:
+            th, tw = make_thumbnail(frame.left, self.cfg.loop.thumbnail_scale).shape
+            if min(th, tw) < self.cfg.loop.window:
+                raise SnapsGraphError(
+                    f"frame {index}: image {w}x{h} is too small for SNAPS: its thumbnail ({tw}x{th} at "
+                    f"loop.thumbnail_scale = {self.cfg.loop.thumbnail_scale:g}) is smaller than loop.window = {self.cfg.loop.window}"
+                )
 
     def process(self, frame: StereoFrame) -> FrameOutput:
         self.check_frame(frame)

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from .config import Config
+from .errors import SnapsGraphError
 from .evaluation.metrics import evaluate
 from .evaluation.report import latency_summary as _latency_summary
 from .evaluation.report import write_metrics_json
@@ -65,7 +66,13 @@ def run_sequence(
     check_output_folder(out_dir, overwrite)
     pipe = SlamPipeline(dataset.camera, cfg, loops=loops, refine=refine, build_map=build_map)
     for frame in dataset:
-        out = pipe.process(frame)
+        try:
+            out = pipe.process(frame)
+        except SnapsGraphError as exc:  # name the frame's file where the dataset knows it
+            where = dataset.frame_source(frame.index) if hasattr(dataset, "frame_source") else None
+            if where is None:
+                raise
+            raise SnapsGraphError(f"{where}: {exc}") from None
         if on_frame is not None:
             on_frame(out)
     result = pipe.finish()

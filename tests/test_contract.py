@@ -447,3 +447,30 @@ def test_make_bench_calls_a_script_that_exists():
     assert proc.returncode == 0, proc.stderr
     for name in re.findall(r"benchmarks/bench_\w+\.py|bench_\w+\.py", proc.stdout):
         assert (ROOT / "benchmarks" / Path(name).name).is_file(), name
+
+
+# ------------------------------------------------------------------ usage errors and odd values
+@pytest.mark.parametrize(
+    "args,expect",
+    [
+        (["run"], "Missing argument"),
+        (["synth"], "Missing option '--out'"),
+        (["run", "SEQ", "--out", "X", "--bogus"], "No such option"),
+        (["synth", "--out", "X", "--width", "abc"], "--width"),
+        (["synth", "--out", "X", "--seed", "-1"], "--seed"),
+        (["synth", "--out", "X", "--width", "100000"], "too large"),
+        (["demo", "--out", "X", "--refine", "fast"], "--refine"),
+    ],
+)
+def test_usage_errors_are_one_line(tiny_seq, tmp_path, args, expect):
+    args = [str(tiny_seq) if a == "SEQ" else str(tmp_path / "out") if a == "X" else a for a in args]
+    assert expect in assert_user_error(cli(*args))
+    assert not (tmp_path / "out").exists()
+
+
+def test_images_too_small_for_snaps_name_the_image(tmp_path):
+    seq = tmp_path / "seq"
+    assert cli("synth", "--out", seq, "--frames", "0:3", "--width", "40", "--height", "40").returncode == 0
+    msg = assert_user_error(cli("run", seq, "--out", tmp_path / "run"), seq / "image_0" / "000000.png", "loop.window")
+    assert "too small" in msg
+    assert not (tmp_path / "run").exists()

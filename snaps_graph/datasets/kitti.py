@@ -157,6 +157,11 @@ class KittiSequence:
         gt = self._gt_all[self.start : self.stop]
         return np.linalg.inv(gt[0]) @ gt
 
+    def frame_source(self, number: int) -> str | None:
+        """The left image file of frame ``number`` (for error messages), None if not in the sequence."""
+        hits = np.flatnonzero(self._numbers == number)
+        return str(self._left[int(hits[0])]) if len(hits) else None
+
     def __getitem__(self, i: int) -> StereoFrame:
         if i < 0:
             i += len(self)
