@@ -17,6 +17,18 @@ def _need(path: Path) -> Path:
 
 
 @pytest.fixture(scope="session")
+def tiny_seq(tmp_path_factory) -> Path:
+    """8 stereo pairs of the built-in loop at 320x96 rendered by the package (KITTI layout, with
+    poses.txt and times.txt): stands in for real data where a test needs any valid sequence."""
+    from snaps_graph.datasets.synthetic import SyntheticSequence, load_trajectory, render_to_folder
+
+    out = tmp_path_factory.mktemp("tiny") / "seq"
+    poses, times = load_trajectory("loop", "0:8")
+    render_to_folder(SyntheticSequence(poses, width=320, height=96, seed=0, times=times), out)
+    return out
+
+
+@pytest.fixture(scope="session")
 def kitti06_dir() -> Path:
     """KITTI 06, frames 0-50, official layout (ground truth at ../../poses/06.txt)."""
     return _need(SHARED_DATA / "kitti" / "sequences" / "06")

@@ -24,7 +24,7 @@ import pytest
 
 from snaps_graph.config import Config
 from snaps_graph.datasets.kitti import KittiSequence
-from snaps_graph.datasets.synthetic import SyntheticSequence, load_trajectory, render_to_folder
+from snaps_graph.datasets.synthetic import SyntheticSequence, load_trajectory
 from snaps_graph.errors import SnapsGraphError
 from snaps_graph.pipeline import SlamPipeline
 from snaps_graph.runner import write_results
@@ -32,7 +32,7 @@ from snaps_graph.types import StereoFrame
 
 ROOT = Path(__file__).resolve().parents[1]
 CLI = [sys.executable, "-m", "snaps_graph.cli"]
-N_FRAMES = 8
+N_FRAMES = 8  # frames of the tiny_seq fixture (conftest.py)
 BINARY = bytes(range(256)) * 4  # not UTF-8, has NUL bytes
 
 
@@ -52,15 +52,6 @@ def assert_user_error(proc: subprocess.CompletedProcess, *names: str | Path) -> 
     for name in names:
         assert str(name) in lines[0], (name, lines[0])
     return lines[0]
-
-
-@pytest.fixture(scope="session")
-def tiny_seq(tmp_path_factory) -> Path:
-    """8 stereo pairs of the built-in loop at 320x96, KITTI layout, with poses.txt and times.txt."""
-    out = tmp_path_factory.mktemp("contract") / "seq"
-    poses, times = load_trajectory("loop", f"0:{N_FRAMES}")
-    render_to_folder(SyntheticSequence(poses, width=320, height=96, seed=0, times=times), out)
-    return out
 
 
 @pytest.fixture

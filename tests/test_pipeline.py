@@ -93,8 +93,8 @@ def test_eval_json_and_table(kitti06_dir, tmp_path):
         (["compare", "/no/run"], "not found"),
     ],
 )
-def test_cli_user_errors_are_one_line(args, expect, kitti06_dir, tmp_path):
-    args = [str(kitti06_dir) if a == "SEQ" else str(tmp_path / "out") if a == "X" else a for a in args]
+def test_cli_user_errors_are_one_line(args, expect, tiny_seq, tmp_path):
+    args = [str(tiny_seq) if a == "SEQ" else str(tmp_path / "out") if a == "X" else a for a in args]
     proc = cli(*args, check=False)
     assert proc.returncode == 2, proc.stderr
     lines = [l for l in proc.stderr.strip().splitlines() if l.strip() and "frame/s" not in l]
@@ -102,9 +102,9 @@ def test_cli_user_errors_are_one_line(args, expect, kitti06_dir, tmp_path):
     assert "Traceback" not in proc.stderr
 
 
-def test_bad_calibration_is_one_line(kitti06_dir, tmp_path):
+def test_bad_calibration_is_one_line(tiny_seq, tmp_path):
     seq = tmp_path / "seq"
-    shutil.copytree(kitti06_dir, seq)
+    shutil.copytree(tiny_seq, seq)
     (seq / "calib.txt").write_text("P0: 1 2 3\n")
     proc = cli("run", str(seq), "--out", str(tmp_path / "o"), check=False)
     assert proc.returncode == 2 and "calib.txt" in proc.stderr and "Traceback" not in proc.stderr
@@ -139,8 +139,8 @@ def test_streaming_with_bad_frames_never_nan(kitti06_dir):
         assert np.all(np.isfinite(poses))
 
 
-def test_duplicate_frame_is_user_error(kitti06_dir):
-    seq = KittiSequence(kitti06_dir, frames="0:2")
+def test_duplicate_frame_is_user_error(tiny_seq):
+    seq = KittiSequence(tiny_seq, frames="0:2")
     pipe = SlamPipeline(seq.camera, Config(), loops="none", refine="none")
     f = seq[0]
     pipe.process(f)
