@@ -465,3 +465,48 @@ def test_images_too_small_for_snaps_name_the_image(tmp_path):
     msg = assert_user_error(cli("run", seq, "--out", tmp_path / "run"), seq / "image_0" / "000000.png", "loop.window")
     assert "too small" in msg
     assert not (tmp_path / "run").exists()
+
+
+# ------------------------------------------------------------------ layout
+# What each part of the package may import from the package (the data's flow: camera -> front end
+# -> loop -> back end -> map -> evaluation; the pipeline runs the stages, the runner does the I/O).
+BASE = {"errors", "types", "config", "io_utils", "geometry", "camera", "trajectory_io"}
+ALLOWED = {
+    "datasets": BASE | {"datasets"},
+    "frontend": BASE | {"frontend"},
+    "loop": BASE | {"loop"},
+    "backend": BASE | {"backend"},
+    "mapping": BASE | {"mapping"},
+    "evaluation": BASE | {"evaluation", "backend"},
+    "pipeline": BASE | {"frontend", "loop", "backend", "mapping"},
+    "runner": BASE | {"pipeline", "evaluation", "mapping"},
+}
+
+
+def _package_imports(path: Path) -> set[str]:
+    """Top-level snaps_graph modules/packages that ``path`` imports (relative or absolute)."""
+    import ast
+
+    pkg_parts = path.relative_to(ROOT / "snaps_graph").parts[:-1]
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = list(pkg_parts[: len(pkg_parts) - node.level + 1])
+                mod = base + (node.module.split(".") if node.module else [])
+                if not mod:  # `from . import x`
+                    mod = [alias.name for alias in node.names][:1]
+            elif node.module and node.module.startswith("snaps_graph."):
+                mod = node.module.split(".")[1:]
+            else:
+                continue
+            out.add(mod[0])
+    return out
+
+
+@pytest.mark.parametrize("part", sorted(ALLOWED))
+def test_imports_follow_the_data_flow(part):
+    files = sorted((ROOT / "snaps_graph" / part).glob("*.py")) if (ROOT / "snaps_graph" / part).is_dir() else [ROOT / "snaps_graph" / f"{part}.py"]
+    for f in files:
+        wrong = _package_imports(f) - ALLOWED[part]
+        assert not wrong, f"{f.relative_to(ROOT)} imports {sorted(wrong)} against the data flow"
