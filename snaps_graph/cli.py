@@ -146,7 +146,10 @@ def eval_(
     from .evaluation.metrics import evaluate
     from .trajectory_io import read_poses
 
-    m = evaluate(read_poses(est), read_poses(gt))
+    est_poses, gt_poses = read_poses(est), read_poses(gt)
+    if len(est_poses) != len(gt_poses):
+        raise_user(f"{est}: {len(est_poses)} poses, but {gt} has {len(gt_poses)} (one pose per frame in both)")
+    m = evaluate(est_poses, gt_poses)
     if as_json:
         from .evaluation.report import json_clean
 

@@ -102,10 +102,13 @@ def output_folder(path: str | Path, overwrite: bool = False) -> Iterator[Path]:
     ``path`` (an old folder, with ``overwrite``, is moved aside first and then deleted), on any
     error or Ctrl-C it is deleted. So ``path`` is either the whole new result or untouched."""
     out = check_output_folder(path, overwrite)
-    out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir()
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir()
+    except OSError as exc:
+        raise SnapsGraphError(f"{exc.filename or tmp}: cannot create the results folder ({exc.strerror or exc})") from None
     old: Path | None = None
     try:
         yield tmp
@@ -118,10 +121,13 @@ def output_folder(path: str | Path, overwrite: bool = False) -> Iterator[Path]:
         os.replace(tmp, out)
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
-    except BaseException:
+    except BaseException as exc:
         shutil.rmtree(tmp, ignore_errors=True)
         if old is not None and not out.exists():  # the swap failed half-way: put the old one back
             os.replace(old, out)
+        if isinstance(exc, OSError):  # disk full, permissions: the user's to fix, not a crash
+            where = exc.filename or out
+            raise SnapsGraphError(f"{where}: cannot write the results ({exc.strerror or exc}); {out} left as it was") from None
         raise
 
 

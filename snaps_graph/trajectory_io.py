@@ -14,6 +14,8 @@ import numpy as np
 from .errors import SnapsGraphError
 from .io_utils import atomic_write_text, read_text
 
+ROTATION_TOLERANCE = 1e-2  # max |R R^T - I| of a KITTI pose line's rotation
+
 
 def read_kitti_poses(path: str | Path) -> np.ndarray:
     path = Path(path)
@@ -31,10 +33,18 @@ def read_kitti_poses(path: str | Path) -> np.ndarray:
         T[:3, :4] = np.array(vals).reshape(3, 4)
         if not np.all(np.isfinite(T)):
             raise SnapsGraphError(f"{path}:{lineno}: non-finite pose")
+        _check_rotation(T[:3, :3], f"{path}:{lineno}")
         poses.append(T)
     if not poses:
         raise SnapsGraphError(f"{path}: no poses")
     return np.array(poses)
+
+
+def _check_rotation(R: np.ndarray, where: str) -> None:
+    """A pose line's 3x3 part must be a rotation (loosely: files hold 6-9 digits)."""
+    err = float(np.abs(R @ R.T - np.eye(3)).max())
+    if err > ROTATION_TOLERANCE or np.linalg.det(R) < 0:
+        raise SnapsGraphError(f"{where}: the 3x3 part is not a rotation (|R R^T - I| = {err:.3g}, det = {np.linalg.det(R):.3g})")
 
 
 def kitti_text(poses: np.ndarray) -> str:

@@ -510,3 +510,36 @@ def test_imports_follow_the_data_flow(part):
     for f in files:
         wrong = _package_imports(f) - ALLOWED[part]
         assert not wrong, f"{f.relative_to(ROOT)} imports {sorted(wrong)} against the data flow"
+
+
+def test_eval_lengths_differ_names_both_files(tmp_path, tiny_seq):
+    short = tmp_path / "short.txt"
+    short.write_text("".join((tiny_seq / "poses.txt").read_text().splitlines(keepends=True)[:3]))
+    assert_user_error(cli("eval", short, "--gt", tiny_seq / "poses.txt"), short, tiny_seq / "poses.txt")
+
+
+def test_pose_file_without_rotations_is_refused(tmp_path):
+    zeros = tmp_path / "zeros.txt"
+    zeros.write_text("0 0 0 0 0 0 0 0 0 0 0 0\n" * 3)
+    assert "not a rotation" in assert_user_error(cli("eval", zeros, "--gt", zeros), f"{zeros}:1")
+
+
+def test_results_that_cannot_be_written_leave_nothing(tiny_seq, tmp_path, monkeypatch):
+    """Disk full (or any OSError) while writing: one-line error, no folder, no temporary folder."""
+    import errno
+
+    import snaps_graph.runner as runner
+
+    seq = KittiSequence(tiny_seq, frames="0:3")
+    pipe = SlamPipeline(seq.camera, Config(), loops="none", refine="none")
+    for f in seq:
+        pipe.process(f)
+    result = pipe.finish()
+
+    def full(path, records):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(runner, "write_frames_csv", full)
+    with pytest.raises(SnapsGraphError, match="frames.csv: cannot write the results .No space left"):
+        write_results(tmp_path / "run", pipe, result)
+    assert list(tmp_path.iterdir()) == []
