@@ -94,7 +94,11 @@ def run(
         help="Batch refinement: level-vehicle prior on every frame's attitude (default from config: off).",
     ),
 ) -> None:
-    """Run stereo VO (+ SNAPS, + graph refinement, + map) over a sequence and write a results folder."""
+    """Run stereo VO (+ SNAPS, + graph refinement, + map) over a sequence and write a results folder.
+
+    The folder is written whole at the end (or not at all). Exit status: 0 done; 2 bad input (one
+    `error:` line); 3 done, but more than half of the frames were flagged; 130 interrupted.
+    """
     _check_choice("--loops", loops, LoopMode)
     _check_choice("--refine", refine, RefineMode)
     _check_choice("--mode", mode, FrontendMode)

@@ -545,4 +545,5 @@ def _check_value(value: Any, hint: Any, rule: Range | None, where: str) -> None:
     else:
         return  # a section or a string
     if rule is not None and not rule.ok(value):
-        raise SnapsGraphError(f"{where} must be {rule.describe()}, got {value!r}")
+        shown = f"{value:.10g}" if isinstance(value, float) else repr(value)
+        raise SnapsGraphError(f"{where} must be {rule.describe()}, got {shown}")
