@@ -14,6 +14,7 @@ from .config import Config
 from .datasets.kitti import KittiSequence
 from .datasets.synthetic import SyntheticSequence, builtin_loop_trajectory, render_to_folder
 from .evaluation.report import compare_run
+from .io_utils import output_folder
 from .runner import run_sequence
 
 
@@ -24,7 +25,8 @@ def run_demo(out: str | Path, frames: int = 300, width: int = 1241, height: int 
     t0 = time.perf_counter()
     poses = builtin_loop_trajectory(frames)
     synth = SyntheticSequence(poses, width=width, height=height, seed=0)
-    _with_bar(progress, len(synth), "render", lambda cb: render_to_folder(synth, seq_dir, progress=cb, overwrite=True))
+    with output_folder(seq_dir, overwrite=True) as tmp:  # the demo's own folders: replaced whole
+        _with_bar(progress, len(synth), "render", lambda cb: render_to_folder(synth, tmp, progress=cb))
     t_render = time.perf_counter() - t0
 
     seq = KittiSequence(seq_dir)
