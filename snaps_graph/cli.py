@@ -1,4 +1,4 @@
-"""Command line: ``snaps-graph synth | run | eval | compare | demo | config``.
+"""Command line: ``snaps-graph synth | run | convert | eval | compare | demo | config``.
 
 Thin: each command parses its options, calls the package and prints. Exit status: 0 done; 2 a
 user error (``SnapsGraphError``: one line ``error: ...`` naming the file, never a traceback; also
@@ -78,12 +78,15 @@ def synth(
 
 @app.command()
 def run(
-    seq_dir: Path = typer.Argument(..., help="A KITTI-format sequence folder (image_0/, image_1/, calib.txt)."),
+    seq_dir: Path = typer.Argument(..., help="A KITTI folder (image_0/, image_1/, calib.txt), a EuRoC mav0/ folder, a ROS 1 .bag, a ROS 2 bag folder or .mcap, or live:DEV[,DEV]."),
     out: Path = typer.Option(..., "--out", help="Results folder."),
     frames: Optional[str] = typer.Option(None, "--frames", help="Frame range A:B (A included, B excluded)."),
     config: Optional[Path] = typer.Option(None, "--config", help="A TOML config (see `snaps-graph config`)."),
     gt: Optional[Path] = typer.Option(None, "--gt", help="Ground-truth poses (default: SEQ/poses.txt or ROOT/poses/XX.txt)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty OUT folder (whole, at the end of the run)."),
+    left_topic: Optional[str] = typer.Option(None, "--left-topic", help="ROS bag: left image topic (default: found by name)."),
+    right_topic: Optional[str] = typer.Option(None, "--right-topic", help="ROS bag: right image topic (default: found by name)."),
+    calib: Optional[Path] = typer.Option(None, "--calib", help="live:DEV, or a bag without CameraInfo: calib.txt of rectified cameras, or a folder with cam0/ and cam1/ sensor.yaml."),
     loops: Optional[str] = typer.Option(None, "--loops", help="snaps | none (default from config: snaps)."),
     refine: Optional[str] = typer.Option(None, "--refine", help="none | isam2 | batch | both (default from config: none)."),
     map_: Optional[bool] = typer.Option(None, "--map/--no-map", help="Build the point-cloud map (default from config: off)."),
@@ -93,6 +96,8 @@ def run(
         None, "--gravity-prior/--no-gravity-prior",
         help="Batch refinement: level-vehicle prior on every frame's attitude (default from config: off).",
     ),
+    viewer: bool = typer.Option(False, "--viewer", help="Spawn the rerun viewer and stream the run to it (needs rerun-sdk)."),
+    rrd: Optional[Path] = typer.Option(None, "--rrd", help="Record the run to a rerun .rrd file (needs rerun-sdk)."),
 ) -> None:
     """Run stereo VO (+ SNAPS, + graph refinement, + map) over a sequence and write a results folder.
 
@@ -114,12 +119,18 @@ def run(
     check_output_folder(out, overwrite)
     if _inside(seq_dir, out):
         raise_user(f"{out}: --out would replace the input sequence {seq_dir}")
-    from .datasets.kitti import KittiSequence  # the heavy imports (OpenCV, gtsam) after the checks
+    from .datasets.open import open_dataset  # the heavy imports (OpenCV, gtsam) after the checks
     from .runner import mostly_flagged, run_sequence
 
-    seq = KittiSequence(seq_dir, frames=frames, gt=gt)
+    seq = open_dataset(seq_dir, frames=frames, gt=gt, left_topic=left_topic, right_topic=right_topic, calib=calib)
+    _print_notes(seq)
+    observer = None
+    if viewer or rrd is not None:
+        from .viz.rerun_logger import RerunLogger
+
+        observer = RerunLogger(seq.camera, spawn=viewer, rrd=rrd, name=str(seq_dir), gt_poses=seq.gt_poses)
     n_loops = 0
-    with _progress(len(seq), "slam") as bar:
+    with _progress(len(seq) or None, "slam") as bar:
 
         def on_frame(o):
             nonlocal n_loops
@@ -127,9 +138,19 @@ def run(
             bar.set_postfix(loops=n_loops, refresh=False)
             bar.update(1)
 
-        result, metrics = run_sequence(
-            seq, out, cfg, loops=loops, refine=refine, build_map=map_, overwrite=overwrite, on_frame=on_frame
-        )
+        try:
+            result, metrics = run_sequence(
+                seq, out, cfg, loops=loops, refine=refine, build_map=map_, overwrite=overwrite, on_frame=on_frame,
+                observer=observer,
+            )
+        except BaseException:
+            if observer is not None:
+                observer.abort()  # no half-written recording
+            raise
+    if observer is not None:
+        observer.close()
+        if rrd is not None:
+            typer.echo(f"rerun recording in {rrd}")
     _print_summary(metrics, out)
     if mostly_flagged(metrics):
         print(
@@ -138,6 +159,37 @@ def run(
             file=sys.stderr,
         )
         raise typer.Exit(EXIT_MOSTLY_FLAGGED)
+
+
+@app.command()
+def convert(
+    src: Path = typer.Argument(..., help="Any readable source: KITTI folder, EuRoC mav0/ folder, ROS 1/2 bag, live:DEV[,DEV]."),
+    out: Path = typer.Option(..., "--out", help="KITTI folder to write (image_0/, image_1/, calib.txt, times.txt, poses.txt when known)."),
+    frames: Optional[str] = typer.Option(None, "--frames", help="Frame range A:B (A included, B excluded)."),
+    gt: Optional[Path] = typer.Option(None, "--gt", help="Ground truth of the source (EuRoC state csv; KITTI poses for a bag)."),
+    left_topic: Optional[str] = typer.Option(None, "--left-topic", help="ROS bag: left image topic (default: found by name)."),
+    right_topic: Optional[str] = typer.Option(None, "--right-topic", help="ROS bag: right image topic (default: found by name)."),
+    calib: Optional[Path] = typer.Option(None, "--calib", help="live:DEV, or a bag without CameraInfo: calib.txt, or a folder with cam0/ and cam1/ sensor.yaml."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty OUT folder (whole, at the end)."),
+) -> None:
+    """Write any readable source as a KITTI folder of rectified pairs."""
+    check_output_folder(out, overwrite)
+    if _inside(src, out):
+        raise_user(f"{out}: --out would replace the input {src}")
+    from .datasets.convert import write_kitti_folder
+    from .datasets.open import open_dataset
+
+    seq = open_dataset(src, frames=frames, gt=gt, left_topic=left_topic, right_topic=right_topic, calib=calib)
+    _print_notes(seq)
+    with _progress(len(seq) or None, "convert") as bar, output_folder(out, overwrite) as tmp:  # whole or absent
+        n = write_kitti_folder(seq, tmp, progress=lambda: bar.update(1), overwrite=True)
+    typer.echo(f"wrote {n} stereo pairs to {out}" + (" with poses.txt" if seq.gt_poses is not None else ""))
+
+
+def _print_notes(seq) -> None:
+    """What a reader dropped or assumed (unpaired images, frames without ground truth)."""
+    for note in getattr(seq, "notes", ()):
+        typer.echo(f"note: {note}", err=True)
 
 
 @app.command("eval")

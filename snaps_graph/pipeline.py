@@ -103,6 +103,9 @@ class SlamPipeline:
         self.loops: list[LoopEvent] = []
         self.records: list[FrameRecord] = []
         self._t_start = time.perf_counter()
+        # Optional observer (the rerun logger): on_frame(pipeline, frame, output) after each
+        # frame, on_finish(pipeline, result) at the end. None: nothing is called.
+        self.observer = None
 
     # ---- streaming ----
     def check_frame(self, frame: StereoFrame) -> None:
@@ -194,7 +197,10 @@ class SlamPipeline:
             est = self.graph.estimate(k)
             if np.all(np.isfinite(est)):
                 pose = est
-        return FrameOutput(k, int(frame.index), pose, vo, loop)
+        output = FrameOutput(k, int(frame.index), pose, vo, loop)
+        if self.observer is not None:
+            self.observer.on_frame(self, frame, output)
+        return output
 
     def _verify(self, ref_index: int, vo: VOResult):
         """Geometric verification of a SNAPS loop: PnP from the reference frame's 3D points to
@@ -247,7 +253,7 @@ class SlamPipeline:
         for name, poses in trajs.items():
             if not np.all(np.isfinite(poses)):  # never a NaN pose in any output
                 raise RuntimeError(f"internal error: non-finite pose in the {name} trajectory")
-        return RunResult(
+        result = RunResult(
             trajectories=trajs,
             loops=list(self.loops),
             records=list(self.records),
@@ -257,6 +263,9 @@ class SlamPipeline:
             graph_stats=self.graph.stats.summary(),
             wall_s=time.perf_counter() - self._t_start,
         )
+        if self.observer is not None:
+            self.observer.on_finish(self, result)
+        return result
 
     @property
     def frame_ids(self) -> list[int]:

@@ -57,14 +57,17 @@ def run_sequence(
     build_map: bool | None = None,
     overwrite: bool = False,
     on_frame: Callable[[FrameOutput], None] | None = None,
+    observer=None,
 ) -> tuple[RunResult, dict]:
-    """Run a whole dataset (KittiSequence or SyntheticSequence) and write the results folder.
+    """Run a whole dataset (any reader of ``datasets.open.open_dataset``) and write the results
+    folder. ``observer``: see ``SlamPipeline.observer`` (the rerun logger).
 
     Everything that can be checked before the first frame is: the configuration (with the
     overrides) and the output folder."""
     (cfg or Config()).resolved(loops=loops, refine=refine, build_map=build_map)
     check_output_folder(out_dir, overwrite)
     pipe = SlamPipeline(dataset.camera, cfg, loops=loops, refine=refine, build_map=build_map)
+    pipe.observer = observer
     for frame in dataset:
         try:
             out = pipe.process(frame)
