@@ -37,7 +37,7 @@ EXIT_MOSTLY_FLAGGED = 3
 EXIT_INTERRUPTED = 130
 
 
-def _progress(total: int, desc: str):
+def _progress(total: int | None, desc: str):
     # disable=None: no bar when stderr is not a terminal (logs and pipes get only the summary)
     return tqdm(total=total, desc=desc, unit="frame", dynamic_ncols=True, file=sys.stderr, mininterval=0.5, disable=None)
 

@@ -22,7 +22,6 @@ from snaps_graph.runner import run_sequence
 
 sys.path.insert(0, str(Path(__file__).parent))
 from bagutil import make_image, write_stereo_bag  # noqa: E402
-
 from conftest import SHARED_DATA, _need  # noqa: E402
 
 CLI = [sys.executable, "-m", "snaps_graph.cli"]
@@ -460,9 +459,10 @@ def test_viewer_without_display_is_one_line(kitti06_dir, tmp_path):
 
 def test_no_flag_no_rerun(kitti06_dir, tmp_path):
     """Without --viewer/--rrd the run never imports rerun (logging costs nothing)."""
+    argv = ["snaps-graph", "run", str(kitti06_dir), "--out", str(tmp_path / "o"), "--frames", "0:3"]
     code = (
-        "import sys; from snaps_graph.cli import main; sys.argv=['snaps-graph','run',%r,'--out',%r,'--frames','0:3'];\n"
+        f"import sys; from snaps_graph.cli import main; sys.argv={argv!r}\n"
         "try:\n    main()\nexcept SystemExit:\n    pass\nprint('RERUN' if 'rerun' in sys.modules else 'CLEAN')"
-    ) % (str(kitti06_dir), str(tmp_path / "o"))
+    )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert proc.stdout.strip().splitlines()[-1] == "CLEAN", proc.stdout + proc.stderr

@@ -8,15 +8,15 @@ rectified left camera). Every file is written atomically.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import cv2
 import numpy as np
 
 from ..errors import SnapsGraphError
-from ..trajectory_io import write_kitti_poses, write_times
 from ..io_utils import atomic_write_bytes
+from ..trajectory_io import write_kitti_poses, write_times
 
 
 def write_kitti_folder(dataset, out_dir: str | Path, progress: Callable[[], object] | None = None, overwrite: bool = False) -> int:

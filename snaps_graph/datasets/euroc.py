@@ -18,13 +18,13 @@ ground truth's time span are dropped (noted). Frame indices are pair numbers.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
 from ..errors import SnapsGraphError
-from ..io_utils import parse_frame_range
+from ..io_utils import parse_frame_range, read_text
 from ..types import StereoFrame
 from .kitti import read_grey
 from .rectify import StereoRectifier, interpolate_poses, match_stamps
@@ -43,9 +43,7 @@ def read_sensor_yaml(path: Path) -> dict:
     """A EuRoC camera ``sensor.yaml`` as K (3x3), D (4,), T_BS (4x4), size (w, h)."""
     import yaml
 
-    if not path.is_file():
-        raise SnapsGraphError(f"{path}: camera calibration not found")
-    text = "\n".join(l for l in path.read_text(errors="replace").splitlines() if not l.startswith("%"))
+    text = "\n".join(l for l in read_text(path, "camera calibration").splitlines() if not l.startswith("%"))
     try:
         d = yaml.safe_load(text)
     except yaml.YAMLError as exc:
@@ -88,11 +86,10 @@ def read_sensor_yaml(path: Path) -> dict:
 
 def read_image_list(csv_path: Path) -> tuple[np.ndarray, list[Path], int]:
     """(stamps ns, image paths, number listed but missing) from a EuRoC ``data.csv``."""
-    if not csv_path.is_file():
-        raise SnapsGraphError(f"{csv_path}: image list not found")
+    text = read_text(csv_path, "image list")
     stamps, files, missing = [], [], 0
     folder = csv_path.parent / "data"
-    for lineno, line in enumerate(csv_path.read_text(errors="replace").splitlines(), 1):
+    for lineno, line in enumerate(text.splitlines(), 1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
@@ -109,21 +106,19 @@ def read_image_list(csv_path: Path) -> tuple[np.ndarray, list[Path], int]:
             continue
         stamps.append(t)
         files.append(f)
-    t = np.array(stamps, np.int64)
-    if len(t) > 1 and np.any(np.diff(t) <= 0):
-        order = np.argsort(t, kind="stable")
-        t, files = t[order], [files[i] for i in order]
-        if np.any(np.diff(t) == 0):
+    ts = np.array(stamps, np.int64)
+    if len(ts) > 1 and np.any(np.diff(ts) <= 0):
+        order = np.argsort(ts, kind="stable")
+        ts, files = ts[order], [files[i] for i in order]
+        if np.any(np.diff(ts) == 0):
             raise SnapsGraphError(f"{csv_path}: repeated timestamps")
-    return t, files, missing
+    return ts, files, missing
 
 
 def read_euroc_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(t ns, positions (N,3), quaternions wxyz (N,4)) of the body from a EuRoC state csv."""
-    if not path.is_file():
-        raise SnapsGraphError(f"{path}: ground-truth file not found")
     rows = []
-    for lineno, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
+    for lineno, line in enumerate(read_text(path, "ground-truth").splitlines(), 1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
@@ -195,9 +190,7 @@ class EurocSequence:
                 stamps, lefts, rights = stamps[keep], [lefts[i] for i in keep], [rights[i] for i in keep]
             T_W_B = interpolate_poses((tg - tg[0]) * 1e-9, pg, qg, (stamps - tg[0]) * 1e-9)
             gt_all = self.rectifier.rect_pose(T_W_B @ self.T_BS0)
-            self.gt_path = gt_path
-        else:
-            self.gt_path = None
+        self.gt_path: Path | None = gt_path if gt_all is not None else None
         self._gt_all = gt_all
         self._stamps_ns = stamps
         self._times_all = (stamps - stamps[0]) * 1e-9  # seconds from the first pair

@@ -14,7 +14,7 @@ device, left half = left camera); a device is an integer index or a URL/file Ope
 from __future__ import annotations
 
 import time
-from typing import Iterator
+from collections.abc import Iterator
 
 import numpy as np
 

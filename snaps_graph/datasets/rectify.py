@@ -29,6 +29,8 @@ class StereoRectifier:
         self._map_l, self._map_r = map_left, map_right
         self.camera = camera
         self.R_rect_raw = np.asarray(R_rect_raw, float)
+        # What a ROS CameraInfo of each raw camera would carry: ((K, D, R, P) left, (K, D, R, P) right).
+        self.info: tuple = ()
 
     @classmethod
     def from_calibration(
@@ -76,7 +78,6 @@ class StereoRectifier:
                 )
             )
         rect = cls(maps[0], maps[1], camera, np.asarray(R0, float).reshape(3, 3))
-        # What a ROS CameraInfo of each raw camera would carry: K, D, R, P.
         rect.info = tuple(
             tuple(np.asarray(m, float).reshape(-1) for m in (K, D, R, P)) for K, D, R, P in ((K0, D0, R0, P0), (K1, D1, R1, P1))
         )

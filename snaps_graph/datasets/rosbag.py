@@ -20,8 +20,8 @@ reader through the ``rosbags`` library (pure Python, no ROS install; the ``bags`
 from __future__ import annotations
 
 import re
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import cv2
 import numpy as np

@@ -199,7 +199,7 @@ class RerunLogger:
         except Exception as exc:
             print(f"warning: rerun: {str(exc).strip().splitlines()[0]}", file=sys.stderr)
         self.rec.disconnect()
-        if self._rrd_tmp is not None:
+        if self._rrd_tmp is not None and self._rrd is not None:
             os.replace(self._rrd_tmp, self._rrd)
             self._rrd_tmp = None
 
