@@ -55,9 +55,10 @@ def synth(
     exposure: float = typer.Option(0.0, "--exposure", help="Exposure change between passes (0 = none)."),
     depth: bool = typer.Option(False, "--depth/--no-depth", help="Also write exact depth of the left camera (depth_0/, uint16 mm)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty OUT folder (whole)."),
+    scene: str = typer.Option("street", "--scene", help="street (buildings from 5 m) | open (fields, trees and farms 30-200 m away) | mixed (alternating stretches)."),
 ) -> None:
     """Render a synthetic stereo sequence along a trajectory, in KITTI layout."""
-    from .datasets.synthetic import SyntheticSequence, load_trajectory, render_to_folder
+    from .datasets.synthetic import SCENES, SyntheticSequence, WorldConfig, load_trajectory, render_to_folder
 
     if width < 32 or height < 32:
         raise_user(f"--width/--height too small: {width}x{height}")
@@ -65,12 +66,16 @@ def synth(
         raise_user(f"--width/--height too large: {width}x{height}")
     if seed < 0:
         raise_user(f"--seed must be >= 0, not {seed}")
+    if scene not in SCENES:
+        raise_user(f"--scene '{scene}' is not one of {', '.join(SCENES)}")
     check_output_folder(out, overwrite)
     for given in (Path(trajectory), times):
         if given is not None and given.exists() and _inside(given, out):
             raise_user(f"{out}: --out would replace the input {given}")
+    world = WorldConfig(scene=scene)
     poses, ts = load_trajectory(trajectory, frames, times=str(times) if times else None)
-    seq = SyntheticSequence(poses, width=width, height=height, seed=seed, noise_std=noise, exposure_change=exposure, times=ts)
+    seq = SyntheticSequence(poses, width=width, height=height, seed=seed, noise_std=noise, exposure_change=exposure, times=ts,
+                            world_config=world)
     with _progress(len(seq), "render") as bar, output_folder(out, overwrite) as tmp:
         render_to_folder(seq, tmp, progress=lambda *_: bar.update(1), write_depth=depth, overwrite=True)
     typer.echo(f"wrote {len(seq)} stereo pairs to {out}")

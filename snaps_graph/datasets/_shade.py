@@ -27,7 +27,7 @@ import threading
 import cv2
 import numpy as np
 
-from ._world import BACKDROP, FACADE, GROUND, SKY, World
+from ._world import BACKDROP, FACADE, GROUND, SKY, TREE, World
 
 TILE = 256  # noise tile side, cells
 CHUNK = 24576  # pixels shaded at a time: 96 KB float32 temporaries (see Renderer)
@@ -194,7 +194,7 @@ class Renderer:
 
         # Texture coordinates (m): along / up a vertical face, or world (x, z) on the ground and
         # roofs, with a per-surface random offset (see _world.MAIN_FIELDS).
-        vertical = (kind == FACADE) | (kind == BACKDROP)
+        vertical = (kind == FACADE) | (kind == BACKDROP) | (kind == TREE)
         tu = px * tu_x + pz * tu_z + tu_c
         tv = np.where(vertical, -py, pz) + tv_c
         noise = self.noise.fbm(tu, tv, inv_fp)
@@ -206,7 +206,13 @@ class Renderer:
             albedo[fi] += self._facade(np.take(F.detail, np.take(face, fi), axis=1), *sub)
         gi = np.flatnonzero(kind == GROUND)
         if gi.size:
-            albedo[gi] += self._ground(np.take(px, gi), np.take(pz, gi), np.take(inv_fp, gi))
+            gx, gz, gfp = np.take(px, gi), np.take(pz, gi), np.take(inv_fp, gi)
+            if world.ground_dist is None:
+                albedo[gi] += self._ground(gx, gz, gfp)
+            else:
+                # the footprint along the ray (grazing ground), for patterns that alias first
+                gfp_min = gfp * np.sqrt(np.maximum(np.take(cos_i, gi), f32(0.05)))
+                albedo[gi] += self._open_ground(gx, gz, gfp, gfp_min, np.take(noise, gi), np.take(albedo, gi))
 
         # Light: ambient + Lambertian from the sun, normals turned towards the camera: a face
         # is sunlit when it and the sun lie on the same side of it as the viewer.
@@ -273,3 +279,43 @@ class Renderer:
         patch = _edge((pn - f32(1.0)) * edge_m, inv_fp)
         stain = _edge((f32(-1.2) - pn) * edge_m, inv_fp)
         return stain * f32(0.12) - patch * f32(0.1)
+
+    def _open_ground(self, px, pz, inv_fp, inv_fp_min, noise, albedo):
+        """Albedo change on the ground of open stretches: asphalt with a white edge line within
+        ``road_half_width_m`` of the path, a grass verge, then field parcels (meadows and
+        ploughed or cropped fields whose rows fade to their mean once under ~2 px apart, like
+        any texture here; rows use the footprint along the ray, ``inv_fp_min`` px/m, as they
+        alias first). Street stretches of a mixed world keep the street ground."""
+        f32 = np.float32
+        w = self.world
+        cfg = w.config
+        inv_cell = f32(1.0 / w.raster_cell)
+        gx = ((px - f32(w.raster_lo[0])) * inv_cell).reshape(1, -1)
+        gz = ((pz - f32(w.raster_lo[1])) * inv_cell).reshape(1, -1)
+        d = cv2.remap(w.ground_dist, gx, gz, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(-1)
+        street = self._ground(px, pz, inv_fp)
+        rw, verge_m = f32(cfg.road_half_width_m), f32(cfg.verge_m)
+        on_road = _edge(rw - d, inv_fp)
+        in_field = _edge(d - (rw + verge_m), inv_fp)
+        verge = np.clip(f32(1.0) - on_road - in_field, f32(0.0), f32(1.0))
+        line = _edge(f32(0.075) - np.abs(d - (rw - f32(0.3))), inv_fp)
+        # Field parcels on a rotated grid; per parcel (hash): brightness, row direction and
+        # spacing, rows or none (meadow).
+        c, s = f32(0.8), f32(0.6)
+        u = px * c + pz * s
+        v = pz * c - px * s
+        fu, fv = (f32(x) for x in self.world.config.field_size_m)
+        iu, iv = np.floor(u / fu), np.floor(v / fv)
+        h1, h2, h3 = _hash(iu, iv, np.full_like(iu, 11)), _hash(iu, iv, np.full_like(iu, 12)), _hash(iu, iv, np.full_like(iu, 13))
+        spacing = f32(0.5) + f32(1.2) * h3
+        rows = np.cos(np.where(h2 < f32(0.5), u, v) * (f32(2 * np.pi) / spacing))
+        fade = np.clip(spacing * inv_fp_min * f32(0.25) - f32(0.5), f32(0.0), f32(1.0))
+        crop = np.where(h2 < f32(0.8), f32(0.13), f32(0.0))  # 20 % meadows without rows
+        field = f32(0.22) + f32(0.32) * h1 + crop * fade * rows + f32(0.05) * noise
+        grass = f32(0.30) + f32(0.08) * noise
+        open_delta = (on_road * street + verge * (grass - albedo) + in_field * (field - albedo)
+                      + line * (f32(0.85) - albedo - on_road * street))
+        if w.open_map is None:
+            return open_delta
+        op = cv2.remap(w.open_map, gx, gz, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(-1)
+        return street + op * (open_delta - street)

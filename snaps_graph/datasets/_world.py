@@ -33,8 +33,17 @@ import numpy as np
 from ..errors import SnapsGraphError
 
 # Face kinds (the shader switches on these).
-GROUND, FACADE, ROOF, BACKDROP = 0, 1, 2, 3
+GROUND, FACADE, ROOF, BACKDROP, TREE = 0, 1, 2, 3, 4
 SKY = 255  # a pixel with no hit
+
+# Scene presets (``WorldConfig.scene``):
+# * ``street``: the street canyon above (buildings from 5 m, a second row from ~31 m);
+# * ``open``: an open road: a 7 m asphalt road with edge lines, grass verges, field parcels with
+#   crop rows (fading with distance like any texture, see ``_shade``), tree lines (parallel and
+#   perpendicular to the road) and farm buildings ``open_distance_m`` (30-200 m) from every part
+#   of the path, delineator posts every ~50 m at the verge, hills ~450 m beyond the path;
+# * ``mixed``: stretches of ``stretch_m`` (150-400 m of path) alternating between the two.
+SCENES = ("street", "open", "mixed")
 
 
 @dataclass
@@ -64,6 +73,23 @@ class WorldConfig:
     path_step_m: float = 1.0  # the path is resampled at this arc-length step
     extend_m: float = 80.0  # the street continues straight this far beyond both path ends
     occupancy_cell_m: float = 0.5  # raster cell for the corridor and overlap checks
+    # -- scene (see SCENES) --
+    scene: str = "street"  # street | open | mixed
+    road_half_width_m: float = 3.5  # open: asphalt within this of the path (edge line just inside)
+    verge_m: float = 2.5  # open: grass verge between the road and the fields
+    open_distance_m: tuple[float, float] = (30.0, 200.0)  # open: trees and buildings this far from the path
+    open_ground_margin_m: float = 450.0  # open: ground (fields) and hills this far beyond the path
+    open_post_spacing_m: float = 50.0  # open: mean spacing of delineator posts at the verge
+    tree_line_spacing_m: float = 70.0  # open: mean arc length between tree lines, per side
+    tree_spacing_m: tuple[float, float] = (4.0, 9.0)  # open: between trees of a line
+    tree_line_length_m: tuple[float, float] = (50.0, 250.0)
+    tree_height_m: tuple[float, float] = (7.0, 18.0)
+    crown_radius_m: tuple[float, float] = (2.0, 4.5)
+    farm_spacing_m: float = 160.0  # open: mean arc length between groups of farm buildings, per side
+    farm_frontage_m: tuple[float, float] = (10.0, 40.0)
+    farm_height_m: tuple[float, float] = (4.0, 14.0)
+    field_size_m: tuple[float, float] = (50.0, 140.0)  # open: field parcels (two grid spacings)
+    stretch_m: tuple[float, float] = (150.0, 400.0)  # mixed: length of each street / open stretch
 
 
 # Per-face attributes the shader reads, packed as rows of two float32 blocks so that one
@@ -113,7 +139,7 @@ class Box:
     ground_y: float  # ground level at the footprint (y down)
     bottom_y: float  # buried bottom (below the lowest ground under the footprint)
     height: float
-    style: str  # "building" | "wall" | "post"
+    style: str  # "building" | "wall" | "post" | "farm"
 
 
 class World:
@@ -124,6 +150,8 @@ class World:
         import open3d as o3d  # lazily: only the renderer needs it
 
         self.config = cfg = config or WorldConfig()
+        if cfg.scene not in SCENES:
+            raise SnapsGraphError(f"synthetic world: scene '{cfg.scene}' is not one of {', '.join(SCENES)}")
         positions = np.asarray(positions, dtype=np.float64)
         if positions.ndim != 2 or positions.shape[1] != 3 or len(positions) == 0:
             raise SnapsGraphError("synthetic world: need an (N, 3) array of camera positions")
@@ -131,36 +159,41 @@ class World:
         ground_pts = positions + cfg.camera_height_m * np.asarray(down_axes, dtype=np.float64)
         self.samples, self.tangents, self.sample_ground_y = _resample_path(
             positions, ground_pts[:, 1], cfg.path_step_m, cfg.extend_m)
+        # Per path sample: does it lie in an open stretch? (None: all street, today's world.)
+        self.sample_open = self._stretches()
+        self.ground_dist = self.open_map = None  # open scenes: rasters the ground shader reads
 
         verts: list[np.ndarray] = []
         tris: list[np.ndarray] = []
         tri_face: list[np.ndarray] = []
         rows: list[dict] = []
+        n_vert = 0
+
+        def add(v: np.ndarray, t: np.ndarray, f: np.ndarray, new_rows: list[dict]) -> None:
+            nonlocal n_vert
+            verts.append(v)
+            tris.append(t + n_vert)
+            tri_face.append(f)
+            rows.extend(new_rows)
+            n_vert += len(v)
 
         # -- ground --
         gv, gt = self._build_ground()
-        verts.append(gv)
-        tris.append(gt)
-        tri_face.append(np.zeros(len(gt), np.int32))
-        rows.append(self._face_row(GROUND, np.zeros(3), np.array([1.0, 0.0, 0.0]), albedo=0.36, noise_amp=0.11))
-        n_vert = len(gv)
+        add(gv, gt, np.zeros(len(gt), np.int32),
+            [self._face_row(GROUND, np.zeros(3), np.array([1.0, 0.0, 0.0]), albedo=0.36, noise_amp=0.11)])
 
         # -- boxes --
         self.boxes = self._place_boxes()
+        self.trees: list[tuple[float, float, float, float]] = []  # (x, z, height, crown radius)
+        if self.sample_open is not None:
+            self._place_open()
         for box in self.boxes:
-            bv, bt, bf, brows = self._box_mesh(box, len(rows))
-            verts.append(bv)
-            tris.append(bt + n_vert)
-            tri_face.append(bf)
-            rows.extend(brows)
-            n_vert += len(bv)
+            add(*self._box_mesh(box, len(rows)))
+        for tree in self.trees:
+            add(*self._tree_mesh(*tree, len(rows)))
 
         # -- backdrop --
-        dv, dt, df, drows = self._backdrop_mesh(len(rows))
-        verts.append(dv)
-        tris.append(dt + n_vert)
-        tri_face.append(df)
-        rows.extend(drows)
+        add(*self._backdrop_mesh(len(rows)))
 
         self.vertices = np.concatenate(verts).astype(np.float32)
         self.triangles = np.concatenate(tris).astype(np.uint32)
@@ -173,12 +206,31 @@ class World:
         # from several render threads never race on the lazy commit.
         self.scene.cast_rays(o3d.core.Tensor(np.array([[0, -1e4, 0, 0, 1, 0]], np.float32)))
 
+    def _stretches(self) -> np.ndarray | None:
+        """Per path sample, True in an open stretch: all for ``open``, alternating for ``mixed``."""
+        cfg = self.config
+        if cfg.scene == "street":
+            return None
+        n = len(self.samples)
+        if cfg.scene == "open":
+            return np.ones(n, bool)
+        out = np.zeros(n, bool)
+        is_open = bool(self.rng.random() < 0.5)
+        k = 0
+        while k < n:
+            m = int(round(self.rng.uniform(*cfg.stretch_m) / cfg.path_step_m))
+            out[k:k + max(m, 1)] = is_open
+            k += max(m, 1)
+            is_open = not is_open
+        return out
+
     # ------------------------------------------------------------------ ground
     def _build_ground(self) -> tuple[np.ndarray, np.ndarray]:
         cfg = self.config
         cell = cfg.ground_cell_m
-        lo = self.samples.min(0) - cfg.ground_margin_m
-        hi = self.samples.max(0) + cfg.ground_margin_m
+        margin = cfg.ground_margin_m if self.sample_open is None else max(cfg.ground_margin_m, cfg.open_ground_margin_m)
+        lo = self.samples.min(0) - margin
+        hi = self.samples.max(0) + margin
         nx = int(np.ceil((hi[0] - lo[0]) / cell)) + 1
         nz = int(np.ceil((hi[1] - lo[1]) / cell)) + 1
         self.ground_origin = lo
@@ -260,6 +312,8 @@ class World:
         s_total = len(self.samples) * cfg.path_step_m
 
         def try_box(k: int, side: float, frontage: float, offset: float, depth: float, height: float, style: str) -> bool:
+            if self.sample_open is not None and self.sample_open[k]:
+                return False  # an open stretch: no street buildings
             p, t = self.samples[k], self.tangents[k]
             n = side * np.array([-t[1], t[0]])  # left (+1) / right (-1) normal in the xz plane
             f0, f1 = p + n * offset, p + n * (offset + depth)
@@ -319,6 +373,204 @@ class World:
                     s += rng.uniform(0.5, 1.5) * cfg.post_spacing_m
         return boxes
 
+    # ------------------------------------------------------------------ open road
+    def _place_open(self) -> None:
+        """Open stretches: rasters of the distance to the path (the shader's road, verge and
+        fields), delineator posts, tree lines and farm buildings ``open_distance_m`` away."""
+        cfg, rng = self.config, self.rng
+        cell = cfg.occupancy_cell_m
+        d_lo, d_hi = cfg.open_distance_m
+        pad = d_hi + max(cfg.tree_line_length_m[1], cfg.farm_frontage_m[1] * 3) + 20.0
+        lo = self.samples.min(0) - pad
+        hi = self.samples.max(0) + pad
+        shape = (int(np.ceil((hi[1] - lo[1]) / cell)) + 1, int(np.ceil((hi[0] - lo[0]) / cell)) + 1)
+
+        def dist_to(mask: np.ndarray) -> np.ndarray:
+            img = np.full(shape, 255, np.uint8)
+            pts = np.rint((self.samples - lo) / cell).astype(np.int32)
+            for seg in _runs(mask):
+                p = pts[seg]
+                if len(p) > 1:
+                    cv2.polylines(img, [p.reshape(-1, 1, 2)], False, 0, 1)
+                else:
+                    img[p[0, 1], p[0, 0]] = 0
+            if img.min() > 0:
+                return np.full(shape, 1e4, np.float32)
+            return cv2.distanceTransform(img, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * np.float32(cell)
+
+        open_ = self.sample_open
+        dist = dist_to(np.ones(len(self.samples), bool))
+        self.raster_lo, self.raster_cell = lo.astype(np.float64), cell
+        # The shader's road edge: the distance field smoothed (exact where it is linear, i.e. away
+        # from the path's own line; it removes the staircase of the rasterised path).
+        self.ground_dist = cv2.GaussianBlur(dist.astype(np.float32), (0, 0), 1.5 / cell)
+        if not open_.all():
+            d_open, d_street = dist_to(open_), dist_to(~open_)
+            m = (d_open < d_street).astype(np.float32)
+            self.open_map = cv2.GaussianBlur(m, (0, 0), 4.0 / cell)  # ~4 m blend between stretches
+
+        occ_build = np.zeros(shape, bool)  # buildings (and their halo)
+        occ_tree = np.zeros(shape, bool)
+        for box in self.boxes:  # street buildings of a mixed world
+            self._rasterise(box.corners, lo, cell, occ_build)
+
+        s_total = len(self.samples) * cfg.path_step_m
+
+        def at(arc: float) -> int:
+            return min(max(int(round(arc / cfg.path_step_m)), 0), len(self.samples) - 1)
+
+        def frame(k: int, side: float):
+            t = self.tangents[k]
+            return self.samples[k], t, side * np.array([-t[1], t[0]])
+
+        def footprint(corners: np.ndarray):
+            g = (corners - lo) / cell
+            x0, y0 = np.floor(g.min(0)).astype(int) - 1
+            x1, y1 = np.ceil(g.max(0)).astype(int) + 2
+            if x0 < 0 or y0 < 0 or x1 > shape[1] or y1 > shape[0]:
+                return None
+            mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
+            cv2.fillConvexPoly(mask, np.rint(g - [x0, y0]).astype(np.int32), 1)
+            return (slice(y0, y1), slice(x0, x1)), mask.astype(bool)
+
+        def square(c: np.ndarray, half: float) -> np.ndarray:
+            return c + np.array([[-half, -half], [half, -half], [half, half], [-half, half]])
+
+        # Delineator posts at the verge (thin, 1 m tall): the near field's few vertical edges.
+        rw = cfg.road_half_width_m
+        if cfg.open_post_spacing_m > 0:
+            for side in (1.0, -1.0):
+                s = rng.uniform(0, cfg.open_post_spacing_m)
+                while s < s_total:
+                    k = at(s)
+                    p, t, n = frame(k, side)
+                    c = p + n * (rw + 0.9)
+                    fp = footprint(square(c, 0.3))
+                    if open_[k] and fp is not None and (dist[fp[0]][fp[1]] >= rw + 0.4).all():
+                        corners = square(c, 0.06)
+                        gy = self.ground_y(corners[:, 0], corners[:, 1])
+                        self.boxes.append(Box(corners, float(gy.min()), float(gy.max()) + 0.5, 1.0, "post"))
+                    s += rng.uniform(0.5, 1.5) * cfg.open_post_spacing_m
+
+        # Farm buildings: groups of 1-3 sheds/houses, well clear of the path and of each other.
+        for side in (1.0, -1.0):
+            s = rng.uniform(0, cfg.farm_spacing_m)
+            while s < s_total:
+                k = at(s)
+                p, t, n = frame(k, side)
+                offset = rng.uniform(d_lo, d_hi)
+                along = rng.uniform(-20.0, 20.0)
+                for _ in range(int(rng.integers(1, 4))):
+                    front = rng.uniform(*cfg.farm_frontage_m)
+                    depth = rng.uniform(8.0, 25.0)
+                    height = rng.uniform(*cfg.farm_height_m)
+                    f0 = p + n * offset + t * along
+                    corners = np.array([f0 - t * front / 2, f0 + t * front / 2,
+                                        f0 + t * front / 2 + n * depth, f0 - t * front / 2 + n * depth])
+                    if side < 0:
+                        corners = corners[::-1]
+                    along += front + rng.uniform(4.0, 15.0)
+                    fp = footprint(corners)
+                    if not open_[k] or fp is None:
+                        continue
+                    sl, m = fp
+                    if (dist[sl][m] < d_lo).any() or occ_build[sl][m].any() or occ_tree[sl][m].any():
+                        continue
+                    halo = cv2.dilate(m.astype(np.uint8), np.ones((3, 3), np.uint8), iterations=int(round(2.0 / cell))).astype(bool)
+                    occ_build[sl] |= halo
+                    gy = self.ground_y(corners[:, 0], corners[:, 1])
+                    self.boxes.append(Box(corners, float(gy.min()), float(gy.max()) + 1.0, height, "farm"))
+                s += rng.uniform(0.5, 1.5) * cfg.farm_spacing_m
+
+        # Tree lines: along the road (60 %) or running away from it (hedgerows between fields).
+        for side in (1.0, -1.0):
+            s = rng.uniform(0, cfg.tree_line_spacing_m)
+            while s < s_total:
+                k = at(s)
+                p, t, n = frame(k, side)
+                length = rng.uniform(*cfg.tree_line_length_m)
+                offset = d_lo + (d_hi - d_lo) * rng.random() ** 1.5  # more lines nearer the road
+                spacing = rng.uniform(*cfg.tree_spacing_m)
+                if rng.random() < 0.6:
+                    start, direction, across = p + n * offset - t * length / 2, t, n
+                else:
+                    start, direction, across = p + n * offset, n, t
+                m = max(int(length / spacing), 1)
+                jit = rng.uniform(-0.3, 0.3, m) * spacing
+                lat = rng.normal(0.0, 0.8, m)
+                heights = rng.uniform(*cfg.tree_height_m, m)
+                radii = rng.uniform(*cfg.crown_radius_m, m)
+                s += rng.uniform(0.5, 1.5) * cfg.tree_line_spacing_m
+                if not open_[k]:
+                    continue
+                for j in range(m):
+                    c = start + direction * (j * spacing + jit[j]) + across * lat[j]
+                    r = min(radii[j], 0.45 * heights[j])
+                    fp = footprint(square(c, r))
+                    if fp is None:
+                        continue
+                    sl, mk = fp
+                    if (dist[sl][mk] < d_lo).any() or occ_build[sl][mk].any():
+                        continue
+                    occ_tree[sl] |= mk
+                    self.trees.append((float(c[0]), float(c[1]), float(heights[j]), float(r)))
+
+    @staticmethod
+    def _rasterise(corners: np.ndarray, lo: np.ndarray, cell: float, into: np.ndarray) -> None:
+        g = np.rint((corners - lo) / cell).astype(np.int32)
+        mask = np.zeros(into.shape, np.uint8)
+        cv2.fillConvexPoly(mask, g, 1)
+        into |= mask.astype(bool)
+
+    def _tree_mesh(self, x: float, z: float, height: float, r: float, face0: int):
+        """A tree: an irregular low-poly crown (8 sectors x 4 rings) on a thin trunk."""
+        rng = self.rng
+        n_az = 8
+        gy = float(self.ground_y(np.array([x]), np.array([z]))[0])
+        rv = max(0.5 * (height - 2.0) * rng.uniform(0.6, 0.95), r * 0.8)  # vertical radius: trunk 2-6 m
+        cy = gy - (height - rv)  # crown centre (y down)
+        els = np.radians([-60.0, -20.0, 20.0, 60.0])
+        phase = rng.uniform(0, 2 * np.pi)
+        az = phase + 2 * np.pi * np.arange(n_az) / n_az
+        rad = r * np.cos(els)[:, None] * (1.0 + 0.18 * rng.standard_normal((len(els), n_az)))
+        yy = cy - rv * np.sin(els)[:, None] * (1.0 + 0.1 * rng.standard_normal((len(els), n_az)))
+        ring = np.stack([x + rad * np.cos(az), yy, z + rad * np.sin(az)], -1).reshape(-1, 3)
+        bottom, top = np.array([[x, cy + rv * 0.8, z]]), np.array([[x, cy - rv, z]])
+        v = [bottom, ring, top]
+        tris, faces, rows = [], [], []
+        nr = len(els)
+        ib, it = 0, 1 + nr * n_az
+
+        def idx(j: int, i: int) -> int:
+            return 1 + j * n_az + i % n_az
+
+        albedo = rng.uniform(0.14, 0.3)
+        noise_amp = rng.uniform(0.14, 0.2)
+        offset = rng.uniform(0.0, 1000.0, 2)
+        for i in range(n_az):
+            f = face0 + len(rows)
+            tris.append([ib, idx(0, i + 1), idx(0, i)])
+            for j in range(nr - 1):
+                tris += [[idx(j, i), idx(j, i + 1), idx(j + 1, i + 1)], [idx(j, i), idx(j + 1, i + 1), idx(j + 1, i)]]
+            tris.append([idx(nr - 1, i), idx(nr - 1, i + 1), it])
+            faces += [f] * (2 * nr)
+            a = az[i] + np.pi / n_az
+            rows.append(self._face_row(TREE, np.array([x, gy, z]), np.array([-np.sin(a), 0.0, np.cos(a)]),
+                                       albedo=albedo * rng.uniform(0.9, 1.1), noise_amp=noise_amp, offset=offset))
+        # trunk: a thin box from below the ground to the crown's centre
+        base = len(ring) + 2
+        w = 0.15 + 0.02 * height
+        tv = np.array([[x - w, gy + 0.5, z - w], [x + w, gy + 0.5, z - w], [x + w, gy + 0.5, z + w], [x - w, gy + 0.5, z + w]])
+        tv = np.concatenate([tv, tv + np.array([0.0, cy - gy - 0.5, 0.0])])
+        v.append(tv)
+        f = face0 + len(rows)
+        for k in range(4):
+            k1 = (k + 1) % 4
+            tris += [[base + k, base + k1, base + 4 + k1], [base + k, base + 4 + k1, base + 4 + k]]
+            faces += [f] * 2
+        rows.append(self._face_row(TREE, np.array([x, gy, z]), np.array([1.0, 0.0, 0.0]), albedo=0.18, noise_amp=0.08, offset=offset))
+        return np.concatenate(v), np.array(tris), np.array(faces, np.int32), rows
+
     def _box_mesh(self, box: Box, face0: int):
         rng = self.rng
         top_y = box.ground_y - box.height
@@ -340,6 +592,15 @@ class World:
             win_w = win_h = win_fx = win_fy = 0.0
             brick_w, brick_h, brick_amp = rng.uniform(0.3, 0.7), rng.uniform(0.15, 0.35), rng.uniform(0.15, 0.3)
             noise_amp = 0.1
+        elif style == "farm":  # sheds and farmhouses: plank or plain walls, few windows
+            albedo = rng.uniform(0.3, 0.7)
+            has_windows = rng.random() < 0.5
+            win_w, win_h = (rng.uniform(3.0, 6.0), rng.uniform(3.0, 4.0)) if has_windows else (0.0, 0.0)
+            win_fx, win_fy = rng.uniform(0.2, 0.4), rng.uniform(0.3, 0.5)
+            planks = rng.random() < 0.5
+            brick_w, brick_h = (rng.uniform(2.0, 5.0), rng.uniform(0.2, 0.4)) if planks else (0.0, 0.0)
+            brick_amp = rng.uniform(0.1, 0.2) if planks else 0.0
+            noise_amp = rng.uniform(0.08, 0.14)
         else:  # post: plain, dark or light, so it stands out from what is behind it
             albedo = rng.choice([0.15, 0.85])
             win_w = win_h = win_fx = win_fy = 0.0
@@ -404,8 +665,10 @@ class World:
     def _face_row(self, kind: int, origin: np.ndarray, tangent: np.ndarray, albedo: float, noise_amp: float,
                   win_w: float = 0.0, win_h: float = 0.0, win_fx: float = 0.0, win_fy: float = 0.0,
                   top: float = 0.0, brick_w: float = 0.0, brick_h: float = 0.0, brick_amp: float = 0.0,
-                  same_offset: bool = False) -> dict:
-        if same_offset and getattr(self, "_backdrop_offset", None) is not None:
+                  same_offset: bool = False, offset: np.ndarray | None = None) -> dict:
+        if offset is not None:
+            pass
+        elif same_offset and getattr(self, "_backdrop_offset", None) is not None:
             offset = self._backdrop_offset
         else:
             offset = self.rng.uniform(0.0, 1000.0, 2)
@@ -422,7 +685,7 @@ def _table(rows: list[dict]) -> FaceTable:
     tangent = np.array([r["tangent"] for r in rows], dtype=np.float64)
     offset = np.array([r["offset"] for r in rows], dtype=np.float64)
     kind = np.array([r["kind"] for r in rows], dtype=np.uint8)
-    vertical = (kind == FACADE) | (kind == BACKDROP)
+    vertical = (kind == FACADE) | (kind == BACKDROP) | (kind == TREE)
     cols = {
         "tu_x": tangent[:, 0], "tu_z": tangent[:, 2],
         # horizontal faces have tangent (1, 0, 0) and origin 0: tu = x + off_u, tv = z + off_v
@@ -475,6 +738,15 @@ def _resample_path(positions: np.ndarray, ground_y: np.ndarray, step: float, ext
     tangents = np.concatenate([np.repeat(t_start[None], len(head), 0), tangents, np.repeat(t_end[None], len(tail), 0)])
     gy = np.concatenate([np.full(len(head), gy[0]), gy, np.full(len(tail), gy[-1])])
     return samples, tangents, gy
+
+
+def _runs(mask: np.ndarray) -> list[np.ndarray]:
+    """Index arrays of the maximal runs of True in a boolean array."""
+    idx = np.flatnonzero(mask)
+    if len(idx) == 0:
+        return []
+    cut = np.flatnonzero(np.diff(idx) > 1) + 1
+    return np.split(idx, cut)
 
 
 def _free_run(ext: np.ndarray, others: np.ndarray, min_gap: float) -> np.ndarray:

@@ -45,9 +45,10 @@ from ..io_utils import atomic_write_bytes, parse_frame_range
 from ..trajectory_io import read_kitti_poses, read_times, write_kitti_poses, write_times
 from ..types import StereoFrame
 from ._shade import Renderer
-from ._world import World, WorldConfig
+from ._world import SCENES, World, WorldConfig
 
 __all__ = [
+    "SCENES",
     "SyntheticSequence",
     "RenderedFrame",
     "WorldConfig",
