@@ -56,6 +56,11 @@ def synth(
     depth: bool = typer.Option(False, "--depth/--no-depth", help="Also write exact depth of the left camera (depth_0/, uint16 mm)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty OUT folder (whole)."),
     scene: str = typer.Option("street", "--scene", help="street (buildings from 5 m) | open (fields, trees and farms 30-200 m away) | mixed (alternating stretches)."),
+    aliasing: bool = typer.Option(False, "--aliasing", help="Hard world: buildings from a few facade modules in one repeated block."),
+    traffic: bool = typer.Option(False, "--traffic", help="Hard world: parked cars that differ between passes, oncoming cars."),
+    lighting: bool = typer.Option(False, "--lighting", help="Hard world: sun and cast shadows follow a time of day along the trajectory's time."),
+    rectification_error: float = typer.Option(0.0, "--rectification-error", help="Sensor: every disparity reads this many pixels smaller than calib.txt implies (a rig's rectification residual; depth reads long, the more the farther)."),
+    world_mesh: Optional[Path] = typer.Option(None, "--world-mesh", help="Also write the static world geometry (no traffic) as a triangle mesh (.ply) in the frame of poses.txt."),
 ) -> None:
     """Render a synthetic stereo sequence along a trajectory, in KITTI layout."""
     from .datasets.synthetic import SCENES, SyntheticSequence, WorldConfig, load_trajectory, render_to_folder
@@ -68,14 +73,19 @@ def synth(
         raise_user(f"--seed must be >= 0, not {seed}")
     if scene not in SCENES:
         raise_user(f"--scene '{scene}' is not one of {', '.join(SCENES)}")
+    if world_mesh is not None and world_mesh.suffix.lower() not in (".ply", ".obj", ".off", ".stl"):
+        raise_user(f"{world_mesh}: --world-mesh must name a .ply (or .obj, .off, .stl) file")
     check_output_folder(out, overwrite)
     for given in (Path(trajectory), times):
         if given is not None and given.exists() and _inside(given, out):
             raise_user(f"{out}: --out would replace the input {given}")
-    world = WorldConfig(scene=scene)
+    world = WorldConfig(scene=scene, aliasing=aliasing, traffic=traffic, lighting=lighting)
     poses, ts = load_trajectory(trajectory, frames, times=str(times) if times else None)
     seq = SyntheticSequence(poses, width=width, height=height, seed=seed, noise_std=noise, exposure_change=exposure, times=ts,
-                            world_config=world)
+                            world_config=world, rectification_error_px=rectification_error)
+    if world_mesh is not None:
+        seq.write_world_mesh(world_mesh)
+        typer.echo(f"wrote the world mesh ({len(seq.world.triangles)} triangles) to {world_mesh}")
     with _progress(len(seq), "render") as bar, output_folder(out, overwrite) as tmp:
         render_to_folder(seq, tmp, progress=lambda *_: bar.update(1), write_depth=depth, overwrite=True)
     typer.echo(f"wrote {len(seq)} stereo pairs to {out}")

@@ -17,7 +17,8 @@ Decisions:
   go smooth instead of shimmering, so the same place renders alike from nearby poses.
 * **Light**: ambient + Lambertian from a fixed sun (faces of different orientation differ), a
   gentle distance haze toward the horizon colour, and a sky whose brightness grows with
-  elevation. No shadows (they would need a second cast per pixel).
+  elevation. No shadows by default (they need a second cast per pixel); with ``lighting`` the
+  sun follows a time of day (``sun_direction``) and each hit casts a shadow ray towards it.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ import threading
 import cv2
 import numpy as np
 
-from ._world import BACKDROP, FACADE, GROUND, SKY, TREE, World
+from ._world import BACKDROP, FACADE, GROUND, SKY, TREE, Layer, World, WorldConfig
 
 TILE = 256  # noise tile side, cells
 CHUNK = 24576  # pixels shaded at a time: 96 KB float32 temporaries (see Renderer)
@@ -37,8 +38,26 @@ OCTAVES = ((0.053, 0.55), (0.23, 0.6), (0.97, 0.55), (4.3, 0.35))
 SUN_DIR = np.array([0.45, -0.75, 0.48])  # towards the sun, world axes (y down): high, front-right
 SUN_DIR = (SUN_DIR / np.linalg.norm(SUN_DIR)).astype(np.float32)
 AMBIENT, DIFFUSE = 0.55, 0.5
+SUN_AMBIENT, SUN_DIFFUSE = 0.38, 0.8  # with lighting (shadows): a clear day's contrast
 HAZE_M = 350.0  # haze reaches 63 % at this distance
 HORIZON = 0.78  # haze / horizon brightness (0..1)
+
+
+def sun_direction(config: WorldConfig, t_s: float) -> np.ndarray:
+    """Unit vector towards the sun (world axes, y down) at ``t_s`` seconds after the first frame.
+
+    The time of day starts at ``day_start_h`` and runs ``day_hours_per_minute`` hours per
+    minute of trajectory, bouncing between 7:00 and 17:00 (so it never jumps). The sun rises in
+    the east (world -x), stands south (world -z) at noon 50 deg high, sets in the west; it is
+    at least 12 deg high.
+    """
+    h = config.day_start_h - 7.0 + t_s / 60.0 * config.day_hours_per_minute
+    h = 7.0 + 10.0 - abs(h % 20.0 - 10.0)  # triangle wave in [7, 17]
+    frac = (h - 6.0) / 12.0  # 0 at sunrise, 1 at sunset
+    el = np.radians(max(50.0 * np.sin(np.pi * frac), 12.0))
+    az = np.pi * frac  # 0 east, pi/2 south, pi west
+    v = np.array([-np.cos(az) * np.cos(el), -np.sin(el), -np.sin(az) * np.cos(el)])
+    return (v / np.linalg.norm(v)).astype(np.float32)
 
 
 class NoiseBank:
@@ -134,8 +153,10 @@ class Renderer:
         self.noise = NoiseBank(seed)
         self._local = threading.local()
 
-    def cast(self, R: np.ndarray, origin: np.ndarray) -> dict[str, np.ndarray]:
-        """Cast one image's rays from ``origin`` with camera rotation ``R`` (world from camera)."""
+    def cast(self, R: np.ndarray, origin: np.ndarray, layer: Layer | None = None, sun: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """Cast one image's rays from ``origin`` with camera rotation ``R`` (world from camera),
+        into the static world and, when given, a ``layer`` of the instant (traffic). With ``sun``
+        (unit vector towards the sun, world axes) the hits are also tested for cast shadows."""
         import open3d as o3d
 
         dx, dy = self.cam_dirs
@@ -148,9 +169,46 @@ class Renderer:
         for k in range(3):  # world directions (camera z = 1)
             rays[:, 3 + k] = dx * R[k, 0] + dy * R[k, 1] + R[k, 2]
             d.append(rays[:, 3 + k])
-        out = self.world.scene.cast_rays(o3d.core.Tensor.from_numpy(rays))
-        return {"t": out["t_hit"].numpy(), "prim": out["primitive_ids"].numpy(),
-                "normal": out["primitive_normals"].numpy(), "R": R, "origin": np.asarray(origin, np.float32)}
+        tensor = o3d.core.Tensor.from_numpy(rays)
+        out = self.world.scene.cast_rays(tensor)
+        hit = {"t": out["t_hit"].numpy(), "prim": out["primitive_ids"].numpy(),
+               "normal": out["primitive_normals"].numpy(), "R": R, "origin": np.asarray(origin, np.float32),
+               "tri_face": self.world.tri_face, "faces": self.world.faces}
+        if layer is not None:
+            o2 = layer.scene.cast_rays(tensor)
+            t2 = o2["t_hit"].numpy()
+            closer = t2 < hit["t"]
+            if closer.any():
+                hit["t"] = np.where(closer, t2, hit["t"])
+                hit["prim"] = np.where(closer, o2["primitive_ids"].numpy() + np.uint32(layer.n_static), hit["prim"])
+                hit["normal"] = np.where(closer[:, None], o2["primitive_normals"].numpy(), hit["normal"])
+            hit["tri_face"], hit["faces"] = layer.tri_face, layer.faces
+        if sun is not None:
+            hit["sun"] = np.asarray(sun, np.float32)
+            hit["shadow"] = self._shadows(hit, rays, layer)
+        return hit
+
+    def _shadows(self, hit: dict, rays: np.ndarray, layer: Layer | None) -> np.ndarray:
+        """True where a hit point cannot see the sun (a ray towards it meets the world)."""
+        import open3d as o3d
+
+        t = hit["t"]
+        valid = np.flatnonzero(np.isfinite(t))
+        shadow = np.zeros(t.shape, bool)
+        if valid.size == 0:
+            return shadow
+        d = rays[valid, 3:]
+        n = hit["normal"][valid]
+        n = np.where((np.einsum("ij,ij->i", n, d) < 0)[:, None], n, -n)  # the normal facing the camera
+        srays = np.empty((valid.size, 6), np.float32)
+        srays[:, :3] = rays[valid, :3] + d * t[valid, None] + n * np.float32(0.03)
+        srays[:, 3:] = hit["sun"]
+        tensor = o3d.core.Tensor.from_numpy(srays)
+        occ = self.world.scene.test_occlusions(tensor).numpy().astype(bool)
+        if layer is not None:
+            occ |= layer.scene.test_occlusions(tensor).numpy().astype(bool)
+        shadow[valid] = occ
+        return shadow
 
     def depth(self, hit: dict[str, np.ndarray]) -> np.ndarray:
         """z-depth (m) of a cast as an (H, W) image, 0 where no surface was hit (the sky)."""
@@ -167,7 +225,7 @@ class Renderer:
         return out.reshape(self.height, self.width)
 
     def _shade_chunk(self, hit: dict[str, np.ndarray], sl: slice) -> np.ndarray:
-        world, F = self.world, self.world.faces
+        world, F = self.world, hit["faces"]
         f32 = np.float32
         R, o = hit["R"], hit["origin"]
         cdx, cdy, dnorm = self.cam_dirs[0][sl], self.cam_dirs[1][sl], self.dir_norm[sl]
@@ -175,7 +233,7 @@ class Renderer:
         t = hit["t"][sl]
         valid = np.isfinite(t)
         tz = np.where(valid, t, f32(0.0))
-        face = np.take(world.tri_face, np.where(valid, hit["prim"][sl], np.uint32(0)).astype(np.int32))
+        face = np.take(hit["tri_face"], np.where(valid, hit["prim"][sl], np.uint32(0)).astype(np.int32))
         kind = np.where(valid, np.take(F.kind, face), np.uint8(SKY))
         tu_x, tu_z, tu_c, tv_c, albedo0, noise_amp = np.take(F.main, face, axis=1)
         n = hit["normal"][sl]
@@ -216,9 +274,14 @@ class Renderer:
 
         # Light: ambient + Lambertian from the sun, normals turned towards the camera: a face
         # is sunlit when it and the sun lie on the same side of it as the viewer.
-        n_dot_l = nx * SUN_DIR[0] + ny * SUN_DIR[1] + nz * SUN_DIR[2]
+        sun = hit.get("sun", SUN_DIR)
+        n_dot_l = nx * sun[0] + ny * sun[1] + nz * sun[2]
         lit = np.where((n_dot_d < 0) == (n_dot_l > 0), np.abs(n_dot_l), f32(0.0))
-        grey = np.clip(albedo, f32(0.02), f32(1.0)) * (lit * f32(DIFFUSE) + f32(AMBIENT))
+        if "shadow" in hit:  # lighting: stronger sun, weaker sky light, cast shadows
+            lit = np.where(hit["shadow"][sl], f32(0.0), lit)
+            grey = np.clip(albedo, f32(0.02), f32(1.0)) * (lit * f32(SUN_DIFFUSE) + f32(SUN_AMBIENT))
+        else:
+            grey = np.clip(albedo, f32(0.02), f32(1.0)) * (lit * f32(DIFFUSE) + f32(AMBIENT))
         haze = dist / (dist + f32(HAZE_M))  # rational haze: cheaper than exp, same look
         grey += (f32(HORIZON) - grey) * haze
 
@@ -281,7 +344,7 @@ class Renderer:
         return stain * f32(0.12) - patch * f32(0.1)
 
     def _open_ground(self, px, pz, inv_fp, inv_fp_min, noise, albedo):
-        """Albedo change on the ground of open stretches: asphalt with a white edge line within
+        """Albedo change on the ground of open stretches: smooth asphalt with a white edge line within
         ``road_half_width_m`` of the path, a grass verge, then field parcels (meadows and
         ploughed or cropped fields whose rows fade to their mean once under ~2 px apart, like
         any texture here; rows use the footprint along the ray, ``inv_fp_min`` px/m, as they
@@ -309,12 +372,14 @@ class Renderer:
         h1, h2, h3 = _hash(iu, iv, np.full_like(iu, 11)), _hash(iu, iv, np.full_like(iu, 12)), _hash(iu, iv, np.full_like(iu, 13))
         spacing = f32(0.5) + f32(1.2) * h3
         rows = np.cos(np.where(h2 < f32(0.5), u, v) * (f32(2 * np.pi) / spacing))
-        fade = np.clip(spacing * inv_fp_min * f32(0.25) - f32(0.5), f32(0.0), f32(1.0))
+        fade = np.clip(spacing * inv_fp_min * f32(0.125) - f32(0.5), f32(0.0), f32(1.0))
         crop = np.where(h2 < f32(0.8), f32(0.13), f32(0.0))  # 20 % meadows without rows
         field = f32(0.22) + f32(0.32) * h1 + crop * fade * rows + f32(0.05) * noise
-        grass = f32(0.30) + f32(0.08) * noise
-        open_delta = (on_road * street + verge * (grass - albedo) + in_field * (field - albedo)
-                      + line * (f32(0.85) - albedo - on_road * street))
+        grass = f32(0.30) + f32(0.16) * noise
+        # open-road asphalt is smooth: a third of the street's grain, few repairs
+        road = f32(0.34) + f32(0.3) * (albedo - f32(0.36)) + f32(0.3) * street
+        open_delta = (on_road * (road - albedo) + verge * (grass - albedo) + in_field * (field - albedo)
+                      + line * (f32(0.85) - albedo - on_road * (road - albedo)))
         if w.open_map is None:
             return open_delta
         op = cv2.remap(w.open_map, gx, gz, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(-1)

@@ -90,6 +90,20 @@ class WorldConfig:
     farm_height_m: tuple[float, float] = (4.0, 14.0)
     field_size_m: tuple[float, float] = (50.0, 140.0)  # open: field parcels (two grid spacings)
     stretch_m: tuple[float, float] = (150.0, 400.0)  # mixed: length of each street / open stretch
+    # -- hard worlds --
+    aliasing: bool = False  # buildings from a few facade modules, streets repeat one block of them
+    alias_modules: int = 3
+    alias_block: int = 4  # buildings per repeated block
+    traffic: bool = False  # parked cars (present or not per pass) and oncoming cars
+    parked_offset_m: float = 3.0  # parked cars stand this far right of the path
+    parked_probability: float = 0.45  # chance a parking slot is taken on a pass (street; a fifth of it in open)
+    oncoming_offset_m: float = 3.2  # oncoming cars drive this far left of the path
+    oncoming_period_s: float = 6.0  # mean time between oncoming cars
+    oncoming_speed_mps: tuple[float, float] = (7.0, 14.0)
+    pass_radius_m: float = 120.0  # a pass: consecutive frames within this of a parking slot
+    lighting: bool = False  # a sun that moves with the trajectory's time of day, with cast shadows
+    day_start_h: float = 8.0  # lighting: time of day at the first frame
+    day_hours_per_minute: float = 1.0  # lighting: hours of daylight per minute of trajectory time
 
 
 # Per-face attributes the shader reads, packed as rows of two float32 blocks so that one
@@ -140,18 +154,20 @@ class Box:
     bottom_y: float  # buried bottom (below the lowest ground under the footprint)
     height: float
     style: str  # "building" | "wall" | "post" | "farm"
+    module: int = -1  # aliasing: index of the facade module (identical look), -1 = its own
 
 
 class World:
     """Geometry of one world: the mesh, the face table and the open3d scene to cast rays into."""
 
-    def __init__(self, positions: np.ndarray, down_axes: np.ndarray, seed: int = 0, config: WorldConfig | None = None):
-        """Build the world along ``positions`` (N, 3) camera centres with camera down axes (N, 3)."""
+    def __init__(self, positions: np.ndarray, down_axes: np.ndarray, seed: int = 0, config: WorldConfig | None = None,
+                 times: np.ndarray | None = None):
+        """Build the world along ``positions`` (N, 3) camera centres with camera down axes (N, 3)
+        (``times``, s, place the traffic; default 10 Hz)."""
         import open3d as o3d  # lazily: only the renderer needs it
 
         self.config = cfg = config or WorldConfig()
-        if cfg.scene not in SCENES:
-            raise SnapsGraphError(f"synthetic world: scene '{cfg.scene}' is not one of {', '.join(SCENES)}")
+        _check_config(cfg)
         positions = np.asarray(positions, dtype=np.float64)
         if positions.ndim != 2 or positions.shape[1] != 3 or len(positions) == 0:
             raise SnapsGraphError("synthetic world: need an (N, 3) array of camera positions")
@@ -183,6 +199,8 @@ class World:
             [self._face_row(GROUND, np.zeros(3), np.array([1.0, 0.0, 0.0]), albedo=0.36, noise_amp=0.11)])
 
         # -- boxes --
+        if cfg.aliasing:
+            self._make_modules(seed)
         self.boxes = self._place_boxes()
         self.trees: list[tuple[float, float, float, float]] = []  # (x, z, height, crown radius)
         if self.sample_open is not None:
@@ -200,11 +218,10 @@ class World:
         self.tri_face = np.concatenate(tri_face).astype(np.int32)
         self.faces = _table(rows)
 
-        self.scene = o3d.t.geometry.RaycastingScene()
-        self.scene.add_triangles(o3d.core.Tensor(self.vertices), o3d.core.Tensor(self.triangles))
-        # Commit the acceleration structure now (the first cast does it), so concurrent casts
-        # from several render threads never race on the lazy commit.
-        self.scene.cast_rays(o3d.core.Tensor(np.array([[0, -1e4, 0, 0, 1, 0]], np.float32)))
+        self.scene = _raycasting_scene(self.vertices, self.triangles)
+        self.traffic = None
+        if cfg.traffic:
+            self.traffic = Traffic(self, positions, times, seed)
 
     def _stretches(self) -> np.ndarray | None:
         """Per path sample, True in an open stretch: all for ``open``, alternating for ``mixed``."""
@@ -311,7 +328,8 @@ class World:
         boxes: list[Box] = []
         s_total = len(self.samples) * cfg.path_step_m
 
-        def try_box(k: int, side: float, frontage: float, offset: float, depth: float, height: float, style: str) -> bool:
+        def try_box(k: int, side: float, frontage: float, offset: float, depth: float, height: float, style: str,
+                    module: int = -1) -> bool:
             if self.sample_open is not None and self.sample_open[k]:
                 return False  # an open stretch: no street buildings
             p, t = self.samples[k], self.tangents[k]
@@ -335,7 +353,7 @@ class World:
             halo = cv2.dilate(mask, np.ones((3, 3), np.uint8), iterations=max(1, int(round(1.0 / cell)))).astype(bool)
             occupied[y0:y1, x0:x1] |= halo
             gy = self.ground_y(corners[:, 0], corners[:, 1])
-            boxes.append(Box(corners, float(np.min(gy)), float(np.max(gy)) + 1.0, height, style))
+            boxes.append(Box(corners, float(np.min(gy)), float(np.max(gy)) + 1.0, height, style, module))
             return True
 
         def at(arc: float) -> int:  # index of the path sample at an arc length
@@ -347,7 +365,18 @@ class World:
         for row, (off_lo, off_hi) in enumerate(rows):
             for side in (1.0, -1.0):
                 s = rng.uniform(0, 10.0)  # arc length where the next slot starts
+                j_block = int(rng.integers(0, 1 << 16)) if cfg.aliasing else 0  # aliasing: start in the block
                 while s < s_total:
+                    if cfg.aliasing:  # the same block of identical buildings, over and over
+                        frontage, depth, height, setback, gap, module = self._block[j_block % len(self._block)]
+                        j_block += 1
+                        is_wall, offset = False, cfg.corridor_m + 0.6 + off_lo + setback * (off_hi - off_lo)
+                        style = "building"
+                        for f, off, dep in ((frontage, offset, depth), (frontage, offset, min(depth, 6.0))):
+                            if try_box(at(s + f / 2), side, f, off, dep, height, style, module):
+                                break
+                        s += frontage + gap
+                        continue
                     frontage = rng.uniform(*cfg.frontage_m)
                     is_wall = row == 0 and rng.random() < cfg.wall_probability
                     if is_wall:
@@ -372,6 +401,29 @@ class World:
                     try_box(at(s), side, 0.3, cfg.corridor_m + 0.4 + rng.uniform(0, 1.0), 0.3, rng.uniform(3.0, 6.0), "post")
                     s += rng.uniform(0.5, 1.5) * cfg.post_spacing_m
         return boxes
+
+    # ------------------------------------------------------------------ aliasing
+    def _make_modules(self, seed: int) -> None:
+        """Aliasing: ``alias_modules`` facade designs (every face's texture offset and identity
+        fixed, so two boxes of a module and size look the same) and a block of
+        ``alias_block`` buildings (size, setback, gap, module) that streets repeat. Drawn from
+        their own generator: the rest of the world is drawn as without aliasing."""
+        cfg = self.config
+        arng = np.random.default_rng([int(seed), 0xA11A5])
+        self.modules = []
+        for _ in range(cfg.alias_modules):
+            bricks = arng.random() < 0.5
+            self.modules.append(dict(
+                albedo=arng.uniform(0.3, 0.75), win_w=arng.uniform(2.2, 4.0), win_h=arng.uniform(2.8, 3.8),
+                win_fx=arng.uniform(0.35, 0.7), win_fy=arng.uniform(0.4, 0.65),
+                brick_w=arng.uniform(0.45, 0.8) if bricks else 0.0, brick_h=arng.uniform(0.18, 0.32) if bricks else 0.0,
+                brick_amp=arng.uniform(0.1, 0.25) if bricks else 0.0, noise_amp=arng.uniform(0.06, 0.14),
+                offsets=arng.uniform(0.0, 1000.0, (5, 2)), idents=arng.integers(1, 2**24, 5)))
+        # a block: a few sizes, repeated (the modules alternate through it)
+        self._block = [(float(arng.uniform(*cfg.frontage_m)), float(arng.uniform(*cfg.depth_m)),
+                        float(arng.uniform(*cfg.height_m)), float(arng.uniform(0.0, 1.0)),
+                        float(arng.uniform(*cfg.gap_m)) if arng.random() < cfg.gap_probability else 1.2,
+                        j % cfg.alias_modules) for j in range(cfg.alias_block)]
 
     # ------------------------------------------------------------------ open road
     def _place_open(self) -> None:
@@ -479,7 +531,8 @@ class World:
                     halo = cv2.dilate(m.astype(np.uint8), np.ones((3, 3), np.uint8), iterations=int(round(2.0 / cell))).astype(bool)
                     occ_build[sl] |= halo
                     gy = self.ground_y(corners[:, 0], corners[:, 1])
-                    self.boxes.append(Box(corners, float(gy.min()), float(gy.max()) + 1.0, height, "farm"))
+                    module = len(self.boxes) % cfg.alias_modules if cfg.aliasing else -1
+                    self.boxes.append(Box(corners, float(gy.min()), float(gy.max()) + 1.0, height, "farm", module))
                 s += rng.uniform(0.5, 1.5) * cfg.farm_spacing_m
 
         # Tree lines: along the road (60 %) or running away from it (hedgerows between fields).
@@ -579,6 +632,8 @@ class World:
         v[:4, 0], v[:4, 2], v[:4, 1] = c[:, 0], c[:, 1], box.bottom_y
         v[4:, 0], v[4:, 2], v[4:, 1] = c[:, 0], c[:, 1], top_y
         style = box.style
+        if box.module >= 0:
+            return self._module_mesh(box, v, face0)
         if style == "building":
             albedo = rng.uniform(0.3, 0.75)
             win_w, win_h = rng.uniform(2.2, 4.0), rng.uniform(2.8, 3.8)
@@ -626,6 +681,27 @@ class World:
         rows.append(self._face_row(ROOF, np.zeros(3), np.array([1.0, 0.0, 0.0]), albedo=albedo * 0.8, noise_amp=noise_amp))
         return v, np.array(tris), np.array(faces, np.int32), rows
 
+    def _module_mesh(self, box: Box, v: np.ndarray, face0: int):
+        """A box in one of the aliasing modules: every face as the module's, no random draw."""
+        mod = self.modules[box.module]
+        look = {k: mod[k] for k in ("win_w", "win_h", "win_fx", "win_fy", "brick_w", "brick_h", "brick_amp")}
+        tris, faces, rows = [], [], []
+        for k in range(4):
+            k1 = (k + 1) % 4
+            tris += [[k, k1, 4 + k1], [k, 4 + k1, 4 + k]]
+            faces += [face0 + len(rows)] * 2
+            t3 = v[k1] - v[k]
+            t3[1] = 0.0
+            t3 /= max(np.linalg.norm(t3), 1e-9)
+            origin = np.array([v[k, 0], box.ground_y, v[k, 2]])
+            rows.append(self._face_row(FACADE, origin, t3, albedo=mod["albedo"], noise_amp=mod["noise_amp"], top=box.height,
+                                       offset=mod["offsets"][k], ident=int(mod["idents"][k]), **look))
+        tris += [[4, 5, 6], [4, 6, 7]]
+        faces += [face0 + len(rows)] * 2
+        rows.append(self._face_row(ROOF, np.zeros(3), np.array([1.0, 0.0, 0.0]), albedo=mod["albedo"] * 0.8,
+                                   noise_amp=mod["noise_amp"], offset=mod["offsets"][4], ident=int(mod["idents"][4])))
+        return v, np.array(tris), np.array(faces, np.int32), rows
+
     def _backdrop_mesh(self, face0: int):
         """Hills on the rectangle 2 m inside the ground's edge, heights a smooth random profile."""
         cfg = self.config
@@ -665,7 +741,7 @@ class World:
     def _face_row(self, kind: int, origin: np.ndarray, tangent: np.ndarray, albedo: float, noise_amp: float,
                   win_w: float = 0.0, win_h: float = 0.0, win_fx: float = 0.0, win_fy: float = 0.0,
                   top: float = 0.0, brick_w: float = 0.0, brick_h: float = 0.0, brick_amp: float = 0.0,
-                  same_offset: bool = False, offset: np.ndarray | None = None) -> dict:
+                  same_offset: bool = False, offset: np.ndarray | None = None, ident: int | None = None) -> dict:
         if offset is not None:
             pass
         elif same_offset and getattr(self, "_backdrop_offset", None) is not None:
@@ -677,7 +753,224 @@ class World:
         return dict(kind=kind, origin=origin, tangent=tangent, offset=offset, albedo=albedo, noise_amp=noise_amp,
                     win_w=win_w, win_h=win_h, win_fx=win_fx, win_fy=win_fy, top=top,
                     brick_w=brick_w, brick_h=brick_h, brick_amp=brick_amp,
-                    ident=int(self.rng.integers(1, 2**24)))
+                    ident=int(self.rng.integers(1, 2**24)) if ident is None else ident)
+
+
+def _check_config(cfg: WorldConfig) -> None:
+    """One-line errors for world settings that cannot build a world."""
+    def bad(what: str) -> None:
+        raise SnapsGraphError(f"synthetic world: {what}")
+
+    if cfg.scene not in SCENES:
+        bad(f"scene '{cfg.scene}' is not one of {', '.join(SCENES)}")
+    for name in ("open_distance_m", "tree_spacing_m", "tree_line_length_m", "tree_height_m", "crown_radius_m",
+                 "farm_frontage_m", "farm_height_m", "field_size_m", "stretch_m", "oncoming_speed_mps"):
+        lo, hi = getattr(cfg, name)
+        if not (np.isfinite(lo) and np.isfinite(hi) and 0 < lo <= hi):
+            bad(f"{name} {(lo, hi)} must be a range 0 < lo <= hi")
+    if cfg.open_distance_m[0] < cfg.road_half_width_m + cfg.verge_m:
+        bad(f"open_distance_m starts at {cfg.open_distance_m[0]} m, inside the road and verge")
+    if cfg.alias_modules < 1 or cfg.alias_block < 1:
+        bad(f"alias_modules {cfg.alias_modules} and alias_block {cfg.alias_block} must be >= 1")
+    if not 0.0 <= cfg.parked_probability <= 1.0:
+        bad(f"parked_probability {cfg.parked_probability} must be in [0, 1]")
+    if not cfg.oncoming_period_s > 0 or not cfg.pass_radius_m > 0:
+        bad("oncoming_period_s and pass_radius_m must be > 0")
+    if not np.isfinite(cfg.day_hours_per_minute) or cfg.day_hours_per_minute < 0:
+        bad(f"day_hours_per_minute {cfg.day_hours_per_minute} must be >= 0")
+
+
+def _raycasting_scene(vertices: np.ndarray, triangles: np.ndarray):
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, np.float32)),
+                        o3d.core.Tensor(np.ascontiguousarray(triangles, np.uint32)))
+    # Commit the acceleration structure now (the first cast does it), so concurrent casts
+    # from several render threads never race on the lazy commit.
+    scene.cast_rays(o3d.core.Tensor(np.array([[0, -1e4, 0, 0, 1, 0]], np.float32)))
+    return scene
+
+
+@dataclass
+class Layer:
+    """Geometry of one instant added to the static world (traffic): its own scene, and the
+    face lookups of static + layer triangles (layer triangle j is prim n_static + j)."""
+
+    scene: object
+    tri_face: np.ndarray
+    faces: FaceTable
+    n_static: int
+
+
+class Traffic:
+    """Parked and oncoming cars (two boxes each: body and cabin), a function of the frame.
+
+    * **Parked**: slots every car length + 0.8-3 m, ``parked_offset_m`` right of the path, whose
+      footprint clears every part of the path by 1.2 m. A *pass* is a run of consecutive frames
+      within ``pass_radius_m`` of the slot; the slot is taken or free for the whole pass (drawn
+      per pass), so a car never pops in or out in view, but revisits see other cars.
+    * **Oncoming**: cars spawned at random times (mean ``oncoming_period_s`` apart) 80-150 m ahead
+      of the camera along the path, driving back along it ``oncoming_offset_m`` to its left at
+      7-14 m/s; a car whose footprint would come within 1.2 m of any part of the path (a
+      crossing, another pass) is hidden at that instant. Their texture moves with them.
+
+    Drawn from its own generator: the static world is the same with or without traffic.
+    """
+
+    def __init__(self, world: "World", positions: np.ndarray, times: np.ndarray | None, seed: int):
+        cfg = world.config
+        self.world = world
+        rng = np.random.default_rng([int(seed), 0x7AFF1C])
+        xz = positions[:, [0, 2]]
+        n = len(xz)
+        self.times = np.arange(n) * 0.1 if times is None else np.asarray(times, float)
+        step = cfg.path_step_m
+        n_head = int(np.argmin(np.linalg.norm(world.samples[: int(cfg.extend_m / step) + 2] - xz[0], axis=1)))
+        cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xz, axis=0), axis=1))])
+        self.frame_arc = cum + n_head * step
+        self.samples, self.tangents = world.samples, world.tangents
+        s_total = len(self.samples) * step
+        # clearance raster: distance of every cell to the path
+        cell = 0.5
+        self.lo = self.samples.min(0) - 20.0
+        shape = tuple(int(np.ceil(v / cell)) + 1 for v in (self.samples.max(0) - self.lo + 20.0)[::-1])
+        img = np.full(shape, 255, np.uint8)
+        pts = np.rint((self.samples - self.lo) / cell).astype(np.int32)
+        cv2.polylines(img, [pts.reshape(-1, 1, 2)], False, 0, 1)
+        self.dist = cv2.distanceTransform(img, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * cell
+        self.cell = cell
+
+        # parked slots
+        slots = []  # (centre xz, tangent, dims, look)
+        s = rng.uniform(0.0, 6.0)
+        while s < s_total:
+            dims = self._dims(rng)
+            k = min(int(round(s / step)), len(self.samples) - 1)
+            t = self.tangents[k]
+            right = np.array([t[1], -t[0]])
+            c = self.samples[k] + right * (cfg.parked_offset_m + rng.uniform(-0.15, 0.15))
+            look = self._look(rng)
+            if self._clear(c, t, dims):
+                slots.append((c, t, dims, look, k))
+            s += dims[0] + rng.uniform(0.8, 3.0)
+        self.slots = slots
+        # taken or free per pass: (n_slots, n_frames) booleans
+        self.parked = np.zeros((len(slots), n), bool)
+        p_open = cfg.parked_probability * 0.2
+        for j, (c, _, _, _, k) in enumerate(slots):
+            near = np.linalg.norm(xz - c, axis=1) < cfg.pass_radius_m
+            p = p_open if world.sample_open is not None and world.sample_open[k] else cfg.parked_probability
+            for run in _runs(near):
+                self.parked[j, run] = rng.random() < p
+
+        # oncoming cars: (spawn time, start arc, speed, dims, look)
+        self.oncoming = []
+        t = self.times[0] + rng.exponential(cfg.oncoming_period_s)
+        while t < self.times[-1]:
+            a0 = float(np.interp(t, self.times, self.frame_arc))
+            self.oncoming.append((t, a0 + rng.uniform(80.0, 150.0), rng.uniform(*cfg.oncoming_speed_mps),
+                                  self._dims(rng), self._look(rng)))
+            t += rng.exponential(cfg.oncoming_period_s)
+
+    @staticmethod
+    def _dims(rng) -> tuple[float, float, float, float]:
+        """(length, width, body height, total height): a car, or one time in eight a van."""
+        if rng.random() < 0.125:
+            return rng.uniform(4.8, 5.6), rng.uniform(1.9, 2.05), rng.uniform(1.9, 2.3), 0.0
+        return rng.uniform(3.9, 4.9), rng.uniform(1.7, 1.9), rng.uniform(0.8, 0.95), rng.uniform(1.4, 1.55)
+
+    @staticmethod
+    def _look(rng) -> tuple[float, np.ndarray, int]:
+        paint = float(np.clip(rng.choice([0.1, 0.2, 0.45, 0.65, 0.85]) + rng.normal(0, 0.04), 0.05, 0.95))
+        return paint, rng.uniform(0.0, 1000.0, 2), int(rng.integers(1, 2**24))
+
+    def _footprint(self, c: np.ndarray, t: np.ndarray, length: float, width: float) -> np.ndarray:
+        n = np.array([-t[1], t[0]])
+        hl, hw = 0.5 * length * t, 0.5 * width * n
+        return np.array([c - hl - hw, c + hl - hw, c + hl + hw, c - hl + hw])
+
+    def _clear(self, c: np.ndarray, t: np.ndarray, dims) -> bool:
+        """The footprint (grown by 1.2 m) keeps clear of every part of the path."""
+        corners = self._footprint(c, t, dims[0] + 2.4, dims[1] + 2.4)
+        g = (corners - self.lo) / self.cell
+        x0, y0 = np.floor(g.min(0)).astype(int)
+        x1, y1 = np.ceil(g.max(0)).astype(int) + 1
+        if x0 < 0 or y0 < 0 or x1 > self.dist.shape[1] or y1 > self.dist.shape[0]:
+            return True  # beyond the raster: far from the path
+        mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
+        cv2.fillConvexPoly(mask, np.rint(g - [x0, y0]).astype(np.int32), 1)
+        return bool((self.dist[y0:y1, x0:x1][mask.astype(bool)] > 0.5 * self.cell).all())
+
+    def vehicles(self, i: int) -> list[tuple[np.ndarray, np.ndarray, tuple, tuple]]:
+        """(centre xz, heading xz, dims, look) of every car present at frame ``i``."""
+        out = [(c, t, dims, look) for (c, t, dims, look, _), on in zip(self.slots, self.parked[:, i]) if on]
+        now = self.times[i]
+        cam_arc = self.frame_arc[i]
+        step = self.world.config.path_step_m
+        arcs = np.arange(len(self.samples)) * step
+        for t0, s0, v, dims, look in self.oncoming:
+            if t0 > now:
+                break
+            s = s0 - v * (now - t0)
+            if s < cam_arc - 60.0 or now - t0 > 60.0 or s < 0 or s > arcs[-1]:
+                continue
+            p = np.array([np.interp(s, arcs, self.samples[:, 0]), np.interp(s, arcs, self.samples[:, 1])])
+            k = min(int(round(s / step)), len(self.samples) - 1)
+            t = self.tangents[k]
+            c = p + np.array([-t[1], t[0]]) * self.world.config.oncoming_offset_m
+            if self._clear(c, t, dims):
+                out.append((c, -t, dims, look))
+        return out
+
+    def mesh(self, i: int, face0: int = 0):
+        """Vertices, triangles, triangle faces and face rows of the cars at frame ``i``."""
+        world = self.world
+        verts, tris, faces, rows = [], [], [], []
+        nv = 0
+        for c, t, (length, width, body_h, total_h), (paint, offset, ident) in self.vehicles(i):
+            gy = float(world.ground_y(np.array([c[0]]), np.array([c[1]]))[0])
+            parts = [(self._footprint(c, t, length, width), gy + 0.3, gy - body_h, paint)]
+            if total_h > body_h:  # a cabin, inset, set back a little
+                parts.append((self._footprint(c - 0.1 * length * t, t, 0.55 * length, width - 0.2),
+                              gy - body_h + 0.01, gy - total_h, 0.12))
+            for corners, bottom, top, albedo in parts:
+                v = np.zeros((8, 3))
+                v[:4, 0], v[:4, 2], v[:4, 1] = corners[:, 0], corners[:, 1], bottom
+                v[4:, 0], v[4:, 2], v[4:, 1] = corners[:, 0], corners[:, 1], top
+                for k in range(4):
+                    k1 = (k + 1) % 4
+                    tris += [[nv + k, nv + k1, nv + 4 + k1], [nv + k, nv + 4 + k1, nv + 4 + k]]
+                    faces += [face0 + len(rows)] * 2
+                    t3 = v[k1] - v[k]
+                    t3[1] = 0.0
+                    t3 /= max(np.linalg.norm(t3), 1e-9)
+                    rows.append(world._face_row(FACADE, np.array([v[k, 0], gy, v[k, 2]]), t3, albedo=albedo, noise_amp=0.03,
+                                                offset=offset, ident=ident))
+                tris += [[nv + 4, nv + 5, nv + 6], [nv + 4, nv + 6, nv + 7]]
+                faces += [face0 + len(rows)] * 2
+                # roof texture in the car's own frame: tu along it, tv across (moves with it)
+                rows.append(world._face_row(FACADE, np.array([v[4, 0], gy, v[4, 2]]), np.array([t[0], 0.0, t[1]]),
+                                            albedo=albedo * 0.9, noise_amp=0.03, offset=offset, ident=ident))
+                rows[-1]["kind"] = ROOF
+                verts.append(v)
+                nv += 8
+        if not verts:
+            return None
+        return np.concatenate(verts), np.array(tris), np.array(faces, np.int32), rows
+
+    def layer(self, i: int) -> Layer | None:
+        """The cars of frame ``i`` as a ``Layer`` (None when there are none)."""
+        world = self.world
+        m = self.mesh(i, len(world.faces))
+        if m is None:
+            return None
+        v, t, f, rows = m
+        local = _table(rows)
+        faces = FaceTable(np.concatenate([world.faces.kind, local.kind]),
+                          np.concatenate([world.faces.main, local.main], axis=1),
+                          np.concatenate([world.faces.detail, local.detail], axis=1))
+        return Layer(_raycasting_scene(v, t), np.concatenate([world.tri_face, f]), faces, len(world.triangles))
 
 
 def _table(rows: list[dict]) -> FaceTable:

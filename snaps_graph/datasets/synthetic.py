@@ -24,7 +24,10 @@ Decisions:
   in each camera); ``exposure_change`` applies a per-frame gain and offset that drift slowly
   (periods of 60-400 frames): gain within ``1 +/- exposure_change``, offset within
   ``+/- 30 * exposure_change`` grey levels, the same for both cameras of a frame, so a
-  revisit is not pixel-identical. Both are off by default.
+  revisit is not pixel-identical; ``rectification_error_px`` turns the right camera by a tiny
+  yaw so that every disparity reads that many pixels smaller than ``calib.txt`` implies (a
+  residual of a real rig's rectification; depth then reads long, the more so the farther:
+  z' = fB / (fB/z - error)). All are off by default.
 """
 
 from __future__ import annotations
@@ -41,10 +44,10 @@ import numpy as np
 
 from ..camera import StereoCamera, kitti00_camera
 from ..errors import SnapsGraphError
-from ..io_utils import atomic_write_bytes, parse_frame_range
+from ..io_utils import atomic_output, atomic_write_bytes, parse_frame_range
 from ..trajectory_io import read_kitti_poses, read_times, write_kitti_poses, write_times
 from ..types import StereoFrame
-from ._shade import Renderer
+from ._shade import Renderer, sun_direction
 from ._world import SCENES, World, WorldConfig
 
 __all__ = [
@@ -89,6 +92,7 @@ class SyntheticSequence:
         times: np.ndarray | None = None,
         baseline_m: float | None = None,
         world_config: WorldConfig | None = None,
+        rectification_error_px: float = 0.0,
     ):
         """``camera`` defaults to KITTI 00's P0/P1 scaled to ``width`` x ``height``; a given
         camera keeps its own size when it has one. ``baseline_m`` overrides the baseline."""
@@ -117,10 +121,17 @@ class SyntheticSequence:
         self.seed = int(seed)
         self.noise_std = float(noise_std)
         self.exposure_change = float(exposure_change)
+        if not np.isfinite(rectification_error_px) or abs(rectification_error_px) > 5.0:
+            raise SnapsGraphError(f"synthetic: rectification error {rectification_error_px} px must be within +-5 px")
+        self.rectification_error_px = float(rectification_error_px)
+        # The right camera turned about its y axis by -error/fx: every disparity reads `error`
+        # pixels smaller than calib.txt implies (a residual of the rig's rectification).
+        a = -self.rectification_error_px / camera.fx
+        self._right_turn = np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
         self._poses = np.linalg.inv(poses[0]) @ poses  # rebased: frame 0 is the identity
         self._times = times
         t0 = time.perf_counter()
-        self.world = World(self._poses[:, :3, 3], self._poses[:, :3, 1], seed=self.seed, config=world_config)
+        self.world = World(self._poses[:, :3, 3], self._poses[:, :3, 1], seed=self.seed, config=world_config, times=times)
         self.build_s = time.perf_counter() - t0  # world construction time, for benchmarks
         self._renderer = Renderer(self.world, camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height, self.seed)
         self._exposure = _exposure_curve(len(poses), self.seed, self.exposure_change)
@@ -154,7 +165,32 @@ class SyntheticSequence:
         """Exact z-depth (m) of the left camera at frame ``i``, float32 (H, W); 0 = no hit (sky)."""
         i = self._index(i)
         T = self._poses[i]
-        return self._renderer.depth(self._renderer.cast(T[:3, :3], T[:3, 3]))
+        return self._renderer.depth(self._renderer.cast(T[:3, :3], T[:3, 3], self._layer(i)))
+
+    def _layer(self, i: int):
+        """The traffic of frame ``i`` (None without traffic or when no car is present)."""
+        return self.world.traffic.layer(i) if self.world.traffic is not None else None
+
+    def sun(self, i: int) -> np.ndarray | None:
+        """Unit vector towards the sun at frame ``i`` with ``lighting`` (world axes), else None."""
+        if not self.world.config.lighting:
+            return None
+        return sun_direction(self.world.config, float(self._times[i] - self._times[0]))
+
+    def write_world_mesh(self, path: str | Path) -> None:
+        """Write the static world (ground, buildings, trees, posts, hills; no traffic) as a
+        triangle mesh in the frame of ``gt_poses`` (= poses.txt): PLY, or any format open3d writes."""
+        import open3d as o3d
+
+        path = Path(path)
+        mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(self.world.vertices.astype(np.float64)),
+                                         o3d.utility.Vector3iVector(self.world.triangles.astype(np.int32)))
+        try:
+            with atomic_output(path, suffix=path.suffix or ".ply") as tmp:
+                if not o3d.io.write_triangle_mesh(str(tmp), mesh, write_ascii=False, compressed=False):
+                    raise OSError("open3d could not write it")
+        except OSError as exc:
+            raise SnapsGraphError(f"{path}: could not write the world mesh ({exc})") from None
 
     # ---- rendering ----
     def render(self, i: int, with_depth: bool = True) -> RenderedFrame:
@@ -166,9 +202,13 @@ class SyntheticSequence:
         images = []
         depth = None
         gain, offset = self._exposure[i]
-        for side, origin in enumerate((c, c + R[:, 0] * self.camera.baseline_m)):
+        t0 = time.perf_counter()
+        layer, sun = self._layer(i), self.sun(i)
+        timings["cast"] += (time.perf_counter() - t0) * 1e3
+        R_right = R @ self._right_turn if self.rectification_error_px else R
+        for side, (Rs, origin) in enumerate(((R, c), (R_right, c + R[:, 0] * self.camera.baseline_m))):
             t0 = time.perf_counter()
-            hit = self._renderer.cast(R, origin)
+            hit = self._renderer.cast(Rs, origin, layer, sun)
             t1 = time.perf_counter()
             grey = self._renderer.shade(hit)
             if gain != 1.0 or offset != 0.0:

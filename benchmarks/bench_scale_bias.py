@@ -1,0 +1,83 @@
+"""Front-end scale bias: step-length bias and end drift of stereo VO alone, per sequence folder.
+
+For each KITTI-layout sequence folder (real, or written by ``snaps-graph synth``) runs the
+front end (``StereoOdometry``, what ``snaps-graph run --loops none --refine none`` runs) over
+the frames and prints
+
+* step-length bias: sum of VO step lengths / sum of ground-truth step lengths - 1 (%): a
+  front end that reads far points as too far overestimates every step;
+* end drift: |p_end_vo - p_end_gt| / ground-truth path length (%);
+* ATE RMSE (SE(3)-aligned, m) and the number of flagged frames.
+
+    python benchmarks/bench_scale_bias.py /work/data/seq00_street /work/data/seq00_open --frames 0:1000
+    python benchmarks/bench_scale_bias.py SEQ --modes default,sift,orb
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from snaps_graph.config import Config  # noqa: E402
+from snaps_graph.datasets.kitti import KittiSequence  # noqa: E402
+from snaps_graph.evaluation.metrics import ate_rmse, path_length  # noqa: E402
+from snaps_graph.frontend import StereoOdometry  # noqa: E402
+
+MODES = {
+    "default": dict(),
+    "sift": dict(mode="sift"),
+    "orb": dict(mode="orb"),
+    "paper": dict(mode="sift", disparity="bm_wls", sift_first_octave=-1),
+}
+
+
+def step_bias(est: np.ndarray, gt: np.ndarray) -> float:
+    """sum |dt_est| / sum |dt_gt| - 1 over consecutive frames."""
+    se = np.linalg.norm(np.diff(est[:, :3, 3], axis=0), axis=1).sum()
+    sg = np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1).sum()
+    return float(se / max(sg, 1e-12) - 1.0)
+
+
+def run(seq: KittiSequence, overrides: dict) -> tuple[np.ndarray, int, float]:
+    cfg = Config()
+    for k, v in overrides.items():
+        setattr(cfg.frontend, k, v)
+    t0 = time.perf_counter()
+    with StereoOdometry(seq.camera, cfg.frontend) as vo:
+        res = [vo.process(f) for f in seq]
+    return np.array([r.pose for r in res]), sum(not r.ok for r in res), time.perf_counter() - t0
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("seqs", nargs="+", help="sequence folders (image_0/, image_1/, calib.txt, poses.txt)")
+    ap.add_argument("--frames", default=None, help="A:B (default: all)")
+    ap.add_argument("--modes", default="default", help=f"comma list of {', '.join(MODES)}")
+    args = ap.parse_args()
+    modes = [m.strip() for m in args.modes.split(",") if m.strip()]
+    for m in modes:
+        if m not in MODES:
+            sys.exit(f"error: --modes: unknown mode '{m}' ({', '.join(MODES)})")
+    print(f"{'sequence':<34}{'mode':<9}{'frames':>7}{'path m':>9}{'step bias %':>13}{'end drift %':>13}{'ATE m':>8}{'flagged':>9}{'fps':>7}")
+    for path in args.seqs:
+        seq = KittiSequence(path, frames=args.frames)
+        gt = seq.gt_poses
+        if gt is None:
+            print(f"{path}: no ground truth, skipped")
+            continue
+        for m in modes:
+            est, flagged, wall = run(seq, MODES[m])
+            drift = 100.0 * np.linalg.norm(est[-1, :3, 3] - gt[-1, :3, 3]) / max(path_length(gt), 1e-9)
+            print(f"{str(path)[-34:]:<34}{m:<9}{len(seq):>7}{path_length(gt):>9.1f}{100 * step_bias(est, gt):>13.2f}"
+                  f"{drift:>13.2f}{ate_rmse(est, gt):>8.3f}{flagged:>9}{len(seq) / wall:>7.1f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
