@@ -237,3 +237,28 @@ def test_bad_world_config_is_a_one_line_error(kwargs):
     with pytest.raises(SnapsGraphError) as err:
         SyntheticSequence(straight(5), width=64, height=32, world_config=WorldConfig(**kwargs))
     assert "\n" not in str(err.value)
+
+
+def test_rectification_error_shrinks_every_disparity():
+    """The right camera is turned so disparities read `error` px smaller than calib.txt implies."""
+    import cv2
+
+    P = straight(30, 1.0)
+    err = 0.8
+    ref = SyntheticSequence(P, width=W, height=H, seed=1)
+    seq = SyntheticSequence(P, width=W, height=H, seed=1, rectification_error_px=err)
+    f, z = seq.render(10), seq.depth(10)
+    assert np.array_equal(f.left, ref[10].left)  # the left camera is the reference
+    cam = seq.camera
+    disp = np.where(z > 0, cam.fx * cam.baseline_m / np.maximum(z, 1e-6), 0).astype(np.float32)
+    uu, vv = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
+    grad = np.hypot(cv2.Sobel(f.left, cv2.CV_32F, 1, 0), cv2.Sobel(f.left, cv2.CV_32F, 0, 1))
+    mask = (z > 0) & (uu - disp > 3) & (grad > 30)
+
+    def res(d):
+        warped = cv2.remap(f.right.astype(np.float32), uu - d, vv, cv2.INTER_LINEAR)
+        return np.median(np.abs(warped - f.left.astype(np.float32))[mask])
+
+    assert res(disp - err) < 0.7 * res(disp)
+    with pytest.raises(SnapsGraphError):
+        SyntheticSequence(P, width=W, height=H, rectification_error_px=float("nan"))
