@@ -11,6 +11,14 @@ Decisions:
   before the first frame: a ground heightfield that follows the path (camera 1.65 m above it),
   buildings, low walls and posts on both sides with gaps, never within ``corridor_m`` (5 m) of
   any part of the path, and distant hills. Revisits see the same buildings.
+* **Scenes and hard worlds** (``WorldConfig``; ``snaps-graph synth --scene --aliasing --traffic
+  --lighting``): ``street`` (the above, the default), ``open`` (a road through fields with tree
+  lines and farms 30-200 m away: most features far, where stereo depth is least certain) and
+  ``mixed`` (alternating 150-400 m stretches); ``aliasing`` (facade modules in one repeated
+  block), ``traffic`` (parked cars that differ between passes, oncoming cars; not part of the
+  world mesh) and ``lighting`` (sun and cast shadows follow a time of day along the path's
+  time). Each is deterministic per seed; ``street`` without them renders bit-identically to the
+  world before they existed. ``write_world_mesh`` writes the static geometry (``--world-mesh``).
 * **World-locked texture.** Every grey level is a deterministic function of the world hit
   point and the surface (``_shade``), so a revisited place looks the same (loop closure by
   image similarity works) and the two cameras see the same surface (stereo works).
