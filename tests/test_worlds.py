@@ -162,6 +162,7 @@ def test_traffic_differs_between_passes(loop300):
     assert max(diffs) > 0.01
     plain = SyntheticSequence(P, width=W, height=H, seed=5, times=times)
     assert all(np.array_equal(plain.depth(k), plain.depth(k + 250)) for k in (0, 20))
+    assert np.array_equal(plain.world.vertices, seq.world.vertices)  # traffic leaves the static world alone
     # a car is never where the camera is: the nearest depth in view stays above 1.5 m
     assert min(seq.depth(k)[seq.depth(k) > 0].min() for k in range(0, 300, 15)) > 1.5
     assert digest(SyntheticSequence(P, width=W, height=H, seed=5, times=times, world_config=cfg), [10, 260]) == digest(seq, [10, 260])

@@ -53,8 +53,8 @@ class WorldConfig:
     Defaults give a KITTI-like street: 1.65 m camera height (KITTI's camera is 1.65 m above the
     road), a free corridor of 5 m each side of the path, buildings 4-24 m tall with gaps.
     ``scene`` picks a preset (see ``SCENES``); the hard-world switches (``aliasing``,
-    ``traffic``, ``lighting``) combine with any scene. Traffic and aliasing draw from their own
-    generators, so switching them on leaves the rest of the world as it was.
+    ``traffic``, ``lighting``) combine with any scene. Traffic draws from its own generator and
+    lighting only changes the shading, so switching them on leaves the static world as it was.
     """
 
     camera_height_m: float = 1.65  # ground lies this far below the camera (camera down axis)
