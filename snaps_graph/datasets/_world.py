@@ -103,7 +103,7 @@ class WorldConfig:
     oncoming_offset_m: float = 3.2  # oncoming cars drive this far left of the path
     oncoming_period_s: float = 6.0  # mean time between oncoming cars
     oncoming_speed_mps: tuple[float, float] = (7.0, 14.0)
-    pass_radius_m: float = 120.0  # a pass: consecutive frames within this of a parking slot
+    pass_radius_m: float = 80.0  # a pass: consecutive frames within this of a parking slot
     lighting: bool = False  # a sun that moves with the trajectory's time of day, with cast shadows
     day_start_h: float = 8.0  # lighting: time of day at the first frame
     day_hours_per_minute: float = 1.0  # lighting: hours of daylight per minute of trajectory time
