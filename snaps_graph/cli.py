@@ -61,6 +61,7 @@ def synth(
     lighting: bool = typer.Option(False, "--lighting", help="Hard world: sun and cast shadows follow a time of day along the trajectory's time."),
     rectification_error: float = typer.Option(0.0, "--rectification-error", help="Sensor: every disparity reads this many pixels smaller than calib.txt implies (a rig's rectification residual; depth reads long, the more the farther)."),
     world_mesh: Optional[Path] = typer.Option(None, "--world-mesh", help="Also write the static world geometry (no traffic) as a triangle mesh (.ply) in the frame of poses.txt."),
+    mesh_only: bool = typer.Option(False, "--mesh-only", help="With --world-mesh: write the mesh only (no images; OUT is not touched)."),
 ) -> None:
     """Render a synthetic stereo sequence along a trajectory, in KITTI layout."""
     from .datasets.synthetic import SCENES, SyntheticSequence, WorldConfig, load_trajectory, render_to_folder
@@ -75,10 +76,13 @@ def synth(
         raise_user(f"--scene '{scene}' is not one of {', '.join(SCENES)}")
     if world_mesh is not None and world_mesh.suffix.lower() not in (".ply", ".obj", ".off", ".stl"):
         raise_user(f"{world_mesh}: --world-mesh must name a .ply (or .obj, .off, .stl) file")
-    check_output_folder(out, overwrite)
-    for given in (Path(trajectory), times):
-        if given is not None and given.exists() and _inside(given, out):
-            raise_user(f"{out}: --out would replace the input {given}")
+    if mesh_only and world_mesh is None:
+        raise_user("--mesh-only needs --world-mesh FILE.ply")
+    if not mesh_only:
+        check_output_folder(out, overwrite)
+        for given in (Path(trajectory), times):
+            if given is not None and given.exists() and _inside(given, out):
+                raise_user(f"{out}: --out would replace the input {given}")
     world = WorldConfig(scene=scene, aliasing=aliasing, traffic=traffic, lighting=lighting)
     poses, ts = load_trajectory(trajectory, frames, times=str(times) if times else None)
     seq = SyntheticSequence(poses, width=width, height=height, seed=seed, noise_std=noise, exposure_change=exposure, times=ts,
@@ -86,6 +90,8 @@ def synth(
     if world_mesh is not None:
         seq.write_world_mesh(world_mesh)
         typer.echo(f"wrote the world mesh ({len(seq.world.triangles)} triangles) to {world_mesh}")
+        if mesh_only:
+            return
     with _progress(len(seq), "render") as bar, output_folder(out, overwrite) as tmp:
         render_to_folder(seq, tmp, progress=lambda *_: bar.update(1), write_depth=depth, overwrite=True)
     typer.echo(f"wrote {len(seq)} stereo pairs to {out}")

@@ -218,9 +218,21 @@ def test_world_mesh_agrees_with_rendered_depth(tmp_path):
     assert np.mean(np.abs(mm[both] - ref[both]) < 0.002) > 0.8
 
 
+def test_mesh_only_writes_no_images(tmp_path):
+    import open3d as o3d
+
+    r = cli("synth", "--trajectory", "loop", "--frames", "0:5", "--out", str(tmp_path / "s"),
+            "--world-mesh", str(tmp_path / "w.ply"), "--mesh-only")
+    assert r.returncode == 0, r.stderr
+    assert not (tmp_path / "s").exists()
+    assert len(o3d.io.read_triangle_mesh(str(tmp_path / "w.ply")).triangles) > 1000
+
+
 @pytest.mark.parametrize("args, needle", [
     (["--scene", "desert"], "--scene 'desert'"),
     (["--world-mesh", "world.txt"], "--world-mesh"),
+    (["--mesh-only"], "--mesh-only"),
+    (["--rectification-error", "9"], "rectification error"),
 ])
 def test_bad_synth_options_are_one_line_errors(tmp_path, args, needle):
     r = cli("synth", "--trajectory", "loop", "--frames", "0:3", "--width", "64", "--height", "32",
