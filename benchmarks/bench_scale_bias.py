@@ -30,6 +30,7 @@ from snaps_graph.config import Config  # noqa: E402
 from snaps_graph.datasets.kitti import KittiSequence  # noqa: E402
 from snaps_graph.evaluation.metrics import ate_rmse, path_length  # noqa: E402
 from snaps_graph.frontend import StereoOdometry  # noqa: E402
+from snaps_graph.types import StereoFrame  # noqa: E402
 
 MODES = {
     "default": dict(),
@@ -52,7 +53,10 @@ def run(seq: KittiSequence, overrides: dict, stride: int = 1) -> tuple[np.ndarra
         setattr(cfg.frontend, k, v)
     t0 = time.perf_counter()
     with StereoOdometry(seq.camera, cfg.frontend) as vo:
-        res = [vo.process(seq[i]) for i in range(0, len(seq), stride)]
+        res = []
+        for j, i in enumerate(range(0, len(seq), stride)):
+            f = seq[i]  # numbered as a recording of the faster drive would be (the front end reads the index)
+            res.append(vo.process(StereoFrame(j, f.timestamp, f.left, f.right)))
     return np.array([r.pose for r in res]), sum(not r.ok for r in res), time.perf_counter() - t0
 
 
