@@ -24,6 +24,7 @@ Decisions:
 from __future__ import annotations
 
 import threading
+from typing import Any
 
 import cv2
 import numpy as np
@@ -153,7 +154,7 @@ class Renderer:
         self.noise = NoiseBank(seed)
         self._local = threading.local()
 
-    def cast(self, R: np.ndarray, origin: np.ndarray, layer: Layer | None = None, sun: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    def cast(self, R: np.ndarray, origin: np.ndarray, layer: Layer | None = None, sun: np.ndarray | None = None) -> dict[str, Any]:
         """Cast one image's rays from ``origin`` with camera rotation ``R`` (world from camera),
         into the static world and, when given, a ``layer`` of the instant (traffic). With ``sun``
         (unit vector towards the sun, world axes) the hits are also tested for cast shadows."""
@@ -210,12 +211,12 @@ class Renderer:
         shadow[valid] = occ
         return shadow
 
-    def depth(self, hit: dict[str, np.ndarray]) -> np.ndarray:
+    def depth(self, hit: dict[str, Any]) -> np.ndarray:
         """z-depth (m) of a cast as an (H, W) image, 0 where no surface was hit (the sky)."""
         t = hit["t"]
         return np.where(np.isfinite(t), t, np.float32(0.0)).astype(np.float32).reshape(self.height, self.width)
 
-    def shade(self, hit: dict[str, np.ndarray]) -> np.ndarray:
+    def shade(self, hit: dict[str, Any]) -> np.ndarray:
         """Grey levels (float32 (H, W), 0..255 before exposure/noise) of a cast."""
         n_pix = self.width * self.height
         out = np.empty(n_pix, np.float32)
@@ -224,7 +225,7 @@ class Renderer:
             out[sl] = self._shade_chunk(hit, sl)
         return out.reshape(self.height, self.width)
 
-    def _shade_chunk(self, hit: dict[str, np.ndarray], sl: slice) -> np.ndarray:
+    def _shade_chunk(self, hit: dict[str, Any], sl: slice) -> np.ndarray:
         world, F = self.world, hit["faces"]
         f32 = np.float32
         R, o = hit["R"], hit["origin"]

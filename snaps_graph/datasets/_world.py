@@ -26,6 +26,7 @@ deterministic function of the path and the seed, so the same seed gives the same
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -167,7 +168,6 @@ class World:
                  times: np.ndarray | None = None):
         """Build the world along ``positions`` (N, 3) camera centres with camera down axes (N, 3)
         (``times``, s, place the traffic; default 10 Hz)."""
-        import open3d as o3d  # lazily: only the renderer needs it
 
         self.config = cfg = config or WorldConfig()
         _check_config(cfg)
@@ -413,7 +413,7 @@ class World:
         their own generator: the rest of the world is drawn as without aliasing."""
         cfg = self.config
         arng = np.random.default_rng([int(seed), 0xA11A5])
-        self.modules = []
+        self.modules: list[dict[str, Any]] = []
         for _ in range(cfg.alias_modules):
             bricks = arng.random() < 0.5
             self.modules.append(dict(
@@ -454,6 +454,7 @@ class World:
             return cv2.distanceTransform(img, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * np.float32(cell)
 
         open_ = self.sample_open
+        assert open_ is not None  # only open and mixed scenes have an open road
         dist = dist_to(np.ones(len(self.samples), bool))
         self.raster_lo, self.raster_cell = lo.astype(np.float64), cell
         # The shader's road edge: the distance field smoothed (exact where it is linear, i.e. away
@@ -461,8 +462,8 @@ class World:
         self.ground_dist = cv2.GaussianBlur(dist.astype(np.float32), (0, 0), 1.5 / cell)
         if not open_.all():
             d_open, d_street = dist_to(open_), dist_to(~open_)
-            m = (d_open < d_street).astype(np.float32)
-            self.open_map = cv2.GaussianBlur(m, (0, 0), 4.0 / cell)  # ~4 m blend between stretches
+            is_open = (d_open < d_street).astype(np.float32)
+            self.open_map = cv2.GaussianBlur(is_open, (0, 0), 4.0 / cell)  # ~4 m blend between stretches
 
         occ_build = np.zeros(shape, bool)  # buildings (and their halo)
         occ_tree = np.zeros(shape, bool)
@@ -800,7 +801,7 @@ class Layer:
     """Geometry of one instant added to the static world (traffic): its own scene, and the
     face lookups of static + layer triangles (layer triangle j is prim n_static + j)."""
 
-    scene: object
+    scene: Any  # open3d RaycastingScene
     tri_face: np.ndarray
     faces: FaceTable
     n_static: int
