@@ -32,6 +32,8 @@ SWEEPS = {
     "shift_px": [0, 4, 8, 12],
     "window": [8, 16],
     "correction_weight": ["q", "verified"],
+    "correction_axes": ["xyz", "ground"],
+    "correction_rotation": ["none", "yaw", "full"],
 }
 
 

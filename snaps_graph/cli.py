@@ -1,4 +1,4 @@
-"""Command line: ``snaps-graph synth | run | convert | eval | compare | demo | config``.
+"""Command line: ``snaps-graph synth | run | convert | eval | compare | loops | demo | config``.
 
 Thin: each command parses its options, calls the package and prints. Exit status: 0 done; 2 a
 user error (``SnapsGraphError``: one line ``error: ...`` naming the file, never a traceback; also
@@ -245,6 +245,28 @@ def compare(
 
     compare_run(run_dir, gt)
     typer.echo(f"wrote {run_dir / 'report.md'}")
+
+
+@app.command()
+def loops(
+    run_dir: Path = typer.Argument(..., help="A results folder written by `snaps-graph run` with SNAPS (candidates.csv)."),
+    gt: Optional[Path] = typer.Option(None, "--gt", help="Ground truth (default: RUN_DIR/poses_gt.txt)."),
+    true_m: float = typer.Option(5.0, "--true-m", help="A pair is a true loop within this ground-truth distance, m."),
+    false_m: float = typer.Option(10.0, "--false-m", help="... and false beyond this one (ignored in between), m."),
+    png: Optional[Path] = typer.Option(None, "--png", help="Precision-recall plot (default: RUN_DIR/loops_pr.png)."),
+    as_json: bool = typer.Option(False, "--json", help="Print one JSON object instead of text."),
+) -> None:
+    """Loop-closure evaluation: precision-recall over the Q threshold, revisits found, false loops."""
+    from .evaluation.loops import json_text, loops_run, summary_lines
+
+    ev = loops_run(run_dir, gt, true_m=true_m, false_m=false_m, png=png)
+    if as_json:
+        typer.echo(json_text(ev))
+        return
+    for line in summary_lines(ev):
+        typer.echo(line)
+    if "plot" in ev:
+        typer.echo(f"wrote {ev['plot']}")
 
 
 @app.command()

@@ -407,3 +407,81 @@ def test_failed_verification_falls_back_to_same_place():
         step = closer.step(k, T_rel, images[k], verify=lambda ref: None)
     assert step.loop is not None and not step.loop.verified
     np.testing.assert_allclose(step.loop.delta, [0, 0, -5.0], atol=1e-12)
+
+
+# ---------------------------------------------------------------- eq. 6: what it corrects
+def _height_error_case(axes: str, rotation: str = "none"):
+    """Reference frame 2 carries a VO height error of 0.5 m (step 1->2 climbs, 2->3 descends
+    again); from step 2->3 on the VO is 0.2 m off sideways. Frame 6 revisits frame 2 and
+    verification measures the true relative pose. Returns (errors before, errors after, closer)."""
+    true = [pose(z=0.0), pose(z=1.0), pose(z=2.0), pose(x=20.0), pose(x=40.0), pose(x=20.0, z=20.0), pose(x=0.5, z=3.0)]
+    est = [T.copy() for T in true]
+    est[2][1, 3] += 0.5  # height error of the reference (KITTI y points down; the sign is irrelevant)
+    for k in range(3, 7):
+        est[k][0, 3] += 0.2  # horizontal error of everything after it
+    images = [tex(k) for k in range(7)]
+    images[6] = tex(2) // 2  # Q = 0.64 against frame 2 only
+    T_meas = inv(true[2]) @ true[6]
+    closer = SnapsLoopCloser(cfg(discount_length=3, correction_weight="verified", correction_axes=axes, correction_rotation=rotation))
+    for k in range(7):
+        T_rel = np.eye(4) if k == 0 else inv(est[k - 1]) @ est[k]
+        step = closer.step(k, T_rel, images[k], verify=lambda ref: (T_meas, 50))
+    assert step.loop is not None and step.loop.reference == 2 and step.loop.verified
+    p_true = np.array([T[:3, 3] for T in true])
+    before = np.linalg.norm(np.array([T[:3, 3] for T in est]) - p_true, axis=1)
+    after = np.linalg.norm(closer.positions - p_true, axis=1)
+    return before, after, closer
+
+
+def test_eq6_ground_rule_never_copies_the_reference_height_error():
+    before, after, _ = _height_error_case("ground")
+    assert np.all(after <= before + 1e-12)  # no frame got worse
+    assert after[6] < 0.05 * before[6]  # the current frame's sideways error is gone (0.2 m -> 0.01 m)
+    # The paper's three components copy the reference's 0.5 m height error into frame 6 (why eq. 6
+    # raised the height error on a real path): its error grows from 0.2 m to about 0.48 m.
+    before_xyz, after_xyz, _ = _height_error_case("xyz")
+    assert after_xyz[6] > 2.0 * before_xyz[6]
+
+
+@pytest.mark.parametrize("rotation, sigma, gain", [("yaw", 0.0, 1.0), ("full", 0.0, 1.0), ("yaw", math.sqrt(5.0), 0.5)])
+def test_eq6_rotation_correction_turns_window_to_verified_heading(rotation, sigma, gain):
+    """The VO turned 3 deg too far in its first step, so frames 1..5 head 3 deg off. The verified
+    rotation at the loop (frame 5 vs frame 0) turns the window [1, 5] back by g*w*gamma_s*3 deg
+    (gamma_0 = 1 - e^-3), and a frame composed afterwards keeps the corrected heading. The gain g
+    weighs the drift over the 5 frames (5 * 1 deg^2) against the measurement's variance sigma^2:
+    1 with an exact measurement, 0.5 when sigma^2 = 5."""
+    true = [pose(z=float(k)) for k in range(6)]
+    est = [true[0]] + [pose(z=float(k), yaw=3.0) for k in range(1, 6)]
+    images = [tex(k) for k in range(6)]
+    images[5] = tex(0) // 2
+    T_meas = inv(true[0]) @ true[5]
+    closer = SnapsLoopCloser(cfg(correction_weight="verified", correction_axes="ground", correction_rotation=rotation,
+                                 heading_drift_deg=1.0, verified_heading_sigma_deg=sigma))
+    for k in range(6):
+        T_rel = np.eye(4) if k == 0 else inv(est[k - 1]) @ est[k]
+        step = closer.step(k, T_rel, images[k], verify=lambda ref: (T_meas, 50))
+    assert step.loop is not None and closer.heading_gain(5) == pytest.approx(gain)
+    yaw = yaw_deg(closer.poses)
+    for s in range(1, 6):
+        assert yaw[s] == pytest.approx(3.0 * (1.0 - gain * gamma(1, 5 - s)), abs=1e-9)
+    nxt = closer.step(6, pose(z=1.0), tex(6))  # one more metre straight ahead in the camera frame
+    assert yaw_deg(nxt.pose) == pytest.approx(yaw[5], abs=1e-9)
+
+
+def test_eq6_options_validated():
+    with pytest.raises(SnapsGraphError, match="correction_axes"):
+        SnapsLoopCloser(cfg(correction_axes="z"))
+    with pytest.raises(SnapsGraphError, match="correction_rotation"):
+        SnapsLoopCloser(cfg(correction_rotation="pitch"))
+
+
+def test_eq6_never_moves_the_reference_or_older_frames():
+    """K (10) larger than N - ref (4): the window starts after the reference, the loop's anchor."""
+    closer = SnapsLoopCloser(cfg(discount_length=10))
+    poses = [pose(z=float(k)) for k in range(7)]
+    images = [tex(k) for k in range(7)]
+    images[6] = tex(2) // 2  # frame 6 revisits frame 2
+    steps = drive(closer, poses, images)
+    assert steps[6].loop is not None and steps[6].loop.reference == 2 and steps[6].loop.n_corrected == 4
+    np.testing.assert_array_equal(closer.positions[:3], [[0, 0, 0], [0, 0, 1.0], [0, 0, 2.0]])
+    assert closer.positions[3, 2] != 3.0

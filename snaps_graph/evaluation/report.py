@@ -8,11 +8,14 @@ Reads what the pipeline wrote into a run folder and writes, into the same folder
   to the figures;
 - ``trajectories.png`` (top-down, loops drawn on the SNAPS trajectory), ``errors.png`` (position
   error over frames; only with ground truth), ``latency.png`` (box plots, paper Fig. 5);
+  ``loops_pr.png`` and a loop-closure section (evaluation/loops.py) with ground truth and a
+  ``candidates.csv``;
 - ``metrics.json``, updated atomically: existing keys are kept; ``trajectories`` (name ->
   ``metrics.evaluate`` dict, with ground truth), ``paths`` (frames and path length per
   trajectory), ``latency_ms`` (same shape as the pipeline's: per stage n / median / mean / p95 /
   max, SNAPS split into frames with and without candidates) and ``loop_corrections`` (one object
-  per loop) are (re)written from the files. A metric that cannot be computed is ``null``.
+  per loop) and ``loop_evaluation`` (evaluation/loops.py, without the curve) are (re)written from
+  the files. A metric that cannot be computed is ``null``.
 
 Inputs, as the pipeline writes them: ``poses_vo.txt`` (required), ``poses_snaps.txt``,
 ``poses_isam2.txt``, ``poses_batch.txt`` (each when computed), KITTI format, one line per
@@ -536,6 +539,18 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None) -> dict:
         md += _loop_lines(corrections, trajs, gt is not None)
     else:
         md.append("No loop closed in this run" + ("" if (run / "loops.jsonl").is_file() else " (no loops.jsonl)") + ".")
+    loop_eval = None
+    if gt is not None and (run / "candidates.csv").is_file():
+        from .loops import loops_run, summary_lines
+
+        loop_eval = loops_run(run, gt_path)
+        md += ["", "## Loop closure against ground truth", ""]
+        md += [f"- {line}" for line in summary_lines(loop_eval)]
+        md += ["", "Pairs: true within the first distance, false beyond the second, ignored in between; "
+               "precision-recall over the Q threshold for Q alone and for Q + geometric verification "
+               "(`snaps-graph loops RUN_DIR --json` prints the curve).", "", "![loop precision-recall](loops_pr.png)"]
+        if "plot" in loop_eval:
+            figures.append(Path(loop_eval["plot"]).name)
     md += ["", "## Latency", ""]
     if samples:
         md += _latency_lines(latency)
@@ -555,5 +570,7 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None) -> dict:
     metrics["paths"] = paths
     metrics["latency_ms"] = latency
     metrics["loop_corrections"] = corrections
+    if loop_eval is not None:
+        metrics["loop_evaluation"] = {k: v for k, v in loop_eval.items() if k not in ("curve", "plot")}
     metrics["report"] = {"markdown": "report.md", "figures": figures}
     return write_metrics_json(metrics_path, metrics)

@@ -22,8 +22,18 @@
    The paper prints x_s^new = Q·γ·δ_x, which would throw every pose near the origin; the additive
    reading moves the current frame 95 % (γ = 1 − e^-3 at s' = 0, times Q) of the way to the
    reference and older frames less. γ turns negative once α·r·s' > c, which would push poses away
-   from the reference, so it is clamped at 0. Only positions move (the paper corrects x, y, z);
-   orientations keep their VO values. The current frame becomes the last pinned frame.
+   from the reference, so it is clamped at 0. The window never reaches the reference or older
+   frames (the loop's anchor; only possible when K > M). The current frame becomes the last
+   pinned frame.
+
+   What moves (``correction_axes``, ``correction_rotation``): the paper corrects x, y, z and keeps
+   the VO orientations ("xyz", "none"). The target p_ref (+ R_ref·t_ref_cur) carries the
+   reference's own error, and its *height* error is not smaller than the current frame's on our
+   renderings (the VO's height error comes from a pitch bias, not a random walk): moving z toward
+   it raised the height error. By default δ keeps its ground-plane components only ("ground":
+   world x, z; heights stay the VO's) and a verified loop also turns the window about the world
+   vertical toward the verified heading R_ref·R_ref_cur by the same w·γ_s ("yaw"), so the frames
+   after the loop continue on the corrected heading instead of re-growing the same drift.
 
 Frame numbering. Internally frames are numbered by their position in the processed stream
 (0, 1, ...): M, K and the pause count processed frames. The caller's ``index`` (the dataset's
@@ -60,6 +70,7 @@ from ..config import LoopConfig
 from ..errors import SnapsGraphError
 from ..geometry import wrap_deg, yaw_deg
 from ..types import LoopEvent
+from .records import CandidateRecord
 from .uiqi import WindowStats, make_thumbnail, shifted_pair, similarity, similarity_q, similarity_shifted, window_stats
 
 # Geometric verification, injected by the pipeline (loop/ never imports the front end):
@@ -96,6 +107,33 @@ class SnapsStep:
     t_verify_ms: float = 0.0  # geometric verification time on this frame (tried or successful)
 
 
+def _rotation_correction(dR: np.ndarray, kind: str) -> np.ndarray:
+    """World-frame axis-angle vector of the rotation dR = R_target R_N^T ("full"), or of its
+    part about the world vertical y axis ("yaw")."""
+    if kind == "yaw":
+        # Closest rotation about y: R_y(t) = [[c, 0, s], [0, 1, 0], [-s, 0, c]].
+        return np.array([0.0, math.atan2(dR[0, 2] - dR[2, 0], dR[0, 0] + dR[2, 2]), 0.0])
+    c = np.clip((np.trace(dR) - 1.0) / 2.0, -1.0, 1.0)
+    theta = math.acos(c)
+    if theta < 1e-12:
+        return np.zeros(3)
+    w = np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]])
+    return w * (theta / (2.0 * math.sin(theta))) if theta < math.pi - 1e-6 else w  # near pi: loop rotations never are
+
+
+def _exp_so3(rotvec: np.ndarray, scales: np.ndarray) -> np.ndarray:
+    """Rodrigues: (len(scales), 3, 3) rotations Exp(scale·rotvec)."""
+    theta = float(np.linalg.norm(rotvec))
+    out = np.broadcast_to(np.eye(3), (len(scales), 3, 3)).copy()
+    if theta == 0.0:
+        return out
+    k = rotvec / theta
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    t = np.asarray(scales, float) * theta
+    out += np.sin(t)[:, None, None] * K + (1.0 - np.cos(t))[:, None, None] * (K @ K)
+    return out
+
+
 def discount(cfg: LoopConfig, alpha: int, s_prime: np.ndarray) -> np.ndarray:
     """γ of eq. 6 for offsets s' = N − s, clamped at 0 (see module docstring)."""
     return np.maximum(0.0, 1.0 - np.exp(-(cfg.discount_offset - alpha * cfg.discount_rate * s_prime)))
@@ -127,6 +165,9 @@ class SnapsLoopCloser:
         self.rejected_unverified = 0  # loops refused because no candidate verified
         self._t_verify_ms = 0.0  # verification time inside the current step (excluded from t_ms)
         self.stats_computed = 0
+        # One tuple per compared candidate (see records.py): (n, j, distance, yaw difference, Q,
+        # shift, above threshold, verification tried, passed, inliers, accepted), stream positions.
+        self._cand: list[tuple] = []
 
     # ---- accessors ----
     def __len__(self) -> int:
@@ -301,27 +342,37 @@ class SnapsLoopCloser:
             shifts = [0] * len(ids)
         self.similarities_computed += len(ids)
         # Candidates at or above the threshold, highest Q first (stable: nearer first on ties).
-        passing = [int(i) for i in np.argsort(-qs, kind="stable") if qs[i] >= self.cfg.min_similarity]
-        if not passing:
-            return None, len(ids)
-        best = passing[0]
-        verified, T_ref_cur, inliers, t_verify_ms = False, None, 0, 0.0
-        if verify is not None:
+        order = np.argsort(-qs, kind="stable")
+        passing = [int(i) for i in order if qs[i] >= self.cfg.min_similarity]
+        # Verification outcome per candidate: None = not tried, else the verifier's answer.
+        outcome: dict[int, "tuple[np.ndarray, int] | None"] = {}
+        best, verified, T_ref_cur, inliers, t_verify_ms = -1, False, None, 0, 0.0
+        if passing:
+            best = passing[0]
+        if verify is not None and (passing or self.cfg.verify_all_candidates):
             # Geometric verification of the best candidates in turn: the first that verifies is
             # the loop. With require_verification, none verifying means no loop (a same-place
             # assumption up to the radius away does more harm than a missed loop); otherwise the
-            # paper's rule: the highest Q, unverified.
+            # paper's rule: the highest Q, unverified. verify_all_candidates verifies the rest
+            # too, for the record only.
             tv = perf_counter()
             for i in passing[: max(1, self.cfg.verify_attempts)]:
-                result = verify(int(self._index[int(ids[i])]))
+                outcome[i] = result = verify(int(self._index[int(ids[i])]))
                 if result is not None:
                     best, (T_ref_cur, inliers), verified = i, result, True
                     break
+            if self.cfg.verify_all_candidates:
+                for i in order.tolist():
+                    if i not in outcome:
+                        outcome[i] = verify(int(self._index[int(ids[i])]))
             t_verify_ms = (perf_counter() - tv) * 1e3
             self._t_verify_ms = t_verify_ms
-            if not verified and self.cfg.require_verification:
-                self.rejected_unverified += 1
-                return None, len(ids)
+        accept = bool(passing) and (verified or verify is None or not self.cfg.require_verification)
+        if passing and not accept:
+            self.rejected_unverified += 1
+        self._record(n, ids, dists, qs, shifts, outcome, best if accept else -1)
+        if not accept:
+            return None, len(ids)
         ref = int(ids[best])
         # The winner's factors, same arithmetic, at its best shift.
         margin = min(self.cfg.shift_px, (cur.shape[1] - cur.window) // 2)
@@ -330,12 +381,18 @@ class SnapsLoopCloser:
         if verified and self.cfg.use_verified_offset:
             target = target + self._R[ref] @ np.asarray(T_ref_cur, float)[:3, 3]
         delta = target - self._p[n]
+        if self.cfg.correction_axes == "ground":  # the reference's height error stays out
+            delta[1] = 0.0
+        rotvec = None
+        if verified and self.cfg.correction_rotation != "none":
+            rotvec = _rotation_correction(self._R[ref] @ np.asarray(T_ref_cur, float)[:3, :3] @ self._R[n].T,
+                                          self.cfg.correction_rotation) * self.heading_gain(n - ref)
         alpha = len(self._loops) + 1
         # Eq. 6 weighs the move by Q: the confidence that N stands where the reference stood. A
         # verified loop measured where N stands, so with correction_weight = "verified" it moves
         # with weight 1 (gamma still discounts older poses); "q" is the paper's rule everywhere.
         weight = 1.0 if (verified and self.cfg.correction_weight == "verified") else sim.q
-        n_corrected = self._correct(n, weight, delta, alpha)
+        n_corrected = self._correct(n, weight, delta, alpha, rotvec, first=ref + 1)
         self._last_pinned = n
         event = LoopEvent(
             frame=int(self._index[n]),
@@ -361,13 +418,64 @@ class SnapsLoopCloser:
         self._loops.append(event)
         return event, len(ids)
 
+    def heading_gain(self, frames: int) -> float:
+        """Share of a verified rotation applied by a loop ``frames`` after its reference: the VO's
+        heading variance over that stretch against the measurement's (config comment)."""
+        drift = frames * self.cfg.heading_drift_deg**2
+        var = drift + self.cfg.verified_heading_sigma_deg**2
+        return drift / var if var > 0 else 1.0
+
+    # ---- records ----
+    def _record(self, n, ids, dists, qs, shifts, outcome, accepted: int) -> None:
+        """Append one tuple per compared candidate (no formatting: see records.py)."""
+        yaw_n = float(self._yaw[n])
+        yaws = self._yaw
+        thr = self.cfg.min_similarity
+        app = self._cand.append
+        for i, j in enumerate(ids.tolist()):
+            res = outcome.get(i, False)
+            app((n, j, float(dists[i]), float(yaws[j]) - yaw_n, float(qs[i]), int(shifts[i]), bool(qs[i] >= thr),
+                 res is not False, bool(res), res[1] if res else 0, i == accepted))
+
+    def candidate_records(self) -> list[CandidateRecord]:
+        """Every similarity computed so far as :class:`CandidateRecord` (dataset frame indices),
+        with Q's three factors computed now from the stored thumbnails at the recorded shift."""
+        out = []
+        stats: dict[int, WindowStats] = {}
+
+        def st(k: int) -> WindowStats:
+            if k not in stats:
+                stats[k] = self._stats.get(k) or window_stats(self._thumbs[k], self.cfg.window)
+            return stats[k]
+
+        for n, j, d, dyaw, q, dx, above, tried, passed, inl, acc in self._cand:
+            a, b = st(n), st(j)
+            margin = min(self.cfg.shift_px, (a.shape[1] - a.window) // 2)
+            sim = similarity(*shifted_pair(a, b, dx, margin))
+            out.append(CandidateRecord(
+                frame=int(self._index[n]), reference=int(self._index[j]), distance_m=d,
+                yaw_diff_deg=float(wrap_deg(dyaw)), q=q, correlation=sim.correlation, luminance=sim.luminance,
+                contrast=sim.contrast, shift_px=dx, above_threshold=above,
+                verify_tried=tried, verify_passed=passed, inliers=int(inl), accepted=acc,
+            ))
+            if len(stats) > 64:  # records come frame by frame: keep the memory bounded
+                stats.clear()
+        return out
+
     # ---- eq. 6 ----
-    def _correct(self, n: int, q: float, delta: np.ndarray, alpha: int) -> int:
-        """Eq. 6 (our reading): p_s += w·γ_s·δ for s in [N−K, N], w = Q (or 1 for a verified loop
-        under correction_weight = "verified"); returns how many moved."""
-        lo = max(0, n - self.cfg.discount_length)
+    def _correct(self, n: int, q: float, delta: np.ndarray, alpha: int, rotvec: np.ndarray | None = None,
+                 first: int = 0) -> int:
+        """Eq. 6 (our reading): p_s += w·γ_s·δ for s in [max(N−K, first), N], w = Q (or 1 for a
+        verified loop under correction_weight = "verified"); with ``rotvec`` (world-frame
+        axis-angle toward the verified orientation) also R_s ← Exp(w·γ_s·rotvec)·R_s. ``first``
+        is the frame after the reference: the reference and older frames are the loop's anchor
+        and never move (only possible when K > M). Returns how many moved."""
+        lo = max(0, n - self.cfg.discount_length, first)
         gamma = discount(self.cfg, alpha, n - np.arange(lo, n + 1, dtype=float))
         self._p[lo : n + 1] += (q * gamma)[:, None] * delta
+        if rotvec is not None:
+            self._R[lo : n + 1] = _exp_so3(rotvec, q * gamma) @ self._R[lo : n + 1]
+            self._yaw[lo : n + 1] = yaw_deg(self._R[lo : n + 1])
         hi = min(n + 1, self._n_indexed)
         if hi > lo:  # re-file moved frames that are already in the grid
             new = np.floor(self._p[lo:hi] / self.cfg.radius_m).astype(np.int64)
