@@ -13,7 +13,7 @@ folder; ``overwrite`` replaces an old folder whole). One writer per file, metric
     poses_gt.txt               ground truth of the processed frames, re-based (when known)
     frames.csv                 one row per frame (``types.FrameRecord``): timings, VO quality, loops
     loops.jsonl                one JSON object per closed loop
-    candidates.csv             every similarity SNAPS computed (loop/records.py; loops = snaps)
+    candidates.csv             every similarity SNAPS computed (types.CandidateRecord; loops = snaps)
     graph.g2o                  the factor graph (gtsam's writer)
     config.toml                every parameter used
     map.ply, map.png           the point-cloud map and its top-down picture (with --map)
@@ -36,9 +36,9 @@ from .config import Config
 from .errors import SnapsGraphError
 from .evaluation.metrics import evaluate
 from .evaluation.report import latency_summary as _latency_summary
+from .evaluation.loops import write_candidates_csv
 from .evaluation.report import write_metrics_json
 from .io_utils import atomic_write_text, check_output_folder, output_folder
-from .loop.records import write_candidates_csv
 from .mapping.outputs import write_map_outputs
 from .pipeline import FrameOutput, RunResult, SlamPipeline
 from .trajectory_io import write_kitti_poses, write_tum_poses
@@ -101,7 +101,7 @@ def _write_all(out: Path, pipe: SlamPipeline, result: RunResult, gt_poses: np.nd
         write_kitti_poses(out / "poses_gt.txt", gt_poses)
     write_frames_csv(out / "frames.csv", result.records)
     write_loops_jsonl(out / "loops.jsonl", result.loops)
-    if pipe.snaps is not None:  # every similarity SNAPS computed (loop/records.py)
+    if pipe.snaps is not None:  # every similarity SNAPS computed (types.CandidateRecord)
         write_candidates_csv(out / "candidates.csv", pipe.snaps.candidate_records())
     pipe.cfg.dump(out / "config.toml")
     failures = list(result.graph_failures)

@@ -122,3 +122,27 @@ class FrameRecord:
 
 
 FRAME_COLUMNS: tuple[str, ...] = tuple(f.name for f in dataclasses.fields(FrameRecord))
+
+
+@dataclass(frozen=True)
+class CandidateRecord:
+    """One similarity SNAPS computed: a row of ``candidates.csv`` (columns in field order; the
+    writer and reader are in evaluation/loops.py)."""
+
+    frame: int  # dataset frame index of the current frame
+    reference: int  # ... of the earlier candidate
+    distance_m: float  # |p_ref - p_N| on the heuristic trajectory when compared
+    yaw_diff_deg: float  # wrap(yaw_ref - yaw_N), heuristic orientations
+    q: float  # the Q SNAPS compared with min_similarity (at the best shift)
+    correlation: float  # Q's factors at that shift (window means)
+    luminance: float
+    contrast: float
+    shift_px: int  # horizontal thumbnail shift of the best Q (0 without shift search)
+    above_threshold: bool  # Q >= min_similarity
+    verify_tried: bool  # geometric verification was run on this pair
+    verify_passed: bool  # ... and returned a relative pose
+    inliers: int  # PnP inliers of a passed verification (0 otherwise)
+    accepted: bool  # this pair closed the loop at this frame
+
+
+CANDIDATE_COLUMNS: tuple[str, ...] = tuple(f.name for f in dataclasses.fields(CandidateRecord))

@@ -1,4 +1,4 @@
-"""Loop-closure evaluation (evaluation/loops.py) and SNAPS's candidate records (loop/records.py).
+"""Loop-closure evaluation (evaluation/loops.py) and SNAPS's candidate records (candidates.csv).
 
 The PR computation is checked on hand-made records whose ground truth is known; a tiny rendered
 run checks that candidates.csv is written with the one column list and that `snaps-graph loops`
@@ -18,8 +18,16 @@ import pytest
 
 from snaps_graph.config import Config
 from snaps_graph.errors import SnapsGraphError
-from snaps_graph.evaluation.loops import LoopEvalSettings, evaluate_loops, label_pairs, pr_curve, segments
-from snaps_graph.loop.records import CANDIDATE_COLUMNS, CandidateRecord, read_candidates_csv, write_candidates_csv
+from snaps_graph.evaluation.loops import (
+    LoopEvalSettings,
+    evaluate_loops,
+    label_pairs,
+    pr_curve,
+    read_candidates_csv,
+    segments,
+    write_candidates_csv,
+)
+from snaps_graph.types import CANDIDATE_COLUMNS, CandidateRecord
 
 
 def rec(frame, ref, q, passed=False, tried=None, accepted=False) -> CandidateRecord:

@@ -1,6 +1,7 @@
 """Loop-closure evaluation as the field reports it (``snaps-graph loops RUN_DIR --gt GT``).
 
-Input: the run's ``candidates.csv`` (every similarity SNAPS computed, loop/records.py), its
+Input: the run's ``candidates.csv`` (every similarity SNAPS computed; its one writer and reader
+are below, its columns ``types.CANDIDATE_COLUMNS``), its
 ``loops.jsonl`` (the loops accepted) and ground truth. Definitions:
 
 - A compared pair (frame, reference) is **true** when their ground-truth positions lie within
@@ -28,15 +29,64 @@ the PR plot and returns the same dict.
 
 from __future__ import annotations
 
+import csv
+import io
 import json
-from dataclasses import dataclass
+from dataclasses import astuple, dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import SnapsGraphError
 from ..geometry import wrap_deg, yaw_deg
-from ..loop.records import CandidateRecord, read_candidates_csv
+from ..io_utils import atomic_write_text
+from ..types import CANDIDATE_COLUMNS, CandidateRecord
+
+# ---------------------------------------------------------------------------------------------
+# candidates.csv: the one writer and reader (columns: types.CANDIDATE_COLUMNS, in field order)
+# ---------------------------------------------------------------------------------------------
+_FLOATS = {"distance_m", "yaw_diff_deg", "q", "correlation", "luminance", "contrast"}
+_BOOLS = {"above_threshold", "verify_tried", "verify_passed", "accepted"}
+
+
+def candidates_csv_text(records: list[CandidateRecord]) -> str:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(CANDIDATE_COLUMNS)
+    for r in records:
+        w.writerow(
+            f"{v:.6f}" if name in _FLOATS else (int(v) if name in _BOOLS else v)
+            for name, v in zip(CANDIDATE_COLUMNS, astuple(r))
+        )
+    return buf.getvalue()
+
+
+def write_candidates_csv(path: str | Path, records: list[CandidateRecord]) -> None:
+    """Write ``candidates.csv`` atomically (a header only when there are no records)."""
+    atomic_write_text(path, candidates_csv_text(records))
+
+
+def read_candidates_csv(path: str | Path) -> list[CandidateRecord]:
+    """Read a ``candidates.csv``; a missing file, column or malformed cell is a SnapsGraphError."""
+    path = Path(path)
+    if not path.is_file():
+        raise SnapsGraphError(f"{path}: not found (runs with SNAPS write candidates.csv)")
+    with path.open(newline="") as fh:
+        reader = csv.DictReader(fh)
+        missing = [c for c in CANDIDATE_COLUMNS if c not in (reader.fieldnames or [])]
+        if missing:
+            raise SnapsGraphError(f"{path}: missing column(s) {', '.join(missing)}")
+        out = []
+        for lineno, row in enumerate(reader, 2):
+            try:
+                vals: dict = {}
+                for c in CANDIDATE_COLUMNS:
+                    cell = row[c].strip()
+                    vals[c] = float(cell) if c in _FLOATS else (bool(int(cell)) if c in _BOOLS else int(cell))
+            except (ValueError, TypeError, AttributeError):
+                raise SnapsGraphError(f"{path}:{lineno}: malformed row") from None
+            out.append(CandidateRecord(**vals))
+    return out
 
 
 @dataclass(frozen=True)
@@ -351,4 +401,4 @@ def json_text(ev: dict, with_curve: bool = True) -> str:
     return json.dumps(json_clean(out), indent=2)
 
 
-__all__ = ["LoopEvalSettings", "evaluate_loops", "label_pairs", "loops_run", "pr_curve", "revisit_mask", "segments", "summary_lines"]
+__all__ = ["LoopEvalSettings", "read_candidates_csv", "write_candidates_csv", "evaluate_loops", "label_pairs", "loops_run", "pr_curve", "revisit_mask", "segments", "summary_lines"]

@@ -69,8 +69,7 @@ import numpy as np
 from ..config import LoopConfig
 from ..errors import SnapsGraphError
 from ..geometry import wrap_deg, yaw_deg
-from ..types import LoopEvent
-from .records import CandidateRecord
+from ..types import CandidateRecord, LoopEvent
 from .uiqi import WindowStats, make_thumbnail, shifted_pair, similarity, similarity_q, similarity_shifted, window_stats
 
 # Geometric verification, injected by the pipeline (loop/ never imports the front end):
@@ -165,7 +164,7 @@ class SnapsLoopCloser:
         self.rejected_unverified = 0  # loops refused because no candidate verified
         self._t_verify_ms = 0.0  # verification time inside the current step (excluded from t_ms)
         self.stats_computed = 0
-        # One tuple per compared candidate (see records.py): (n, j, distance, yaw difference, Q,
+        # One tuple per compared candidate (types.CandidateRecord, built at the end): (n, j, distance, yaw difference, Q,
         # shift, above threshold, verification tried, passed, inliers, accepted), stream positions.
         self._cand: list[tuple] = []
 
@@ -427,7 +426,7 @@ class SnapsLoopCloser:
 
     # ---- records ----
     def _record(self, n, ids, dists, qs, shifts, outcome, accepted: int) -> None:
-        """Append one tuple per compared candidate (no formatting: see records.py)."""
+        """Append one tuple per compared candidate (no formatting; types.CandidateRecord at the end)."""
         yaw_n = float(self._yaw[n])
         yaws = self._yaw
         thr = self.cfg.min_similarity
