@@ -548,7 +548,7 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None) -> dict:
         md += [f"- {line}" for line in summary_lines(loop_eval)]
         md += ["", "Pairs: true within the first distance, false beyond the second, ignored in between; "
                "precision-recall over the Q threshold for Q alone and for Q + geometric verification "
-               "(`snaps-graph loops RUN_DIR --json` prints the curve).", "", "![loop precision-recall](loops_pr.png)"]
+               "(`snaps-graph loops RUN_DIR --json` prints the curve).", "", "![loop precision-recall](loops_pr.png)", ""]
         if "plot" in loop_eval:
             figures.append(Path(loop_eval["plot"]).name)
     md += ["", "## Latency", ""]
