@@ -145,7 +145,7 @@ def main() -> None:
     header = ["sequence", "eq. 6 variant", "loops", "false", "mean dev m (x VO)", "horizontal m", "vertical m", "ATE m",
               "max recall @P=1 Q / Q+verif.", "segments found", "SNAPS ms (cand.)", "SNAPS us (none)", "batch mean dev m"]
     text = "# Eq. 6 variants: what the real-time correction corrects\n\n"
-    text += "Command: `python experiments/loop_correction.py --seq " + " ".join(args.seq) + (" --batch" if args.batch else "") + (" --verify-all" if args.verify_all else "") + (" --set " + " ".join(args.set) if args.set else "") + "`\n\n"
+    text += "Command: `python experiments/loop_correction.py --seq " + " ".join(args.seq) + (" --variants " + " ".join(args.variants) if args.variants != list(VARIANTS) else "") + (" --batch" if args.batch else "") + (" --verify-all" if args.verify_all else "") + (" --set " + " ".join(args.set) if args.set else "") + "`\n\n"
     text += md_table(header, rows)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(text)
