@@ -112,7 +112,9 @@ def main() -> None:
                                 cfg.loop.min_similarity)
             t_cand = [r.t_loop_ms for r in result.records if r.loop_candidates > 0]
             t_none = [r.t_loop_ms for r in result.records if r.loop_candidates == 0]
-            ratio = lambda key: m[key] / m_vo[key] if m_vo[key] > 0 else float("nan")  # noqa: E731
+            def ratio(key: str, m: dict = m, m_vo: dict = m_vo) -> float:
+                return m[key] / m_vo[key] if m_vo[key] > 0 else float("nan")
+
             batch = ""
             if args.batch:
                 mb = evaluate(result.trajectories["batch"], gt)

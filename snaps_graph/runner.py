@@ -34,9 +34,9 @@ import numpy as np
 
 from .config import Config
 from .errors import SnapsGraphError
+from .evaluation.loops import write_candidates_csv
 from .evaluation.metrics import evaluate
 from .evaluation.report import latency_summary as _latency_summary
-from .evaluation.loops import write_candidates_csv
 from .evaluation.report import write_metrics_json
 from .io_utils import atomic_write_text, check_output_folder, output_folder
 from .mapping.outputs import write_map_outputs

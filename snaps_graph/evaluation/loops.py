@@ -149,7 +149,7 @@ def pr_curve(q: np.ndarray, labels: np.ndarray, eligible: np.ndarray | None = No
 def revisit_mask(gt: np.ndarray, radius_m: float, frame_distance: int, max_yaw_deg: float) -> np.ndarray:
     """Rows of ``gt`` (N, 4, 4) within radius_m and max_yaw_deg of a row >= frame_distance earlier."""
     p = gt[:, :3, 3]
-    yaw = yaw_deg(gt[:, :3, :3])
+    yaw = np.asarray(yaw_deg(gt[:, :3, :3]), float)
     out = np.zeros(len(p), bool)
     for k in range(frame_distance, len(p)):
         m = k - frame_distance + 1
@@ -284,8 +284,8 @@ def plot_loops(path: str | Path, ev: dict, records: list[CandidateRecord], label
     passed = np.array([r.verify_passed for r in records], bool)
     lo, hi = (float(q.min()), float(q.max())) if len(q) else (0.0, 1.0)
     bins = np.linspace(lo, hi if hi > lo else lo + 1e-3, 41)
-    for val, name, col in ((1, "true (<= %g m)" % ev["settings"]["true_m"], "tab:green"),
-                           (0, "false (> %g m)" % ev["settings"]["false_m"], "tab:red"),
+    for val, name, col in ((1, f"true (<= {ev['settings']['true_m']:g} m)", "tab:green"),
+                           (0, f"false (> {ev['settings']['false_m']:g} m)", "tab:red"),
                            (-1, "ignored", "tab:grey")):
         sel = labels == val
         if sel.any():
