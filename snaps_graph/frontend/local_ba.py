@@ -171,13 +171,13 @@ class LocalBundleAdjuster:
         fx, fy, cx, cy, B = cam.fx, cam.fy, cam.cx, cam.cy, cam.baseline_m
         W, Lm = len(kfs), len(shared)
         # Observations: keyframe index, landmark index, (u, v, u_r).
-        oj, ol, z = [], [], []
+        oj_l, ol_l, z_l = [], [], []
         for j, k in enumerate(kfs):
             m = np.isin(k.ids, shared)
-            oj.append(np.full(m.sum(), j))
-            ol.append(np.searchsorted(shared, k.ids[m]))
-            z.append(np.c_[k.uvd[m, 0], k.uvd[m, 1], k.uvd[m, 0] - k.uvd[m, 2]])
-        oj, ol, z = np.concatenate(oj), np.concatenate(ol), np.concatenate(z)
+            oj_l.append(np.full(m.sum(), j))
+            ol_l.append(np.searchsorted(shared, k.ids[m]))
+            z_l.append(np.c_[k.uvd[m, 0], k.uvd[m, 1], k.uvd[m, 0] - k.uvd[m, 2]])
+        oj, ol, z = np.concatenate(oj_l), np.concatenate(ol_l), np.concatenate(z_l)
         # Camera-from-world transforms; landmarks from their first observation in the window.
         Rcw = np.array([k.pose[:3, :3].T for k in kfs])
         tcw = np.array([-k.pose[:3, :3].T @ k.pose[:3, 3] for k in kfs])

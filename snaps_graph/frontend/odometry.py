@@ -46,7 +46,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
@@ -145,7 +145,8 @@ class _Keyframe:
     features: FrameFeatures  # for loop verification
     ids: np.ndarray  # (N,) int64 landmark ids (klt: persistent across frames; -1 where unknown)
     promote: bool = True  # becomes the reference of the next frame (klt_reference = "keyframe" decides)
-    near: np.ndarray | None = None  # (N,) bool: depth within max_depth_m (PnP's points); the rest are far points
+    # (N,) bool: depth within max_depth_m (PnP's points); the rest are far points (stereo BA only)
+    near: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
 
 
 class _Flag(Exception):
@@ -187,7 +188,8 @@ class StereoOdometry:
         self._n = 0  # frames processed
         self._next_id = 0  # next landmark id (klt)
         self._far_points = self.cfg.mode == "klt" and self.cfg.motion == "stereo_ba" and self.cfg.sba_far_points
-        self._anchor = None  # (frame index, left image, ids, uv) that tracks are refined from
+        # (frame index, left image, ids, uv) that tracks are re-tracked from (klt_anchor_gap)
+        self._anchor: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None
         self._lba = None
         self._lba_last = -(10**9)  # frame index of the last local BA keyframe
         if self.cfg.local_ba and self.cfg.mode == "klt":  # needs persistent tracks (landmark ids)
@@ -496,7 +498,8 @@ class StereoOdometry:
         at their frame-to-frame position (one pyramid level): the position then carries one LK
         error from the anchor instead of the sum of every step's since. A re-track that
         fails or lands more than ``klt_anchor_max_px`` away keeps the frame-to-frame position."""
-        a_index, a_left, a_ids, a_uv = self._anchor
+        assert self._anchor is not None
+        _, a_left, a_ids, a_uv = self._anchor
         order = np.argsort(a_ids)
         tid = ids[idx]
         pos = np.searchsorted(a_ids[order], tid)

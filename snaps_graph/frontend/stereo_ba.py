@@ -206,7 +206,9 @@ def stereo_two_view_ba(
     inl[idx[active]] = True
     ncoord = 2 * active.sum() + has_r[active].sum() + 3 * active.sum()
     rmse = float(np.sqrt((np.sum(rr[active] ** 2) + np.sum(rc[active] ** 2)) / max(ncoord, 1)))
-    ev = np.linalg.eigvalsh(S) if S is not None and np.all(np.isfinite(S)) else np.zeros(6)
+    if S is None or not np.all(np.isfinite(S)):
+        return fail("degenerate stereo BA (no system)")
+    ev = np.linalg.eigvalsh(S)
     if not ev[0] > 1e-12 * max(ev[-1], 1e-300):
         return fail("degenerate stereo BA (pose not constrained)")
     cov = np.linalg.inv(S)
