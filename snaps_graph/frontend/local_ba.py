@@ -1,15 +1,18 @@
-"""Sliding-window local bundle adjustment over keyframes (issue 11, item 2), in GTSAM.
+"""Sliding-window local bundle adjustment over keyframes (issue 11, item 2).
 
 Each keyframe brings its pose (the VO's T_world_cam) and its landmarks' stereo measurements
 (u_left, u_right, v) with persistent landmark ids (KLT tracks keep their id while they live).
 On every new keyframe the last ``window`` keyframes and every landmark seen by at least two of
-them form one graph: a ``GenericStereoFactor3D`` per observation (``Cal3_S2Stereo``, Huber
-kernel on the 3-vector whitened error), the oldest keyframe of the window held by a tight prior
-(the gauge: it was handed out long ago). At most ``max_landmarks`` landmarks take part, the
-longest tracks first. Levenberg-Marquardt refines all window poses and
-landmarks; the newest keyframe's refined pose is what the odometry chains from next. Landmarks
-start at the stereo point of their first observation in the window, posed by that keyframe's
-current estimate.
+them form one problem: a stereo reprojection error (u_l, u_r, v) per observation under a Huber
+kernel on its 3-vector, the oldest keyframe of the window held fixed (the gauge: it was handed
+out long ago). Two solvers, same problem and (measured on KITTI 06) same answer: ``"numpy"``
+(vectorised Gauss-Newton, landmarks eliminated by a Schur complement; the faster one) and
+``"gtsam"`` (``GenericStereoFactor3D`` with ``Cal3_S2Stereo``, a tight prior on the oldest
+pose, Levenberg-Marquardt). At most ``max_landmarks`` landmarks take part (``select``: the
+longest tracks, or the nearest in the newest keyframe, first). All window poses and landmarks
+are refined; the newest keyframe's refined pose is what the odometry chains from next.
+Landmarks start at the stereo point of their first observation in the window, posed by that
+keyframe's current estimate.
 
 The adjuster does no I/O and never raises for bad data: a failed or non-finite solve leaves the
 poses as given and is reported in ``LocalBAStats``.

@@ -198,7 +198,6 @@ class StereoOdometry:
             self._lba = LocalBundleAdjuster(camera, self.cfg.lba_window, huber_px=self.cfg.sba_huber_px,
                                             iterations=self.cfg.lba_iterations, max_landmarks=self.cfg.lba_max_landmarks,
                                             solver=self.cfg.lba_solver, select=self.cfg.lba_select)
-        self._last_cov: np.ndarray | None = None  # stereo BA covariance of the last motion
 
     # ---- lifecycle ----
     def close(self) -> None:
@@ -391,7 +390,6 @@ class StereoOdometry:
         if not r.ok:
             timings["sba_fallback"] = 1.0
             return T_cur_ref, inl
-        self._last_cov = r.cov
         return r.T_cur_ref, inl[r.inliers]
 
     def _prediction(self, gap: int) -> np.ndarray | None:

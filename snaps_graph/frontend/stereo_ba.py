@@ -18,8 +18,9 @@ The reference pose is fixed (it defines the frame). Gauss-Newton with a Huber ke
 iteration costs O(N) in vectorised numpy (a few ms for 1000 points). After the first round,
 points whose error exceeds ``outlier_px`` in either view are dropped and the pose re-solved.
 
-The pose covariance (6x6, left perturbation of T_cur_ref, rotation first) is σ²·S⁻¹ with S the
-Schur complement at the solution.
+The pose covariance (6x6, left perturbation of T_cur_ref, rotation first) is S⁻¹, with S the
+Schur complement of the information-weighted (1/σ², Huber-weighted) normal equations at the
+solution.
 """
 
 from __future__ import annotations
