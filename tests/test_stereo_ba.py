@@ -46,7 +46,8 @@ def _points(rng, n, zmin, zmax):
 
 def test_stereo_ba_beats_pnp_on_far_points_scale():
     """Far points (15-120 m, disparity 3-26 px) with 0.5 px noise and 10 % outliers: PnP on the
-    triangulated points over-estimates the step (depth biased long); the stereo BA does not."""
+    triangulated points (noisy depth taken as exact) gets the step length wrong on average
+    (measured over 30 trials: -0.85 %, sd 2.2 %); the stereo BA far less (-0.26 %, sd 1.2 %)."""
     rng = np.random.default_rng(0)
     T = _motion()
     true_step = np.linalg.norm(T[:3, 3])
