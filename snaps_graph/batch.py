@@ -194,6 +194,8 @@ def _run_options(table: dict[str, Any], source: str, prefix: str) -> dict[str, A
         if key not in table:
             continue
         value, where = table[key], f"{source}: {prefix}{key}"
+        if key == "map" and prefix and isinstance(value, dict):
+            continue  # in a variant, map = { ... } is the [map] config section
         allowed = choices(typ)
         if allowed is not None:
             if not isinstance(value, str) or value not in allowed:
@@ -228,7 +230,7 @@ def _variant_config(base: Config, top: dict[str, Any], body: dict[str, Any], sou
     merged = base.to_dict()
     _apply_options(merged, top)
     for section in CONFIG_SECTIONS:
-        if section in body:
+        if section in body and not (section == "map" and isinstance(body[section], bool)):  # map = true: the run option
             if not isinstance(body[section], dict):
                 raise SnapsGraphError(f"{source}: {where}.{section} must be a table, e.g. {section} = {{ key = value }}")
             for k, v in body[section].items():
@@ -521,6 +523,7 @@ def _run_tasks(plan, todo, out, records, bar, address, max_parallel, ray_init, p
     task = ray.remote(run_cell).options(
         num_cpus=plan.cpus_per_task,
         max_retries=1,  # a lost node's cell is tried once more; a failing run is recorded, not retried
+        scheduling_strategy="SPREAD",  # cells are CPU-heavy: over the nodes rather than packed onto one
     )  # no runtime_env for the thread variables: it would bar Ray's pre-started workers (measured +6 s)
     queue = deque(todo)
     limit = max_parallel or len(todo)
@@ -595,11 +598,11 @@ def _import_ray(local: bool = False):
 
 
 def _start_ray(ray, address: str | None, extra: dict[str, Any] | None) -> None:
-    kw: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False, "logging_level": "WARNING"}
+    kw: dict[str, Any] = {"log_to_driver": False, "logging_level": "WARNING"}
     if address:
         kw["address"] = address
     else:  # a private instance on this machine, reachable from this machine only
-        kw.update(address="local", _node_ip_address="127.0.0.1", object_store_memory=LOCAL_OBJECT_STORE_BYTES)
+        kw.update(address="local", include_dashboard=False, object_store_memory=LOCAL_OBJECT_STORE_BYTES)
     kw.update(extra or {})
     try:
         ray.init(**kw)
