@@ -389,6 +389,7 @@ def git_commit() -> str:
     here = Path(__file__).resolve().parent
     try:
         out = subprocess.run(
+            # --match of no tag: always the commit hash, never a tag name
             ["git", "-C", str(here), "describe", "--always", "--dirty", "--abbrev=12", "--match=NO-TAGS"],
             capture_output=True, text=True, timeout=10,
         )
@@ -427,9 +428,9 @@ def run_batch(
     and stopped again; with one, the batch joins that cluster. ``max_parallel``: at most this many
     cells in flight. On Ctrl-C (or any error) the running tasks are cancelled, the summary is
     written with the unfinished cells as ``cancelled``, and the exception propagates."""
-    out = _prepare_out(out_dir)
     if max_parallel is not None and max_parallel < 1:
         raise SnapsGraphError(f"--max-parallel must be at least 1, got {max_parallel}")
+    out = _prepare_out(out_dir)
     t0 = time.perf_counter()
     with _lock(out):
         records: dict[tuple[str, str], dict] = {}
@@ -440,14 +441,16 @@ def run_batch(
                 records[(cell.sequence, cell.variant)] = done
             else:
                 todo.append(cell)
-        bar = _bar(len(plan.cells), len(plan.cells) - len(todo), progress)
-        try:
-            if todo:
-                _run_on_ray(plan, todo, out, records, bar, address, max_parallel, ray_init, progress)
-        finally:
-            bar.close()
-            rows = [records.get((c.sequence, c.variant)) or _unfinished(c) for c in plan.cells]
-            write_summary(out, rows, wall_s=time.perf_counter() - t0)
+        with _sigint_flag() as interrupted, _ray_session(address, ray_init, bool(todo)) as ray:
+            # From here on the summary is written whatever happens (Ctrl-C included).
+            bar = _bar(len(plan.cells), len(plan.cells) - len(todo), progress)
+            try:
+                if todo:
+                    _run_tasks(ray, plan, todo, out, records, bar, max_parallel, progress, interrupted)
+            finally:
+                bar.close()
+                rows = [records.get((c.sequence, c.variant)) or _unfinished(c) for c in plan.cells]
+                write_summary(out, rows, wall_s=time.perf_counter() - t0)
     return rows
 
 
@@ -490,7 +493,7 @@ def _bar(total: int, initial: int, progress: bool):
 
 def _unfinished(cell: Cell) -> dict:
     return {"sequence": cell.sequence, "variant": cell.variant, "status": "cancelled",
-            "reason": "interrupted before it finished", "config_hash": cell.config_hash}
+            "reason": "not finished: the batch was stopped", "config_hash": cell.config_hash}
 
 
 @contextlib.contextmanager
@@ -508,17 +511,25 @@ def _sigint_flag() -> Iterator[threading.Event]:
         signal.signal(signal.SIGINT, old)
 
 
-def _run_on_ray(plan, todo, out, records, bar, address, max_parallel, ray_init, progress) -> None:
-    with _sigint_flag() as interrupted:
-        _run_tasks(plan, todo, out, records, bar, address, max_parallel, ray_init, progress, interrupted)
-
-
-def _run_tasks(plan, todo, out, records, bar, address, max_parallel, ray_init, progress, interrupted) -> None:
+@contextlib.contextmanager
+def _ray_session(address: str | None, ray_init: dict[str, Any] | None, needed: bool) -> Iterator[Any]:
+    """Ray, started (or joined) for the batch and stopped (or left) after it; a Ray this
+    process had already initialised is used as it is. Yields None when no cell needs running."""
+    if not needed:
+        yield None
+        return
     ray = _import_ray(local=not address)
-    started_here = False
-    if not ray.is_initialized():
+    started_here = not ray.is_initialized()
+    if started_here:
         _start_ray(ray, address, ray_init)
-        started_here = True
+    try:
+        yield ray
+    finally:
+        if started_here:
+            ray.shutdown()
+
+
+def _run_tasks(ray, plan, todo, out, records, bar, max_parallel, progress, interrupted) -> None:
     threads = max(1, math.ceil(plan.cpus_per_task))
     task = ray.remote(run_cell).options(
         num_cpus=plan.cpus_per_task,
@@ -550,9 +561,6 @@ def _run_tasks(plan, todo, out, records, bar, address, max_parallel, ray_init, p
     except BaseException:
         _cancel(ray, pending, records)
         raise
-    finally:
-        if started_here:
-            ray.shutdown()
 
 
 def _result(ray, ref, cell: Cell) -> dict:
@@ -600,6 +608,7 @@ def _import_ray(local: bool = False):
 def _start_ray(ray, address: str | None, extra: dict[str, Any] | None) -> None:
     kw: dict[str, Any] = {"log_to_driver": False, "logging_level": "WARNING"}
     if address:
+        _check_reachable(address)
         kw["address"] = address
     else:  # a private instance on this machine, reachable from this machine only
         kw.update(address="local", include_dashboard=False, object_store_memory=LOCAL_OBJECT_STORE_BYTES)
@@ -609,6 +618,20 @@ def _start_ray(ray, address: str | None, extra: dict[str, Any] | None) -> None:
     except (ConnectionError, RuntimeError, ValueError) as exc:
         where = f"--address {address}" if address else "local Ray"
         raise SnapsGraphError(f"{where}: cannot start or join a Ray cluster ({_one_line(str(exc))})") from None
+
+
+def _check_reachable(address: str) -> None:
+    """A HOST:PORT that nothing answers on is a one-line error at once (ray.init would retry for
+    minutes). Other forms ("auto", "ray://...") are left to Ray."""
+    import socket
+
+    m = re.fullmatch(r"([\w.-]+):(\d+)", address)
+    if not m:
+        return
+    try:
+        socket.create_connection((m.group(1), int(m.group(2))), timeout=5).close()
+    except OSError as exc:
+        raise SnapsGraphError(f"--address {address}: no Ray cluster answers there ({exc.strerror or exc})") from None
 
 
 def _cell_line(rec: dict) -> str:

@@ -249,3 +249,11 @@ def test_ctrl_c_cancels_the_cells_and_exits_130(cluster, seqs, tmp_path):
 def _cell_running() -> bool:
     ps = subprocess.run(["ps", "-eo", "args"], capture_output=True, text=True).stdout
     return "ray::run_cell" in ps
+
+
+def test_an_address_nothing_answers_on_is_a_one_line_error(seqs, tmp_path):
+    plan = plan_from_dict({"sequences": [str(seqs["good"])], "frames": "0:4"})
+    out = tmp_path / "out"
+    with pytest.raises(SnapsGraphError, match=r"^--address 127\.0\.0\.1:1: no Ray cluster answers there"):
+        run_batch(plan, out, address="127.0.0.1:1", progress=False)
+    assert not (out / "summary.csv").exists()
