@@ -60,7 +60,9 @@ def main() -> None:
     if not args.seq and not (seq_dir / "poses.txt").is_file():
         traj = str(KITTI00) if KITTI00.is_file() else "loop"
         poses, times = load_trajectory(traj, f"0:{args.frames}")
-        render_to_folder(SyntheticSequence(poses, width=args.width, height=args.height, seed=0, times=times), seq_dir, overwrite=True)
+        render_to_folder(
+            SyntheticSequence(poses, width=args.width, height=args.height, seed=0, times=times), seq_dir, overwrite=True
+        )
     # Four variants of equal cost: the loop radius does not change the work on 40 frames.
     variants = {f"r{i}": {"loop": {"radius_m": 8.0 + i}} for i in range(args.cells)}
     plan = plan_from_dict({"sequences": [str(seq_dir)], "frames": f"0:{args.frames}", "variants": variants}, source="bench plan")
@@ -75,7 +77,9 @@ def main() -> None:
         run_sequence(KittiSequence(cell.seq_path, frames=cell.frames), cell.folder(serial_dir), cell.cfg)
         per_cell.append(time.perf_counter() - t1)
     serial = time.perf_counter() - t0
-    print(f"serial (one process, one after another): {serial:.1f} s  (cells {', '.join(f'{t:.1f}' for t in per_cell)} s)  load {load()}")
+    print(
+        f"serial (one process, one after another): {serial:.1f} s  (cells {', '.join(f'{t:.1f}' for t in per_cell)} s)  load {load()}"
+    )
 
     import ray
 
@@ -84,8 +88,14 @@ def main() -> None:
         shutil.rmtree(out, ignore_errors=True)
         if label == "warm":
             t_init = time.perf_counter()
-            ray.init(address="local", num_cpus=args.cpus, include_dashboard=False, log_to_driver=False,
-                     logging_level="WARNING", object_store_memory=128 * 2**20)
+            ray.init(
+                address="local",
+                num_cpus=args.cpus,
+                include_dashboard=False,
+                log_to_driver=False,
+                logging_level="WARNING",
+                object_store_memory=128 * 2**20,
+            )
             init_s = time.perf_counter() - t_init
         t0 = time.perf_counter()
         rows = run_batch(plan, out, progress=False, ray_init={"num_cpus": args.cpus})
@@ -95,7 +105,9 @@ def main() -> None:
         ok = sum(r["status"] == "ok" for r in rows)
         cells = ", ".join(f"{r.get('wall_s', 0):.1f}" for r in rows)
         extra = f" (Ray start {init_s:.1f} s not counted)" if label == "warm" else " (Ray start included)"
-        print(f"batch {label}, {args.cpus} CPUs: {wall:.1f} s = {wall / serial:.2f}x serial{extra}; {ok}/{len(rows)} ok; cells {cells} s  load {load()}")
+        print(
+            f"batch {label}, {args.cpus} CPUs: {wall:.1f} s = {wall / serial:.2f}x serial{extra}; {ok}/{len(rows)} ok; cells {cells} s  load {load()}"
+        )
 
     out = work / "batch_cold"
     t0 = time.perf_counter()
@@ -105,11 +117,17 @@ def main() -> None:
     body = "".join(f"[variants.{k}]\nloop = {{ radius_m = {v['loop']['radius_m']} }}\n" for k, v in variants.items())
     plan_file.write_text(f'sequences = ["{seq_dir}"]\nframes = "0:{args.frames}"\n{body}')
     t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "snaps_graph.cli", "batch", str(plan_file), "--out", str(out)],
-                          capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    proc = subprocess.run(
+        [sys.executable, "-m", "snaps_graph.cli", "batch", str(plan_file), "--out", str(out)],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
     cli = time.perf_counter() - t0
-    print(f"resumed, all {sum(r['status'] == 'skipped' for r in rows)} cells done: {resumed:.2f} s in process; "
-          f"`snaps-graph batch` command {cli:.1f} s (exit {proc.returncode}: {proc.stdout.strip()})")
+    print(
+        f"resumed, all {sum(r['status'] == 'skipped' for r in rows)} cells done: {resumed:.2f} s in process; "
+        f"`snaps-graph batch` command {cli:.1f} s (exit {proc.returncode}: {proc.stdout.strip()})"
+    )
     print(f"load average at end {load()}")
 
 

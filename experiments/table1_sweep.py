@@ -19,7 +19,18 @@ import json
 import time
 
 import numpy as np
-from _common import RESULTS, add_batch_args, false_loops, md_table, read_frames, read_loops, replay, run_plan, synthetic_dir, vo_cache
+from _common import (
+    RESULTS,
+    add_batch_args,
+    false_loops,
+    md_table,
+    read_frames,
+    read_loops,
+    replay,
+    run_plan,
+    synthetic_dir,
+    vo_cache,
+)
 
 from snaps_graph.config import Config
 from snaps_graph.datasets.kitti import KittiSequence

@@ -163,13 +163,13 @@ def plan_from_dict(data: dict[str, Any], source: str = "plan", base_dir: str | P
     opened: dict[tuple[str, str | None], KittiSequence] = {}
     for s_name, s_path, s_gt in seqs:
         for v_name, (cfg, frames) in resolved.items():
-            key = (s_path, frames)
-            if key not in opened:
+            seq_key = (s_path, frames)
+            if seq_key not in opened:
                 try:
-                    opened[key] = KittiSequence(s_path, frames=frames, gt=s_gt)
+                    opened[seq_key] = KittiSequence(s_path, frames=frames, gt=s_gt)
                 except SnapsGraphError as exc:
                     raise SnapsGraphError(f"{source}: sequence '{s_name}': {exc}") from None
-            seq = opened[key]
+            seq = opened[seq_key]
             gt = str(Path(seq.gt_path).absolute()) if seq.gt_path is not None else None
             cells.append(Cell(s_name, v_name, s_path, gt, frames, cfg, config_hash(cfg, s_path, frames, gt)))
     return Plan(source, cells, float(cpus))
@@ -205,7 +205,7 @@ def _run_options(table: dict[str, Any], source: str, prefix: str) -> dict[str, A
                 raise SnapsGraphError(f"{where}: expected true/false, got {value!r}")
         elif key == "frames":
             if not isinstance(value, str):
-                raise SnapsGraphError(f"{where}: expected a frame range \"A:B\" (a string), got {value!r}")
+                raise SnapsGraphError(f'{where}: expected a frame range "A:B" (a string), got {value!r}')
             try:
                 parse_frame_range(value)
             except SnapsGraphError as exc:
@@ -214,7 +214,9 @@ def _run_options(table: dict[str, Any], source: str, prefix: str) -> dict[str, A
     return out
 
 
-def _variant_config(base: Config, top: dict[str, Any], body: dict[str, Any], source: str, where: str) -> tuple[Config, str | None]:
+def _variant_config(
+    base: Config, top: dict[str, Any], body: dict[str, Any], source: str, where: str
+) -> tuple[Config, str | None]:
     """The checked configuration of one variant and its frame range.
 
     Precedence, lowest first: the plan's ``config`` file, the plan's run options, the variant's
@@ -259,7 +261,9 @@ def _sequences(data: dict[str, Any], source: str, base: Path) -> list[tuple[str,
     out: list[tuple[str, str, str | None]] = []
     for i, entry in enumerate(seqs):
         where = f"sequences[{i}]"
-        gt = None
+        path: Any
+        name: Any
+        gt: Any = None
         if isinstance(entry, str):
             path, name = entry, None
         elif isinstance(entry, dict):
@@ -278,7 +282,7 @@ def _sequences(data: dict[str, Any], source: str, base: Path) -> list[tuple[str,
         _check_name(name, source, where)
         if any(name == o[0] for o in out):
             raise SnapsGraphError(
-                f"{source}: {where}: two sequences are named '{name}' (their folder); give one a name: {{ path = \"{path}\", name = \"...\" }}"
+                f'{source}: {where}: two sequences are named \'{name}\' (their folder); give one a name: {{ path = "{path}", name = "..." }}'
             )
         out.append((name, str(full), str(_resolve(base, gt)) if gt is not None else None))
     return out
@@ -314,9 +318,15 @@ def run_cell(cell: Cell, out_dir: str, threads: int) -> dict:
     raises for a failed run: the returned record says ``failed`` with a one-line reason."""
     t0 = time.perf_counter()
     rec: dict[str, Any] = {
-        "sequence": cell.sequence, "variant": cell.variant, "node": _node_id(), "threads": threads,
-        "version": __version__, "commit": git_commit(), "config_hash": cell.config_hash,
-        "status": "failed", "reason": "",
+        "sequence": cell.sequence,
+        "variant": cell.variant,
+        "node": _node_id(),
+        "threads": threads,
+        "version": __version__,
+        "commit": git_commit(),
+        "config_hash": cell.config_hash,
+        "status": "failed",
+        "reason": "",
     }
     folder = cell.folder(out_dir)
     try:
@@ -391,7 +401,9 @@ def git_commit() -> str:
         out = subprocess.run(
             # --match of no tag: always the commit hash, never a tag name
             ["git", "-C", str(here), "describe", "--always", "--dirty", "--abbrev=12", "--match=NO-TAGS"],
-            capture_output=True, text=True, timeout=10,
+            capture_output=True,
+            text=True,
+            timeout=10,
         )
     except (OSError, subprocess.SubprocessError):
         return ""
@@ -487,13 +499,25 @@ def _lock(out: Path) -> Iterator[None]:
 def _bar(total: int, initial: int, progress: bool):
     from tqdm import tqdm
 
-    return tqdm(total=total, initial=initial, desc="cells", unit="cell", file=sys.stderr,
-                dynamic_ncols=True, disable=None if progress else True)
+    return tqdm(
+        total=total,
+        initial=initial,
+        desc="cells",
+        unit="cell",
+        file=sys.stderr,
+        dynamic_ncols=True,
+        disable=None if progress else True,
+    )
 
 
 def _unfinished(cell: Cell) -> dict:
-    return {"sequence": cell.sequence, "variant": cell.variant, "status": "cancelled",
-            "reason": "not finished: the batch was stopped", "config_hash": cell.config_hash}
+    return {
+        "sequence": cell.sequence,
+        "variant": cell.variant,
+        "status": "cancelled",
+        "reason": "not finished: the batch was stopped",
+        "config_hash": cell.config_hash,
+    }
 
 
 @contextlib.contextmanager
@@ -569,8 +593,13 @@ def _result(ray, ref, cell: Cell) -> dict:
     except ray.exceptions.TaskCancelledError:
         return {**_unfinished(cell), "reason": "cancelled"}
     except ray.exceptions.RayError as exc:  # the worker or its node died: the run did not finish
-        return {"sequence": cell.sequence, "variant": cell.variant, "status": "failed",
-                "reason": _one_line(f"{type(exc).__name__}: {exc}"), "config_hash": cell.config_hash}
+        return {
+            "sequence": cell.sequence,
+            "variant": cell.variant,
+            "status": "failed",
+            "reason": _one_line(f"{type(exc).__name__}: {exc}"),
+            "config_hash": cell.config_hash,
+        }
 
 
 def _cancel(ray, pending: dict, records: dict) -> None:
@@ -651,11 +680,18 @@ def summary_columns(rows: list[dict]) -> list[str]:
 
 def summary_row(rec: dict) -> dict[str, Any]:
     m = rec.get("metrics") or {}
-    row: dict[str, Any] = {k: rec.get(k, "") for k in ("sequence", "variant", "status", "reason", "node", "wall_s", "version", "commit", "config_hash")}
+    row: dict[str, Any] = {
+        k: rec.get(k, "")
+        for k in ("sequence", "variant", "status", "reason", "node", "wall_s", "version", "commit", "config_hash")
+    }
     row.update({k: m.get(k, "") for k in ("frames", "flagged_frames", "loops")})
     for t in TRAJECTORIES:
         tm = m.get(t) or {}
-        row[f"{t}_mean_dev_m"], row[f"{t}_ate_m"], row[f"{t}_t_rel_pct"] = (tm.get("mean_deviation"), tm.get("ate_rmse"), tm.get("t_rel"))
+        row[f"{t}_mean_dev_m"], row[f"{t}_ate_m"], row[f"{t}_t_rel_pct"] = (
+            tm.get("mean_deviation"),
+            tm.get("ate_rmse"),
+            tm.get("t_rel"),
+        )
     return {k: ("" if v is None or (isinstance(v, float) and not math.isfinite(v)) else v) for k, v in row.items()}
 
 
@@ -689,4 +725,15 @@ def write_summary(out: str | Path, records: list[dict], wall_s: float | None = N
     atomic_write_text(out / "summary.md", "\n".join(lines) + "\n")
 
 
-__all__ = ["CELL_FILE", "Cell", "Plan", "completed", "config_hash", "load_plan", "plan_from_dict", "run_batch", "run_cell", "write_summary"]
+__all__ = [
+    "CELL_FILE",
+    "Cell",
+    "Plan",
+    "completed",
+    "config_hash",
+    "load_plan",
+    "plan_from_dict",
+    "run_batch",
+    "run_cell",
+    "write_summary",
+]

@@ -60,7 +60,10 @@ def test_plan_expands_cells_with_overrides_and_hashes(seqs, tmp_path):
         source="p.toml",
     )
     assert [(c.sequence, c.variant) for c in plan.cells] == [
-        ("good", "default"), ("good", "tight"), ("again", "default"), ("again", "tight")
+        ("good", "default"),
+        ("good", "tight"),
+        ("again", "default"),
+        ("again", "tight"),
     ]
     default, tight = plan.cells[0], plan.cells[1]
     assert default.cfg.graph.refine == "batch" and default.cfg.loop.min_similarity == 0.15
@@ -89,8 +92,14 @@ def test_plan_paths_are_relative_to_the_plan_file(seqs, tmp_path):
     "body, expect",
     [
         ('sequences = ["{good}"]\n[loop]\nradius_m = 3.0\n', "unknown key 'loop' (config overrides go under [variants.NAME])"),
-        ('sequences = ["{good}"]\n[variants.tight]\nloop = {{ min_similarty = 0.3 }}\n', "variants.tight: unknown key 'loop.min_similarty'"),
-        ('sequences = ["{good}"]\n[variants.tight]\nloop = {{ min_similarity = 3.0 }}\n', "variants.tight: loop.min_similarity must be in (0, 1]"),
+        (
+            'sequences = ["{good}"]\n[variants.tight]\nloop = {{ min_similarty = 0.3 }}\n',
+            "variants.tight: unknown key 'loop.min_similarty'",
+        ),
+        (
+            'sequences = ["{good}"]\n[variants.tight]\nloop = {{ min_similarity = 3.0 }}\n',
+            "variants.tight: loop.min_similarity must be in (0, 1]",
+        ),
         ('sequences = ["{good}"]\n[variants.tight]\nlopp = 1\n', "variants.tight: unknown key 'lopp'"),
         ('sequences = ["{good}"]\nrefine = "fast"\n', "refine must be one of"),
         ('sequences = ["{good}"]\n[variants.v]\nmap = "yes"\n', "variants.v.map: expected true/false"),
@@ -103,8 +112,14 @@ def test_plan_paths_are_relative_to_the_plan_file(seqs, tmp_path):
         ('sequences = ["{good}"]\n[variants."a b"]\n', "variants.a b: name 'a b'"),
         ('sequences = ["{good}"]\ncpus_per_task = 0\n', "cpus_per_task must be"),
         ('sequences = ["{good}"]\nconfig = "missing.toml"\n', "config: "),
-        ('sequences = ["{good}"]\n[variants.m]\nmap = {{ enabled = true, trajectory = "batch" }}\n', "variants.m: map.trajectory = 'batch' needs"),
-        ('sequences = ["{good}"]\nmap = true\n[variants.m]\nmap = {{ trajectory = "isam2" }}\n', "variants.m: map.trajectory = 'isam2' needs"),
+        (
+            'sequences = ["{good}"]\n[variants.m]\nmap = {{ enabled = true, trajectory = "batch" }}\n',
+            "variants.m: map.trajectory = 'batch' needs",
+        ),
+        (
+            'sequences = ["{good}"]\nmap = true\n[variants.m]\nmap = {{ trajectory = "isam2" }}\n',
+            "variants.m: map.trajectory = 'isam2' needs",
+        ),
         ("sequences = [", "malformed TOML"),
     ],
 )
@@ -117,11 +132,16 @@ def test_plan_errors_name_the_plan_and_the_key(seqs, tmp_path, body, expect):
 
 
 def test_cli_bad_plan_is_one_line_error_before_anything_is_written(seqs, tmp_path):
-    plan = write_plan(tmp_path / "plan.toml", f'sequences = ["{seqs["good"]}"]\n[variants.x]\ngraph = {{ odom_sigma_rot_rad = -1.0 }}\n')
+    plan = write_plan(
+        tmp_path / "plan.toml", f'sequences = ["{seqs["good"]}"]\n[variants.x]\ngraph = {{ odom_sigma_rot_rad = -1.0 }}\n'
+    )
     out = tmp_path / "out"
     proc = subprocess.run(
         [sys.executable, "-m", "snaps_graph.cli", "batch", str(plan), "--out", str(out)],
-        capture_output=True, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=120,
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        timeout=120,
     )
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines() == [f"error: {plan}: variants.x: graph.odom_sigma_rot_rad must be > 0, got -1.0"]
@@ -130,8 +150,13 @@ def test_cli_bad_plan_is_one_line_error_before_anything_is_written(seqs, tmp_pat
 
 # ---------------------------------------------------------------- one cell, without Ray
 def test_run_cell_records_ok_and_failed_and_resume_checks_the_hash(seqs, tmp_path):
-    plan = plan_from_dict({"sequences": [str(seqs["good"]), str(seqs["broken"])], "frames": "0:8",
-                           "variants": {"a": {}, "b": {"loop": {"radius_m": 5.0}}}})
+    plan = plan_from_dict(
+        {
+            "sequences": [str(seqs["good"]), str(seqs["broken"])],
+            "frames": "0:8",
+            "variants": {"a": {}, "b": {"loop": {"radius_m": 5.0}}},
+        }
+    )
     ok_cell, other_variant, bad_cell = plan.cells[0], plan.cells[1], plan.cells[2]
     rec = run_cell(ok_cell, str(tmp_path), threads=1)
     assert rec["status"] == "ok" and rec["metrics"]["frames"] == 8 and "vo" in rec["metrics"]
@@ -176,19 +201,25 @@ def read_summary(out: Path) -> list[dict]:
 def test_cluster_cells_land_on_both_nodes_and_a_rerun_skips_them(cluster, seqs, tmp_path):
     import ray
 
-    plan = plan_from_dict({
-        "sequences": [str(seqs["good"]), {"path": str(seqs["good"]), "name": "again"}, str(seqs["broken"])],
-        "frames": "0:12",
-        "variants": {"a": {}, "b": {"loop": {"radius_m": 5.0}}},
-    })
+    plan = plan_from_dict(
+        {
+            "sequences": [str(seqs["good"]), {"path": str(seqs["good"]), "name": "again"}, str(seqs["broken"])],
+            "frames": "0:12",
+            "variants": {"a": {}, "b": {"loop": {"radius_m": 5.0}}},
+        }
+    )
     out = tmp_path / "out"
     rows = run_batch(plan, out, address=cluster.address, progress=False)
     assert not ray.is_initialized()  # the batch disconnected from the cluster it joined
 
     summary = read_summary(out)
     assert [(r["sequence"], r["variant"], r["status"]) for r in summary] == [
-        ("good", "a", "ok"), ("good", "b", "ok"), ("again", "a", "ok"), ("again", "b", "ok"),
-        ("broken", "a", "failed"), ("broken", "b", "failed"),
+        ("good", "a", "ok"),
+        ("good", "b", "ok"),
+        ("again", "a", "ok"),
+        ("again", "b", "ok"),
+        ("broken", "a", "failed"),
+        ("broken", "b", "failed"),
     ]
     assert all("unreadable image" in r["reason"] for r in summary[4:])
     nodes = {n["NodeID"] for n in _alive_nodes(cluster)}
@@ -223,7 +254,11 @@ def test_ctrl_c_cancels_the_cells_and_exits_130(cluster, seqs, tmp_path):
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     proc = subprocess.Popen(
         [sys.executable, "-m", "snaps_graph.cli", "batch", str(plan), "--out", str(out), "--address", cluster.address],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, start_new_session=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        start_new_session=True,
     )
     try:
         deadline = time.monotonic() + 60
