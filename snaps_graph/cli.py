@@ -187,12 +187,17 @@ def run(
 
 @app.command()
 def batch(
-    plan: Path = typer.Argument(..., help="A plan (TOML): sequences, run options, [variants.NAME] config overrides."),
+    plan: Path = typer.Argument(..., help="A plan (TOML): sequences, run options, variants (config overrides)."),
     out: Path = typer.Option(..., "--out", help="Folder for DIR/<sequence>/<variant>/ run folders and summary.csv / summary.md."),
     address: Optional[str] = typer.Option(None, "--address", help="Join this Ray cluster (default: start Ray on this machine)."),
     max_parallel: Optional[int] = typer.Option(None, "--max-parallel", help="At most this many cells at once (default: as many as Ray has CPUs for)."),
 ) -> None:
-    """Run every (sequence, variant) cell of a plan as a Ray task; resumable; summary.csv / .md."""
+    """Run every (sequence, variant) cell of a plan as a Ray task; resumable; summary.csv / .md.
+
+    Cells complete from an earlier batch with the same config hash are skipped.
+
+    Exit status: 0 every cell ok or skipped; 2 bad plan (one `error:` line, before any task starts); 4 some cells failed (summary.md says why); 130 interrupted (running cells cancelled, finished ones kept).
+    """
     from .batch import load_plan, run_batch
 
     p = load_plan(plan)  # checked whole before any task starts
