@@ -330,10 +330,9 @@ def run_cell(cell: Cell, out_dir: str, threads: int) -> dict:
     }
     folder = cell.folder(out_dir)
     try:
-        pin_threads(threads)
         _remove_stale_temp(folder)
         seq = KittiSequence(cell.seq_path, frames=cell.frames, gt=cell.gt)
-        with _blas_limit(threads):
+        with pinned_threads(threads):
             _, metrics = run_sequence(seq, folder, cell.cfg, overwrite=True)
         rec["wall_s"] = round(time.perf_counter() - t0, 3)
         rec["status"] = "ok"
@@ -349,22 +348,27 @@ def run_cell(cell: Cell, out_dir: str, threads: int) -> dict:
     return rec
 
 
-def pin_threads(n: int) -> None:
-    """OpenCV's pool and (for libraries loaded later) the BLAS/OpenMP variables to ``n`` threads."""
-    import cv2
-
-    cv2.setNumThreads(n)
-    for var in THREAD_ENV:
-        os.environ[var] = str(n)
-
-
 @contextlib.contextmanager
-def _blas_limit(n: int) -> Iterator[None]:
-    """BLAS pools already loaded in this (reused) worker process, limited for the run."""
+def pinned_threads(n: int) -> Iterator[None]:
+    """OpenCV's pool, the BLAS pools already loaded (threadpoolctl) and, for libraries loaded
+    later, the BLAS/OpenMP variables, all at ``n`` threads; restored afterwards (a caller
+    running a cell in its own process keeps its settings)."""
+    import cv2
     from threadpoolctl import threadpool_limits
 
-    with threadpool_limits(limits=n):
-        yield
+    old_cv, old_env = cv2.getNumThreads(), {v: os.environ.get(v) for v in THREAD_ENV}
+    cv2.setNumThreads(n)
+    os.environ.update({v: str(n) for v in THREAD_ENV})
+    try:
+        with threadpool_limits(limits=n):
+            yield
+    finally:
+        cv2.setNumThreads(old_cv)
+        for var, value in old_env.items():
+            if value is None:
+                os.environ.pop(var, None)
+            else:
+                os.environ[var] = value
 
 
 def _remove_stale_temp(folder: Path) -> None:

@@ -176,6 +176,20 @@ def test_run_cell_records_ok_and_failed_and_resume_checks_the_hash(seqs, tmp_pat
     assert not parent.exists() or not any(p.name.startswith(".") for p in parent.iterdir())
 
 
+def test_pinned_threads_limits_opencv_and_blas_and_restores_them(monkeypatch):
+    import cv2
+    from threadpoolctl import threadpool_info
+
+    from snaps_graph.batch import pinned_threads
+
+    monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
+    before = cv2.getNumThreads()
+    with pinned_threads(1):
+        assert cv2.getNumThreads() == 1 and os.environ["OPENBLAS_NUM_THREADS"] == "1"
+        assert all(p["num_threads"] == 1 for p in threadpool_info())
+    assert cv2.getNumThreads() == before and "OPENBLAS_NUM_THREADS" not in os.environ
+
+
 # ---------------------------------------------------------------- on a 2-node Ray cluster
 @pytest.fixture(scope="module")
 def cluster():
