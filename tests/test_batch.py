@@ -263,7 +263,7 @@ def _alive_nodes(cluster) -> list[dict]:
 
 
 def test_ctrl_c_cancels_the_cells_and_exits_130(cluster, seqs, tmp_path):
-    variants = "".join(f"[variants.v{i}]\nloop = {{ radius_m = {5 + i}.0 }}\n" for i in range(6))
+    variants = "".join(f"[variants.v{i}]\nloop = {{ radius_m = {5 + i}.0 }}\n" for i in range(8))
     plan = write_plan(tmp_path / "plan.toml", f'sequences = ["{seqs["good"]}"]\n{variants}')
     out = tmp_path / "out"
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
