@@ -5,6 +5,10 @@ experiment runs it once per sequence (``vo_cache``) and replays the cached VO re
 real pipeline (``SlamPipeline(frontend=CachedOdometry(...))``) for every setting it sweeps. The
 replay feeds SNAPS the stored thumbnails (with thumbnail scale 1), which gives exactly the
 thumbnails a full run computes. Latency figures of a replay cover SNAPS and the graph only.
+
+Experiments that run whole runs (fig3_fig4, table1_sweep) go through ``snaps-graph batch``'s API
+instead (``run_plan``): one Ray task per run, on this machine or a cluster, resumable; their
+results are read back from the run folders (``read_loops``, ``read_frames``, metrics.json).
 """
 
 from __future__ import annotations
