@@ -17,7 +17,6 @@ import json
 
 from _common import RESULTS, add_batch_args, false_loops, md_table, read_loops, run_plan, synthetic_dir
 
-from snaps_graph.datasets.kitti import KittiSequence
 from snaps_graph.evaluation.report import compare_run
 
 
@@ -52,7 +51,7 @@ def main() -> None:
         if not tr:
             print(f"{name}: no ground truth, see {run_dir}/report.md")
             continue
-        seq = KittiSequence(cell.seq_path, frames=cell.frames, gt=cell.gt)
+        seq = cell.open()
         loops = read_loops(run_dir)
         fl = false_loops(loops, seq.gt_poses, seq.indices, cell.cfg.loop.radius_m)
         red = 1 - tr["snaps"]["mean_deviation"] / tr["vo"]["mean_deviation"]

@@ -99,7 +99,7 @@ def _by_batch(seq_dir, base: Config, args):
             continue
         run_dir = cell.folder(out)
         if seq is None:
-            seq = KittiSequence(cell.seq_path, frames=cell.frames, gt=cell.gt)
+            seq = cell.open()
             n_frames = len(seq)
         tr = json.loads((run_dir / "metrics.json").read_text())["trajectories"]
         vo_md, vo_ate = tr["vo"]["mean_deviation"], tr["vo"]["ate_rmse"]  # the same in every run

@@ -4,7 +4,7 @@ A plan (TOML) names sequences and variants; ``snaps-graph batch PLAN --out DIR``
 into ``DIR/<sequence>/<variant>/``, an ordinary results folder, and writes ``DIR/summary.csv``
 and ``DIR/summary.md``::
 
-    sequences = ["/data/kitti/sequences/00", { path = "results/seq07", name = "s07", gt = "gt.txt" }]
+    sequences = ["/data/kitti/sequences/00", { path = "results/seq07", name = "s07", gt = "gt.txt" }, "/data/euroc/MH_01"]
     frames = "0:1000"      # run options: frames, config, refine, loops, map, mode, map_all, gravity_prior
     refine = "batch"
     cpus_per_task = 1      # CPUs Ray reserves per cell (OpenCV and BLAS threads are pinned to it)
@@ -13,7 +13,8 @@ and ``DIR/summary.md``::
     loop = { min_similarity = 0.3 }   # config overrides, checked like a config file
     frontend = { klt_features = 1000 }
 
-Relative paths are relative to the plan file. Everything is checked on the driver before any
+A sequence is anything ``run`` reads except a live device (KITTI, EuRoC, ROS bags; a table
+may add ``gt``, ``left_topic``, ``right_topic``, ``calib``). Relative paths are relative to the plan file. Everything is checked on the driver before any
 task starts (the plan's keys and values, each variant's configuration, each sequence with its
 frame range), and an error names the plan file and the key.
 
@@ -51,7 +52,7 @@ from typing import Any
 
 from . import __version__
 from .config import Config, FrontendMode, LoopMode, RefineMode, choices
-from .datasets.kitti import KittiSequence
+from .datasets.open import open_dataset
 from .errors import SnapsGraphError
 from .io_utils import atomic_write_text, parse_frame_range
 from .runner import mostly_flagged, run_sequence
@@ -76,6 +77,7 @@ RUN_OPTIONS: dict[str, tuple[str | None, Any]] = {
 }
 TOP_ONLY = ("sequences", "variants", "config", "cpus_per_task")
 CONFIG_SECTIONS = ("frontend", "loop", "graph", "map")
+READER_KEYS = ("left_topic", "right_topic", "calib")  # a sequence table's reader options, as `run` takes them
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._+=,-]*$")
 
 
@@ -90,6 +92,11 @@ class Cell:
     frames: str | None
     cfg: Config
     config_hash: str
+    reader: tuple[tuple[str, str], ...] = ()  # reader options: left_topic, right_topic, calib
+
+    def open(self):
+        """The dataset, read as ``run`` reads it."""
+        return open_dataset(self.seq_path, frames=self.frames, gt=self.gt, **dict(self.reader))
 
     def folder(self, out_dir: str | Path) -> Path:
         return Path(out_dir) / self.sequence / self.variant
@@ -160,19 +167,32 @@ def plan_from_dict(data: dict[str, Any], source: str = "plan", base_dir: str | P
 
     seqs = _sequences(data, source, base)
     cells: list[Cell] = []
-    opened: dict[tuple[str, str | None], KittiSequence] = {}
-    for s_name, s_path, s_gt in seqs:
+    checked: dict[tuple[str, str | None], str | None] = {}  # (sequence, frames) -> its ground-truth file
+    for s_name, s_path, s_gt, reader in seqs:
         for v_name, (cfg, frames) in resolved.items():
-            seq_key = (s_path, frames)
-            if seq_key not in opened:
-                try:
-                    opened[seq_key] = KittiSequence(s_path, frames=frames, gt=s_gt)
-                except SnapsGraphError as exc:
-                    raise SnapsGraphError(f"{source}: sequence '{s_name}': {exc}") from None
-            seq = opened[seq_key]
-            gt = str(Path(seq.gt_path).absolute()) if seq.gt_path is not None else None
-            cells.append(Cell(s_name, v_name, s_path, gt, frames, cfg, config_hash(cfg, s_path, frames, gt)))
+            seq_key = (s_name, frames)
+            if seq_key not in checked:
+                checked[seq_key] = _check_sequence(s_name, s_path, s_gt, frames, reader, source)
+            gt = checked[seq_key]
+            extra = "".join(f";{k}={v}" for k, v in reader)
+            cells.append(Cell(s_name, v_name, s_path, gt, frames, cfg, config_hash(cfg, s_path + extra, frames, gt), reader))
     return Plan(source, cells, float(cpus))
+
+
+def _check_sequence(name: str, path: str, gt: str | None, frames: str | None, reader: tuple, source: str) -> str | None:
+    """Open a sequence as its cells will (calibration, images, frame range, ground truth); returns
+    its ground-truth file (absolute) or None."""
+    try:
+        seq = open_dataset(path, frames=frames, gt=gt, **dict(reader))
+    except SnapsGraphError as exc:
+        raise SnapsGraphError(f"{source}: sequence '{name}': {exc}") from None
+    try:
+        found = getattr(seq, "gt_path", None) or (gt if seq.gt_poses is not None else None)
+        return str(Path(found).absolute()) if found is not None else None
+    finally:
+        close = getattr(seq, "close", None)
+        if close is not None:
+            close()
 
 
 def _resolve(base: Path, path: str) -> Path:
@@ -253,38 +273,50 @@ def _apply_options(merged: dict[str, Any], options: dict[str, Any]) -> None:
         (merged[section] if section else merged)[field] = value
 
 
-def _sequences(data: dict[str, Any], source: str, base: Path) -> list[tuple[str, str, str | None]]:
-    """(name, absolute path, ground-truth file or None) per plan sequence; names unique."""
+def _sequences(data: dict[str, Any], source: str, base: Path) -> list[tuple[str, str, str | None, tuple]]:
+    """(name, absolute path, ground-truth file or None, reader options) per plan sequence; names unique."""
     seqs = data.get("sequences")
     if not isinstance(seqs, list) or not seqs:
         raise SnapsGraphError(f"{source}: sequences must be a non-empty list of sequence folders")
-    out: list[tuple[str, str, str | None]] = []
+    out: list[tuple[str, str, str | None, tuple]] = []
     for i, entry in enumerate(seqs):
         where = f"sequences[{i}]"
         path: Any
         name: Any
         gt: Any = None
+        reader: list[tuple[str, str]] = []
         if isinstance(entry, str):
             path, name = entry, None
         elif isinstance(entry, dict):
-            unknown = set(entry) - {"path", "name", "gt"}
+            unknown = set(entry) - {"path", "name", "gt", *READER_KEYS}
             if unknown:
-                raise SnapsGraphError(f"{source}: {where}: unknown key '{sorted(unknown)[0]}' (a sequence has path, name, gt)")
+                raise SnapsGraphError(
+                    f"{source}: {where}: unknown key '{sorted(unknown)[0]}' (a sequence has path, name, gt, {', '.join(READER_KEYS)})"
+                )
             path, name, gt = entry.get("path"), entry.get("name"), entry.get("gt")
-            if not isinstance(path, str):
-                raise SnapsGraphError(f"{source}: {where}.path: expected a sequence folder (string), got {path!r}")
-            if gt is not None and not isinstance(gt, str):
-                raise SnapsGraphError(f"{source}: {where}.gt: expected a pose file (string), got {gt!r}")
+            for key in ("path", "gt", *READER_KEYS):
+                if entry.get(key) is not None and not isinstance(entry[key], str):
+                    raise SnapsGraphError(f"{source}: {where}.{key}: expected a string, got {entry[key]!r}")
+            if path is None:
+                raise SnapsGraphError(f'{source}: {where}: a sequence table needs path = "..."')
+            for key in READER_KEYS:
+                if entry.get(key) is not None:
+                    reader.append((key, str(_resolve(base, entry[key])) if key == "calib" else entry[key]))
         else:
             raise SnapsGraphError(f"{source}: {where}: expected a folder or a table {{ path = ..., name = ... }}, got {entry!r}")
+        if path.startswith("live:"):
+            raise SnapsGraphError(
+                f"{source}: {where}: a live device cannot be a batch cell (it can be neither repeated nor resumed)"
+            )
         full = _resolve(base, path)
-        name = name if name is not None else full.name
+        if name is None:  # the folder's name (a EuRoC mav0/ folder: its parent's; a bag file: its stem)
+            name = full.parent.name if full.name == "mav0" else (full.stem if full.is_file() else full.name)
         _check_name(name, source, where)
         if any(name == o[0] for o in out):
             raise SnapsGraphError(
                 f'{source}: {where}: two sequences are named \'{name}\' (their folder); give one a name: {{ path = "{path}", name = "..." }}'
             )
-        out.append((name, str(full), str(_resolve(base, gt)) if gt is not None else None))
+        out.append((name, str(full), str(_resolve(base, gt)) if gt is not None else None, tuple(reader)))
     return out
 
 
@@ -331,9 +363,13 @@ def run_cell(cell: Cell, out_dir: str, threads: int) -> dict:
     folder = cell.folder(out_dir)
     try:
         _remove_stale_temp(folder)
-        seq = KittiSequence(cell.seq_path, frames=cell.frames, gt=cell.gt)
-        with pinned_threads(threads):
-            _, metrics = run_sequence(seq, folder, cell.cfg, overwrite=True)
+        seq = cell.open()
+        try:
+            with pinned_threads(threads):
+                _, metrics = run_sequence(seq, folder, cell.cfg, overwrite=True)
+        finally:
+            if hasattr(seq, "close"):
+                seq.close()
         rec["wall_s"] = round(time.perf_counter() - t0, 3)
         rec["status"] = "ok"
         if mostly_flagged(metrics):

@@ -121,6 +121,9 @@ def test_plan_paths_are_relative_to_the_plan_file(seqs, tmp_path):
             "variants.m: map.trajectory = 'isam2' needs",
         ),
         ("sequences = [", "malformed TOML"),
+        ('sequences = ["live:0"]\n', "sequences[0]: a live device cannot be a batch cell"),
+        ('sequences = [{{ path = "{good}", topic = "/cam" }}]\n', "sequences[0]: unknown key 'topic'"),
+        ('sequences = [{{ path = "{good}", calib = "c.txt" }}]\n', "sequence 'good': "),
     ],
 )
 def test_plan_errors_name_the_plan_and_the_key(seqs, tmp_path, body, expect):
@@ -147,6 +150,19 @@ def test_cli_bad_plan_is_one_line_error_before_anything_is_written(seqs, tmp_pat
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"error: {plan}: variants.x: graph.odom_sigma_rot_rad must be > 0, got -1")
     assert not out.exists()
+
+
+def test_a_euroc_sequence_is_a_cell_like_any_run_input(tmp_path):
+    """Anything `run` reads: here EuRoC (the reader found by what the path holds)."""
+    euroc = Path(__file__).resolve().parents[2] / "shared" / "data" / "euroc" / "V1_01_easy_first95"
+    if not euroc.exists():
+        pytest.skip(f"real data not found at {euroc} (it is in CI's ../shared/data)")
+    plan = plan_from_dict({"sequences": [str(euroc)], "frames": "0:6", "loops": "none"})
+    cell = plan.cells[0]
+    assert cell.sequence == "V1_01_easy_first95" and cell.gt is None
+    rec = run_cell(cell, str(tmp_path), threads=1)
+    assert rec["status"] == "ok", rec["reason"]
+    assert rec["metrics"]["frames"] == 6 and "vo" not in rec["metrics"]  # no ground truth: no metrics per trajectory
 
 
 # ---------------------------------------------------------------- one cell, without Ray
