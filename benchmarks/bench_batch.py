@@ -31,7 +31,6 @@ os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")  # local Ray on 
 os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
 
 from snaps_graph.batch import plan_from_dict, run_batch  # noqa: E402
-from snaps_graph.datasets.kitti import KittiSequence  # noqa: E402
 from snaps_graph.datasets.synthetic import SyntheticSequence, load_trajectory, render_to_folder  # noqa: E402
 from snaps_graph.runner import run_sequence  # noqa: E402
 
@@ -70,15 +69,16 @@ def main() -> None:
 
     serial_dir = work / "serial"
     shutil.rmtree(serial_dir, ignore_errors=True)
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), os.times()
     per_cell = []
     for cell in plan.cells:
         t1 = time.perf_counter()
-        run_sequence(KittiSequence(cell.seq_path, frames=cell.frames), cell.folder(serial_dir), cell.cfg)
+        run_sequence(cell.open(), cell.folder(serial_dir), cell.cfg)
         per_cell.append(time.perf_counter() - t1)
     serial = time.perf_counter() - t0
+    cpu = (os.times().user - cpu0.user) + (os.times().system - cpu0.system)
     print(
-        f"serial (one process, one after another): {serial:.1f} s  (cells {', '.join(f'{t:.1f}' for t in per_cell)} s)  load {load()}"
+        f"serial (one process, one after another): {serial:.1f} s, {cpu:.1f} CPU-s = {cpu / serial:.2f} cores busy  (cells {', '.join(f'{t:.1f}' for t in per_cell)} s)  load {load()}"
     )
 
     import ray
