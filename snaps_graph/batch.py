@@ -13,16 +13,17 @@ and ``DIR/summary.md``::
     loop = { min_similarity = 0.3 }   # config overrides, checked like a config file
     frontend = { klt_features = 1000 }
 
-A sequence is anything ``run`` reads except a live device (KITTI, EuRoC, ROS bags; a table
-may add ``gt``, ``left_topic``, ``right_topic``, ``calib``). Relative paths are relative to the plan file. Everything is checked on the driver before any
-task starts (the plan's keys and values, each variant's configuration, each sequence with its
-frame range), and an error names the plan file and the key.
+A sequence is anything ``run`` reads except a live device (KITTI, EuRoC, ROS bags; a table may
+add ``gt``, ``left_topic``, ``right_topic``, ``calib``). Relative paths are relative to the plan
+file. Everything is checked on the driver before any task starts (the plan's keys and values,
+each variant's configuration, each sequence with its frame range), and an error names the plan
+file and the key.
 
 Resuming: a finished cell leaves ``batch.json`` (its config hash, node, wall time, version and
 commit) beside ``metrics.json``; a re-run skips a cell whose folder holds both with the same
 hash, and re-runs (replacing whole) a cell whose configuration changed or that failed. The hash
-covers what decides the run's output: the full configuration, the sequence path, the frame
-range and the ground-truth file.
+covers what decides the run's output: the full configuration, the sequence path (with its
+reader options), the frame range and the ground-truth file.
 """
 
 from __future__ import annotations
