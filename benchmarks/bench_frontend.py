@@ -8,11 +8,12 @@ side in the same run, and the SIFT mode at most 100 ms.
 
 Runs every mode over the same frames (images are read once, before timing) and prints, per
 mode, the median milliseconds per stage and per frame, frames/s, the ratio to the naive
-pipeline, flagged frames, ATE RMSE after SE(3) Umeyama alignment and end-point drift
-(|p_end_est - p_end_gt| / ground-truth path length).
+pipeline, flagged frames, ATE RMSE after SE(3) Umeyama alignment, end-point drift
+(|p_end_est - p_end_gt| / ground-truth path length) and the step-length bias (sum of VO step
+lengths / sum of ground-truth step lengths - 1: a scale error of the translation).
 
     python benchmarks/bench_frontend.py [--seq ../shared/data/kitti/sequences/06] [--frames 0:51]
-        [--modes naive,default,sift,sift_sparse,orb]
+        [--modes naive,default,klt_pnp,sift,sift_sba,sift_sparse,orb] [--config extra.toml]
 """
 
 from __future__ import annotations
@@ -30,13 +31,26 @@ sys.path.insert(0, str(ROOT))
 
 from snaps_graph.config import FrontendConfig  # noqa: E402
 from snaps_graph.datasets.kitti import KittiSequence  # noqa: E402
-from snaps_graph.evaluation.metrics import ate_rmse, path_length  # noqa: E402
+from snaps_graph.evaluation.metrics import ate_rmse, evaluate, path_length  # noqa: E402
 from snaps_graph.frontend import StereoOdometry  # noqa: E402
 from snaps_graph.geometry import inv  # noqa: E402
 
 MODES = {
-    "default": dict(),  # klt tracking + sparse stereo
-    "sift": dict(mode="sift", disparity="bm_wls", sift_first_octave=-1),  # the paper's front end, faithfully
+    "default": dict(),  # the default configuration
+    "klt_pnp": dict(mode="klt", motion="pnp", local_ba=False),  # klt + sparse stereo + PnP only (the default before issue 11)
+    "klt_sba": dict(mode="klt", motion="stereo_ba", local_ba=False),
+    "klt_kf": dict(mode="klt", motion="stereo_ba", klt_reference="keyframe", local_ba=False),  # tracked from the last keyframe
+    "klt_kf_pnp": dict(mode="klt", motion="pnp", klt_reference="keyframe", local_ba=False),
+    "klt_kf_lba": dict(mode="klt", motion="stereo_ba", klt_reference="keyframe", local_ba=True, lba_every=1),
+    "klt_lba": dict(mode="klt", motion="stereo_ba", local_ba=True, lba_every=1),  # every frame a keyframe
+    "klt_lba_gtsam": dict(mode="klt", motion="stereo_ba", local_ba=True, lba_every=1, lba_solver="gtsam"),
+    "klt_lba2": dict(mode="klt", motion="stereo_ba", local_ba=True, lba_every=2, lba_window=8),
+    "klt_lba3": dict(mode="klt", motion="stereo_ba", local_ba=True, lba_every=3, lba_window=8),
+    "klt_lba3w6": dict(mode="klt", motion="stereo_ba", local_ba=True, lba_every=3, lba_window=6),
+    "klt_lba2_anchor": dict(mode="klt", motion="stereo_ba", local_ba=True, lba_every=2, lba_window=8, klt_anchor_gap=4),
+    "klt_kf_lba2": dict(mode="klt", motion="stereo_ba", klt_reference="keyframe", local_ba=True, lba_every=2, lba_window=8),
+    "sift": dict(mode="sift", disparity="bm_wls", sift_first_octave=-1, motion="pnp", local_ba=False),  # the paper's front end, faithfully
+    "sift_sba": dict(mode="sift", disparity="bm_wls", sift_first_octave=-1, motion="stereo_ba"),
     "sift_sparse": dict(mode="sift", disparity="sparse"),  # what mode = "sift" runs by default
     "sift_fo-1": dict(mode="sift", disparity="sparse", sift_first_octave=-1),
     "orb": dict(mode="orb"),
@@ -94,7 +108,20 @@ class NaiveVO:
         return self.pose.copy(), ok, t
 
 
-def run(name, seq, frames):
+def step_bias_percent(poses: np.ndarray, gt: np.ndarray) -> float:
+    """100 * (sum of VO step lengths / sum of ground-truth step lengths - 1)."""
+    s_vo = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1).sum()
+    s_gt = np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1).sum()
+    return 100.0 * (s_vo / max(s_gt, 1e-12) - 1.0)
+
+
+def frontend_config(name: str, base: FrontendConfig | None = None) -> FrontendConfig:
+    import dataclasses
+
+    return dataclasses.replace(base or FrontendConfig(), **MODES[name])
+
+
+def run(name, seq, frames, base=None):
     cam = seq.camera
     if name == "naive":
         vo = NaiveVO(cam, FrontendConfig())
@@ -103,7 +130,7 @@ def run(name, seq, frames):
         flagged = sum(not o[1] for o in out)
         timings = [o[2] for o in out]
     else:
-        with StereoOdometry(cam, FrontendConfig(**MODES[name])) as vo:
+        with StereoOdometry(cam, frontend_config(name, base)) as vo:
             res = [vo.process(f) for f in frames]
         poses = np.array([r.pose for r in res])
         flagged = sum(not r.ok for r in res)
@@ -115,8 +142,14 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seq", default=str(ROOT.parent / "shared" / "data" / "kitti" / "sequences" / "06"))
     ap.add_argument("--frames", default=None, help="A:B (default: all)")
-    ap.add_argument("--modes", default="naive,default,sift")
+    ap.add_argument("--modes", default="naive,default,klt_pnp,sift")
+    ap.add_argument("--config", default=None, help="TOML whose [frontend] section is the base of every mode")
     args = ap.parse_args()
+    base = None
+    if args.config:
+        from snaps_graph.config import Config
+
+        base = Config.load(args.config).frontend
     seq = KittiSequence(args.seq, frames=args.frames)
     frames = list(seq)  # read once: timing excludes PNG decoding
     gt = seq.gt_poses
@@ -129,10 +162,10 @@ def main() -> None:
     if gt is not None:
         print(f"ground-truth path length {path_length(gt):.1f} m")
     medians = {}
-    stages = ("depth", "features", "match", "pnp", "total")
-    print(f"{'mode':12s} " + " ".join(f"{s:>9s}" for s in stages) + "   frames/s  ratio/naive  flagged  ATE_m  drift_%")
+    stages = ("depth", "features", "match", "pnp", "sba", "lba", "total")
+    print(f"{'mode':12s} " + " ".join(f"{s:>9s}" for s in stages) + "   frames/s  ratio/naive  flagged  ATE_m  drift_%  step_bias_%")
     for name in names:
-        poses, flagged, timings = run(name, seq, frames)
+        poses, flagged, timings = run(name, seq, frames, base)
         steady = timings[1:] if len(timings) > 1 else timings  # frame 0 has no matching
         med = {s: float(np.median([t.get(s, 0.0) for t in steady])) for s in stages}
         medians[name] = med["total"]
@@ -140,10 +173,18 @@ def main() -> None:
         if gt is not None and len(gt) >= 3:
             ate = ate_rmse(poses, gt)
             drift = 100.0 * np.linalg.norm(poses[-1, :3, 3] - gt[-1, :3, 3]) / max(path_length(gt), 1e-9)
+            sbias = step_bias_percent(poses, gt)
         else:
-            ate = drift = float("nan")
+            ate = drift = sbias = float("nan")
         print(f"{name:12s} " + " ".join(f"{med[s]:9.1f}" for s in stages)
-              + f"   {1000.0 / med['total']:8.1f}  {ratio:11.3f}  {flagged:7d}  {ate:5.3f}  {drift:7.2f}")
+              + f"   {1000.0 / med['total']:8.1f}  {ratio:11.3f}  {flagged:7d}  {ate:5.3f}  {drift:7.2f}  {sbias:+11.2f}")
+        if gt is not None and len(gt) >= 200:  # long enough for KITTI's t_rel (100 m segments)
+            m = evaluate(poses, gt)
+            print(f"{'':12s} mean deviation {m['mean_deviation']:.3f} m (horizontal {m['mean_deviation_horizontal']:.3f}, "
+                  f"vertical {m['mean_deviation_vertical']:.3f}), t_rel {m['t_rel']:.3f} %, r_rel {m['r_rel']:.4f} deg/100 m")
+        kf_ms = [t["lba"] for t in timings if "lba" in t]
+        if kf_ms:
+            print(f"{'':12s} local BA on {len(kf_ms)} keyframes: median {np.median(kf_ms):.1f} ms, max {np.max(kf_ms):.1f} ms")
     print("(ms are medians over frames 1..N; stages of our modes overlap in two threads, so they need not add up to total)")
 
 

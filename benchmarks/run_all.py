@@ -34,6 +34,7 @@ BENCHMARKS: list[tuple[str, str, list[str], Path | None]] = [
          "--naive-frames", "10"],
         None,
     ),
+    ("batch", "bench_batch.py", ["--width", "620", "--height", "188"], None),  # 4 cells of 40 frames on local Ray
 ]
 
 

@@ -5,15 +5,22 @@ experiment runs it once per sequence (``vo_cache``) and replays the cached VO re
 real pipeline (``SlamPipeline(frontend=CachedOdometry(...))``) for every setting it sweeps. The
 replay feeds SNAPS the stored thumbnails (with thumbnail scale 1), which gives exactly the
 thumbnails a full run computes. Latency figures of a replay cover SNAPS and the graph only.
+
+Experiments that run whole runs (fig3_fig4, table1_sweep) go through ``snaps-graph batch``'s API
+instead (``run_plan``): one Ray task per run, on this machine or a cluster, resumable; their
+results are read back from the run folders (``read_loops``, ``read_frames``, metrics.json).
 """
 
 from __future__ import annotations
 
 import copy
+import csv
+import json
 import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -102,6 +109,36 @@ def replay(cache: VOCache, cfg: Config, refine: str = "batch", loops: str = "sna
     return pipe.finish(), pipe
 
 
+def add_batch_args(ap) -> None:
+    """The options of an experiment that runs its cells through ``snaps-graph batch``'s API."""
+    ap.add_argument("--address", default=None, help="join this Ray cluster (default: Ray on this machine)")
+    ap.add_argument("--max-parallel", type=int, default=None, help="at most this many runs at once")
+
+
+def run_plan(plan: dict, out: Path, args, source: str) -> list[tuple[object, dict]]:
+    """Run a plan (a dict as a plan file holds) through the batch API into ``out``; finished
+    cells are skipped. Returns (cell, record) pairs in plan order; ``cell.folder(out)`` is the run."""
+    from snaps_graph.batch import plan_from_dict, run_batch
+
+    p = plan_from_dict(plan, source=source)
+    records = run_batch(p, out, address=args.address, max_parallel=args.max_parallel)
+    return list(zip(p.cells, records))
+
+
+def read_loops(run_dir: Path) -> list[SimpleNamespace]:
+    """A run folder's loops.jsonl, one object per loop (``.frame``, ``.reference``, ...)."""
+    text = (Path(run_dir) / "loops.jsonl").read_text()
+    return [SimpleNamespace(**json.loads(line)) for line in text.splitlines() if line.strip()]
+
+
+def read_frames(run_dir: Path) -> dict[str, np.ndarray]:
+    """A run folder's frames.csv as columns of floats."""
+    with open(Path(run_dir) / "frames.csv", newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    return {k: np.array([float(r[k]) if r[k] not in ("", "True", "False") else float(r[k] == "True") for r in rows])
+            for k in (rows[0] if rows else {})}
+
+
 def false_loops(loops, gt: np.ndarray, indices: np.ndarray, radius_m: float) -> int:
     k_of = {int(i): k for k, i in enumerate(indices)}
     return sum(
@@ -111,6 +148,8 @@ def false_loops(loops, gt: np.ndarray, indices: np.ndarray, radius_m: float) -> 
 
 def md_table(header: list[str], rows: list[list]) -> str:
     def fmt(v):
+        if v is None:  # a metric metrics.json holds as null (not computable)
+            return "n/a"
         if isinstance(v, float):
             return "n/a" if v != v else f"{v:.3f}"
         return str(v)

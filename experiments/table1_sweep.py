@@ -1,20 +1,36 @@
 """Paper Table I: each SNAPS design parameter swept over a range; its effect on accuracy and time.
 
-The front end runs once over the sequence (a synthetic rendering along KITTI 00 by default); every
-setting is then replayed through SNAPS and the graph (batch refinement) with one parameter changed
-from the defaults. Writes results/experiments/table1_sweep.md and table1_sweep.png.
+Every setting is one run with one parameter changed from the defaults (batch refinement), over a
+sequence (a synthetic rendering along KITTI 00 by default). The runs go through `snaps-graph
+batch`'s API: one Ray task per setting, on this machine or a cluster (--address), each a full
+run into results/experiments/table1_sweep/<sequence>/<parameter>=<value>/, skipped on a re-run
+when already done. --replay instead runs the front end once in this process and replays the
+cached VO through SNAPS and the graph for every setting (same poses and loops, far less work on
+one machine; no parallelism). Writes results/experiments/table1_sweep.md and table1_sweep.png.
 
-    python experiments/table1_sweep.py [--path 00] [--seq DIR]
+    python experiments/table1_sweep.py [--path 00] [--seq DIR] [--frames A:B] [--address ADDR] [--replay]
 """
 
 from __future__ import annotations
 
 import argparse
 import copy
+import json
 import time
 
 import numpy as np
-from _common import RESULTS, false_loops, md_table, replay, synthetic_dir, vo_cache
+from _common import (
+    RESULTS,
+    add_batch_args,
+    false_loops,
+    md_table,
+    read_frames,
+    read_loops,
+    replay,
+    run_plan,
+    synthetic_dir,
+    vo_cache,
+)
 
 from snaps_graph.config import Config
 from snaps_graph.datasets.kitti import KittiSequence
@@ -43,15 +59,67 @@ def main() -> None:
     ap.add_argument("--seq", default=None, help="a KITTI-format sequence with ground truth instead")
     ap.add_argument("--width", type=int, default=1241)
     ap.add_argument("--height", type=int, default=376)
+    ap.add_argument("--frames", default=None, help="frame range A:B")
+    ap.add_argument("--replay", action="store_true", help="one process: VO once, replayed for every setting")
+    add_batch_args(ap)
     args = ap.parse_args()
     seq_dir = args.seq or synthetic_dir(args.path, args.width, args.height)
-    seq = KittiSequence(seq_dir)
     base = Config()
+    rows, curves, vo_md, vo_ate, n_frames = (_by_replay if args.replay else _by_batch)(seq_dir, base, args)
+    for row in rows:
+        curves.setdefault(row[0], []).append((row[1], row[4], row[6]))
+    text = "# Table I: design parameters swept\n\n"
+    cmd = ("--seq " + str(args.seq) if args.seq else "--path " + args.path) + (f" --frames {args.frames}" if args.frames else "")
+    cmd += " --replay" if args.replay else ""
+    text += f"Command: `python experiments/table1_sweep.py {cmd}`; sequence `{seq_dir}` ({n_frames} frames).\n"
+    defaults = ", ".join(f"{k} {getattr(base.loop, k)}" for k in SWEEPS)
+    text += f"VO alone: mean deviation {vo_md:.3f} m, ATE {vo_ate:.3f} m. Every row changes one parameter from the defaults: {defaults}.\n"
+    text += "False loops: reference farther than 10 m from the current frame in the ground truth. Time: median SNAPS ms on frames that compared candidates.\n\n"
+    text += md_table(["parameter", "value", "loops", "false", "SNAPS mean dev m", "SNAPS ATE m", "batch mean dev m", "batch ATE m", "SNAPS ms (cand.)", "similarities"], rows)
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / "table1_sweep.md").write_text(text)
+    _plot(curves, vo_md, RESULTS / "table1_sweep.png")
+    print(text)
+
+
+def _by_batch(seq_dir, base: Config, args):
+    """One run per setting, as Ray tasks; the rows from each run folder."""
+    variants = {f"{param}={v}": {"loop": {param: v}} for param, values in SWEEPS.items() for v in values}
+    plan: dict = {"sequences": [str(seq_dir)], "refine": "batch", "loops": "snaps", "variants": variants}
+    if args.frames:
+        plan["frames"] = args.frames
+    out = RESULTS / "table1_sweep"
+    rows, vo_md, vo_ate, n_frames = [], float("nan"), float("nan"), 0
+    seq = None
+    for cell, rec in run_plan(plan, out, args, source="table1_sweep plan"):
+        param, _, _ = cell.variant.partition("=")
+        value = getattr(cell.cfg.loop, param)
+        if rec["status"] not in ("ok", "skipped"):
+            print(f"{cell.variant}: {rec['status']} ({rec.get('reason', '')})")
+            continue
+        run_dir = cell.folder(out)
+        if seq is None:
+            seq = cell.open()
+            n_frames = len(seq)
+        tr = json.loads((run_dir / "metrics.json").read_text())["trajectories"]
+        vo_md, vo_ate = tr["vo"]["mean_deviation"], tr["vo"]["ate_rmse"]  # the same in every run
+        loops = read_loops(run_dir)
+        fr = read_frames(run_dir)
+        cand = fr["loop_candidates"] > 0
+        rows.append([param, value, len(loops), false_loops(loops, seq.gt_poses, seq.indices, base.loop.radius_m),
+                     tr["snaps"]["mean_deviation"], tr["snaps"]["ate_rmse"], tr["batch"]["mean_deviation"], tr["batch"]["ate_rmse"],
+                     float(np.median(fr["t_loop_ms"][cand])) if cand.any() else float("nan"), int(fr["loop_candidates"].sum())])
+    return rows, {}, vo_md, vo_ate, n_frames
+
+
+def _by_replay(seq_dir, base: Config, args):
+    """The front end once in this process, its cached results replayed for every setting."""
+    seq = KittiSequence(seq_dir, frames=args.frames)
     cache = vo_cache(seq, base)
     gt = cache.gt
     vo_poses = np.array([cache.results[int(i)].pose for i in cache.indices])
     vo_md, vo_ate = mean_deviation(vo_poses, gt), ate_rmse(vo_poses, gt)
-    rows, curves = [], {}
+    rows = []
     for param, values in SWEEPS.items():
         for v in values:
             cfg = copy.deepcopy(base)
@@ -66,18 +134,8 @@ def main() -> None:
                    mean_deviation(tr["batch"], gt), ate_rmse(tr["batch"], gt),
                    float(np.median(t_loop)) if t_loop else float("nan"), sum(r.loop_candidates for r in result.records)]
             rows.append(row)
-            curves.setdefault(param, []).append((v, row[4], row[6]))
             print(f"{param}={v}: loops {row[2]} (false {row[3]}), SNAPS mean dev {row[4]:.2f} m, batch {row[6]:.2f} m, {wall:.1f} s")
-    text = "# Table I: design parameters swept\n\n"
-    text += f"Command: `python experiments/table1_sweep.py {'--seq ' + str(args.seq) if args.seq else '--path ' + args.path}`; sequence `{seq_dir}` ({len(seq)} frames).\n"
-    defaults = ", ".join(f"{k} {getattr(base.loop, k)}" for k in SWEEPS)
-    text += f"VO alone: mean deviation {vo_md:.3f} m, ATE {vo_ate:.3f} m. Every row changes one parameter from the defaults: {defaults}.\n"
-    text += "False loops: reference farther than 10 m from the current frame in the ground truth. Time: median SNAPS ms on frames that compared candidates.\n\n"
-    text += md_table(["parameter", "value", "loops", "false", "SNAPS mean dev m", "SNAPS ATE m", "batch mean dev m", "batch ATE m", "SNAPS ms (cand.)", "similarities"], rows)
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "table1_sweep.md").write_text(text)
-    _plot(curves, vo_md, RESULTS / "table1_sweep.png")
-    print(text)
+    return rows, {}, vo_md, vo_ate, len(seq)
 
 
 def _plot(curves, vo_md, path) -> None:

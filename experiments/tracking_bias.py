@@ -7,12 +7,13 @@ Renders pairs of consecutive frames along a KITTI ground-truth path (default: KI
   renderer's depth (fx * baseline / z);
 * **tracking**: the KLT position of each corner in the next frame against its exact position
   (its exact 3D point moved by the ground-truth relative pose and projected), for each LK window
-  size given.
+  size given, and for each frame gap given (``--gaps 1 3 5``: tracking from a keyframe g frames
+  back, as ``klt_reference = "keyframe"`` does; the per-frame bias is then the row bias / g).
 
 With ``--run RUN`` it also prints the mean per-step rotation error (pitch, yaw, roll) and vertical
 translation error of a results folder's VO against its ground truth, with standard errors.
 
-    python experiments/tracking_bias.py [--trajectory ../shared/data/kitti_gt/00.txt] [--windows 7 11 21] [--run results/bench/run00]
+    python experiments/tracking_bias.py [--trajectory ../shared/data/kitti_gt/00.txt] [--windows 7 11 21] [--gaps 1 3 5] [--run results/bench/run00]
 """
 
 from __future__ import annotations
@@ -66,6 +67,7 @@ def main() -> None:
     ap.add_argument("--frames", default="0:400")
     ap.add_argument("--every", type=int, default=30)
     ap.add_argument("--windows", type=int, nargs="*", default=[7, 11, 21])
+    ap.add_argument("--gaps", type=int, nargs="*", default=[1], help="frames between the tracked pair")
     ap.add_argument("--run", type=Path, default=None)
     args = ap.parse_args()
     if args.run:
@@ -74,9 +76,9 @@ def main() -> None:
     seq = SyntheticSequence(poses, width=1241, height=376, seed=0, times=times)
     cam, cfg = seq.camera, Config().frontend
     stereo_v, stereo_err = [], []
-    track: dict[int, list[np.ndarray]] = {w: [] for w in args.windows}
-    for i in range(0, len(seq) - 1, args.every):
-        f0, f1 = seq.render(i), seq.render(i + 1, with_depth=False)
+    track: dict[tuple[int, int], list[np.ndarray]] = {(w, g): [] for w in args.windows for g in args.gaps}
+    for i in range(0, len(seq) - max(args.gaps), args.every):
+        f0 = seq.render(i)
         uv = feat.detect_corners(f0.left, cfg.klt_features, cfg, avoid=np.zeros((0, 2), np.float32))
         z = depth_mod.sample_depth(f0.depth, uv)
         uv, z = uv[z > 0], z[z > 0]
@@ -87,16 +89,19 @@ def main() -> None:
         stereo_err.append(d[ok] - cam.fx * cam.baseline_m / z[ok])
         # tracking
         P = np.c_[(uv[:, 0] - cam.cx) / cam.fx * z, (uv[:, 1] - cam.cy) / cam.fy * z, z, np.ones(len(z))]
-        Q = (np.linalg.solve(seq.gt_poses[i + 1], seq.gt_poses[i]) @ P.T).T
-        true = np.c_[cam.fx * Q[:, 0] / Q[:, 2] + cam.cx, cam.fy * Q[:, 1] / Q[:, 2] + cam.cy]
-        for w in args.windows:
-            cfg.klt_window_px = w
-            p1, okt = feat.track_klt(f0.left, f1.left, uv, cfg, None)
-            track[w].append(np.c_[uv[okt, 1], p1[okt, 1] - true[okt, 1]])
+        for g in args.gaps:
+            f1 = seq.render(i + g, with_depth=False)
+            Q = (np.linalg.solve(seq.gt_poses[i + g], seq.gt_poses[i]) @ P.T).T
+            true = np.c_[cam.fx * Q[:, 0] / Q[:, 2] + cam.cx, cam.fy * Q[:, 1] / Q[:, 2] + cam.cy]
+            # The front end starts LK at the constant-velocity prediction; the exact one here.
+            for w in args.windows:
+                cfg.klt_window_px = w
+                p1, okt = feat.track_klt(f0.left, f1.left, uv, cfg, true if g > 1 else None)
+                track[(w, g)].append(np.c_[uv[okt, 1], p1[okt, 1] - true[okt, 1]])
     band_table("stereo: sparse LK disparity - exact disparity", np.concatenate(stereo_v), np.concatenate(stereo_err))
-    for w, parts in track.items():
+    for (w, g), parts in track.items():
         a = np.concatenate(parts)
-        band_table(f"tracking, {w} px window: KLT row - exact row (positive = too low in the image)", a[:, 0], a[:, 1])
+        band_table(f"tracking over {g} frame(s), {w} px window: KLT row - exact row (positive = too low in the image)", a[:, 0], a[:, 1])
 
 
 if __name__ == "__main__":

@@ -1,9 +1,10 @@
-"""Command line: ``snaps-graph synth | run | convert | eval | compare | loops | demo | config``.
+"""Command line: ``snaps-graph synth | run | batch | convert | eval | compare | loops | demo | config``.
 
 Thin: each command parses its options, calls the package and prints. Exit status: 0 done; 2 a
 user error (``SnapsGraphError``: one line ``error: ...`` naming the file, never a traceback; also
 a usage error); 3 ``run`` finished and wrote its folder but the front end flagged more than half
-of the frames (one ``warning:`` line); 130 interrupted (Ctrl-C: one line, no results folder).
+of the frames (one ``warning:`` line); 4 ``batch`` finished but some cells failed (the summary
+says why); 130 interrupted (Ctrl-C: one line, no results folder).
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from __future__ import annotations
 import json
 import signal
 import sys
+import time
 from pathlib import Path
 from typing import Optional
 
@@ -34,6 +36,7 @@ app = typer.Typer(
 
 EXIT_USER_ERROR = 2
 EXIT_MOSTLY_FLAGGED = 3
+EXIT_CELLS_FAILED = 4
 EXIT_INTERRUPTED = 130
 
 
@@ -180,6 +183,35 @@ def run(
             file=sys.stderr,
         )
         raise typer.Exit(EXIT_MOSTLY_FLAGGED)
+
+
+@app.command()
+def batch(
+    plan: Path = typer.Argument(..., help="A plan (TOML): sequences, run options, variants (config overrides)."),
+    out: Path = typer.Option(..., "--out", help="Folder for DIR/<sequence>/<variant>/ run folders and summary.csv / summary.md."),
+    address: Optional[str] = typer.Option(None, "--address", help="Join this Ray cluster (default: start Ray on this machine)."),
+    max_parallel: Optional[int] = typer.Option(None, "--max-parallel", help="At most this many cells at once (default: as many as Ray has CPUs for)."),
+) -> None:
+    """Run every (sequence, variant) cell of a plan as a Ray task; resumable; summary.csv / .md.
+
+    Cells complete from an earlier batch with the same config hash are skipped.
+
+    Exit status: 0 every cell ok or skipped; 2 bad plan (one `error:` line, before any task starts); 4 some cells failed (summary.md says why); 130 interrupted (running cells cancelled, finished ones kept).
+    """
+    from .batch import load_plan, run_batch
+
+    p = load_plan(plan)  # checked whole before any task starts
+    t0 = time.perf_counter()
+    try:
+        rows = run_batch(p, out, address=address, max_parallel=max_parallel)
+    except (Interrupted, KeyboardInterrupt):
+        print(f"interrupted: running cells cancelled; finished cells are kept (a re-run resumes); see {out / 'summary.md'}", file=sys.stderr)
+        raise typer.Exit(EXIT_INTERRUPTED) from None
+    counts = {s: sum(r["status"] == s for r in rows) for s in ("ok", "skipped", "failed")}
+    typer.echo(f"{len(rows)} cells: {counts['ok']} ok, {counts['skipped']} skipped, {counts['failed']} failed "
+               f"in {time.perf_counter() - t0:.1f} s; summary in {out / 'summary.md'}")
+    if counts["failed"]:
+        raise typer.Exit(EXIT_CELLS_FAILED)
 
 
 @app.command()

@@ -100,6 +100,39 @@ class FrontendConfig(_Section):
     ransac_seed: int = 0  # cv2.setRNGSeed before every RANSAC (same input -> same output)
     verify_max_translation_m: float = 30.0  # verify_loop: a larger relative pose is implausible
     verify_max_rotation_deg: float = 90.0
+    # Motion estimate after PnP RANSAC (the seed and the outlier rejection): "stereo_ba" refines
+    # it by a two-view stereo bundle adjustment over (u_left, v, u_right) in both frames
+    # (frontend/stereo_ba.py); "pnp" keeps PnP + LM on the inliers (before issue 11).
+    motion: Literal["pnp", "stereo_ba"] = "stereo_ba"
+    sba_huber_px: float = 1.0  # Huber kernel width on a (point, view) residual, pixels
+    sba_outlier_px: float = 2.0  # after the first round, points beyond this in either view are dropped
+    sba_iterations: int = 3  # Gauss-Newton iterations per round (two rounds)
+    # KLT: track from the last frame ("frame", before issue 11) or from the last keyframe
+    # ("keyframe"): a frame becomes the keyframe when fewer than kf_min_ratio of the keyframe's
+    # points are still inliers, or kf_max_gap frames after it.
+    klt_reference: Literal["frame", "keyframe"] = "frame"
+    kf_max_gap: int = 5
+    kf_min_ratio: float = 0.5
+    # klt mode: sliding-window stereo BA over the last lba_window keyframes (frontend/local_ba.py);
+    # a reference frame becomes a keyframe lba_every frames after the last one.
+    local_ba: bool = True
+    lba_window: int = 6
+    lba_iterations: int = 5
+    lba_max_landmarks: int = 300
+    lba_every: int = 3
+    # klt_reference = "frame": every klt_anchor_gap frames the current frame becomes the anchor, and
+    # tracks it also has are re-tracked from its image (0 = off); a re-track may move a point at
+    # most klt_anchor_max_px from its frame-to-frame position.
+    klt_anchor_gap: int = 0
+    klt_anchor_max_px: float = 1.0
+    lba_solver: Literal["numpy", "gtsam"] = "numpy"
+    # Which landmarks the window keeps when more than lba_max_landmarks are shared: "longest"
+    # tracks first, or "near" (largest disparity in the newest keyframe) first.
+    lba_select: Literal["longest", "near"] = "longest"
+    # klt + stereo_ba: tracked points beyond max_depth_m with a disparity of at least
+    # far_min_disparity_px are kept for the stereo BA (they constrain rotation), never for PnP.
+    sba_far_points: bool = False
+    far_min_disparity_px: float = 1.0  # "numpy" (vectorised Schur Gauss-Newton) or "gtsam" (GenericStereoFactor3D + LM)
 
     def _cross_checks(self, source: str) -> None:
         if not self.min_depth_m < self.max_depth_m:
@@ -490,6 +523,18 @@ RULES: dict[str, Range] = {
     "frontend.ransac_seed": NON_NEGATIVE,
     "frontend.verify_max_translation_m": POSITIVE,
     "frontend.verify_max_rotation_deg": ANGLE,
+    "frontend.sba_huber_px": POSITIVE,
+    "frontend.sba_outlier_px": POSITIVE,
+    "frontend.sba_iterations": AT_LEAST_1,
+    "frontend.kf_max_gap": AT_LEAST_1,
+    "frontend.kf_min_ratio": Range(0, 1),
+    "frontend.lba_window": _ge(2),
+    "frontend.lba_iterations": AT_LEAST_1,
+    "frontend.lba_max_landmarks": _ge(10),
+    "frontend.lba_every": AT_LEAST_1,
+    "frontend.klt_anchor_gap": NON_NEGATIVE,
+    "frontend.klt_anchor_max_px": POSITIVE,
+    "frontend.far_min_disparity_px": POSITIVE,
     "loop.radius_m": POSITIVE,
     "loop.frame_distance": AT_LEAST_1,
     "loop.discount_length": NON_NEGATIVE,

@@ -10,7 +10,18 @@
    (eq. 2: keypoint + stereo depth of eq. 1) to frame N's 2D keypoints, then Levenberg-Marquardt
    refinement on the inliers (``cv2.solvePnPRefineLM``). PnP gives T_cur_ref (it maps reference
    points into the current camera); the pose is T_world_cur = T_world_ref · inv(T_cur_ref).
-3. Stereo depth of frame N's keypoints, so frame N can be the next reference.
+3. With ``motion = "stereo_ba"`` (the default) PnP's pose is the seed and its inliers the data of
+   a two-view stereo bundle adjustment (``stereo_ba.py``): the pose and every landmark are
+   refined from (u_left, v, u_right) in both frames under a Huber kernel, so a far point's
+   uncertain, long-biased depth no longer pulls the translation.
+4. Stereo depth of frame N's keypoints, so frame N can be the next reference.
+5. With ``local_ba`` a reference frame becomes a keyframe every ``lba_every`` frames and a
+   sliding-window stereo BA over the last ``lba_window`` keyframes (``local_ba.py``; KLT tracks
+   keep a landmark id while they live) refines it; the chain continues from the refined pose.
+
+KLT tracks from the last frame (``klt_reference = "frame"``) or from the last keyframe
+("keyframe": a frame becomes the reference only when the tracks thin out or after
+``kf_max_gap`` frames, so one step's tracking error is not chained into every frame).
 
 Robustness. A frame is flagged (``ok=False`` with a ``reason``) when its left image is flat or
 black (grey std below ``min_frame_std``), blurred (mean |Laplacian| below
@@ -35,7 +46,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
@@ -48,6 +59,7 @@ from ..geometry import inv, rotation_angle_deg
 from ..types import FrameFeatures, StereoFrame, VOResult
 from . import depth as depth_mod
 from . import features as feat
+from .stereo_ba import stereo_two_view_ba
 
 
 def pose_from_rvec(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
@@ -131,6 +143,10 @@ class _Keyframe:
     desc: np.ndarray | None  # (N,D) descriptors in sift/orb modes
     sharpness: float
     features: FrameFeatures  # for loop verification
+    ids: np.ndarray  # (N,) int64 landmark ids (klt: persistent across frames; -1 where unknown)
+    promote: bool = True  # becomes the reference of the next frame (klt_reference = "keyframe" decides)
+    # (N,) bool: depth within max_depth_m (PnP's points); the rest are far points (stereo BA only)
+    near: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
 
 
 class _Flag(Exception):
@@ -170,6 +186,18 @@ class StereoOdometry:
         self._velocity = np.eye(4)  # T_rel of the last good frame (constant-velocity guess)
         self._last_ok = False
         self._n = 0  # frames processed
+        self._next_id = 0  # next landmark id (klt)
+        self._far_points = self.cfg.mode == "klt" and self.cfg.motion == "stereo_ba" and self.cfg.sba_far_points
+        # (frame index, left image, ids, uv) that tracks are re-tracked from (klt_anchor_gap)
+        self._anchor: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._lba = None
+        self._lba_last = -(10**9)  # frame index of the last local BA keyframe
+        if self.cfg.local_ba and self.cfg.mode == "klt":  # needs persistent tracks (landmark ids)
+            from .local_ba import LocalBundleAdjuster
+
+            self._lba = LocalBundleAdjuster(camera, self.cfg.lba_window, huber_px=self.cfg.sba_huber_px,
+                                            iterations=self.cfg.lba_iterations, max_landmarks=self.cfg.lba_max_landmarks,
+                                            solver=self.cfg.lba_solver, select=self.cfg.lba_select)
 
     # ---- lifecycle ----
     def close(self) -> None:
@@ -220,10 +248,19 @@ class StereoOdometry:
                 T_rel = np.eye(4)
             else:
                 pose = self._ref.pose @ T_ref_cur
-                T_rel = inv(prev_pose) @ pose
             kf = kf_or_none
+            if self._lba is not None and kf.promote and (first or frame.index - self._lba_last >= self.cfg.lba_every):
+                self._lba_last = frame.index
+                t_ba = time.perf_counter()
+                pose = self._lba.add_keyframe(frame.index, pose, kf.ids[kf.near], kf.uv[kf.near], kf.disp[kf.near])
+                timings["lba"] = (time.perf_counter() - t_ba) * 1000.0
+            if not first:
+                T_rel = inv(prev_pose) @ pose
             kf.pose = pose
-            self._ref = kf
+            if kf.promote:
+                self._ref = kf
+            if self.cfg.klt_anchor_gap > 0 and (self._anchor is None or frame.index - self._anchor[0] >= self.cfg.klt_anchor_gap):
+                self._anchor = (frame.index, frame.left, kf.ids.copy(), kf.uv.copy())
             self._pose = pose
             if not first:
                 self._velocity = T_rel
@@ -240,6 +277,8 @@ class StereoOdometry:
                  keyframe: _Keyframe | None, timings: dict[str, float]) -> VOResult:
         T_rel = self._velocity.copy() if self._n > 1 else np.eye(4)
         pose = prev_pose @ T_rel
+        if self._lba is not None:
+            self._lba.reset()
         if not np.all(np.isfinite(pose)):  # cannot happen with finite inputs; belt and braces
             T_rel, pose = np.eye(4), prev_pose.copy()
         self._pose = pose
@@ -285,34 +324,44 @@ class StereoOdometry:
         return T_ref_cur
 
     def _make_keyframe(self, frame: StereoFrame, uv: np.ndarray, z: np.ndarray, disp: np.ndarray,
-                       desc: np.ndarray | None, sharp: float, timings: dict[str, float]) -> _Keyframe:
+                       desc: np.ndarray | None, sharp: float, timings: dict[str, float],
+                       ids: np.ndarray | None = None) -> _Keyframe:
         """Keep keypoints with valid depth; back-project them (eq. 2); pick the loop features."""
         cfg = self.cfg
         valid = z > 0
+        fb = self.camera.fx * self.camera.baseline_m
+        if self._far_points:  # beyond max_depth_m: kept for the stereo BA (rotation), never for PnP
+            far = ~valid & (disp >= cfg.far_min_disparity_px) & (disp * cfg.max_depth_m < fb)
+            z = np.where(far, fb / np.maximum(disp, 1e-6), z).astype(np.float32)
+            valid = valid | far
         uv, z, disp = uv[valid], z[valid], disp[valid]
+        near = z <= cfg.max_depth_m
+        ids = ids[valid] if ids is not None else np.full(len(uv), -1, np.int64)
         desc = desc[valid] if desc is not None else None
         pts3d = self.camera.backproject(uv[:, 0], uv[:, 1], z).astype(np.float32)
         t0 = time.perf_counter()
-        m = len(uv)
+        near_idx = np.flatnonzero(near)
+        m = len(near_idx)
         # Loop features. Detected keypoints come strongest first, so the first loop_features are
         # the ones most likely to be detected again when the place is revisited; tracked corners
         # have no such order, so an evenly spread subset is kept.
         if desc is not None:
-            pick = np.arange(min(m, cfg.loop_features))
+            pick = near_idx[: cfg.loop_features]
             fdesc = desc[pick]
         else:
-            pick = np.arange(m) if m <= cfg.loop_features else np.linspace(0, m - 1, cfg.loop_features).astype(np.int64)
+            pick = near_idx if m <= cfg.loop_features else near_idx[np.linspace(0, m - 1, cfg.loop_features).astype(np.int64)]
             keep, fdesc = feat.orb_at(frame.left, uv[pick])
             pick = pick[keep]
         features = FrameFeatures(np.ascontiguousarray(uv[pick]), np.ascontiguousarray(pts3d[pick]), np.ascontiguousarray(fdesc))
         timings["features"] = timings.get("features", 0.0) + (time.perf_counter() - t0) * 1000.0
-        return _Keyframe(frame.index, np.eye(4), frame.left, uv, pts3d, disp, desc, sharp, features)
+        return _Keyframe(frame.index, np.eye(4), frame.left, uv, pts3d, disp, desc, sharp, features, ids, near=near)
 
     def _conclude(self, kf: _Keyframe, T_cur_ref: np.ndarray | None, n_inl: int, gap: int, failure: str):
         """Flag or accept the frame. Motion problems are reported first; a frame whose own
         stereo failed (a swapped or broken pair) is flagged even when PnP succeeded, since its
         depth, and so its next step, cannot be trusted."""
-        usable = len(kf.uv) >= self.cfg.min_stereo_points
+        n_near = int(np.count_nonzero(kf.near))
+        usable = n_near >= self.cfg.min_stereo_points
         if T_cur_ref is None:
             raise _Flag(failure, kf if usable else None)
         try:
@@ -320,8 +369,28 @@ class StereoOdometry:
         except _Flag as flag:
             raise _Flag(flag.reason, kf if usable else None) from None
         if not usable:
-            raise _Flag(f"too few keypoints with stereo depth ({len(kf.uv)} < {self.cfg.min_stereo_points})")
+            raise _Flag(f"too few keypoints with stereo depth ({n_near} < {self.cfg.min_stereo_points})")
         return T_ref_cur
+
+    def _refine_motion(self, T_cur_ref: np.ndarray, inl: np.ndarray, ref_uv: np.ndarray, ref_disp: np.ndarray,
+                       cur_uv: np.ndarray, cur_disp: np.ndarray, timings: dict[str, float]):
+        """Stereo BA on PnP's inliers (``motion = "stereo_ba"``): (T_cur_ref, inlier indices).
+
+        ``inl`` indexes the arrays; the BA's own outliers are dropped from it. If the BA is
+        degenerate, PnP's answer stands (recorded in ``timings['sba_fallback']``)."""
+        if self.cfg.motion != "stereo_ba" or len(inl) == 0:
+            return T_cur_ref, inl
+        t0 = time.perf_counter()
+        cfg = self.cfg
+        r = stereo_two_view_ba(
+            T_cur_ref, ref_uv[inl], ref_disp[inl], cur_uv[inl], cur_disp[inl], self.camera,
+            huber_px=cfg.sba_huber_px, outlier_px=cfg.sba_outlier_px, iterations=cfg.sba_iterations,
+        )
+        timings["sba"] = (time.perf_counter() - t0) * 1000.0
+        if not r.ok:
+            timings["sba_fallback"] = 1.0
+            return T_cur_ref, inl
+        return r.T_cur_ref, inl[r.inliers]
 
     def _prediction(self, gap: int) -> np.ndarray | None:
         """T_cur_ref predicted by constant velocity, when the last frame was tracked (gap 1)."""
@@ -331,15 +400,15 @@ class StereoOdometry:
 
     # -- klt --
     def _stereo_klt(self, frame: StereoFrame, uv: np.ndarray, guess: np.ndarray | None,
-                    timings: dict[str, float]):
-        """Stereo depth at tracked points; if too few, detect new corners and add theirs."""
+                    timings: dict[str, float], detect: bool = True):
+        """Stereo depth at tracked points; if too few (and ``detect``), detect new corners and add theirs."""
         cfg = self.cfg
         t0 = time.perf_counter()
         z, d = depth_mod.sparse_depth(frame.left, frame.right, uv, self.camera, cfg, guess)
         t1 = time.perf_counter()
         n_valid = int(np.count_nonzero(z > 0))
         new_uv = np.zeros((0, 2), np.float32)
-        if n_valid < cfg.klt_min_tracks:
+        if detect and n_valid < cfg.klt_min_tracks:
             new_uv = feat.detect_corners(frame.left, cfg.klt_features - n_valid, cfg, avoid=uv[z > 0])
         t2 = time.perf_counter()
         if len(new_uv):
@@ -352,30 +421,42 @@ class StereoOdometry:
         return z, d, new_uv, z2, d2
 
     def _estimate_klt(self, frame: StereoFrame, first: bool, sharp: float, timings: dict[str, float]):
+        """KLT from the reference into this frame, PnP (+ stereo BA); the reference is the last
+        frame (``klt_reference = "frame"``) or the last keyframe ("keyframe"). In the keyframe
+        case this frame becomes the next reference only when the tracks thin out
+        (``kf_min_ratio``) or ``kf_max_gap`` frames have passed, so the tracking error of one
+        step is not chained into every frame's motion."""
         cfg = self.cfg
         ref = self._ref
         if first or ref is None:
             z, d, new_uv, z2, d2 = self._stereo_klt(frame, np.zeros((0, 2), np.float32), None, timings)
-            kf = self._make_keyframe(frame, new_uv, z2, d2, None, sharp, timings)
+            kf = self._make_keyframe(frame, new_uv, z2, d2, None, sharp, timings, ids=self._new_ids(len(new_uv)))
             if not first:
                 self._conclude(kf, None, 0, 1, "no reference frame to track from")
-            elif len(kf.uv) < cfg.min_stereo_points:
+            elif np.count_nonzero(kf.near) < cfg.min_stereo_points:
                 raise _Flag("too few keypoints with stereo depth")
             return kf, np.eye(4), 0, 0
+        anchored = cfg.klt_reference == "keyframe"
         gap = max(1, frame.index - ref.index)
         t0 = time.perf_counter()
-        pred = self._prediction(gap)
+        pred = self._prediction(gap) if not anchored else self._prediction_from(ref)
         guess = None
+        dguess = ref.disp
         if pred is not None:
             guess, zp = project(pred, ref.pts3d, self.camera)
             guess = np.where((zp > 0)[:, None], guess, ref.uv)
+            if anchored:  # the disparity changes over several frames: predict it too
+                dguess = np.where(zp > 0, self.camera.fx * self.camera.baseline_m / np.maximum(zp, 1e-6), ref.disp)
         uv_cur, ok = feat.track_klt(ref.left, frame.left, ref.uv, cfg, guess)
-        timings["match"] = (time.perf_counter() - t0) * 1000.0
         idx = np.flatnonzero(ok)
+        if cfg.klt_anchor_gap > 0 and not anchored and self._anchor is not None:
+            uv_cur = self._anchor_refine(frame, uv_cur, ref.ids, idx)
+        timings["match"] = (time.perf_counter() - t0) * 1000.0
         # Stereo (and re-detection) of the current frame runs beside PnP.
-        stereo = self._submit(self._stereo_klt, frame, uv_cur[idx], ref.disp[idx], timings)
+        stereo = self._submit(self._stereo_klt, frame, uv_cur[idx], dguess[idx], timings, not anchored)
         t1 = time.perf_counter()
-        pnp = pnp_ransac(ref.pts3d[idx], uv_cur[idx], self.camera, cfg)
+        near_pos = np.flatnonzero(ref.near[idx])  # PnP takes the points with trusted depth only
+        pnp = pnp_ransac(ref.pts3d[idx[near_pos]], uv_cur[idx[near_pos]], self.camera, cfg)
         timings["pnp"] = (time.perf_counter() - t1) * 1000.0
         z, d, new_uv, z2, d2 = stereo.result()
         if pnp is None:
@@ -383,15 +464,73 @@ class StereoOdometry:
             T_cur_ref, n_inl = None, 0
         else:
             T_cur_ref, inl = pnp
+            inl = near_pos[inl]
+            if cfg.motion == "stereo_ba":  # far points join the BA (its outlier test screens them)
+                inl = np.sort(np.concatenate([inl, np.flatnonzero(~ref.near[idx])]))
+            T_cur_ref, inl = self._refine_motion(T_cur_ref, inl, ref.uv[idx], ref.disp[idx], uv_cur[idx], d, timings)
             n_inl = len(inl)
             keep = np.zeros(len(idx), bool)
             keep[inl] = True  # drop PnP outliers: mostly bad tracks
+        promote = True
+        if anchored:
+            promote = pnp is None or gap >= cfg.kf_max_gap or n_inl < cfg.kf_min_ratio * len(ref.uv)
+            if promote and int(np.count_nonzero(keep & (z > 0))) < cfg.klt_min_tracks:
+                t2 = time.perf_counter()
+                tracked = uv_cur[idx][keep & (z > 0)]
+                new_uv = feat.detect_corners(frame.left, cfg.klt_features - len(tracked), cfg, avoid=tracked)
+                t3 = time.perf_counter()
+                z2, d2 = depth_mod.sparse_depth(frame.left, frame.right, new_uv, self.camera, cfg)
+                timings["features"] = timings.get("features", 0.0) + (t3 - t2) * 1000.0
+                timings["depth"] = timings.get("depth", 0.0) + (time.perf_counter() - t3) * 1000.0
         uv_next = np.concatenate([uv_cur[idx][keep], new_uv])
         z_next = np.concatenate([z[keep], z2])
         d_next = np.concatenate([d[keep], d2])
-        kf = self._make_keyframe(frame, uv_next, z_next, d_next, None, sharp, timings)
+        ids_next = np.concatenate([ref.ids[idx][keep], self._new_ids(len(new_uv))])
+        kf = self._make_keyframe(frame, uv_next, z_next, d_next, None, sharp, timings, ids=ids_next)
+        kf.promote = promote
         T_ref_cur = self._conclude(kf, T_cur_ref, n_inl, gap, f"PnP failed ({len(idx)} tracks)")
         return kf, T_ref_cur, n_inl, len(idx)
+
+    def _anchor_refine(self, frame: StereoFrame, uv_cur: np.ndarray, ids: np.ndarray, idx: np.ndarray) -> np.ndarray:
+        """Re-track the points the anchor frame also has directly from the anchor image, starting
+        at their frame-to-frame position (one pyramid level): the position then carries one LK
+        error from the anchor instead of the sum of every step's since. A re-track that
+        fails or lands more than ``klt_anchor_max_px`` away keeps the frame-to-frame position."""
+        assert self._anchor is not None
+        _, a_left, a_ids, a_uv = self._anchor
+        order = np.argsort(a_ids)
+        tid = ids[idx]
+        pos = np.searchsorted(a_ids[order], tid)
+        pos = np.minimum(pos, len(order) - 1)
+        found = (len(order) > 0) & (a_ids[order][pos] == tid) & (tid >= 0) if len(order) else np.zeros(len(idx), bool)
+        if not np.any(found):
+            return uv_cur
+        sel = idx[found]
+        src = a_uv[order][pos[found]]
+        cfg = self.cfg
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
+        p1, st, _ = cv2.calcOpticalFlowPyrLK(
+            a_left, frame.left, np.ascontiguousarray(src, np.float32).reshape(-1, 1, 2),
+            np.ascontiguousarray(uv_cur[sel], np.float32).reshape(-1, 1, 2).copy(),
+            winSize=(cfg.klt_window_px, cfg.klt_window_px), maxLevel=1, criteria=crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        )
+        p1 = p1.reshape(-1, 2)
+        good = (st.reshape(-1) == 1) & np.all(np.isfinite(p1), 1) & (np.linalg.norm(p1 - uv_cur[sel], axis=1) <= cfg.klt_anchor_max_px)
+        out = uv_cur.copy()
+        out[sel[good]] = p1[good]
+        return out
+
+    def _new_ids(self, n: int) -> np.ndarray:
+        """Fresh landmark ids for ``n`` newly detected points."""
+        ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
+        self._next_id += n
+        return ids
+
+    def _prediction_from(self, ref: _Keyframe) -> np.ndarray | None:
+        """T_cur_ref predicted by constant velocity from the last frame, for any reference."""
+        if not self._last_ok:
+            return None
+        return inv(self._pose @ self._velocity) @ ref.pose
 
     # -- sift / orb --
     def _detect(self, img: np.ndarray):
@@ -443,7 +582,7 @@ class StereoOdometry:
             z, disp, timings["depth"] = depth_future.result()
         kf = self._make_keyframe(frame, uv, z, disp, desc, sharp, timings)
         if first:
-            if len(kf.uv) < cfg.min_stereo_points:
+            if np.count_nonzero(kf.near) < cfg.min_stereo_points:
                 raise _Flag("too few keypoints with stereo depth")
             return kf, np.eye(4), 0, 0
         if ref is None:
@@ -452,5 +591,6 @@ class StereoOdometry:
         if result is None:
             self._conclude(kf, None, 0, gap, f"PnP failed ({n_matches} matches)")
         T_cur_ref, inl = result  # type: ignore[misc]  # _conclude raised when None
+        T_cur_ref, inl = self._refine_motion(T_cur_ref, inl, ref.uv[ia], ref.disp[ia], uv[ib], disp[ib], timings)
         T_ref_cur = self._conclude(kf, T_cur_ref, len(inl), gap, "")
         return kf, T_ref_cur, len(inl), n_matches
