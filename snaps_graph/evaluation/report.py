@@ -446,14 +446,15 @@ def write_metrics_json(path: str | Path, metrics: dict) -> dict:
 # ---------------------------------------------------------------------------------------------
 # Entry point
 # ---------------------------------------------------------------------------------------------
-def compare_run(run_dir: str | Path, gt_path: str | Path | None = None) -> dict:
+def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, world_mesh: str | Path | None = None) -> dict:
     """Compare a run's trajectories (VO, SNAPS heuristic, iSAM2 / batch) and write the report.
 
     ``gt_path`` overrides ``RUN_DIR/poses_gt.txt`` (KITTI, or TUM by a ``.tum`` extension; either
     one pose per run row or the whole sequence, indexed by frames.csv's ``frame``). Without any
     ground truth the tables carry no error columns and no errors.png is written. Returns the
     updated metrics.json content. A missing or malformed input raises SnapsGraphError naming
-    the file.
+    the file. ``world_mesh``: the true world (PLY); the accuracy of the folder's maps against it
+    goes into metrics.json's ``map`` entry and the report's map section.
     """
     from .plots import plot_errors, plot_latency_box, plot_trajectories
 
@@ -560,11 +561,32 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None) -> dict:
     else:
         md.append("frames.csv has no timing columns.")
     md.append("")
-    atomic_write_text(run / "report.md", "\n".join(md))
 
     # metrics.json: keep what is there, (re)write our keys
     metrics_path = run / "metrics.json"
     metrics = _read_metrics_json(metrics_path)
+    map_entry = metrics.get("map") if isinstance(metrics.get("map"), dict) else None
+    if world_mesh is not None:
+        from ..mapping.outputs import accuracy_from_files
+        from ..config import MapConfig
+
+        mc = MapConfig()
+        if (run / "config.toml").is_file():  # the run's own accuracy range and tolerance
+            from ..config import Config
+
+            mc = Config.load(run / "config.toml").map
+        if not map_entry:
+            raise SnapsGraphError(f"{metrics_path}: no map in this run (run it with --map) to measure against --world-mesh")
+        map_entry["accuracy"] = dict(map_entry.get("accuracy") or {})  # the run's, for maps not in the folder
+        map_entry["accuracy"] |= accuracy_from_files(run, world_mesh, trajs, map_entry, gt,
+                                                    mc.accuracy_range_m, mc.accuracy_tolerance_m, mc.accuracy_samples)
+        map_entry["world_mesh"] = str(world_mesh)
+        metrics["map"] = map_entry
+    if map_entry:
+        from ..mapping.outputs import map_report_lines
+
+        md += map_report_lines(run, map_entry)
+    atomic_write_text(run / "report.md", "\n".join(md))
     if per_traj is not None:
         metrics["trajectories"] = per_traj
     metrics["paths"] = paths
