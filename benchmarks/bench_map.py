@@ -7,7 +7,9 @@ rendering of a KITTI path (seed 0: the world /work/data/seq00_street shows), for
   python benchmarks/bench_map.py --write-world results/world00.ply
   python benchmarks/bench_map.py RUN_DIR [RUN_DIR ...]
 """
-import argparse, csv, json
+import argparse
+import csv
+import json
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +23,7 @@ a = ap.parse_args()
 
 if a.write_world:
     import open3d as o3d
+
     from snaps_graph.datasets.synthetic import SyntheticSequence, load_trajectory
 
     poses, times = load_trajectory(a.path)
@@ -33,6 +36,7 @@ if a.write_world:
 for run in map(Path, a.runs):
     import open3d as o3d
     from scipy.spatial import cKDTree
+
     from snaps_graph.trajectory_io import read_kitti_poses
 
     m = json.loads((run / "metrics.json").read_text())

@@ -3,15 +3,16 @@ per variant of frontend.depth.map_depth, the share of true surface pixels kept (
 depth error by range bin (median, p90), the share of gross errors (|error| > 1 m, or depth where
 the truth is sky) and the time per keyframe. This is what MapConfig's depth defaults and
 max_range_m were chosen from. Usage: python benchmarks/bench_map_depth.py [--frames 0:1000:100]"""
-import argparse, copy, time
+import argparse
+import copy
+import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from snaps_graph.config import Config
 from snaps_graph.datasets.synthetic import SyntheticSequence, load_trajectory
-from snaps_graph.frontend.depth import dense_depth, map_camera, map_depth
+from snaps_graph.frontend.depth import dense_depth, map_depth
 
 ap = argparse.ArgumentParser()
 ap.add_argument("--path", default=str(Path(__file__).resolve().parents[1].parent / "shared/data/kitti_gt/00.txt"))

@@ -3,7 +3,9 @@ poses, so only depth and fusion are measured: for exact depth and for map_depth,
 setting, the map error and completeness against the world mesh, the fusion time per keyframe
 and the grid size. Usage: python benchmarks/bench_map_fusion.py --world results/world00.ply
 [--frames 0:200] [--settings ...]"""
-import argparse, copy, time
+import argparse
+import copy
+import time
 from pathlib import Path
 
 import cv2

@@ -567,8 +567,8 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, world_me
     metrics = _read_metrics_json(metrics_path)
     map_entry = metrics.get("map") if isinstance(metrics.get("map"), dict) else None
     if world_mesh is not None:
-        from ..mapping.outputs import accuracy_from_files
         from ..config import MapConfig
+        from ..mapping.outputs import accuracy_from_files
 
         mc = MapConfig()
         if (run / "config.toml").is_file():  # the run's own accuracy range and tolerance

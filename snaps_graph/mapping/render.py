@@ -143,7 +143,8 @@ def perspective_png(path: str | Path, vertices: np.ndarray, triangles: np.ndarra
     from matplotlib import colormaps
 
     rgb = colormaps["viridis"](np.clip((hgt - hlo) / max(hhi - hlo, 1e-3), 0, 1))[..., :3]
-    light = np.array([0.3, -1.0, -0.4]); light /= np.linalg.norm(light)
+    light = np.array([0.3, -1.0, -0.4])
+    light /= np.linalg.norm(light)
     shade = 0.35 + 0.65 * np.abs(n @ light)
     img = np.where(hit[..., None], rgb * shade[..., None], 1.0)
     import cv2

@@ -249,6 +249,8 @@ def _concat(parts: list[tuple]) -> FusedSurface:
     vs, ts, vgs = [], [], []
     off = 0
     for v, t, vg in parts:
-        vs.append(v); ts.append(t + off); vgs.append(vg)
+        vs.append(v)
+        ts.append(t + off)
+        vgs.append(vg)
         off += len(v)
     return FusedSurface(np.concatenate(vs), np.concatenate(ts).astype(np.int32), np.concatenate(vgs))
