@@ -182,7 +182,7 @@ def test_accuracy_of_exact_offset_and_partial_maps(tmp_path):
 
 
 def test_write_map_outputs_and_compare_report(tmp_path):
-    from snaps_graph.mapping.outputs import map_report_lines, write_map_outputs
+    from snaps_graph.mapping.outputs import accuracy_from_files, map_report_lines, write_map_outputs
 
     world = _write_world(tmp_path / "w.ply")
     cam = CAM
@@ -213,6 +213,10 @@ def test_write_map_outputs_and_compare_report(tmp_path):
     json.dumps(entry)  # metrics.json-ready
     md = "\n".join(map_report_lines(out, entry))
     assert "| batch |" in md and "map_compare.png" in md
+    # compare --world-mesh: the same measurement from the files in the folder
+    again = accuracy_from_files(out, world, {"vo": vo, "batch": gt}, json.loads(json.dumps(entry)), gt, 20.0, 0.2, 20_000)
+    assert set(again) == {"vo", "batch"}
+    assert again["batch"]["points"]["error_p90_m"] == pytest.approx(acc["batch"]["points"]["error_p90_m"], abs=0.01)
 
 
 def test_config_round_trip_of_map_fields(tmp_path):
