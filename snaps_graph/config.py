@@ -304,7 +304,7 @@ class MapConfig(_Section):
     # TSDF fusion (mapping.tsdf.FusedMap): keyframe depth kept as PNG-encoded uint16 mm.
     tsdf_voxel_m: float = 0.15  # TSDF voxel edge
     tsdf_trunc_voxels: float = 6.0  # truncation distance, in voxels
-    tsdf_max_blocks: int = 60000  # fuse in chunks: a chunk's surface is extracted when it holds this many blocks
+    tsdf_max_blocks: int = 40000  # fuse in chunks: a chunk's surface is extracted when it holds this many blocks (6 KB each)
     tsdf_min_weight: float = 1.0  # mesh/points only where at least this many keyframes saw the surface
     tsdf_min_component: int = 0  # mesh pieces of fewer triangles are dropped (floating blobs of wrong depth); 0 keeps all
     world_mesh: str = ""  # the true world as a triangle mesh (synth --world-mesh): map accuracy
