@@ -226,3 +226,15 @@ def test_config_round_trip_of_map_fields(tmp_path):
     cfg.dump(tmp_path / "c.toml")
     back = Config.load(tmp_path / "c.toml")
     assert back.map.world_mesh == "/x/world.ply" and back.map.depth_method == "sgbm"
+
+
+def test_pictures_colour_height_above_the_local_ground():
+    from snaps_graph.mapping.render import _local_height
+
+    # y points down: a 3 m wall on a road that has climbed 10 m reads 0..3 m, not 10..13 m
+    road = np.array([[x, -10.0, z] for x in range(4) for z in range(4)], float)
+    wall = np.array([[1.0, -10.0 - h, 1.0] for h in (1.0, 3.0)])
+    h = _local_height(np.vstack([road, wall]))
+    assert np.allclose(h[: len(road)], 0.0) and np.allclose(h[len(road):], [1.0, 3.0])
+    q = _local_height(np.vstack([road, wall]), np.array([[2.0, -12.0, 2.0], [50.0, -7.0, 50.0]]))
+    assert np.allclose(q, [2.0, 0.0])  # a query in an empty cell counts as ground

@@ -12,6 +12,26 @@ import numpy as np
 from ..errors import SnapsGraphError
 from ..io_utils import atomic_output
 
+_GROUND_CELL_M = 5.0  # heights are shown above the lowest map point in this x-z cell
+
+
+def _local_height(ref: np.ndarray, query: np.ndarray | None = None, cell: float = _GROUND_CELL_M) -> np.ndarray:
+    """Height (-y) of ``query`` (default ``ref``) above the lowest ``ref`` point in the same
+    ``cell`` x ``cell`` metre column: walls and objects stand out from a road that climbs."""
+    query = ref if query is None else query
+    key_r = np.floor(ref[:, [0, 2]] / cell).astype(np.int64)
+    key_q = np.floor(query[:, [0, 2]] / cell).astype(np.int64)
+    lo = np.minimum(key_r.min(0), key_q.min(0))
+    span = int(max(key_r[:, 1].max(), key_q[:, 1].max()) - lo[1] + 1)
+    kr = (key_r[:, 0] - lo[0]) * span + (key_r[:, 1] - lo[1])
+    kq = (key_q[:, 0] - lo[0]) * span + (key_q[:, 1] - lo[1])
+    cells, inv = np.unique(kr, return_inverse=True)
+    ground = np.full(len(cells), -np.inf)
+    np.maximum.at(ground, inv, ref[:, 1])  # y points down: the lowest point has the largest y
+    i = np.clip(np.searchsorted(cells, kq), 0, len(cells) - 1)
+    g = np.where(cells[i] == kq, ground[i], query[:, 1])
+    return g - query[:, 1]
+
 
 def _figure(w_in: float, h_in: float):
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -53,18 +73,19 @@ def _topdown_axes(ax, points: np.ndarray, values: np.ndarray, trajectories: dict
 
 def topdown_png(path: str | Path, points: np.ndarray, trajectories: dict[str, np.ndarray], *, title: str = "",
                 max_points: int = 300_000, dpi: int = 150) -> None:
-    """Top-down view (x across, z up the page) of surface ``points`` coloured by height (-y),
+    """Top-down view (x across, z up the page) of surface ``points`` coloured by height above the
+    local ground (``_local_height``),
     with each trajectory ((N, 4, 4) or (N, 3)) drawn over it."""
     path = Path(path)
     if len(points) == 0:
         raise SnapsGraphError(f"{path}: the map is empty, nothing to draw")
-    h = -points[:, 1]
-    lo, hi = np.percentile(h, [2, 98])
+    h = _local_height(points)
+    hi = max(float(np.percentile(h, 98)), 1e-3)
     fig = _figure(8, 8)
     ax = fig.add_subplot(1, 1, 1)
-    sc = _topdown_axes(ax, points, h, trajectories, cmap="viridis", vmin=lo, vmax=max(hi, lo + 1e-3),
+    sc = _topdown_axes(ax, points, h, trajectories, cmap="viridis", vmin=0.0, vmax=hi,
                        max_points=max_points, title=title or f"fused map, top-down: {len(points)} surface points")
-    fig.colorbar(sc, ax=ax, shrink=0.7, label="height -y (m)")
+    fig.colorbar(sc, ax=ax, shrink=0.7, label=f"height above the local ground (m; lowest point in {_GROUND_CELL_M:g} m cells)")
     fig.tight_layout()
     _save(fig, path, dpi)
 
@@ -108,7 +129,8 @@ def perspective_png(path: str | Path, vertices: np.ndarray, triangles: np.ndarra
                     *, width: int = 1100, height: int = 620, elevation_deg: float = 35.0, fov_deg: float = 50.0,
                     title: str = "") -> None:
     """A perspective view of the mesh from above and behind its start (KITTI axes: y down,
-    z forward), ray-cast on the CPU; coloured by height, shaded by the surface normal."""
+    z forward), ray-cast on the CPU; coloured by height above the local ground, shaded by the
+    surface normal."""
     import open3d as o3d
 
     path = Path(path)
@@ -138,8 +160,10 @@ def perspective_png(path: str | Path, vertices: np.ndarray, triangles: np.ndarra
     hit = np.isfinite(t)
     r = rays.numpy()
     p = r[..., :3] + r[..., 3:] * np.where(hit, t, 0.0)[..., None]
-    hgt = -p[..., 1]
-    hlo, hhi = np.percentile(hgt[hit], [2, 98]) if hit.any() else (0.0, 1.0)
+    hgt = np.zeros(hit.shape)
+    if hit.any():
+        hgt[hit] = _local_height(vertices.astype(np.float64), p[hit].astype(np.float64))
+    hlo, hhi = (0.0, max(float(np.percentile(hgt[hit], 98)), 1e-3)) if hit.any() else (0.0, 1.0)
     from matplotlib import colormaps
 
     rgb = colormaps["viridis"](np.clip((hgt - hlo) / max(hhi - hlo, 1e-3), 0, 1))[..., :3]
