@@ -238,3 +238,13 @@ def test_pictures_colour_height_above_the_local_ground():
     assert np.allclose(h[: len(road)], 0.0) and np.allclose(h[len(road):], [1.0, 3.0])
     q = _local_height(np.vstack([road, wall]), np.array([[2.0, -12.0, 2.0], [50.0, -7.0, 50.0]]))
     assert np.allclose(q, [2.0, 0.0])  # a query in an empty cell counts as ground
+
+
+def test_an_empty_map_is_flagged_not_fatal(tmp_path):
+    from snaps_graph.mapping.outputs import write_map_outputs
+
+    m = FusedMap(CAM, MapConfig())
+    m.add_keyframe(0, np.zeros((160, 320), np.float32))  # a black frame: no valid depth
+    entry = write_map_outputs(tmp_path, m, {"vo": np.eye(4)[None]}, None, MapConfig())
+    assert "empty" in entry and not (tmp_path / "map.ply").exists()
+    assert write_map_outputs(tmp_path, FusedMap(CAM, MapConfig()), {"vo": np.eye(4)[None]}, None, MapConfig()) is None

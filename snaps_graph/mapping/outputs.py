@@ -89,9 +89,10 @@ def write_map_outputs(out_dir: str | Path, fused_map, trajectories: dict[str, np
     for name in names:
         surf = fused_map.fuse(gt if name == "gt" else trajectories[name])
         if len(surf.vertices) == 0:
-            if name == chosen:
-                raise SnapsGraphError(f"{out / 'map_mesh.ply'}: the fused map is empty (no surface seen by "
-                                      f"{cfg.tsdf_min_weight:g} keyframes), nothing to write")
+            if name == chosen:  # flagged, not fatal: the rest of the run's results stand
+                entry["empty"] = (f"the fused map is empty (no surface seen by {cfg.tsdf_min_weight:g} "
+                                  "keyframe(s) with valid depth); no map files written")
+                return entry
             continue
         tf = time.perf_counter()
         suffixes = ([""] if name == chosen else []) + ([f"_{name}"] if cfg.per_trajectory and name != "gt" else [])
@@ -171,6 +172,8 @@ def map_report_lines(run_dir: str | Path, map_entry: dict | None) -> list[str]:
     if not map_entry:
         return []
     md = ["## Map", ""]
+    if map_entry.get("empty"):
+        return md + [f"No map: {map_entry['empty']}.", ""]
     surf = map_entry.get("surfaces", {}).get(map_entry.get("trajectory"), {})
     md.append(f"Fused under **{map_entry.get('trajectory')}** from {map_entry.get('keyframes')} keyframes "
               f"({map_entry.get('bytes', 0) / 2**20:.1f} MiB of compressed depth): "

@@ -187,6 +187,8 @@ class FusedMap:
         return surf
 
     def _extract(self, vbg) -> tuple:
+        if vbg.hashmap().size() == 0:  # nothing integrated (open3d refuses an empty grid)
+            return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), np.zeros(0, np.uint8)
         w = max(float(self.cfg.tsdf_min_weight) - 0.5, 0.0)  # open3d keeps weight > threshold
         mesh = vbg.extract_triangle_mesh(weight_threshold=w)
         if "positions" in mesh.vertex and len(mesh.vertex.positions):
