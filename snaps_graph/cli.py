@@ -249,7 +249,16 @@ def compare(
     """Heuristic (SNAPS) against optimised corrections: report.md, PNGs and metrics.json."""
     from .evaluation.report import compare_run
 
-    compare_run(run_dir, gt, world_mesh=world_mesh)
+    measure = None
+    if world_mesh is not None:
+        from .mapping.outputs import accuracy_from_files
+
+        def measure(run, trajs, entry, gt_poses, mc):
+            acc = accuracy_from_files(run, world_mesh, trajs, entry, gt_poses, mc.accuracy_range_m,
+                                      mc.accuracy_tolerance_m, mc.accuracy_samples)
+            return {"accuracy": acc, "world_mesh": str(world_mesh)}
+
+    compare_run(run_dir, gt, map_accuracy=measure)
     typer.echo(f"wrote {run_dir / 'report.md'}")
 
 

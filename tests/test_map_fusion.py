@@ -182,7 +182,8 @@ def test_accuracy_of_exact_offset_and_partial_maps(tmp_path):
 
 
 def test_write_map_outputs_and_compare_report(tmp_path):
-    from snaps_graph.mapping.outputs import accuracy_from_files, map_report_lines, write_map_outputs
+    from snaps_graph.evaluation.report import map_section_lines
+    from snaps_graph.mapping.outputs import accuracy_from_files, write_map_outputs
 
     world = _write_world(tmp_path / "w.ply")
     cam = CAM
@@ -211,7 +212,7 @@ def test_write_map_outputs_and_compare_report(tmp_path):
     assert acc["vo"]["points"]["error_median_m"] == pytest.approx(0.3, abs=0.05)
     assert acc["batch"]["points"]["completeness_seen"] > acc["vo"]["points"]["completeness_seen"]
     json.dumps(entry)  # metrics.json-ready
-    md = "\n".join(map_report_lines(out, entry))
+    md = "\n".join(map_section_lines(out, entry))
     assert "| batch |" in md and "map_compare.png" in md
     # compare --world-mesh: the same measurement from the files in the folder
     again = accuracy_from_files(out, world, {"vo": vo, "batch": gt}, json.loads(json.dumps(entry)), gt, 20.0, 0.2, 20_000)
