@@ -249,3 +249,23 @@ def test_an_empty_map_is_flagged_not_fatal(tmp_path):
     entry = write_map_outputs(tmp_path, m, {"vo": np.eye(4)[None]}, None, MapConfig())
     assert "empty" in entry and not (tmp_path / "map.ply").exists()
     assert write_map_outputs(tmp_path, FusedMap(CAM, MapConfig()), {"vo": np.eye(4)[None]}, None, MapConfig()) is None
+
+
+def test_keyframe_cloud_backprojects_the_stored_depth():
+    """A viewer's keyframe points: a fronto-parallel plane at 5 m comes back at z = 5 m."""
+    import numpy as np
+
+    from snaps_graph.camera import kitti00_camera
+    from snaps_graph.mapping.tsdf import FusedMap
+
+    cam = kitti00_camera(620, 188)
+    fm = FusedMap(cam)
+    depth = np.full((188, 620), 5.0, np.float32)
+    depth[:, :100] = 0.0  # invalid strip
+    fm.add_keyframe(0, depth, np.full((188, 620), 77, np.uint8))
+    xyz, grey = fm.keyframe_cloud(0, step=2)
+    assert len(xyz) == 94 * (310 - 50)
+    assert np.allclose(xyz[:, 2], 5.0, atol=1e-3)
+    assert grey is not None and len(grey) == len(xyz) and np.all(grey == 77)
+    fx, cx = cam.fx, cam.cx  # the depth is at the camera's own size
+    assert np.isclose(xyz[:, 0].min(), (100 - cx) * 5.0 / fx, atol=1e-3)  # the invalid strip is gone

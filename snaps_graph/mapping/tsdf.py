@@ -119,6 +119,24 @@ class FusedMap:
             raise SnapsGraphError(f"keyframe {k} is not in the map")
         return cv2.imdecode(np.frombuffer(self._kf[k][0], np.uint8), cv2.IMREAD_UNCHANGED).astype(np.float32) / _MM
 
+    def keyframe_cloud(self, k: int, step: int = 2) -> tuple[np.ndarray, np.ndarray | None]:
+        """Keyframe ``k``'s stored depth as points in its camera frame, every ``step``-th pixel:
+        (xyz float32 (n, 3), grey uint8 (n,) or None). For viewers; fusion does not use it."""
+        z = self.depth(k)[::step, ::step]
+        h, w = self._kf[k][2][1], self._kf[k][2][0]
+        K = self._intrinsics(w, h)
+        rows, cols = np.nonzero(z > 0)
+        zz = z[rows, cols]
+        u = cols.astype(np.float32) * step
+        v = rows.astype(np.float32) * step
+        xyz = np.stack([(u - K[0, 2]) * zz / K[0, 0], (v - K[1, 2]) * zz / K[1, 1], zz], axis=1).astype(np.float32)
+        grey_png = self._kf[k][1]
+        grey = None
+        if grey_png is not None:
+            img = cv2.imdecode(np.frombuffer(grey_png, np.uint8), cv2.IMREAD_UNCHANGED)
+            grey = img[::step, ::step][z > 0]
+        return xyz, grey
+
     # ---- fusion ----
     def fuse(self, poses: np.ndarray) -> FusedSurface:
         """Integrate every keyframe's depth under ``poses`` ((N, 4, 4) T_world_cam indexed by
