@@ -1,88 +1,75 @@
-"""Benchmark the point-cloud map on KITTI 06 (frames 0-50): bytes stored per keyframe,
-projected memory for KITTI 00 (4541 frames, a keyframe every 5), build / re-pose / PLY times,
-and a top-down PNG. Depth comes from the package's dense_depth (BM + WLS) or OpenCV SGBM
-(--depth sgbm); only the map is timed. Usage: python bench_cloud_map.py [--frames N] [--out DIR]"""
+"""Map figures of a results folder written by `snaps-graph run ... --map` (issue 13's targets):
+accuracy per trajectory against the true world (when the run had --world-mesh), the share of
+map points farther than 30 m from the path (radial streaks), map time as a share of the run, and
+peak memory. With --write-world it first writes the exact world mesh of the synthetic street
+rendering of a KITTI path (seed 0: the world /work/data/seq00_street shows), for --world-mesh.
+
+  python benchmarks/bench_map.py --write-world results/world00.ply
+  python benchmarks/bench_map.py RUN_DIR [RUN_DIR ...]
+"""
 import argparse
-import resource
-import time
+import csv
+import json
 from pathlib import Path
 
-import cv2
 import numpy as np
 
-from snaps_graph.config import MapConfig
-from snaps_graph.datasets.kitti import KittiSequence
-from snaps_graph.mapping import CloudMap
-
 ap = argparse.ArgumentParser()
-ap.add_argument("--seq", default="../shared/data/kitti/sequences/06")
-ap.add_argument("--frames", type=int, default=51)
-ap.add_argument("--out", default="results")
-ap.add_argument("--depth", choices=["package", "sgbm"], default="package",
-                help="package: snaps_graph.frontend.depth.dense_depth (paper: BM + WLS); sgbm: OpenCV SGBM here")
-ap.add_argument("--gt00", default="../shared/data/kitti_gt/00.txt", help="stress test: KITTI 00 path, '' to skip")
+ap.add_argument("runs", nargs="*")
+ap.add_argument("--write-world", default="", help="write the synthetic world mesh here and exit")
+ap.add_argument("--path", default=str(Path(__file__).resolve().parents[1].parent / "shared/data/kitti_gt/00.txt"))
+ap.add_argument("--far-m", type=float, default=30.0)
 a = ap.parse_args()
 
-seq = KittiSequence(a.seq)
-cam = seq.camera
-cfg = MapConfig()
-m = CloudMap(cam, cfg)
-sgbm = cv2.StereoSGBM_create(0, 128, 5, P1=8 * 25, P2=32 * 25, uniquenessRatio=10,
-                             speckleWindowSize=100, speckleRange=2, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
-n = min(a.frames, len(seq))
-t_add, raw, kept, cache = 0.0, [], [], []
-import open3d  # noqa: F401  (import cost kept out of the per-keyframe time)
+if a.write_world:
+    import open3d as o3d
 
-for i in range(n):
-    if not m.should_add(i):
-        continue
-    f = seq[i]
-    if a.depth == "package":
-        from snaps_graph.config import FrontendConfig
-        from snaps_graph.frontend.depth import dense_depth
-        depth = dense_depth(f.left, f.right, cam, FrontendConfig())
-    else:
-        depth = cam.depth_from_disparity(sgbm.compute(f.left, f.right).astype(np.float32) / 16.0)
-    s = cfg.pixel_step
-    z = depth[::s, ::s]
-    raw.append(int(((z > 0) & (z <= cfg.max_range_m)).sum()))
-    cache.append((depth, f.left))
-    t0 = time.perf_counter(); kept.append(m.add_keyframe(i, depth, f.left)); t_add += time.perf_counter() - t0
-gt = seq.gt_poses[:n]
-per_kf = m.memory_bytes() / len(m)
-print(f"depth from {a.depth}; image {cam.width}x{cam.height}, pixel_step {cfg.pixel_step}, max_range {cfg.max_range_m} m, "
-      f"keyframe voxel {cfg.keyframe_voxel_size_m} m, map voxel {cfg.voxel_size_m} m")
-print(f"keyframes {len(m)}: valid grid points/kf {np.mean(raw):.0f}, kept after keyframe voxel {np.mean(kept):.0f} "
-      f"({100*np.mean(kept)/np.mean(raw):.0f}%)")
-print(f"stored {per_kf/1e3:.1f} kB/keyframe (13 B/point); add_keyframe {1e3*t_add/len(m):.1f} ms/keyframe")
-n00 = len(range(0, 4541, 5))
-print(f"projected KITTI 00 ({n00} keyframes): stored {n00*per_kf/1e6:.0f} MB (build peak: see the stress line)")
-t0 = time.perf_counter(); pcd = m.build(gt); t1 = time.perf_counter()
-shifted = gt.copy(); shifted[:, 0, 3] += 10.0
-pcd2 = m.build(shifted); t2 = time.perf_counter()
-c1, c2 = np.asarray(pcd.points).mean(0), np.asarray(pcd2.points).mean(0)
-print(f"build {1e3*(t1-t0):.0f} ms -> {len(pcd.points)} points; re-pose build {1e3*(t2-t1):.0f} ms, "
-      f"centroid shift {c2-c1} (expect [10 0 0])")
-out = Path(a.out); out.mkdir(parents=True, exist_ok=True)
-t0 = time.perf_counter(); npts = m.write_ply(out / "cloud_map_kitti06.ply", gt); t1 = time.perf_counter()
-m.render_topdown_png(out / "cloud_map_kitti06_topdown.png", gt, {"ground truth": gt}); t2 = time.perf_counter()  # builds again
-m.render_topdown_png(out / "cloud_map_kitti06_topdown_intensity.png", gt, {"ground truth": gt}, colour_by="intensity")
-print(f"write_ply {1e3*(t1-t0):.0f} ms ({npts} points, {(out/'cloud_map_kitti06.ply').stat().st_size/1e6:.1f} MB); "
-      f"render_topdown_png {1e3*(t2-t1):.0f} ms")
-print(f"peak RSS (KITTI 06 part) {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss/1e3:.0f} MB")
+    from snaps_graph.datasets.synthetic import SyntheticSequence, load_trajectory
 
-if a.gt00 and Path(a.gt00).is_file():
+    poses, times = load_trajectory(a.path)
+    w = SyntheticSequence(poses, seed=0, times=times).world
+    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(w.vertices.astype(np.float64)),
+                                  o3d.utility.Vector3iVector(w.triangles.astype(np.int32)))
+    o3d.io.write_triangle_mesh(a.write_world, m)
+    print(f"wrote {a.write_world}: {len(w.triangles)} triangles")
+
+for run in map(Path, a.runs):
+    import open3d as o3d
+    from scipy.spatial import cKDTree
+
     from snaps_graph.trajectory_io import read_kitti_poses
-    gt00 = np.asarray(read_kitti_poses(a.gt00))
-    m00 = CloudMap(cam, cfg)
-    t0 = time.perf_counter()
-    for j, k in enumerate(range(0, len(gt00), cfg.keyframe_every)):
-        d, img = cache[j % len(cache)]  # KITTI 06 depth maps recycled along the KITTI 00 path
-        m00.add_keyframe(k, d, img)
-    t1 = time.perf_counter(); pcd00 = m00.build(gt00); t2 = time.perf_counter()
-    m00.render_topdown_png(out / "cloud_map_kitti00_stress_topdown.png", gt00, {"KITTI 00 ground truth": gt00}, cloud=pcd00)
-    t3 = time.perf_counter()
-    print(f"KITTI 00 stress ({len(m00)} keyframes, 06 depth recycled along the 00 path): stored "
-          f"{m00.memory_bytes()/1e6:.0f} MB ({m00.num_stored_points()} points), add {t1-t0:.1f} s, "
-          f"build {t2-t1:.1f} s -> {len(pcd00.points)} points, topdown (prebuilt cloud) {t3-t2:.1f} s, "
-          f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss/1e3:.0f} MB")
+
+    m = json.loads((run / "metrics.json").read_text())
+    mp = m.get("map", {})
+    print(f"== {run}: {m['frames']} frames, wall {m['wall_s']:.1f} s, peak RSS {m.get('peak_rss_mb', float('nan')):.0f} MiB")
+    with open(run / "frames.csv") as f:
+        t_map = sum(float(r["t_map_ms"]) for r in csv.DictReader(f)) / 1e3
+    t_out = mp.get("t_output_s", 0.0)  # fusion of the map(s), PLY files, pictures; not the accuracy measurement
+    total = m["wall_s"] + t_out
+    print(f"map work: keyframe depth {t_map:.1f} s + fusion/files/pictures {t_out:.1f} s = {t_map + t_out:.1f} s "
+          f"= {100 * (t_map + t_out) / total:.1f} % of the run ({total:.1f} s); {mp.get('keyframes')} keyframes, "
+          f"{mp.get('bytes', 0) / 2**20:.1f} MiB stored depth; accuracy measurement {mp.get('t_accuracy_s', 0):.1f} s (not counted)")
+    chosen = mp.get("trajectory")
+    if chosen in mp.get("surfaces", {}) and "t_pictures_s" in mp:
+        # what a plain --map run does: depth online, one fusion, map.ply + map_mesh.ply, two pictures
+        n_files = 1 + sum(1 for n in mp["surfaces"] if n != "gt" and (run / f"map_mesh_{n}.ply").is_file())
+        plain = t_map + mp["surfaces"][chosen]["fuse_s"] + mp["t_files_s"] / n_files + mp["t_pictures_s"]
+        print(f"  of which a plain --map run does: depth {t_map:.1f} s + fusion {mp['surfaces'][chosen]['fuse_s']:.1f} s + "
+              f"files ~{mp['t_files_s'] / n_files:.1f} s + pictures {mp['t_pictures_s']:.1f} s = {plain:.1f} s = "
+              f"{100 * plain / (m['wall_s'] + plain - t_map):.1f} % of such a run")
+    for name, s in mp.get("surfaces", {}).items():
+        print(f"  fused under {name}: {s['triangles']} triangles, {s['vertices']} vertices (= map.ply points), {s['chunks']} chunk(s), "
+              f"max {s['max_blocks']} blocks, {s['fuse_s']:.1f} s")
+    if (run / "map.ply").is_file() and chosen:
+        pts = np.asarray(o3d.io.read_point_cloud(str(run / "map.ply")).points)
+        path = np.asarray(read_kitti_poses(run / f"poses_{chosen}.txt"))[:, :3, 3]
+        d, _ = cKDTree(path).query(pts)
+        print(f"map.ply ({chosen}): {len(pts)} points, {100 * np.mean(d > a.far_m):.2f} % farther than {a.far_m:g} m "
+              f"from the path (max {d.max():.1f} m)")
+    for name, acc in mp.get("accuracy", {}).items():
+        p, me = acc["points"], acc["mesh"]
+        print(f"  {name:<6} points: p50 {p['error_median_m']:.3f} p90 {p['error_p90_m']:.3f} m, completeness "
+              f"{100 * p['completeness']:.1f} % (seen {100 * (p['completeness_seen'] or 0):.1f} %) | mesh vertices: p50 "
+              f"{me['error_median_m']:.3f} p90 {me['error_p90_m']:.3f} m, completeness {100 * me['completeness']:.1f} % "
+              f"(seen {100 * (me['completeness_seen'] or 0):.1f} %) | {acc['surface_samples']} samples within "
+              f"{acc['range_m']:g} m, {100 * acc['surface_seen_share']:.0f} % seen")

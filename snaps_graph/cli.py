@@ -116,6 +116,7 @@ def run(
     map_: Optional[bool] = typer.Option(None, "--map/--no-map", help="Build the point-cloud map (default from config: off)."),
     mode: Optional[str] = typer.Option(None, "--mode", help="Front-end mode override: klt | orb | sift."),
     map_all: bool = typer.Option(False, "--map-all", help="With --map: also map_<trajectory>.ply for every trajectory."),
+    world_mesh: Optional[Path] = typer.Option(None, "--world-mesh", help="With --map: the true world mesh (PLY); map accuracy per trajectory."),
     gravity_prior: Optional[bool] = typer.Option(
         None, "--gravity-prior/--no-gravity-prior",
         help="Batch refinement: level-vehicle prior on every frame's attitude (default from config: off).",
@@ -136,6 +137,10 @@ def run(
         cfg.frontend.mode = mode  # type: ignore[assignment]
     if map_all:
         cfg.map.per_trajectory = True
+    if world_mesh is not None:
+        if not world_mesh.is_file():
+            raise_user(f"{world_mesh}: world mesh not found")
+        cfg.map.world_mesh = str(world_mesh)
     if gravity_prior is not None:
         cfg.graph.gravity_prior = gravity_prior
     # Before anything is read: the configuration that will run, and the output folder.
@@ -271,11 +276,21 @@ def eval_(
 def compare(
     run_dir: Path = typer.Argument(..., help="A results folder written by `snaps-graph run`."),
     gt: Optional[Path] = typer.Option(None, "--gt", help="Ground truth (default: RUN_DIR/poses_gt.txt)."),
+    world_mesh: Optional[Path] = typer.Option(None, "--world-mesh", help="The true world mesh (PLY): accuracy of the run's maps."),
 ) -> None:
     """Heuristic (SNAPS) against optimised corrections: report.md, PNGs and metrics.json."""
     from .evaluation.report import compare_run
 
-    compare_run(run_dir, gt)
+    measure = None
+    if world_mesh is not None:
+        from .mapping.outputs import accuracy_from_files
+
+        def measure(run, trajs, entry, gt_poses, mc):
+            acc = accuracy_from_files(run, world_mesh, trajs, entry, gt_poses, mc.accuracy_range_m,
+                                      mc.accuracy_tolerance_m, mc.accuracy_samples)
+            return {"accuracy": acc, "world_mesh": str(world_mesh)}
+
+    compare_run(run_dir, gt, map_accuracy=measure)
     typer.echo(f"wrote {run_dir / 'report.md'}")
 
 
@@ -373,7 +388,7 @@ def _print_summary(metrics: dict, out: Path) -> None:
     if "trajectories" in metrics:
         typer.echo(_metrics_table(metrics["trajectories"]))
     if "map" in metrics:
-        typer.echo(f"map: {metrics['map']['keyframes']} keyframes, {metrics['map']['bytes'] / 2**20:.0f} MiB of clouds, posed by {metrics['map']['trajectory']}")
+        typer.echo(f"map: {metrics['map']['keyframes']} keyframes, {metrics['map']['bytes'] / 2**20:.0f} MiB of stored depth, fused under {metrics['map']['trajectory']}")
     typer.echo(f"peak memory {metrics.get('peak_rss_mb', 0):.0f} MiB")
     if metrics.get("graph_failures"):
         typer.echo(f"graph: {len(metrics['graph_failures'])} flagged updates (see metrics.json)")

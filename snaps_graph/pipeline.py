@@ -30,12 +30,12 @@ from .backend.pose_graph import PoseGraph
 from .camera import StereoCamera
 from .config import Config
 from .errors import SnapsGraphError
-from .frontend.depth import check_stereo_pair, dense_depth
+from .frontend.depth import check_stereo_pair, map_depth
 from .frontend.odometry import StereoOdometry
 from .frontend.verify import verify_loop
 from .loop.snaps import SnapsLoopCloser
 from .loop.uiqi import make_thumbnail
-from .mapping.cloud_map import CloudMap
+from .mapping.tsdf import FusedMap
 from .types import FrameFeatures, FrameRecord, LoopEvent, StereoFrame, VOResult
 
 
@@ -92,7 +92,7 @@ class SlamPipeline:
         self.vo = frontend if frontend is not None else StereoOdometry(camera, self.cfg.frontend)
         self.snaps = SnapsLoopCloser(self.cfg.loop) if self.loops_mode == "snaps" else None
         self.graph = PoseGraph(self.cfg.graph, mode="isam2" if self.refine == "both" else self.refine)
-        self.map = CloudMap(camera, self.cfg.map) if self.cfg.map.enabled else None
+        self.map = FusedMap(camera, self.cfg.map) if self.cfg.map.enabled else None
 
         self._features: list[FrameFeatures | None] = []
         self._frame_ids: list[int] = []
@@ -226,7 +226,7 @@ class SlamPipeline:
     def _add_map_keyframe(self, k: int, frame: StereoFrame) -> None:
         assert self.map is not None
         try:
-            depth = dense_depth(frame.left, frame.right, self.camera, self.cfg.frontend)
+            depth = map_depth(frame.left, frame.right, self.camera, self.cfg.frontend, self.cfg.map)
         except Exception as exc:  # a bad frame must not end the run: the keyframe is skipped
             self.graph.failures.append((k, f"map depth failed: {type(exc).__name__}: {exc}"))
             return

@@ -203,7 +203,7 @@ def test_memory_per_keyframe_is_bounded():
     rng = np.random.default_rng(0)
     depth = rng.uniform(1.0, 40.0, (CAM.height, CAM.width)).astype(np.float32)
     image = rng.integers(0, 256, (CAM.height, CAM.width), dtype=np.uint8)
-    raw = CloudMap(CAM, _raw(pixel_step=4))
+    raw = CloudMap(CAM, _raw(pixel_step=4, max_range_m=40.0))
     assert raw.add_keyframe(0, depth, image) == n_grid
     assert raw.memory_bytes() == 13 * n_grid  # float32 xyz + uint8 grey: 380,142 B
     m = CloudMap(CAM, MapConfig(pixel_step=4))

@@ -53,6 +53,7 @@ import io
 import json
 import math
 import tomllib
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -443,17 +444,59 @@ def write_metrics_json(path: str | Path, metrics: dict) -> dict:
     return clean
 
 
+def map_section_lines(run_dir: str | Path, map_entry: dict | None) -> list[str]:
+    """The ``## Map`` section of report.md from metrics.json's ``map`` entry and the pictures."""
+    run = Path(run_dir)
+    if not map_entry:
+        return []
+    md = ["## Map", ""]
+    if map_entry.get("empty"):
+        return md + [f"No map: {map_entry['empty']}.", ""]
+    surf = map_entry.get("surfaces", {}).get(map_entry.get("trajectory"), {})
+    md.append(f"Fused under **{map_entry.get('trajectory')}** from {map_entry.get('keyframes')} keyframes "
+              f"({map_entry.get('bytes', 0) / 2**20:.1f} MiB of compressed depth): "
+              f"{surf.get('triangles', 'n/a')} triangles (`map_mesh.ply`), {surf.get('vertices', 'n/a')} surface points (`map.ply`, the mesh vertices).")
+    acc = map_entry.get("accuracy")
+    if acc:
+        any_acc = next(iter(acc.values()))
+        any_acc = next(iter(acc.values()))
+        md += ["", f"Accuracy against the true world (`{map_entry.get('world_mesh', '?')}`): distance of the map's "
+               "points (= the mesh vertices, `map.ply`) to the true surface; completeness = share of the true "
+               f"surface within {any_acc['range_m']:g} m of the path that lies within {any_acc['tolerance_m']:g} m of "
+               "the map, over all of it and over the part a keyframe camera saw (in view, within range, "
+               "unoccluded: upper floors, roofs and the backs of buildings are never seen). "
+               "**gt** = the same keyframe depth fused under the true poses.", ""]
+        md.append("| map posed by | error p50 m | error p90 m | within tol. | completeness | completeness (seen) | points |")
+        md.append("|---|---|---|---|---|---|---|")
+
+        def f(v, pct=False):
+            return "n/a" if v is None else (f"{100 * v:.1f} %" if pct else f"{v:.3f}")
+
+        for name, a in acc.items():
+            p = a["points"]
+            md.append(f"| {name} | {f(p['error_median_m'])} | {f(p['error_p90_m'])} | {f(p['share_within_tolerance'], True)} | "
+                      f"{f(p['completeness'], True)} | {f(p['completeness_seen'], True)} | {p['n']} |")
+    md.append("")
+    for fig, alt in (("map.png", "map, top-down"), ("map_mesh.png", "mesh, perspective"), ("map_compare.png", "maps side by side")):
+        if (run / fig).is_file():
+            md += [f"![{alt}]({fig})", ""]
+    return md
+
+
 # ---------------------------------------------------------------------------------------------
 # Entry point
 # ---------------------------------------------------------------------------------------------
-def compare_run(run_dir: str | Path, gt_path: str | Path | None = None) -> dict:
+def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accuracy: Callable[..., dict] | None = None) -> dict:
     """Compare a run's trajectories (VO, SNAPS heuristic, iSAM2 / batch) and write the report.
 
     ``gt_path`` overrides ``RUN_DIR/poses_gt.txt`` (KITTI, or TUM by a ``.tum`` extension; either
     one pose per run row or the whole sequence, indexed by frames.csv's ``frame``). Without any
     ground truth the tables carry no error columns and no errors.png is written. Returns the
     updated metrics.json content. A missing or malformed input raises SnapsGraphError naming
-    the file.
+    the file. ``map_accuracy(run, trajectories, map_entry, gt, map_config) -> {"accuracy": ...,
+    "world_mesh": ...}`` measures the folder's maps against a true world (the command line passes
+    one built on ``mapping.outputs.accuracy_from_files``: evaluation does not import the map);
+    the result goes into metrics.json's ``map`` entry and the report's map section.
     """
     from .plots import plot_errors, plot_latency_box, plot_trajectories
 
@@ -560,11 +603,24 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None) -> dict:
     else:
         md.append("frames.csv has no timing columns.")
     md.append("")
-    atomic_write_text(run / "report.md", "\n".join(md))
 
     # metrics.json: keep what is there, (re)write our keys
     metrics_path = run / "metrics.json"
     metrics = _read_metrics_json(metrics_path)
+    map_entry = metrics.get("map") if isinstance(metrics.get("map"), dict) else None
+    if map_accuracy is not None:
+        from ..config import Config, MapConfig
+
+        mc = Config.load(run / "config.toml").map if (run / "config.toml").is_file() else MapConfig()
+        if not map_entry:
+            raise SnapsGraphError(f"{metrics_path}: no map in this run (run it with --map) to measure against a world mesh")
+        measured = map_accuracy(run, trajs, map_entry, gt, mc)
+        map_entry["accuracy"] = dict(map_entry.get("accuracy") or {}) | measured["accuracy"]  # keeps the run's others
+        map_entry["world_mesh"] = measured["world_mesh"]
+        metrics["map"] = map_entry
+    if map_entry:
+        md += map_section_lines(run, map_entry)
+    atomic_write_text(run / "report.md", "\n".join(md))
     if per_traj is not None:
         metrics["trajectories"] = per_traj
     metrics["paths"] = paths

@@ -1,10 +1,13 @@
-"""Point-cloud map (SPEC "Map"): keyframe clouds in camera frames, posed on demand.
+"""Map (SPEC "Map"): keyframe depth fused into a TSDF mesh under any trajectory (``FusedMap``),
+its files and pictures (``outputs``), accuracy against a true world mesh (``accuracy``); the
+older point-cloud union (``CloudMap``).
 
-The only part of the package that imports open3d, and only lazily inside ``CloudMap``'s
-methods, so ``import snaps_graph`` does not load it.
+The only part of the package that imports open3d, and only lazily inside methods, so
+``import snaps_graph`` does not load it.
 """
 
 from .cloud_map import CloudMap
 from .outputs import write_map_outputs
+from .tsdf import FusedMap, FusedSurface
 
-__all__ = ["CloudMap", "write_map_outputs"]
+__all__ = ["CloudMap", "FusedMap", "FusedSurface", "write_map_outputs"]

@@ -1,16 +1,25 @@
-"""The map's files in a results folder: ``map.ply``, ``map.png`` and, with ``per_trajectory``,
-``map_<trajectory>.ply``. The runner calls :func:`write_map_outputs` once, after the run."""
+"""The map files of a results folder, written in one call (``write_map_outputs``), and the map
+section of ``compare``'s report.
+
+Files: ``map_mesh.ply`` (triangle mesh) and ``map.ply`` (surface points = its vertices) fused under the chosen
+trajectory; ``map.png`` (top-down, height-coloured, trajectories over it); ``map_mesh.png``
+(perspective view of the mesh); with ``per_trajectory`` (``--map-all``) ``map_mesh_<name>.ply``
+and ``map_<name>.ply`` for every trajectory; with a world mesh, accuracy per trajectory
+and ``map_compare.png`` (each trajectory's map coloured by its distance to the true surface).
+"""
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
 
 from ..config import MapConfig
 from ..errors import SnapsGraphError
-from .cloud_map import CloudMap
+from ..io_utils import atomic_output
 
+_PICTURE_POINTS = 200_000
 BEST_ORDER = ("batch", "isam2", "snaps", "vo")  # map.trajectory = "best": the most refined available
 
 
@@ -25,27 +34,133 @@ def map_trajectory_name(want: str, available: list[str] | tuple[str, ...]) -> st
     return want
 
 
-def write_map_outputs(
-    out_dir: str | Path,
-    cloud_map: CloudMap,
-    trajectories: dict[str, np.ndarray],
-    gt_poses: np.ndarray | None,
-    cfg: MapConfig,
-) -> dict | None:
-    """Write the map files into ``out_dir``; returns metrics.json's ``map`` entry (None when the
-    map holds no point, and nothing is written)."""
-    if cloud_map.num_stored_points() == 0:
+def write_mesh_ply(path: Path, vertices: np.ndarray, triangles: np.ndarray, grey: np.ndarray | None = None) -> None:
+    import open3d as o3d
+
+    m = o3d.geometry.TriangleMesh()
+    m.vertices = o3d.utility.Vector3dVector(vertices.astype(np.float64))
+    m.triangles = o3d.utility.Vector3iVector(triangles.astype(np.int32))
+    if grey is not None and len(grey) == len(vertices):
+        m.vertex_colors = o3d.utility.Vector3dVector(np.repeat(grey.astype(np.float64)[:, None] / 255.0, 3, axis=1))
+    with atomic_output(path, suffix=".ply") as tmp:
+        if not o3d.io.write_triangle_mesh(str(tmp), m, write_ascii=False, compressed=False):
+            raise SnapsGraphError(f"{path}: open3d could not write the mesh")
+
+
+def write_points_ply(path: Path, points: np.ndarray, grey: np.ndarray | None = None) -> None:
+    import open3d as o3d
+
+    p = o3d.geometry.PointCloud()
+    p.points = o3d.utility.Vector3dVector(points.astype(np.float64))
+    if grey is not None and len(grey) == len(points):
+        p.colors = o3d.utility.Vector3dVector(np.repeat(grey.astype(np.float64)[:, None] / 255.0, 3, axis=1))
+    with atomic_output(path, suffix=".ply") as tmp:
+        if not o3d.io.write_point_cloud(str(tmp), p, write_ascii=False, compressed=False):
+            raise SnapsGraphError(f"{path}: open3d could not write the point cloud")
+
+
+def write_map_outputs(out_dir: str | Path, fused_map, trajectories: dict[str, np.ndarray],
+                      gt: np.ndarray | None, cfg: MapConfig) -> dict | None:
+    """Fuse ``fused_map`` (a ``FusedMap``) under the trajectory ``cfg.trajectory`` names and
+    write the map files into ``out_dir``; fuse again under the other trajectories when
+    ``cfg.per_trajectory`` or ``cfg.world_mesh`` asks. Returns metrics.json's ``map`` entry
+    (None when the map has no keyframe, and nothing is written). The runner calls this once."""
+    if len(fused_map) == 0:
         return None
+    chosen = map_trajectory_name(cfg.trajectory, list(trajectories))
+    from .render import perspective_png, side_by_side_png, topdown_png
+
+    t0 = time.perf_counter()
     out = Path(out_dir)
-    name = map_trajectory_name(cfg.trajectory, list(trajectories))
-    poses = trajectories[name]
-    cloud = cloud_map.build(poses)  # built once, for both the PLY and the picture
-    cloud_map.write_ply(out / "map.ply", poses, cloud=cloud)
-    trajs = dict(trajectories)
-    if gt_poses is not None:
-        trajs = {"gt": gt_poses, **trajs}
-    cloud_map.render_topdown_png(out / "map.png", poses, trajs, cloud=cloud)
-    if cfg.per_trajectory:  # re-posed from the stored keyframe clouds
-        for tname, tposes in trajectories.items():
-            cloud_map.write_ply(out / f"map_{tname}.ply", tposes)
-    return {"trajectory": name, "keyframes": len(cloud_map), "bytes": cloud_map.memory_bytes()}
+    world = None
+    if cfg.world_mesh:
+        from .accuracy import WorldSurface
+
+        world = WorldSurface(cfg.world_mesh)
+    cam = fused_map.camera
+    entry: dict = {"trajectory": chosen, "keyframes": len(fused_map), "bytes": fused_map.memory_bytes(),
+                   "camera": [cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height],
+                   "keyframe_every": cfg.keyframe_every, "surfaces": {}}
+    names = [chosen] + ([n for n in trajectories if n != chosen] if (cfg.per_trajectory or world is not None) else [])
+    if world is not None and gt is not None:
+        names.append("gt")  # the map under the true poses: what depth and fusion alone achieve
+    pictures: dict[str, tuple[np.ndarray, np.ndarray | None]] = {}
+    t_acc = 0.0
+    for name in names:
+        surf = fused_map.fuse(gt if name == "gt" else trajectories[name])
+        if len(surf.vertices) == 0:
+            if name == chosen:  # flagged, not fatal: the rest of the run's results stand
+                entry["empty"] = (f"the fused map is empty (no surface seen by {cfg.tsdf_min_weight:g} "
+                                  "keyframe(s) with valid depth); no map files written")
+                return entry
+            continue
+        tf = time.perf_counter()
+        suffixes = ([""] if name == chosen else []) + ([f"_{name}"] if cfg.per_trajectory and name != "gt" else [])
+        for suffix in suffixes:
+            write_mesh_ply(out / f"map_mesh{suffix}.ply", surf.vertices, surf.triangles, surf.vertex_grey)
+            write_points_ply(out / f"map{suffix}.ply", surf.points, surf.point_grey)
+        entry.setdefault("t_files_s", 0.0)
+        entry["t_files_s"] += time.perf_counter() - tf
+        if name == chosen:
+            tp = time.perf_counter()
+            trajs = ({"gt": gt} if gt is not None else {}) | dict(trajectories)
+            topdown_png(out / "map.png", surf.points, trajs,
+                        title=f"fused map ({chosen}), top-down: {len(surf.points)} surface points, voxel {cfg.tsdf_voxel_m:g} m")
+            perspective_png(out / "map_mesh.png", surf.vertices, surf.triangles, trajectories[chosen],
+                            title=f"fused mesh ({chosen}): {len(surf.triangles)} triangles, voxel {cfg.tsdf_voxel_m:g} m")
+            entry["t_pictures_s"] = time.perf_counter() - tp  # map.png and map_mesh.png
+        entry["surfaces"][name] = {k: v for k, v in surf.stats.items()}
+        stride = max(1, len(surf.points) // _PICTURE_POINTS)
+        err = None
+        if world is not None:
+            from .accuracy import map_accuracy
+
+            ta = time.perf_counter()
+            ref = gt if gt is not None else trajectories[name]  # the surface to map: seen from the true path
+            acc = map_accuracy(world, surf.points, surf.vertices, ref[fused_map.keyframes], cam.K,
+                               (cam.width, cam.height), cfg.accuracy_range_m, cfg.accuracy_tolerance_m,
+                               min_samples=cfg.accuracy_samples)
+            entry.setdefault("accuracy", {})[name] = acc
+            err = world.distance(surf.points[::stride])
+            t_acc += time.perf_counter() - ta
+        pictures[name] = (surf.points[::stride].copy(), err)
+        del surf
+    if len(pictures) > 1:
+        side_by_side_png(out / "map_compare.png", pictures, ({"gt": gt} if gt is not None else {}) | dict(trajectories))
+    if world is not None:
+        entry["world_mesh"] = str(world.path)
+    entry["t_accuracy_s"] = t_acc  # measuring against the world mesh (not map work)
+    entry["t_output_s"] = time.perf_counter() - t0 - t_acc  # fusion, files and pictures
+    return entry
+
+
+def accuracy_from_files(run_dir: str | Path, world_mesh: str | Path, trajectories: dict[str, np.ndarray],
+                        map_entry: dict, gt: np.ndarray | None, range_m: float, tolerance_m: float,
+                        min_samples: int = 200_000) -> dict:
+    """Accuracy of every map in a results folder (map.ply / map_mesh.ply of the chosen
+    trajectory, map_<name>.ply / map_mesh_<name>.ply of the others) against ``world_mesh``;
+    the camera and keyframe spacing come from metrics.json's ``map`` entry."""
+    import open3d as o3d
+
+    from .accuracy import WorldSurface, map_accuracy
+
+    run = Path(run_dir)
+    if "camera" not in map_entry:
+        raise SnapsGraphError(f"{run / 'metrics.json'}: no map entry with a camera (was the run made with --map?)")
+    fx, fy, cx, cy, w, h = map_entry["camera"]
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+    every = int(map_entry.get("keyframe_every", 5))
+    chosen = map_entry.get("trajectory", "")
+    world = WorldSurface(world_mesh)
+    out = {}
+    for name, poses in trajectories.items():
+        suffix = "" if name == chosen else f"_{name}"
+        pp, mp = run / f"map{suffix}.ply", run / f"map_mesh{suffix}.ply"
+        if not (pp.is_file() and mp.is_file()):
+            continue
+        pts = np.asarray(o3d.io.read_point_cloud(str(pp)).points, np.float32)
+        verts = np.asarray(o3d.io.read_triangle_mesh(str(mp)).vertices, np.float32)
+        ref = gt if gt is not None and len(gt) == len(poses) else poses
+        out[name] = map_accuracy(world, pts, verts, ref[::every], K, (int(w), int(h)), range_m, tolerance_m,
+                                 min_samples=min_samples)
+    return out

@@ -1,0 +1,206 @@
+"""Pictures of a fused map, headless: a top-down view of the surface points (matplotlib's Agg
+canvas) and a perspective view of the mesh ray-cast on the CPU with open3d's
+``RaycastingScene`` (the GPU ``OffscreenRenderer`` needs EGL or Vulkan, absent on a headless
+machine: "Failed to load vulkan library")."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import SnapsGraphError
+from ..io_utils import atomic_output
+
+_GROUND_CELL_M = 5.0  # heights are shown above the lowest map point in this x-z cell
+
+
+def _local_height(ref: np.ndarray, query: np.ndarray | None = None, cell: float = _GROUND_CELL_M) -> np.ndarray:
+    """Height (-y) of ``query`` (default ``ref``) above the lowest ``ref`` point in the same
+    ``cell`` x ``cell`` metre column: walls and objects stand out from a road that climbs."""
+    query = ref if query is None else query
+    key_r = np.floor(ref[:, [0, 2]] / cell).astype(np.int64)
+    key_q = np.floor(query[:, [0, 2]] / cell).astype(np.int64)
+    lo = np.minimum(key_r.min(0), key_q.min(0))
+    span = int(max(key_r[:, 1].max(), key_q[:, 1].max()) - lo[1] + 1)
+    kr = (key_r[:, 0] - lo[0]) * span + (key_r[:, 1] - lo[1])
+    kq = (key_q[:, 0] - lo[0]) * span + (key_q[:, 1] - lo[1])
+    cells, inv = np.unique(kr, return_inverse=True)
+    ground = np.full(len(cells), -np.inf)
+    np.maximum.at(ground, inv, ref[:, 1])  # y points down: the lowest point has the largest y
+    i = np.clip(np.searchsorted(cells, kq), 0, len(cells) - 1)
+    g = np.where(cells[i] == kq, ground[i], query[:, 1])
+    return g - query[:, 1]
+
+
+def _cluster_vertices(v: np.ndarray, t: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
+    """Vertex clustering: vertices in one ``cell`` grid cube merge (their mean); triangles that
+    collapse are dropped."""
+    key = np.floor(v / cell).astype(np.int64)
+    key -= key.min(axis=0)
+    dims = key.max(axis=0) + 1
+    flat = (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2]
+    _, inv, counts = np.unique(flat, return_inverse=True, return_counts=True)
+    out_v = np.zeros((len(counts), 3))
+    np.add.at(out_v, inv, v)
+    out_v /= counts[:, None]
+    tt = inv[t]
+    keep = (tt[:, 0] != tt[:, 1]) & (tt[:, 1] != tt[:, 2]) & (tt[:, 0] != tt[:, 2])
+    return out_v.astype(np.float32), tt[keep].astype(np.uint32)
+
+
+def _figure(w_in: float, h_in: float):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(w_in, h_in))
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _save(fig, path: Path, dpi: int) -> None:
+    with atomic_output(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=dpi, format="png")
+
+
+def _positions(traj: np.ndarray) -> np.ndarray:
+    t = np.asarray(traj, dtype=np.float64)
+    return t[:, :3, 3] if t.ndim == 3 else t
+
+
+def _topdown_axes(ax, points: np.ndarray, values: np.ndarray, trajectories: dict, *, cmap: str, vmin: float,
+                  vmax: float, max_points: int, title: str):
+    stride = max(1, int(np.ceil(len(points) / max_points)))
+    p, v = points[::stride], values[::stride]
+    order = np.argsort(v, kind="stable")  # high values drawn last: walls over ground
+    sc = ax.scatter(p[order, 0], p[order, 2], c=v[order], s=0.2, cmap=cmap, vmin=vmin, vmax=vmax,
+                    linewidths=0, rasterized=True)
+    for name, traj in trajectories.items():
+        q = _positions(traj)
+        ax.plot(q[:, 0], q[:, 2], lw=1.0, label=name)
+    if trajectories:
+        ax.legend(loc="best", fontsize=7)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("z (m)")
+    ax.set_title(title, fontsize=9)
+    return sc
+
+
+def topdown_png(path: str | Path, points: np.ndarray, trajectories: dict[str, np.ndarray], *, title: str = "",
+                max_points: int = 300_000, dpi: int = 150) -> None:
+    """Top-down view (x across, z up the page) of surface ``points`` coloured by height above the
+    local ground (``_local_height``),
+    with each trajectory ((N, 4, 4) or (N, 3)) drawn over it."""
+    path = Path(path)
+    if len(points) == 0:
+        raise SnapsGraphError(f"{path}: the map is empty, nothing to draw")
+    h = _local_height(points)
+    hi = max(float(np.percentile(h, 98)), 1e-3)
+    fig = _figure(8, 8)
+    ax = fig.add_subplot(1, 1, 1)
+    sc = _topdown_axes(ax, points, h, trajectories, cmap="viridis", vmin=0.0, vmax=hi,
+                       max_points=max_points, title=title or f"fused map, top-down: {len(points)} surface points")
+    fig.colorbar(sc, ax=ax, shrink=0.7, label=f"height above the local ground (m; lowest point in {_GROUND_CELL_M:g} m cells)")
+    fig.tight_layout()
+    _save(fig, path, dpi)
+
+
+def side_by_side_png(path: str | Path, maps: dict[str, tuple[np.ndarray, np.ndarray | None]],
+                     trajectories: dict[str, np.ndarray], *, max_points: int = 200_000, dpi: int = 120,
+                     error_max_m: float = 0.5) -> None:
+    """One top-down panel per trajectory's map (``maps``: name -> (points, error to the true
+    surface or None)), same axes; coloured by the error when known, else by height."""
+    path = Path(path)
+    names = [n for n, (p, _) in maps.items() if len(p)]
+    if not names:
+        raise SnapsGraphError(f"{path}: no map to draw")
+    fig = _figure(6 * len(names), 6.5)
+    axes = [fig.add_subplot(1, len(names), i + 1) for i in range(len(names))]
+    allp = np.concatenate([maps[n][0] for n in names])
+    lo, hi = np.percentile(-allp[:, 1], [2, 98])
+    sc = None
+    for ax, n in zip(axes, names):
+        pts, err = maps[n]
+        traj = {n: trajectories[n]} if n in trajectories else {}
+        if "gt" in trajectories:
+            traj = {"gt": trajectories["gt"], **traj}
+        if err is not None:
+            sc = _topdown_axes(ax, pts, np.minimum(err, error_max_m), traj, cmap="inferno_r", vmin=0.0, vmax=error_max_m,
+                               max_points=max_points, title=f"{n}: p90 error {np.percentile(err, 90):.2f} m")
+        else:
+            sc = _topdown_axes(ax, pts, -pts[:, 1], traj, cmap="viridis", vmin=lo, vmax=max(hi, lo + 1e-3),
+                               max_points=max_points, title=n)
+    xs = [ax.get_xlim() for ax in axes]
+    ys = [ax.get_ylim() for ax in axes]
+    for ax in axes:
+        ax.set_xlim(min(x[0] for x in xs), max(x[1] for x in xs))
+        ax.set_ylim(min(y[0] for y in ys), max(y[1] for y in ys))
+    label = f"distance to the true surface (m, clipped at {error_max_m:g})" if maps[names[0]][1] is not None else "height -y (m)"
+    fig.colorbar(sc, ax=axes, shrink=0.6, label=label)
+    _save(fig, path, dpi)
+
+
+def perspective_png(path: str | Path, vertices: np.ndarray, triangles: np.ndarray, trajectory: np.ndarray | None = None,
+                    *, width: int = 1100, height: int = 620, elevation_deg: float = 35.0, fov_deg: float = 50.0,
+                    title: str = "") -> None:
+    """A perspective view of the mesh from above and behind its start (KITTI axes: y down,
+    z forward), ray-cast on the CPU; coloured by height above the local ground, shaded by the
+    surface normal."""
+    import open3d as o3d
+
+    path = Path(path)
+    if len(triangles) == 0:
+        raise SnapsGraphError(f"{path}: the mesh is empty, nothing to draw")
+    n_triangles = len(triangles)
+    lo, hi = np.percentile(vertices, [1, 99], axis=0)
+    # Embree's tree costs ~80 B a triangle (KITTI 00: 9.5 M triangles, +0.8 GB): cluster the
+    # vertices on a grid of about one pixel's footprint first, which the picture cannot resolve.
+    cell = float(np.linalg.norm((hi - lo)[[0, 2]])) / width
+    if cell > 0.2:
+        vertices, triangles = _cluster_vertices(vertices, triangles, cell)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, np.float32)),
+                        o3d.core.Tensor(np.ascontiguousarray(triangles, np.uint32)))
+    centre = (lo + hi) / 2.0
+    extent = float(np.linalg.norm((hi - lo)[[0, 2]]))
+    # look at the centre from the side the path starts on, raised by elevation_deg
+    start = _positions(trajectory)[0] if trajectory is not None and len(trajectory) else lo
+    horiz = np.array([start[0] - centre[0], 0.0, start[2] - centre[2]])
+    if np.linalg.norm(horiz) < 1e-6:
+        horiz = np.array([0.0, 0.0, -1.0])
+    horiz /= np.linalg.norm(horiz)
+    dist = 0.5 * extent / np.tan(np.deg2rad(fov_deg) / 2.0) * 1.1 + 5.0
+    e = np.deg2rad(elevation_deg)
+    eye = centre + dist * (np.cos(e) * horiz + np.sin(e) * np.array([0.0, -1.0, 0.0]))
+    rays = o3d.t.geometry.RaycastingScene.create_rays_pinhole(
+        fov_deg=fov_deg, center=centre.tolist(), eye=eye.tolist(), up=[0.0, -1.0, 0.0], width_px=width, height_px=height
+    )
+    ans = scene.cast_rays(rays)
+    t = ans["t_hit"].numpy()
+    n = ans["primitive_normals"].numpy()
+    hit = np.isfinite(t)
+    r = rays.numpy()
+    p = r[..., :3] + r[..., 3:] * np.where(hit, t, 0.0)[..., None]
+    hgt = np.zeros(hit.shape)
+    if hit.any():
+        hgt[hit] = _local_height(vertices.astype(np.float64), p[hit].astype(np.float64))
+    hlo, hhi = (0.0, max(float(np.percentile(hgt[hit], 98)), 1e-3)) if hit.any() else (0.0, 1.0)
+    from matplotlib import colormaps
+
+    rgb = colormaps["viridis"](np.clip((hgt - hlo) / max(hhi - hlo, 1e-3), 0, 1))[..., :3]
+    light = np.array([0.3, -1.0, -0.4])
+    light /= np.linalg.norm(light)
+    shade = 0.35 + 0.65 * np.abs(n @ light)
+    img = np.where(hit[..., None], rgb * shade[..., None], 1.0)
+    import cv2
+
+    bgr = np.ascontiguousarray((img[..., ::-1] * 255).astype(np.uint8))
+    bar = np.full((28, width, 3), 255, np.uint8)
+    text = title or f"fused mesh, perspective: {n_triangles} triangles (CPU ray casting)"
+    cv2.putText(bar, text, (8, 19), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
+    ok, buf = cv2.imencode(".png", np.vstack([bar, bgr]))
+    if not ok:  # pragma: no cover
+        raise SnapsGraphError(f"{path}: could not encode the picture")
+    with atomic_output(path, suffix=".png") as tmp:
+        Path(tmp).write_bytes(buf.tobytes())
