@@ -133,6 +133,10 @@ class FrontendConfig(_Section):
     # far_min_disparity_px are kept for the stereo BA (they constrain rotation), never for PnP.
     sba_far_points: bool = False
     far_min_disparity_px: float = 1.0  # "numpy" (vectorised Schur Gauss-Newton) or "gtsam" (GenericStereoFactor3D + LM)
+    # klt: when PnP on the KLT tracks fails or has fewer than min_inliers inliers (large motion:
+    # a fast drive, or frames skipped), retry once by matching ORB keypoints detected afresh in
+    # the reference and the current frame ("orb"), or flag at once ("none").
+    klt_retry: Literal["none", "orb"] = "orb"
 
     def _cross_checks(self, source: str) -> None:
         if not self.min_depth_m < self.max_depth_m:

@@ -55,7 +55,7 @@ import numpy as np
 from ..camera import StereoCamera
 from ..config import FrontendConfig
 from ..errors import SnapsGraphError
-from ..geometry import inv, rotation_angle_deg
+from ..geometry import inv, rotation_angle_deg, scale_motion
 from ..types import FrameFeatures, StereoFrame, VOResult
 from . import depth as depth_mod
 from . import features as feat
@@ -147,6 +147,7 @@ class _Keyframe:
     promote: bool = True  # becomes the reference of the next frame (klt_reference = "keyframe" decides)
     # (N,) bool: depth within max_depth_m (PnP's points); the rest are far points (stereo BA only)
     near: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    right: np.ndarray | None = None  # right image (klt_retry matches ORB keypoints with depth from it)
 
 
 class _Flag(Exception):
@@ -183,7 +184,10 @@ class StereoOdometry:
         self._pool = ThreadPoolExecutor(max_workers=self.cfg.threads - 1) if self.cfg.threads > 1 else None
         self._ref: _Keyframe | None = None
         self._pose = np.eye(4)  # pose of the last processed frame
-        self._velocity = np.eye(4)  # T_rel of the last good frame (constant-velocity guess)
+        self._velocity = np.eye(4)  # T_rel of the last good frame (constant-velocity guess) ...
+        self._velocity_gap = 1  # ... over this many frame indices
+        self._have_velocity = False  # a good step has been measured
+        self._last_index = 0  # index of the last processed frame
         self._last_ok = False
         self._n = 0  # frames processed
         self._next_id = 0  # next landmark id (klt)
@@ -234,14 +238,16 @@ class StereoOdometry:
         first = self._n == 0
         self._n += 1
         prev_pose = self._pose
+        gap_last = max(1, frame.index - self._last_index) if not first else 1
+        ref = self._ref  # the frame this one is measured from
         result = None
         try:
             kf_or_none, T_ref_cur, inliers, matches = self._estimate(frame, first, timings)
         except _Flag as flag:
-            result = self._flagged(frame, prev_pose, flag.reason, flag.keyframe, timings)
+            result = self._flagged(frame, prev_pose, flag.reason, flag.keyframe, timings, gap_last)
         except cv2.error as exc:  # OpenCV refusing an odd image: flag, do not crash
             msg = str(exc).strip().splitlines()[-1] if str(exc).strip() else "error"
-            result = self._flagged(frame, prev_pose, f"OpenCV error: {msg}", None, timings)
+            result = self._flagged(frame, prev_pose, f"OpenCV error: {msg}", None, timings, gap_last)
         if result is None:
             if first:
                 pose = np.eye(4)
@@ -262,20 +268,23 @@ class StereoOdometry:
             if self.cfg.klt_anchor_gap > 0 and (self._anchor is None or frame.index - self._anchor[0] >= self.cfg.klt_anchor_gap):
                 self._anchor = (frame.index, frame.left, kf.ids.copy(), kf.uv.copy())
             self._pose = pose
-            if not first:
-                self._velocity = T_rel
+            if not first:  # measured motion from the reference (not through a flagged frame's guess)
+                self._velocity = inv(ref.pose) @ pose
+                self._velocity_gap = max(1, frame.index - ref.index)
+                self._have_velocity = True
             self._last_ok = True
             result = VOResult(
                 index=frame.index, T_rel=T_rel, pose=pose, ok=True, inliers=inliers,
                 matches=matches, features=kf.features,
             )
+        self._last_index = frame.index
         timings["total"] = (time.perf_counter() - t_start) * 1000.0
         result.timings_ms = timings
         return result
 
     def _flagged(self, frame: StereoFrame, prev_pose: np.ndarray, reason: str,
-                 keyframe: _Keyframe | None, timings: dict[str, float]) -> VOResult:
-        T_rel = self._velocity.copy() if self._n > 1 else np.eye(4)
+                 keyframe: _Keyframe | None, timings: dict[str, float], gap: int = 1) -> VOResult:
+        T_rel = self._scaled_velocity(gap) if self._n > 1 else np.eye(4)
         pose = prev_pose @ T_rel
         if self._lba is not None:
             self._lba.reset()
@@ -354,7 +363,8 @@ class StereoOdometry:
             pick = pick[keep]
         features = FrameFeatures(np.ascontiguousarray(uv[pick]), np.ascontiguousarray(pts3d[pick]), np.ascontiguousarray(fdesc))
         timings["features"] = timings.get("features", 0.0) + (time.perf_counter() - t0) * 1000.0
-        return _Keyframe(frame.index, np.eye(4), frame.left, uv, pts3d, disp, desc, sharp, features, ids, near=near)
+        return _Keyframe(frame.index, np.eye(4), frame.left, uv, pts3d, disp, desc, sharp, features, ids, near=near,
+                         right=frame.right)
 
     def _conclude(self, kf: _Keyframe, T_cur_ref: np.ndarray | None, n_inl: int, gap: int, failure: str):
         """Flag or accept the frame. Motion problems are reported first; a frame whose own
@@ -392,11 +402,19 @@ class StereoOdometry:
             return T_cur_ref, inl
         return r.T_cur_ref, inl[r.inliers]
 
+    def _scaled_velocity(self, gap: int) -> np.ndarray:
+        """The last good step's motion scaled to ``gap`` frame indices (constant velocity per
+        index: its twist times gap / the step's own gap). Identity before any good step."""
+        if gap == self._velocity_gap:
+            return self._velocity.copy()
+        return scale_motion(self._velocity, gap / self._velocity_gap)
+
     def _prediction(self, gap: int) -> np.ndarray | None:
-        """T_cur_ref predicted by constant velocity, when the last frame was tracked (gap 1)."""
-        if not self._last_ok or gap != 1:
+        """T_cur_ref predicted by constant velocity over ``gap`` frame indices from the last
+        good step (also across index gaps and after flagged frames); None before any step."""
+        if not self._have_velocity:
             return None
-        return inv(self._velocity)
+        return inv(self._scaled_velocity(gap))
 
     # -- klt --
     def _stereo_klt(self, frame: StereoFrame, uv: np.ndarray, guess: np.ndarray | None,
@@ -439,7 +457,7 @@ class StereoOdometry:
         anchored = cfg.klt_reference == "keyframe"
         gap = max(1, frame.index - ref.index)
         t0 = time.perf_counter()
-        pred = self._prediction(gap) if not anchored else self._prediction_from(ref)
+        pred = self._prediction(gap) if not anchored else self._prediction_from(ref, frame.index)
         guess = None
         dguess = ref.disp
         if pred is not None:
@@ -471,6 +489,15 @@ class StereoOdometry:
             n_inl = len(inl)
             keep = np.zeros(len(idx), bool)
             keep[inl] = True  # drop PnP outliers: mostly bad tracks
+        if cfg.klt_retry == "orb" and n_inl < cfg.min_inliers and ref.right is not None:
+            retry = self._orb_retry(ref, frame, timings)
+            if retry is not None and len(retry[1]) > n_inl:
+                T_cur_ref, n_inl = retry[0], len(retry[1])
+                pnp = retry
+                # Keep the KLT tracks that agree with the retry's motion.
+                proj, zc = project(T_cur_ref, ref.pts3d[idx], self.camera)
+                keep = (zc > 0) & (np.linalg.norm(proj - uv_cur[idx], axis=1) <= cfg.pnp_reprojection_px)
+                timings["retry_ok"] = 1.0
         promote = True
         if anchored:
             promote = pnp is None or gap >= cfg.kf_max_gap or n_inl < cfg.kf_min_ratio * len(ref.uv)
@@ -490,6 +517,29 @@ class StereoOdometry:
         kf.promote = promote
         T_ref_cur = self._conclude(kf, T_cur_ref, n_inl, gap, f"PnP failed ({len(idx)} tracks)")
         return kf, T_ref_cur, n_inl, len(idx)
+
+    def _orb_retry(self, ref: _Keyframe, frame: StereoFrame, timings: dict[str, float]):
+        """Motion by ORB keypoints detected afresh in the reference and this frame, matched by
+        descriptor (scale-invariant, so it survives the looming and the large flow of a fast
+        drive that KLT does not), PnP RANSAC on the reference's points with stereo depth, then
+        the stereo BA: (T_cur_ref, inliers) or None."""
+        cfg, cam = self.cfg, self.camera
+        t0 = time.perf_counter()
+        uv_r, desc_r = feat.detect_orb(ref.left, cfg)
+        z_r, d_r = depth_mod.sparse_depth(ref.left, ref.right, uv_r, cam, cfg)
+        has_depth = np.flatnonzero(z_r > 0)
+        uv_c, desc_c = feat.detect_orb(frame.left, cfg)
+        ia, ib = feat.match_descriptors(desc_r[has_depth], desc_c, cfg.ratio_test)
+        ia = has_depth[ia]
+        res = None
+        if len(ia) >= max(6, cfg.min_inliers):
+            pts = cam.backproject(uv_r[ia, 0], uv_r[ia, 1], z_r[ia])
+            res = pnp_ransac(pts, uv_c[ib], cam, cfg)
+        if res is not None and cfg.motion == "stereo_ba":
+            _, d_c = depth_mod.sparse_depth(frame.left, frame.right, uv_c[ib], cam, cfg)
+            res = self._refine_motion(res[0], res[1], uv_r[ia], d_r[ia], uv_c[ib], d_c, timings)
+        timings["retry"] = (time.perf_counter() - t0) * 1000.0
+        return res
 
     def _anchor_refine(self, frame: StereoFrame, uv_cur: np.ndarray, ids: np.ndarray, idx: np.ndarray) -> np.ndarray:
         """Re-track the points the anchor frame also has directly from the anchor image, starting
@@ -526,11 +576,11 @@ class StereoOdometry:
         self._next_id += n
         return ids
 
-    def _prediction_from(self, ref: _Keyframe) -> np.ndarray | None:
+    def _prediction_from(self, ref: _Keyframe, index: int) -> np.ndarray | None:
         """T_cur_ref predicted by constant velocity from the last frame, for any reference."""
         if not self._last_ok:
             return None
-        return inv(self._pose @ self._velocity) @ ref.pose
+        return inv(self._pose @ self._scaled_velocity(max(1, index - self._last_index))) @ ref.pose
 
     # -- sift / orb --
     def _detect(self, img: np.ndarray):
