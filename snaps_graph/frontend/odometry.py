@@ -412,7 +412,7 @@ class StereoOdometry:
     def _prediction(self, gap: int) -> np.ndarray | None:
         """T_cur_ref predicted by constant velocity over ``gap`` frame indices from the last
         good step (also across index gaps and after flagged frames); None before any step."""
-        if not self._have_velocity:
+        if not (self._have_velocity or self._last_ok):
             return None
         return inv(self._scaled_velocity(gap))
 
