@@ -490,13 +490,13 @@ class StereoOdometry:
             keep = np.zeros(len(idx), bool)
             keep[inl] = True  # drop PnP outliers: mostly bad tracks
         if cfg.klt_retry == "orb" and n_inl < cfg.min_inliers and ref.right is not None:
-            retry = self._orb_retry(ref, frame, timings)
+            klt = (ref.pts3d[idx[near_pos]], ref.uv[idx[near_pos]], ref.disp[idx[near_pos]], uv_cur[idx[near_pos]], d[near_pos])
+            retry = self._orb_retry(ref, frame, klt, timings)
             if retry is not None and len(retry[1]) > n_inl:
                 T_cur_ref, n_inl = retry[0], len(retry[1])
                 pnp = retry
-                # Keep the KLT tracks that agree with the retry's motion.
-                proj, zc = project(T_cur_ref, ref.pts3d[idx], self.camera)
-                keep = (zc > 0) & (np.linalg.norm(proj - uv_cur[idx], axis=1) <= cfg.pnp_reprojection_px)
+                keep = np.zeros(len(idx), bool)  # keep the KLT tracks among the inliers
+                keep[near_pos[retry[1][retry[1] < len(near_pos)]]] = True
                 timings["retry_ok"] = 1.0
         promote = True
         if anchored:
@@ -518,11 +518,12 @@ class StereoOdometry:
         T_ref_cur = self._conclude(kf, T_cur_ref, n_inl, gap, f"PnP failed ({len(idx)} tracks)")
         return kf, T_ref_cur, n_inl, len(idx)
 
-    def _orb_retry(self, ref: _Keyframe, frame: StereoFrame, timings: dict[str, float]):
-        """Motion by ORB keypoints detected afresh in the reference and this frame, matched by
-        descriptor (scale-invariant, so it survives the looming and the large flow of a fast
-        drive that KLT does not), PnP RANSAC on the reference's points with stereo depth, then
-        the stereo BA: (T_cur_ref, inliers) or None."""
+    def _orb_retry(self, ref: _Keyframe, frame: StereoFrame, klt: tuple, timings: dict[str, float]):
+        """Motion from ORB keypoints detected afresh in the reference and this frame, matched by
+        descriptor (scale-invariant, so they survive the looming and the large flow of a fast
+        drive that KLT does not), together with the KLT correspondences ``klt`` = (ref points
+        3D, ref uv, ref disparity, cur uv, cur disparity): PnP RANSAC on the union, then the
+        stereo BA. (T_cur_ref, inliers: indices into the union, the KLT ones first) or None."""
         cfg, cam = self.cfg, self.camera
         t0 = time.perf_counter()
         uv_r, desc_r = feat.detect_orb(ref.left, cfg)
@@ -531,13 +532,17 @@ class StereoOdometry:
         uv_c, desc_c = feat.detect_orb(frame.left, cfg)
         ia, ib = feat.match_descriptors(desc_r[has_depth], desc_c, cfg.ratio_test)
         ia = has_depth[ia]
+        k_pts, k_ruv, k_rd, k_cuv, k_cd = klt
         res = None
-        if len(ia) >= max(6, cfg.min_inliers):
-            pts = cam.backproject(uv_r[ia, 0], uv_r[ia, 1], z_r[ia])
-            res = pnp_ransac(pts, uv_c[ib], cam, cfg)
+        if len(ia) + len(k_pts) >= max(6, cfg.min_inliers):
+            pts = np.concatenate([k_pts, cam.backproject(uv_r[ia, 0], uv_r[ia, 1], z_r[ia])]).astype(np.float64)
+            cur_uv = np.concatenate([k_cuv, uv_c[ib]]).astype(np.float32)
+            res = pnp_ransac(pts, cur_uv, cam, cfg)
         if res is not None and cfg.motion == "stereo_ba":
             _, d_c = depth_mod.sparse_depth(frame.left, frame.right, uv_c[ib], cam, cfg)
-            res = self._refine_motion(res[0], res[1], uv_r[ia], d_r[ia], uv_c[ib], d_c, timings)
+            res = self._refine_motion(res[0], res[1], np.concatenate([k_ruv, uv_r[ia]]).astype(np.float32),
+                                      np.concatenate([k_rd, d_r[ia]]).astype(np.float32), cur_uv,
+                                      np.concatenate([k_cd, d_c]).astype(np.float32), timings)
         timings["retry"] = (time.perf_counter() - t0) * 1000.0
         return res
 
