@@ -35,28 +35,31 @@ def test_scale_motion_of_bad_input_is_the_identity():
 
 @pytest.fixture(scope="module")
 def fast_drive():
-    """Every 3rd frame of the built-in loop (3 m per step) at 620x188, with their original
-    indices (gaps of 3)."""
+    """Every 6th frame of the built-in loop (6 m per step) at 620x188, 16 frames."""
     from snaps_graph.datasets.synthetic import SyntheticSequence, builtin_loop_trajectory
 
-    traj = builtin_loop_trajectory(300)[:46:3]
-    seq = SyntheticSequence(traj, width=620, height=188, seed=0)
-    frames = [StereoFrame(3 * i, f.timestamp, f.left, f.right) for i, f in enumerate(seq[i] for i in range(len(seq)))]
-    return seq, frames
+    seq = SyntheticSequence(builtin_loop_trajectory(300)[: 16 * 6 : 6], width=620, height=188, seed=0)
+    return seq, [seq[i] for i in range(len(seq))]
 
 
-def test_index_gaps_of_3_track_and_stay_finite(fast_drive):
-    """Fed every 3rd frame with index gaps, the front end tracks every frame (the prediction
-    scaled to the gap starts KLT near the answer) and its end is within 1 % of the path."""
+@pytest.mark.parametrize("gaps", [True, False], ids=["index-gaps", "renumbered"])
+def test_fast_drive_tracks_every_frame(fast_drive, gaps):
+    """Fed every 6th frame, with its original indices (gaps of 6) or renumbered 0, 1, 2, ...,
+    the front end tracks every frame, finite, ending within 2 % of the path. (Before the
+    prediction was scaled to the gap and the ORB retry added, 8 of these 16 frames were
+    flagged and the end was 65 % of the path off with gaps.) Renumbered, a 6 m, 14 degree step
+    per frame exceeds the default plausibility limits, so they are raised there."""
     from snaps_graph.evaluation.metrics import path_length
     from snaps_graph.frontend import StereoOdometry
 
     seq, frames = fast_drive
-    with StereoOdometry(seq.camera, FrontendConfig()) as vo:
-        res = [vo.process(f) for f in frames]
+    step = 6 if gaps else 1
+    cfg = FrontendConfig() if gaps else FrontendConfig(max_step_m=8.0, max_step_deg=30.0)
+    with StereoOdometry(seq.camera, cfg) as vo:
+        res = [vo.process(StereoFrame(step * i, f.timestamp, f.left, f.right)) for i, f in enumerate(frames)]
     poses = np.array([r.pose for r in res])
     assert np.all(np.isfinite(poses))
-    assert [r.index for r in res if not r.ok] == []
+    assert [(r.index, r.reason) for r in res if not r.ok] == []
     gt = seq.gt_poses
     drift = np.linalg.norm(poses[-1, :3, 3] - gt[-1, :3, 3]) / path_length(gt)
-    assert drift < 0.01, drift
+    assert drift < 0.02, drift
