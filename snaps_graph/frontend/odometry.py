@@ -525,6 +525,7 @@ class StereoOdometry:
         3D, ref uv, ref disparity, cur uv, cur disparity): PnP RANSAC on the union, then the
         stereo BA. (T_cur_ref, inliers: indices into the union, the KLT ones first) or None."""
         cfg, cam = self.cfg, self.camera
+        assert ref.right is not None
         t0 = time.perf_counter()
         uv_r, desc_r = feat.detect_orb(ref.left, cfg)
         z_r, d_r = depth_mod.sparse_depth(ref.left, ref.right, uv_r, cam, cfg)
