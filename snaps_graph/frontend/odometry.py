@@ -19,6 +19,10 @@
    sliding-window stereo BA over the last ``lba_window`` keyframes (``local_ba.py``; KLT tracks
    keep a landmark id while they live) refines it; the chain continues from the refined pose.
 
+At speed (large motion, or frames skipped: index gaps) KLT starts from the constant-velocity
+prediction scaled to the gap, also after flagged frames; when PnP on the tracks still fails,
+``klt_retry = "orb"`` retries once on ORB matches detected afresh plus the tracks.
+
 KLT tracks from the last frame (``klt_reference = "frame"``) or from the last keyframe
 ("keyframe": a frame becomes the reference only when the tracks thin out or after
 ``kf_max_gap`` frames, so one step's tracking error is not chained into every frame).
@@ -29,7 +33,7 @@ black (grey std below ``min_frame_std``), blurred (mean |Laplacian| below
 inliers, when the motion is non-finite or implausible (more than ``max_step_m`` /
 ``max_step_deg`` per frame), when stereo finds depth at fewer than ``min_stereo_points``
 keypoints (a swapped or broken stereo pair), or when OpenCV raises. A flagged frame's pose
-follows the constant-velocity guess (the last good T_rel). Its features become the new
+follows the constant-velocity guess (the last good step's motion, scaled to the index gap). Its features become the new
 reference only if they are usable (sharp, non-flat, enough keypoints with depth); otherwise
 the last good reference stays, and the next frame is tracked against it directly, so the guess
 does not enter the chain: T_world_cur = T_world_ref · T_ref_cur for the reference's pose.
