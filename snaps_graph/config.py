@@ -137,6 +137,7 @@ class FrontendConfig(_Section):
     # a fast drive, or frames skipped), retry once by matching ORB keypoints detected afresh in
     # the reference and the current frame ("orb"), or flag at once ("none").
     klt_retry: Literal["none", "orb"] = "orb"
+    klt_retry_features: int = 4000  # ORB keypoints detected per image by the retry
 
     def _cross_checks(self, source: str) -> None:
         if not self.min_depth_m < self.max_depth_m:
@@ -565,6 +566,7 @@ RULES: dict[str, Range] = {
     "frontend.klt_anchor_gap": NON_NEGATIVE,
     "frontend.klt_anchor_max_px": POSITIVE,
     "frontend.far_min_disparity_px": POSITIVE,
+    "frontend.klt_retry_features": AT_LEAST_1,
     "loop.radius_m": POSITIVE,
     "loop.frame_distance": AT_LEAST_1,
     "loop.discount_length": NON_NEGATIVE,

@@ -47,6 +47,7 @@ beside matching + PnP. Each stage's inputs are fixed before it starts and RANSAC
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -523,7 +524,7 @@ class StereoOdometry:
         return kf, T_ref_cur, n_inl, len(idx)
 
     def _orb_retry(self, ref: _Keyframe, frame: StereoFrame, klt: tuple, timings: dict[str, float]):
-        """Motion from ORB keypoints detected afresh in the reference and this frame, matched by
+        """Motion from ``klt_retry_features`` ORB keypoints detected afresh in the reference and this frame, matched by
         descriptor (scale-invariant, so they survive the looming and the large flow of a fast
         drive that KLT does not), together with the KLT correspondences ``klt`` = (ref points
         3D, ref uv, ref disparity, cur uv, cur disparity): PnP RANSAC on the union, then the
@@ -531,10 +532,11 @@ class StereoOdometry:
         cfg, cam = self.cfg, self.camera
         assert ref.right is not None
         t0 = time.perf_counter()
-        uv_r, desc_r = feat.detect_orb(ref.left, cfg)
+        ocfg = dataclasses.replace(cfg, orb_features=cfg.klt_retry_features)
+        uv_r, desc_r = feat.detect_orb(ref.left, ocfg)
         z_r, d_r = depth_mod.sparse_depth(ref.left, ref.right, uv_r, cam, cfg)
         has_depth = np.flatnonzero(z_r > 0)
-        uv_c, desc_c = feat.detect_orb(frame.left, cfg)
+        uv_c, desc_c = feat.detect_orb(frame.left, ocfg)
         ia, ib = feat.match_descriptors(desc_r[has_depth], desc_c, cfg.ratio_test)
         ia = has_depth[ia]
         k_pts, k_ruv, k_rd, k_cuv, k_cd = klt
