@@ -526,9 +526,9 @@ class StereoOdometry:
     def _orb_retry(self, ref: _Keyframe, frame: StereoFrame, klt: tuple, timings: dict[str, float]):
         """Motion from ``klt_retry_features`` ORB keypoints detected afresh in the reference and
         this frame, matched by descriptor (scale-invariant, so they survive the looming and the
-        large flow of a fast drive that KLT does not), together with the KLT correspondences ``klt`` = (ref points
-        3D, ref uv, ref disparity, cur uv, cur disparity): PnP RANSAC on the union, then the
-        stereo BA. (T_cur_ref, inliers: indices into the union, the KLT ones first) or None."""
+        large flow of a fast drive that KLT does not), together with the KLT correspondences
+        ``klt`` = (ref points 3D, ref uv, ref disparity, cur uv, cur disparity): PnP RANSAC on
+        the union, then the stereo BA. (T_cur_ref, inliers: indices into the union, the KLT ones first) or None."""
         cfg, cam = self.cfg, self.camera
         assert ref.right is not None
         t0 = time.perf_counter()
