@@ -67,8 +67,9 @@ def main() -> None:
     ap.add_argument("--frames", default=None, help="A:B (default: all)")
     ap.add_argument("--modes", default="default", help=f"comma list of {', '.join(MODES)}")
     ap.add_argument("--stride", type=int, default=1, help="use every STRIDE-th frame (a faster drive)")
-    ap.add_argument("--gaps", action="store_true",
-                    help="with --stride: keep the original frame indices (index gaps), not 0,1,2,...")
+    ap.add_argument(
+        "--gaps", action="store_true", help="with --stride: keep the original frame indices (index gaps), not 0,1,2,..."
+    )
     args = ap.parse_args()
     modes = [m.strip() for m in args.modes.split(",") if m.strip()]
     for m in modes:
@@ -76,7 +77,9 @@ def main() -> None:
             sys.exit(f"error: --modes: unknown mode '{m}' ({', '.join(MODES)})")
     if args.stride < 1:
         sys.exit("error: --stride must be >= 1")
-    print(f"{'sequence':<34}{'mode':<9}{'frames':>7}{'path m':>9}{'step bias %':>13}{'end drift %':>13}{'ATE m':>8}{'flagged':>9}{'fps':>7}")
+    print(
+        f"{'sequence':<34}{'mode':<9}{'frames':>7}{'path m':>9}{'step bias %':>13}{'end drift %':>13}{'ATE m':>8}{'flagged':>9}{'fps':>7}"
+    )
     for path in args.seqs:
         seq = KittiSequence(path, frames=args.frames)
         gt = seq.gt_poses
@@ -88,8 +91,11 @@ def main() -> None:
         for m in modes:
             est, flagged, wall = run(seq, MODES[m], args.stride, args.gaps)
             drift = 100.0 * np.linalg.norm(est[-1, :3, 3] - gt[-1, :3, 3]) / max(path_length(gt), 1e-9)
-            print(f"{str(path)[-34:]:<34}{m:<9}{len(gt):>7}{path_length(gt):>9.1f}{100 * step_bias(est, gt):>13.2f}"
-                  f"{drift:>13.2f}{ate_rmse(est, gt):>8.3f}{flagged:>9}{len(gt) / wall:>7.1f}", flush=True)
+            print(
+                f"{str(path)[-34:]:<34}{m:<9}{len(gt):>7}{path_length(gt):>9.1f}{100 * step_bias(est, gt):>13.2f}"
+                f"{drift:>13.2f}{ate_rmse(est, gt):>8.3f}{flagged:>9}{len(gt) / wall:>7.1f}",
+                flush=True,
+            )
 
 
 if __name__ == "__main__":

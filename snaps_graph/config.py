@@ -48,7 +48,6 @@ class _Section:
         pass
 
 
-
 @dataclass
 class FrontendConfig(_Section):
     """Stereo visual odometry (SPEC "Front end")."""
@@ -319,7 +318,9 @@ class MapConfig(_Section):
 
     def _cross_checks(self, source: str) -> None:
         if self.depth_method == "bm" and self.depth_block_size < 5:
-            raise SnapsGraphError(f"{source}: map.depth_block_size must be >= 5 for depth_method 'bm', got {self.depth_block_size}")
+            raise SnapsGraphError(
+                f"{source}: map.depth_block_size must be >= 5 for depth_method 'bm', got {self.depth_block_size}"
+            )
 
 
 @dataclass
@@ -351,7 +352,9 @@ class Config:
                 "batch": self.graph.refine in ("batch", "both"),
             }[self.map.trajectory]
             if not need:
-                what = "loops = 'snaps'" if self.map.trajectory == "snaps" else f"graph.refine = '{self.map.trajectory}' or 'both'"
+                what = (
+                    "loops = 'snaps'" if self.map.trajectory == "snaps" else f"graph.refine = '{self.map.trajectory}' or 'both'"
+                )
                 raise SnapsGraphError(
                     f"{source}: map.trajectory = '{self.map.trajectory}' needs {what} "
                     f"(this run has loops = '{self.loops}', graph.refine = '{self.graph.refine}')"

@@ -92,7 +92,10 @@ def pnp_ransac(
     K = camera.K
     cv2.setRNGSeed(cfg.ransac_seed)
     ok, rvec, tvec, inl = cv2.solvePnPRansac(
-        obj, img, K, None,
+        obj,
+        img,
+        K,
+        None,
         iterationsCount=cfg.pnp_iterations,
         reprojectionError=cfg.pnp_reprojection_px,
         confidence=cfg.pnp_confidence,
@@ -204,9 +207,15 @@ class StereoOdometry:
         if self.cfg.local_ba and self.cfg.mode == "klt":  # needs persistent tracks (landmark ids)
             from .local_ba import LocalBundleAdjuster
 
-            self._lba = LocalBundleAdjuster(camera, self.cfg.lba_window, huber_px=self.cfg.sba_huber_px,
-                                            iterations=self.cfg.lba_iterations, max_landmarks=self.cfg.lba_max_landmarks,
-                                            solver=self.cfg.lba_solver, select=self.cfg.lba_select)
+            self._lba = LocalBundleAdjuster(
+                camera,
+                self.cfg.lba_window,
+                huber_px=self.cfg.sba_huber_px,
+                iterations=self.cfg.lba_iterations,
+                max_landmarks=self.cfg.lba_max_landmarks,
+                solver=self.cfg.lba_solver,
+                select=self.cfg.lba_select,
+            )
 
     # ---- lifecycle ----
     def close(self) -> None:
@@ -279,16 +288,28 @@ class StereoOdometry:
                 self._have_velocity = True
             self._last_ok = True
             result = VOResult(
-                index=frame.index, T_rel=T_rel, pose=pose, ok=True, inliers=inliers,
-                matches=matches, features=kf.features,
+                index=frame.index,
+                T_rel=T_rel,
+                pose=pose,
+                ok=True,
+                inliers=inliers,
+                matches=matches,
+                features=kf.features,
             )
         self._last_index = frame.index
         timings["total"] = (time.perf_counter() - t_start) * 1000.0
         result.timings_ms = timings
         return result
 
-    def _flagged(self, frame: StereoFrame, prev_pose: np.ndarray, reason: str,
-                 keyframe: _Keyframe | None, timings: dict[str, float], gap: int = 1) -> VOResult:
+    def _flagged(
+        self,
+        frame: StereoFrame,
+        prev_pose: np.ndarray,
+        reason: str,
+        keyframe: _Keyframe | None,
+        timings: dict[str, float],
+        gap: int = 1,
+    ) -> VOResult:
         T_rel = self._scaled_velocity(gap) if self._n > 1 else np.eye(4)
         pose = prev_pose @ T_rel
         if self._lba is not None:
@@ -337,9 +358,17 @@ class StereoOdometry:
             raise _Flag(f"implausible motion ({step:.2f} m, {angle:.1f} deg over {gap} frame(s))")
         return T_ref_cur
 
-    def _make_keyframe(self, frame: StereoFrame, uv: np.ndarray, z: np.ndarray, disp: np.ndarray,
-                       desc: np.ndarray | None, sharp: float, timings: dict[str, float],
-                       ids: np.ndarray | None = None) -> _Keyframe:
+    def _make_keyframe(
+        self,
+        frame: StereoFrame,
+        uv: np.ndarray,
+        z: np.ndarray,
+        disp: np.ndarray,
+        desc: np.ndarray | None,
+        sharp: float,
+        timings: dict[str, float],
+        ids: np.ndarray | None = None,
+    ) -> _Keyframe:
         """Keep keypoints with valid depth; back-project them (eq. 2); pick the loop features."""
         cfg = self.cfg
         valid = z > 0
@@ -368,8 +397,9 @@ class StereoOdometry:
             pick = pick[keep]
         features = FrameFeatures(np.ascontiguousarray(uv[pick]), np.ascontiguousarray(pts3d[pick]), np.ascontiguousarray(fdesc))
         timings["features"] = timings.get("features", 0.0) + (time.perf_counter() - t0) * 1000.0
-        return _Keyframe(frame.index, np.eye(4), frame.left, uv, pts3d, disp, desc, sharp, features, ids, near=near,
-                         right=frame.right)
+        return _Keyframe(
+            frame.index, np.eye(4), frame.left, uv, pts3d, disp, desc, sharp, features, ids, near=near, right=frame.right
+        )
 
     def _conclude(self, kf: _Keyframe, T_cur_ref: np.ndarray | None, n_inl: int, gap: int, failure: str):
         """Flag or accept the frame. Motion problems are reported first; a frame whose own
@@ -387,8 +417,16 @@ class StereoOdometry:
             raise _Flag(f"too few keypoints with stereo depth ({n_near} < {self.cfg.min_stereo_points})")
         return T_ref_cur
 
-    def _refine_motion(self, T_cur_ref: np.ndarray, inl: np.ndarray, ref_uv: np.ndarray, ref_disp: np.ndarray,
-                       cur_uv: np.ndarray, cur_disp: np.ndarray, timings: dict[str, float]):
+    def _refine_motion(
+        self,
+        T_cur_ref: np.ndarray,
+        inl: np.ndarray,
+        ref_uv: np.ndarray,
+        ref_disp: np.ndarray,
+        cur_uv: np.ndarray,
+        cur_disp: np.ndarray,
+        timings: dict[str, float],
+    ):
         """Stereo BA on PnP's inliers (``motion = "stereo_ba"``): (T_cur_ref, inlier indices).
 
         ``inl`` indexes the arrays; the BA's own outliers are dropped from it. If the BA is
@@ -398,8 +436,15 @@ class StereoOdometry:
         t0 = time.perf_counter()
         cfg = self.cfg
         r = stereo_two_view_ba(
-            T_cur_ref, ref_uv[inl], ref_disp[inl], cur_uv[inl], cur_disp[inl], self.camera,
-            huber_px=cfg.sba_huber_px, outlier_px=cfg.sba_outlier_px, iterations=cfg.sba_iterations,
+            T_cur_ref,
+            ref_uv[inl],
+            ref_disp[inl],
+            cur_uv[inl],
+            cur_disp[inl],
+            self.camera,
+            huber_px=cfg.sba_huber_px,
+            outlier_px=cfg.sba_outlier_px,
+            iterations=cfg.sba_iterations,
         )
         timings["sba"] = (time.perf_counter() - t0) * 1000.0
         if not r.ok:
@@ -422,8 +467,9 @@ class StereoOdometry:
         return inv(self._scaled_velocity(gap))
 
     # -- klt --
-    def _stereo_klt(self, frame: StereoFrame, uv: np.ndarray, guess: np.ndarray | None,
-                    timings: dict[str, float], detect: bool = True):
+    def _stereo_klt(
+        self, frame: StereoFrame, uv: np.ndarray, guess: np.ndarray | None, timings: dict[str, float], detect: bool = True
+    ):
         """Stereo depth at tracked points; if too few (and ``detect``), detect new corners and add theirs."""
         cfg = self.cfg
         t0 = time.perf_counter()
@@ -547,9 +593,15 @@ class StereoOdometry:
             res = pnp_ransac(pts, cur_uv, cam, cfg)
         if res is not None and cfg.motion == "stereo_ba":
             _, d_c = depth_mod.sparse_depth(frame.left, frame.right, uv_c[ib], cam, cfg)
-            res = self._refine_motion(res[0], res[1], np.concatenate([k_ruv, uv_r[ia]]).astype(np.float32),
-                                      np.concatenate([k_rd, d_r[ia]]).astype(np.float32), cur_uv,
-                                      np.concatenate([k_cd, d_c]).astype(np.float32), timings)
+            res = self._refine_motion(
+                res[0],
+                res[1],
+                np.concatenate([k_ruv, uv_r[ia]]).astype(np.float32),
+                np.concatenate([k_rd, d_r[ia]]).astype(np.float32),
+                cur_uv,
+                np.concatenate([k_cd, d_c]).astype(np.float32),
+                timings,
+            )
         timings["retry"] = (time.perf_counter() - t0) * 1000.0
         return res
 
@@ -572,12 +624,21 @@ class StereoOdometry:
         cfg = self.cfg
         crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
         p1, st, _ = cv2.calcOpticalFlowPyrLK(
-            a_left, frame.left, np.ascontiguousarray(src, np.float32).reshape(-1, 1, 2),
+            a_left,
+            frame.left,
+            np.ascontiguousarray(src, np.float32).reshape(-1, 1, 2),
             np.ascontiguousarray(uv_cur[sel], np.float32).reshape(-1, 1, 2).copy(),
-            winSize=(cfg.klt_window_px, cfg.klt_window_px), maxLevel=1, criteria=crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+            winSize=(cfg.klt_window_px, cfg.klt_window_px),
+            maxLevel=1,
+            criteria=crit,
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
         )
         p1 = p1.reshape(-1, 2)
-        good = (st.reshape(-1) == 1) & np.all(np.isfinite(p1), 1) & (np.linalg.norm(p1 - uv_cur[sel], axis=1) <= cfg.klt_anchor_max_px)
+        good = (
+            (st.reshape(-1) == 1)
+            & np.all(np.isfinite(p1), 1)
+            & (np.linalg.norm(p1 - uv_cur[sel], axis=1) <= cfg.klt_anchor_max_px)
+        )
         out = uv_cur.copy()
         out[sel[good]] = p1[good]
         return out
