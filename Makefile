@@ -26,6 +26,7 @@ demo: setup
 
 lint: setup
 	$(BIN)/ruff check snaps_graph tests benchmarks experiments
+	$(BIN)/ruff format --check snaps_graph tests benchmarks experiments
 	$(BIN)/mypy
 
 test: lint

@@ -49,7 +49,9 @@ MODES = {
     "klt_lba3w6": dict(mode="klt", motion="stereo_ba", local_ba=True, lba_every=3, lba_window=6),
     "klt_lba2_anchor": dict(mode="klt", motion="stereo_ba", local_ba=True, lba_every=2, lba_window=8, klt_anchor_gap=4),
     "klt_kf_lba2": dict(mode="klt", motion="stereo_ba", klt_reference="keyframe", local_ba=True, lba_every=2, lba_window=8),
-    "sift": dict(mode="sift", disparity="bm_wls", sift_first_octave=-1, motion="pnp", local_ba=False),  # the paper's front end, faithfully
+    "sift": dict(
+        mode="sift", disparity="bm_wls", sift_first_octave=-1, motion="pnp", local_ba=False
+    ),  # the paper's front end, faithfully
     "sift_sba": dict(mode="sift", disparity="bm_wls", sift_first_octave=-1, motion="stereo_ba"),
     "sift_sparse": dict(mode="sift", disparity="sparse"),  # what mode = "sift" runs by default
     "sift_fo-1": dict(mode="sift", disparity="sparse", sift_first_octave=-1),
@@ -75,8 +77,14 @@ class NaiveVO:
     def process(self, frame):
         t = {}
         t0 = time.perf_counter()
-        disp = self.wls.filter(self.bm.compute(frame.left, frame.right), frame.left,
-                               disparity_map_right=self.rbm.compute(frame.right, frame.left)).astype(np.float32) / 16
+        disp = (
+            self.wls.filter(
+                self.bm.compute(frame.left, frame.right),
+                frame.left,
+                disparity_map_right=self.rbm.compute(frame.right, frame.left),
+            ).astype(np.float32)
+            / 16
+        )
         depth = np.where(disp > 0, self.cam.fx * self.cam.baseline_m / np.maximum(disp, 1e-6), 0)
         depth[depth > self.cfg.max_depth_m] = 0
         t1 = time.perf_counter()
@@ -86,15 +94,26 @@ class NaiveVO:
         ok = True
         if self.prev is not None:
             puv, pdesc, pdepth = self.prev
-            good = [m[0] for m in self.bf.knnMatch(pdesc, desc, k=2)
-                    if len(m) == 2 and m[0].distance < self.cfg.ratio_test * m[1].distance]
+            good = [
+                m[0]
+                for m in self.bf.knnMatch(pdesc, desc, k=2)
+                if len(m) == 2 and m[0].distance < self.cfg.ratio_test * m[1].distance
+            ]
             t3 = time.perf_counter()
-            a = np.array([m.queryIdx for m in good]); b = np.array([m.trainIdx for m in good])
+            a = np.array([m.queryIdx for m in good])
+            b = np.array([m.trainIdx for m in good])
             z = pdepth[np.rint(puv[a, 1]).astype(int), np.rint(puv[a, 0]).astype(int)]
             v = z > 0
             pts = self.cam.backproject(puv[a[v], 0], puv[a[v], 1], z[v])
-            res = cv2.solvePnPRansac(pts, uv[b[v]], self.cam.K, None, iterationsCount=self.cfg.pnp_iterations,
-                                     reprojectionError=self.cfg.pnp_reprojection_px, confidence=self.cfg.pnp_confidence)
+            res = cv2.solvePnPRansac(
+                pts,
+                uv[b[v]],
+                self.cam.K,
+                None,
+                iterationsCount=self.cfg.pnp_iterations,
+                reprojectionError=self.cfg.pnp_reprojection_px,
+                confidence=self.cfg.pnp_confidence,
+            )
             ok = bool(res[0])
             if ok:
                 T = np.eye(4)
@@ -157,13 +176,17 @@ def main() -> None:
     for m in names:
         if m != "naive" and m not in MODES:
             sys.exit(f"unknown mode '{m}' (naive, {', '.join(MODES)})")
-    print(f"{args.seq}: {len(frames)} frames {seq.camera.width}x{seq.camera.height}, "
-          f"OpenCV {cv2.__version__}, cv2 threads {cv2.getNumThreads()}")
+    print(
+        f"{args.seq}: {len(frames)} frames {seq.camera.width}x{seq.camera.height}, "
+        f"OpenCV {cv2.__version__}, cv2 threads {cv2.getNumThreads()}"
+    )
     if gt is not None:
         print(f"ground-truth path length {path_length(gt):.1f} m")
     medians = {}
     stages = ("depth", "features", "match", "pnp", "sba", "lba", "total")
-    print(f"{'mode':12s} " + " ".join(f"{s:>9s}" for s in stages) + "   frames/s  ratio/naive  flagged  ATE_m  drift_%  step_bias_%")
+    print(
+        f"{'mode':12s} " + " ".join(f"{s:>9s}" for s in stages) + "   frames/s  ratio/naive  flagged  ATE_m  drift_%  step_bias_%"
+    )
     for name in names:
         poses, flagged, timings = run(name, seq, frames, base)
         steady = timings[1:] if len(timings) > 1 else timings  # frame 0 has no matching
@@ -176,12 +199,17 @@ def main() -> None:
             sbias = step_bias_percent(poses, gt)
         else:
             ate = drift = sbias = float("nan")
-        print(f"{name:12s} " + " ".join(f"{med[s]:9.1f}" for s in stages)
-              + f"   {1000.0 / med['total']:8.1f}  {ratio:11.3f}  {flagged:7d}  {ate:5.3f}  {drift:7.2f}  {sbias:+11.2f}")
+        print(
+            f"{name:12s} "
+            + " ".join(f"{med[s]:9.1f}" for s in stages)
+            + f"   {1000.0 / med['total']:8.1f}  {ratio:11.3f}  {flagged:7d}  {ate:5.3f}  {drift:7.2f}  {sbias:+11.2f}"
+        )
         if gt is not None and len(gt) >= 200:  # long enough for KITTI's t_rel (100 m segments)
             m = evaluate(poses, gt)
-            print(f"{'':12s} mean deviation {m['mean_deviation']:.3f} m (horizontal {m['mean_deviation_horizontal']:.3f}, "
-                  f"vertical {m['mean_deviation_vertical']:.3f}), t_rel {m['t_rel']:.3f} %, r_rel {m['r_rel']:.4f} deg/100 m")
+            print(
+                f"{'':12s} mean deviation {m['mean_deviation']:.3f} m (horizontal {m['mean_deviation_horizontal']:.3f}, "
+                f"vertical {m['mean_deviation_vertical']:.3f}), t_rel {m['t_rel']:.3f} %, r_rel {m['r_rel']:.4f} deg/100 m"
+            )
         kf_ms = [t["lba"] for t in timings if "lba" in t]
         if kf_ms:
             print(f"{'':12s} local BA on {len(kf_ms)} keyframes: median {np.median(kf_ms):.1f} ms, max {np.max(kf_ms):.1f} ms")

@@ -72,7 +72,7 @@ def simulate_vo(gt: np.ndarray, args, rng: np.random.Generator) -> tuple[np.ndar
 
 def find_loops(gt: np.ndarray, args) -> list[tuple[int, int]]:
     """(ref, cur) at true revisits (nearest reference), at most one every ``loop_every`` frames."""
-    loops, last = [], -10**9
+    loops, last = [], -(10**9)
     for i, j in true_revisit_pairs(gt, args.loop_radius_m, args.min_gap, args.loop_yaw_deg, step=1):
         if j - last >= args.loop_every:
             loops.append((i, j))
@@ -120,8 +120,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--loop-radius-m", type=float, default=3.0)
     ap.add_argument("--loop-yaw-deg", type=float, default=10.0)
     ap.add_argument("--loop-every", type=int, default=50)
-    ap.add_argument("--false-fraction", type=float, nargs="+", default=[0.05, 0.25],
-                    help="false loops as a fraction of the true ones (one batch run each)")
+    ap.add_argument(
+        "--false-fraction",
+        type=float,
+        nargs="+",
+        default=[0.05, 0.25],
+        help="false loops as a fraction of the true ones (one batch run each)",
+    )
     ap.add_argument("--skip-isam2", action="store_true")
     ap.add_argument("--gnc", action="store_true", help="also run the GNC batch solver")
     args = ap.parse_args(argv)
@@ -152,11 +157,15 @@ def main(argv: list[str] | None = None) -> int:
         t_conv = g.converge()
         rows.append(("iSAM2 + converge()", g.estimates()))
         fm = np.array(frame_ms)
-        print(f"iSAM2 update per frame: median {np.median(fm):.2f} ms, p95 {np.percentile(fm, 95):.2f} ms, "
-              f"max {fm.max():.1f} ms ({len(fm)} frames)")
+        print(
+            f"iSAM2 update per frame: median {np.median(fm):.2f} ms, p95 {np.percentile(fm, 95):.2f} ms, "
+            f"max {fm.max():.1f} ms ({len(fm)} frames)"
+        )
         if loop_ms:
-            print(f"iSAM2 loop-closing update: median {np.median(loop_ms):.1f} ms, max {max(loop_ms):.1f} ms "
-                  f"({len(loop_ms)} loop frames)")
+            print(
+                f"iSAM2 loop-closing update: median {np.median(loop_ms):.1f} ms, max {max(loop_ms):.1f} ms "
+                f"({len(loop_ms)} loop frames)"
+            )
         print(f"iSAM2 converge() at the end: {t_conv:.1f} ms")
         if g.failures:
             print(f"iSAM2 failures: {len(g.failures)} (first: {g.failures[0]})")
@@ -166,8 +175,10 @@ def main(argv: list[str] | None = None) -> int:
     t_build = time.perf_counter() - t0
     batch = gb.optimize_batch()
     rows.append(("batch LM", batch))
-    print(f"batch ({cfg.batch_solver}, {len(gt)} poses, {len(loops)} loops): {gb.stats.batch_ms / 1e3:.2f} s "
-          f"optimise, {gb.stats.batch_iterations} iterations (graph build {t_build:.2f} s)")
+    print(
+        f"batch ({cfg.batch_solver}, {len(gt)} poses, {len(loops)} loops): {gb.stats.batch_ms / 1e3:.2f} s "
+        f"optimise, {gb.stats.batch_iterations} iterations (graph build {t_build:.2f} s)"
+    )
     if gb.failures:
         print(f"batch failures: {gb.failures}")
     if args.gnc:
@@ -189,8 +200,10 @@ def main(argv: list[str] | None = None) -> int:
             kcfg = GraphConfig(robust_kernel=kernel)
             gf, _, _ = build("batch", kcfg, rel, chain, with_false, online=False)
             ate_false = ate_rmse(gf.optimize_batch(), gt)
-            print(f"batch + {n_false} false loops ({fraction:.0%}), kernel {kernel:6s}: ATE {ate_false:7.2f} m "
-                  f"({100 * (ate_false - ate_clean) / ate_clean:+.1f}% vs clean)")
+            print(
+                f"batch + {n_false} false loops ({fraction:.0%}), kernel {kernel:6s}: ATE {ate_false:7.2f} m "
+                f"({100 * (ate_false - ate_clean) / ate_clean:+.1f}% vs clean)"
+            )
     return 0
 
 

@@ -3,6 +3,7 @@ per variant of frontend.depth.map_depth, the share of true surface pixels kept (
 depth error by range bin (median, p90), the share of gross errors (|error| > 1 m, or depth where
 the truth is sky) and the time per keyframe. This is what MapConfig's depth defaults and
 max_range_m were chosen from. Usage: python benchmarks/bench_map_depth.py [--frames 0:1000:100]"""
+
 import argparse
 import copy
 import time
@@ -77,14 +78,19 @@ for name, over in VARIANTS.items():
         sky_r += int((est & (z <= a.range) & (blocks <= 0).all(-1)).sum())
         m = est & ~(blocks <= 0).all(-1)
         e = np.min(np.abs(blocks[m] - z[m][:, None]), -1)
-        errs.append(e); zt_all.append(zt[m]); z_all.append(z[m])
+        errs.append(e)
+        zt_all.append(zt[m])
+        z_all.append(z[m])
     e, zt, ze = np.concatenate(errs), np.concatenate(zt_all), np.concatenate(z_all)
     inr = ze <= a.range
     gross_r = 100 * (np.sum(e[inr] > 1) + sky_r) / max(inr.sum() + sky_r, 1)
     n_est = len(e) + sky
-    row = [f"{name:<36} {np.median(ms):6.1f} ms  coverage {100 * kept / truth:5.1f}%  gross {100 * (np.sum(e > 1) + sky) / max(n_est, 1):5.2f}% (sky {100 * sky / max(n_est, 1):.2f}%); depth <= {a.range:g} m: gross {gross_r:.2f}%, p90 {np.percentile(e[inr], 90):.3f} m"]
+    row = [
+        f"{name:<36} {np.median(ms):6.1f} ms  coverage {100 * kept / truth:5.1f}%  gross {100 * (np.sum(e > 1) + sky) / max(n_est, 1):5.2f}% (sky {100 * sky / max(n_est, 1):.2f}%); depth <= {a.range:g} m: gross {gross_r:.2f}%, p90 {np.percentile(e[inr], 90):.3f} m"
+    ]
     for lo, hi in bins:
         sel = (zt > lo) & (zt <= hi)
         if sel.sum() > 50:
             row.append(f"{lo}-{hi} m: p50 {np.median(e[sel]):.3f} p90 {np.percentile(e[sel], 90):.3f} (n {sel.sum()})")
-    print(row[0]); print("    " + "; ".join(row[1:]))
+    print(row[0])
+    print("    " + "; ".join(row[1:]))

@@ -3,6 +3,7 @@ poses, so only depth and fusion are measured: for exact depth and for map_depth,
 setting, the map error and completeness against the world mesh, the fusion time per keyframe
 and the grid size. Usage: python benchmarks/bench_map_fusion.py --world results/world00.ply
 [--frames 0:200] [--settings ...]"""
+
 import argparse
 import copy
 import time
@@ -37,7 +38,9 @@ print(f"rendered {len(kfs)} keyframes in {time.perf_counter() - t0:.0f} s")
 depth_ms = []
 est = {}
 for k, f in frames.items():
-    t = time.perf_counter(); est[k] = map_depth(f.left, f.right, seq.camera, base.frontend, base.map); depth_ms.append(1e3 * (time.perf_counter() - t))
+    t = time.perf_counter()
+    est[k] = map_depth(f.left, f.right, seq.camera, base.frontend, base.map)
+    depth_ms.append(1e3 * (time.perf_counter() - t))
 print(f"map_depth {np.median(depth_ms):.1f} ms/keyframe")
 h, w = est[kfs[0]].shape
 exact = {k: cv2.resize(f.depth, (w, h), interpolation=cv2.INTER_NEAREST) for k, f in frames.items()}
@@ -55,7 +58,7 @@ SETTINGS = {
 }
 if a.settings:
     SETTINGS = {k: v for k, v in SETTINGS.items() if any(s in k for s in a.settings.split(","))}
-for src, depths in (("exact depth", exact), ("map_depth", est))[0 if a.exact else 1:]:
+for src, depths in (("exact depth", exact), ("map_depth", est))[0 if a.exact else 1 :]:
     for name, over in SETTINGS.items():
         cfg = copy.deepcopy(base.map)
         for key, v in over.items():
@@ -66,10 +69,14 @@ for src, depths in (("exact depth", exact), ("map_depth", est))[0 if a.exact els
                 m.add_keyframe(k, depths[k], frames[k].left)
         s = m.fuse(gt)
         cam = seq.camera
-        acc = map_accuracy(world, s.points, s.vertices, gt[kfs], cam.K, (cam.width, cam.height), cfg.accuracy_range_m,
-                           cfg.accuracy_tolerance_m)
+        acc = map_accuracy(
+            world, s.points, s.vertices, gt[kfs], cam.K, (cam.width, cam.height), cfg.accuracy_range_m, cfg.accuracy_tolerance_m
+        )
         p = acc["points"]
-        print(f"{src:<12} {name:<20} fuse {1e3 * s.stats['fuse_s'] / len(m):5.1f} ms/kf (total {s.stats['fuse_s']:.1f} s), {s.stats['max_blocks']} blocks, "
-              f"{s.stats['triangles']} triangles | points p50 {p['error_median_m']:.3f} p90 {p['error_p90_m']:.3f} m, "
-              f"completeness {100 * p['completeness']:.1f}% (seen {100 * p['completeness_seen']:.1f}%) | seen share "
-              f"{100 * acc['surface_seen_share']:.0f}%", flush=True)
+        print(
+            f"{src:<12} {name:<20} fuse {1e3 * s.stats['fuse_s'] / len(m):5.1f} ms/kf (total {s.stats['fuse_s']:.1f} s), {s.stats['max_blocks']} blocks, "
+            f"{s.stats['triangles']} triangles | points p50 {p['error_median_m']:.3f} p90 {p['error_p90_m']:.3f} m, "
+            f"completeness {100 * p['completeness']:.1f}% (seen {100 * p['completeness_seen']:.1f}%) | seen share "
+            f"{100 * acc['surface_seen_share']:.0f}%",
+            flush=True,
+        )

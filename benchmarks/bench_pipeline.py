@@ -100,7 +100,9 @@ def main() -> None:
     ap.add_argument("--out", default=None, help="also write the results folder here")
     ap.add_argument("--json", default=None, help="write the figures as JSON here")
     ap.add_argument("--naive-frames", type=int, default=30, help="frames of the naive front end timed in the same run (0: skip)")
-    ap.add_argument("--false-loops", type=float, default=0.05, help="fraction of false loop factors added for the robustness check")
+    ap.add_argument(
+        "--false-loops", type=float, default=0.05, help="fraction of false loop factors added for the robustness check"
+    )
     args = ap.parse_args()
 
     seq_dir = ensure_sequence(args)
@@ -122,11 +124,15 @@ def main() -> None:
 
     figures: dict = {"frames": len(seq), "wall_s": wall, "batch_s": t_batch, "trajectories": {}}
     print(f"\n{len(seq)} frames of {seq_dir}, {wall:.1f} s ({len(seq) / wall:.1f} frames/s), mode {cfg.frontend.mode}")
-    print(f"{'trajectory':<10}{'mean dev m':>12}{'horiz m':>9}{'vert m':>8}{'ATE m':>10}{'t_rel %':>10}{'r_rel deg/100m':>16}{'end drift %':>13}")
+    print(
+        f"{'trajectory':<10}{'mean dev m':>12}{'horiz m':>9}{'vert m':>8}{'ATE m':>10}{'t_rel %':>10}{'r_rel deg/100m':>16}{'end drift %':>13}"
+    )
     for name, poses in result.trajectories.items():
         m = evaluate(poses, gt)
         figures["trajectories"][name] = m
-        print(f"{name:<10}{m['mean_deviation']:>12.3f}{m['mean_deviation_horizontal']:>9.3f}{m['mean_deviation_vertical']:>8.3f}{m['ate_rmse']:>10.3f}{m['t_rel']:>10.3f}{m['r_rel']:>16.4f}{m['end_drift_percent']:>13.3f}")
+        print(
+            f"{name:<10}{m['mean_deviation']:>12.3f}{m['mean_deviation_horizontal']:>9.3f}{m['mean_deviation_vertical']:>8.3f}{m['ate_rmse']:>10.3f}{m['t_rel']:>10.3f}{m['r_rel']:>16.4f}{m['end_drift_percent']:>13.3f}"
+        )
     tr = figures["trajectories"]
     if "snaps" in tr:
         red = 1 - tr["snaps"]["mean_deviation"] / tr["vo"]["mean_deviation"]
@@ -142,8 +148,10 @@ def main() -> None:
         o = loop_oracle(result.trajectories["vo"], gt, cfg, [r.vo_inliers for r in rows], [r.vo_ok for r in rows])
         ored = 1 - o.mean_deviation / tr["vo"]["mean_deviation"]
         figures["oracle"] = {"loops": len(o.pairs), "mean_deviation": o.mean_deviation, "ate_rmse": o.ate_rmse, "reduction": ored}
-        print(f"oracle ({len(o.pairs)} exact ground-truth loops at the true revisits, same graph): mean deviation "
-              f"{o.mean_deviation:.3f} m ({100 * ored:.1f}% below VO), ATE {o.ate_rmse:.3f} m: the most loop closure reaches on this VO")
+        print(
+            f"oracle ({len(o.pairs)} exact ground-truth loops at the true revisits, same graph): mean deviation "
+            f"{o.mean_deviation:.3f} m ({100 * ored:.1f}% below VO), ATE {o.ate_rmse:.3f} m: the most loop closure reaches on this VO"
+        )
     rs = revisit_stats(gt, result.loops, pipe.frame_ids, cfg)
     figures["revisits"] = rs
     print(
@@ -177,9 +185,13 @@ def main() -> None:
         t_naive = float(np.median([naive.process(f)[2]["total"] for f in frames][1:]))
         g = lat["graph"]["median"]
         figures["naive_frontend_ms"] = t_naive
-        print(f"naive front end (BM+WLS, SIFT 2000, BF ratio, PnP RANSAC): median {t_naive:.1f} ms/frame over {len(frames)} frames")
-        print(f"  iSAM2 update median {g:.3f} ms = {100 * g / t_naive:.2f}% of it (target <= 2%); "
-              f"our front end median {lat['vo']['median']:.1f} ms = {100 * lat['vo']['median'] / t_naive:.1f}% of it")
+        print(
+            f"naive front end (BM+WLS, SIFT 2000, BF ratio, PnP RANSAC): median {t_naive:.1f} ms/frame over {len(frames)} frames"
+        )
+        print(
+            f"  iSAM2 update median {g:.3f} ms = {100 * g / t_naive:.2f}% of it (target <= 2%); "
+            f"our front end median {lat['vo']['median']:.1f} ms = {100 * lat['vo']['median'] / t_naive:.1f}% of it"
+        )
     if args.false_loops > 0 and result.loops:
         # Robustness: random pairs as loop factors with a high Q, then the batch again.
         rng = np.random.default_rng(0)
@@ -197,9 +209,16 @@ def main() -> None:
         batch_false = pipe.graph.optimize_batch()
         ate0 = figures["trajectories"]["batch"]["ate_rmse"]
         ate1 = evaluate(batch_false, gt)["ate_rmse"]
-        figures["false_loops"] = {"added": n_false, "ate_clean": ate0, "ate_with_false": ate1, "change_percent": 100 * (ate1 - ate0) / ate0}
-        print(f"robustness: {n_false} false loop factors ({100 * args.false_loops:.0f}% of {len(result.loops)}), "
-              f"batch ATE {ate0:.3f} -> {ate1:.3f} m ({100 * (ate1 - ate0) / ate0:+.1f}%, target within 10%)")
+        figures["false_loops"] = {
+            "added": n_false,
+            "ate_clean": ate0,
+            "ate_with_false": ate1,
+            "change_percent": 100 * (ate1 - ate0) / ate0,
+        }
+        print(
+            f"robustness: {n_false} false loop factors ({100 * args.false_loops:.0f}% of {len(result.loops)}), "
+            f"batch ATE {ate0:.3f} -> {ate1:.3f} m ({100 * (ate1 - ate0) / ate0:+.1f}%, target within 10%)"
+        )
     if pipe.graph.failures:
         print(f"graph failures: {len(pipe.graph.failures)}: {pipe.graph.failures[:3]}")
     if args.json:

@@ -69,8 +69,12 @@ def run_once(seq, frames, refine: str, build_map: bool, rrd: Path | None) -> dic
         observer.inner.close()  # flushes: the file is complete when the clock stops
     wall, cpu = time.perf_counter() - t0, cpu_s() - c0
     n = len(frames)
-    return {"fps": n / wall, "cpu_ms": cpu / n * 1e3, "hook_ms": (observer.s / n * 1e3) if observer else 0.0,
-            "bytes": rrd.stat().st_size if rrd is not None else 0}
+    return {
+        "fps": n / wall,
+        "cpu_ms": cpu / n * 1e3,
+        "hook_ms": (observer.s / n * 1e3) if observer else 0.0,
+        "bytes": rrd.stat().st_size if rrd is not None else 0,
+    }
 
 
 def main() -> None:
@@ -84,7 +88,9 @@ def main() -> None:
     a = ap.parse_args()
     seq = open_dataset(a.seq, frames=a.frames)
     frames = seq if a.stream else list(seq)
-    print(f"{a.seq} frames {a.frames}: {len(frames)} frames {seq.camera.width}x{seq.camera.height}, refine {a.refine}, map {a.map}")
+    print(
+        f"{a.seq} frames {a.frames}: {len(frames)} frames {seq.camera.width}x{seq.camera.height}, refine {a.refine}, map {a.map}"
+    )
     res: dict[str, list[dict]] = {"plain": [], "rrd": []}
     with tempfile.TemporaryDirectory() as tmp:
         for rep in range(a.reps):
@@ -97,8 +103,15 @@ def main() -> None:
     wall_over = (med["plain"]["fps"] / med["rrd"]["fps"] - 1) * 100
     cpu_over = (med["rrd"]["cpu_ms"] / med["plain"]["cpu_ms"] - 1) * 100
     hook_share = med["rrd"]["hook_ms"] / med["plain"]["cpu_ms"] * 100
-    print(f"--rrd overhead: wall {wall_over:+.1f} %, process CPU {cpu_over:+.1f} %, hook CPU {hook_share:.1f} % of the plain frame's CPU")
-    print("per-rep frames/s plain:", " ".join(f"{r['fps']:.2f}" for r in res["plain"]), "| rrd:", " ".join(f"{r['fps']:.2f}" for r in res["rrd"]))
+    print(
+        f"--rrd overhead: wall {wall_over:+.1f} %, process CPU {cpu_over:+.1f} %, hook CPU {hook_share:.1f} % of the plain frame's CPU"
+    )
+    print(
+        "per-rep frames/s plain:",
+        " ".join(f"{r['fps']:.2f}" for r in res["plain"]),
+        "| rrd:",
+        " ".join(f"{r['fps']:.2f}" for r in res["rrd"]),
+    )
 
 
 if __name__ == "__main__":

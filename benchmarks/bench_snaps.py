@@ -140,20 +140,26 @@ def main(argv: list[str] | None = None) -> int:
     dev_snaps = float(np.mean(np.linalg.norm(heur[:, :3, 3] - gt[:, :3, 3], axis=1)))
     cache_mb = sum(s.nbytes for s in closer._stats.values()) / 2**20
 
-    print(f"SNAPS latency on {args.gt.name}: {n} frames, thumbnails {THUMB_HW[1]}x{THUMB_HW[0]}, "
-          f"yaw bias {args.yaw_bias_deg} deg/frame, scale error {args.scale_error:+.1%}, noise {args.noise}")
+    print(
+        f"SNAPS latency on {args.gt.name}: {n} frames, thumbnails {THUMB_HW[1]}x{THUMB_HW[0]}, "
+        f"yaw bias {args.yaw_bias_deg} deg/frame, scale error {args.scale_error:+.1%}, noise {args.noise}"
+    )
     print("t_ms per frame (detection + correction):")
     print(row("no candidate", t_none))
     print(row("similarities, no loop", t_sim))
     print(row("loop closed (incl. eq. 6)", t_loop))
     print(row("all frames computing similarities", t_sim + t_loop))
-    print(f"loops closed: {len(loops)}   similarities computed: {closer.similarities_computed}   "
-          f"window sums computed: {closer.stats_computed}   stats cache: {len(closer._stats)} frames, {cache_mb:.0f} MB")
+    print(
+        f"loops closed: {len(loops)}   similarities computed: {closer.similarities_computed}   "
+        f"window sums computed: {closer.stats_computed}   stats cache: {len(closer._stats)} frames, {cache_mb:.0f} MB"
+    )
     if loops:
         qs = np.array([e.q for e in loops])
-        print(f"loop Q: min {qs.min():.3f} median {np.median(qs):.3f}   "
-              f"|delta| median {np.median([np.linalg.norm(e.delta) for e in loops]):.2f} m   "
-              f"candidates per loop frame median {np.median([e.candidates for e in loops]):.0f}")
+        print(
+            f"loop Q: min {qs.min():.3f} median {np.median(qs):.3f}   "
+            f"|delta| median {np.median([np.linalg.norm(e.delta) for e in loops]):.2f} m   "
+            f"candidates per loop frame median {np.median([e.candidates for e in loops]):.0f}"
+        )
     print(f"one UIQI comparison: {t_fast * 1e6:.0f} us with cached window sums, {t_full * 1e6:.0f} us from scratch")
     print(f"mean deviation from ground truth: VO chain {dev_vo:.2f} m, SNAPS heuristic {dev_snaps:.2f} m")
     print(f"wall time {wall:.1f} s ({wall / n * 1e3:.2f} ms per frame incl. making the fake images)")

@@ -32,8 +32,11 @@ def main() -> None:
     ap.add_argument("--width", type=int, default=1241)
     ap.add_argument("--height", type=int, default=376)
     ap.add_argument("--workers", type=int, default=2, help="render threads (default 2)")
-    ap.add_argument("--trajectory", default=str(KITTI00) if KITTI00.is_file() else "loop",
-                    help="KITTI pose file or 'loop' (default: KITTI 00's ground truth)")
+    ap.add_argument(
+        "--trajectory",
+        default=str(KITTI00) if KITTI00.is_file() else "loop",
+        help="KITTI pose file or 'loop' (default: KITTI 00's ground truth)",
+    )
     ap.add_argument("--depth", action="store_true", help="also write depth_0/ (uint16 mm)")
     ap.add_argument("--scene", default="street", choices=SCENES)
     for flag in ("aliasing", "traffic", "lighting"):
@@ -51,9 +54,11 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench_synth_") as tmp:
         totals = render_to_folder(seq, tmp, write_depth=args.depth, workers=args.workers)
     n = int(totals["frames"])
-    print(f"trajectory      {args.trajectory} frames {args.start}:{stop} ({n} pairs), {args.width}x{args.height}, "
-          f"{args.workers} workers, scene {args.scene}"
-          + "".join(f", {f}" for f in ("aliasing", "traffic", "lighting") if getattr(args, f)))
+    print(
+        f"trajectory      {args.trajectory} frames {args.start}:{stop} ({n} pairs), {args.width}x{args.height}, "
+        f"{args.workers} workers, scene {args.scene}"
+        + "".join(f", {f}" for f in ("aliasing", "traffic", "lighting") if getattr(args, f))
+    )
     print(f"world build     {build_s:.2f} s ({len(seq.world.boxes)} boxes, {len(seq.world.triangles)} triangles)")
     print(f"throughput      {n / totals['wall_s']:.2f} pairs/s written to disk ({totals['wall_s']:.2f} s wall)")
     for stage in ("cast", "shade", "write"):

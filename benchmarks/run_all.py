@@ -30,8 +30,18 @@ BENCHMARKS: list[tuple[str, str, list[str], Path | None]] = [
     (  # the built-in loop (300 frames, closes loops; no data needed), rendered once into results/bench
         "pipeline",
         "bench_pipeline.py",
-        ["--trajectory", "loop", "--width", "620", "--height", "188", "--seq", str(ROOT / "results" / "bench" / "loop300_620"),
-         "--naive-frames", "10"],
+        [
+            "--trajectory",
+            "loop",
+            "--width",
+            "620",
+            "--height",
+            "188",
+            "--seq",
+            str(ROOT / "results" / "bench" / "loop300_620"),
+            "--naive-frames",
+            "10",
+        ],
         None,
     ),
     ("batch", "bench_batch.py", ["--width", "620", "--height", "188"], None),  # 4 cells of 40 frames on local Ray

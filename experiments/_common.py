@@ -135,15 +135,15 @@ def read_frames(run_dir: Path) -> dict[str, np.ndarray]:
     """A run folder's frames.csv as columns of floats."""
     with open(Path(run_dir) / "frames.csv", newline="") as fh:
         rows = list(csv.DictReader(fh))
-    return {k: np.array([float(r[k]) if r[k] not in ("", "True", "False") else float(r[k] == "True") for r in rows])
-            for k in (rows[0] if rows else {})}
+    return {
+        k: np.array([float(r[k]) if r[k] not in ("", "True", "False") else float(r[k] == "True") for r in rows])
+        for k in (rows[0] if rows else {})
+    }
 
 
 def false_loops(loops, gt: np.ndarray, indices: np.ndarray, radius_m: float) -> int:
     k_of = {int(i): k for k, i in enumerate(indices)}
-    return sum(
-        np.linalg.norm(gt[k_of[l.reference], :3, 3] - gt[k_of[l.frame], :3, 3]) > radius_m for l in loops
-    )
+    return sum(np.linalg.norm(gt[k_of[l.reference], :3, 3] - gt[k_of[l.frame], :3, 3]) > radius_m for l in loops)
 
 
 def md_table(header: list[str], rows: list[list]) -> str:

@@ -35,8 +35,16 @@ def main() -> None:
     ap.add_argument("--rectification-error", type=float, default=0.0, help="px (see snaps-graph synth)")
     args = ap.parse_args()
     poses, times = load_trajectory(args.trajectory, args.frames)
-    seq = SyntheticSequence(poses, width=1241, height=376, seed=0, times=times, noise_std=args.noise,
-                            world_config=WorldConfig(scene=args.scene), rectification_error_px=args.rectification_error)
+    seq = SyntheticSequence(
+        poses,
+        width=1241,
+        height=376,
+        seed=0,
+        times=times,
+        noise_std=args.noise,
+        world_config=WorldConfig(scene=args.scene),
+        rectification_error_px=args.rectification_error,
+    )
     cam, cfg = seq.camera, Config().frontend
     z_true, z_est, d_err = [], [], []
     for i in range(0, len(seq), args.every):
@@ -49,17 +57,23 @@ def main() -> None:
         d_err.append(np.where((zs > 0) & (z > 0), d - cam.fx * cam.baseline_m / np.maximum(z, 1e-6), np.nan))
     z, zs, de = np.concatenate(z_true), np.concatenate(z_est), np.concatenate(d_err)
     n_frames = len(range(0, len(seq), args.every))
-    print(f"{args.scene}, noise {args.noise}, rectification error {args.rectification_error} px: {len(z)} corners in {n_frames} frames; true depth of sky corners = 0")
-    print(f"{'true depth m':>14}{'corners/frame':>15}{'with depth':>12}{'disp err px':>13}{'|disp err|':>12}{'depth err % mean':>18}{'median':>8}")
+    print(
+        f"{args.scene}, noise {args.noise}, rectification error {args.rectification_error} px: {len(z)} corners in {n_frames} frames; true depth of sky corners = 0"
+    )
+    print(
+        f"{'true depth m':>14}{'corners/frame':>15}{'with depth':>12}{'disp err px':>13}{'|disp err|':>12}{'depth err % mean':>18}{'median':>8}"
+    )
     sky = z == 0
     print(f"{'sky':>14}{sky.sum() / n_frames:>15.1f}{np.mean(zs[sky] > 0) if sky.any() else 0:>12.2f}")
     for lo, hi in BANDS:
         m = (z >= lo) & (z < hi) & (z > 0)
         k = m & (zs > 0)
         rel = zs[k] / z[k] - 1 if k.any() else np.array([np.nan])
-        print(f"{lo:>6.0f}-{min(hi, 999):<7.0f}{m.sum() / n_frames:>15.1f}{k.sum() / max(m.sum(), 1):>12.2f}"
-              f"{np.nanmean(de[k]) if k.any() else np.nan:>13.3f}{np.nanmean(np.abs(de[k])) if k.any() else np.nan:>12.3f}"
-              f"{100 * np.mean(rel):>18.2f}{100 * np.median(rel):>8.2f}")
+        print(
+            f"{lo:>6.0f}-{min(hi, 999):<7.0f}{m.sum() / n_frames:>15.1f}{k.sum() / max(m.sum(), 1):>12.2f}"
+            f"{np.nanmean(de[k]) if k.any() else np.nan:>13.3f}{np.nanmean(np.abs(de[k])) if k.any() else np.nan:>12.3f}"
+            f"{100 * np.mean(rel):>18.2f}{100 * np.median(rel):>8.2f}"
+        )
 
 
 if __name__ == "__main__":

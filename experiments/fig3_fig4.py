@@ -34,7 +34,11 @@ def main() -> None:
     jobs = [(f"synthetic {p}", synthetic_dir(p, args.width, args.height)) for p in args.paths]
     jobs += [(f"real {s}", s) for s in args.seq]
     names = {name.replace(" ", "_").replace("/", "_"): name for name, _ in jobs}
-    plan: dict = {"sequences": [{"path": str(d), "name": n} for n, (_, d) in zip(names, jobs)], "loops": "snaps", "refine": "both"}
+    plan: dict = {
+        "sequences": [{"path": str(d), "name": n} for n, (_, d) in zip(names, jobs)],
+        "loops": "snaps",
+        "refine": "both",
+    }
     if args.config:
         plan["config"] = str(args.config)
     if args.frames:
@@ -57,12 +61,31 @@ def main() -> None:
         red = 1 - tr["snaps"]["mean_deviation"] / tr["vo"]["mean_deviation"]
         for t in ("vo", "snaps", "isam2", "batch"):
             m = tr[t]
-            rows.append([name, t, len(seq), len(loops) if t != "vo" else "", fl if t != "vo" else "",
-                         m["mean_deviation"], m["ate_rmse"], m["t_rel"], m["r_rel"]])
-        print(f"{name}: SNAPS mean deviation {tr['vo']['mean_deviation']:.2f} -> {tr['snaps']['mean_deviation']:.2f} m ({100 * red:.0f}% less)")
+            rows.append(
+                [
+                    name,
+                    t,
+                    len(seq),
+                    len(loops) if t != "vo" else "",
+                    fl if t != "vo" else "",
+                    m["mean_deviation"],
+                    m["ate_rmse"],
+                    m["t_rel"],
+                    m["r_rel"],
+                ]
+            )
+        print(
+            f"{name}: SNAPS mean deviation {tr['vo']['mean_deviation']:.2f} -> {tr['snaps']['mean_deviation']:.2f} m ({100 * red:.0f}% less)"
+        )
     text = "# Fig. 3/4: trajectories and deviation from ground truth\n\n"
-    text += "Command: `python experiments/fig3_fig4.py " + " ".join(["--paths", *args.paths] + (["--seq", *args.seq] if args.seq else [])) + "`\n\n"
-    text += md_table(["sequence", "trajectory", "frames", "loops", "false loops", "mean dev m", "ATE m", "t_rel %", "r_rel deg/100m"], rows)
+    text += (
+        "Command: `python experiments/fig3_fig4.py "
+        + " ".join(["--paths", *args.paths] + (["--seq", *args.seq] if args.seq else []))
+        + "`\n\n"
+    )
+    text += md_table(
+        ["sequence", "trajectory", "frames", "loops", "false loops", "mean dev m", "ATE m", "t_rel %", "r_rel deg/100m"], rows
+    )
     text += "\nThe paper (real KITTI, its own VO): mean deviation 16.79 m without loop closure, 5.94 m with SNAPS (-65%).\n"
     text += "Per sequence: `fig3_fig4/<sequence>/default/trajectories.png` (Fig. 3), `errors.png` (Fig. 4), `report.md`; "
     text += "`fig3_fig4/summary.md`: the batch summary (node, wall time, commit, config hash per run).\n"

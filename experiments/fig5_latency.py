@@ -32,13 +32,22 @@ def main() -> None:
                 total.append(float(r["t_total_ms"]))
                 vo.append(float(r["t_vo_ms"]))
                 graph.append(float(r["t_graph_ms"]))
-    samples = {"SNAPS, no candidate": none, "SNAPS, candidates": cand, "SNAPS, loop closed": closed,
-               "graph update": graph, "front end": vo, "whole frame": total}
+    samples = {
+        "SNAPS, no candidate": none,
+        "SNAPS, candidates": cand,
+        "SNAPS, loop closed": closed,
+        "graph update": graph,
+        "front end": vo,
+        "whole frame": total,
+    }
     samples = {k: np.array(v) for k, v in samples.items() if v}
     RESULTS.mkdir(parents=True, exist_ok=True)
     plot_latency_box(RESULTS / "fig5_latency.png", samples, title="Latency per frame (paper Fig. 5)")
     paper = {"SNAPS, no candidate": "0.00294", "SNAPS, candidates": "27.0", "whole frame": "295"}
-    rows = [[k, len(v), float(np.mean(v)), float(np.median(v)), float(np.percentile(v, 95)), paper.get(k, "")] for k, v in samples.items()]
+    rows = [
+        [k, len(v), float(np.mean(v)), float(np.median(v)), float(np.percentile(v, 95)), paper.get(k, "")]
+        for k, v in samples.items()
+    ]
     text = "# Fig. 5: latency\n\nCommand: `python experiments/fig5_latency.py " + " ".join(args.runs) + "`\n\n"
     text += md_table(["stage", "frames", "mean ms", "median ms", "p95 ms", "paper mean ms"], rows)
     text += "\nThe paper: 4-core laptop CPU; ours: the 2-core machine the command ran on.\n"

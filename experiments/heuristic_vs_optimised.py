@@ -37,14 +37,38 @@ def main() -> None:
             ms = {t: evaluate(p, cache.gt) for t, p in result.trajectories.items()}
             for t, m in ms.items():
                 summary[t].append(m["mean_deviation"])
-            rows.append([path, seed, len(seq), len(result.loops), nfalse,
-                         *[ms[t]["mean_deviation"] for t in ("vo", "snaps", "isam2", "batch")],
-                         *[ms[t]["ate_rmse"] for t in ("vo", "snaps", "isam2", "batch")]])
+            rows.append(
+                [
+                    path,
+                    seed,
+                    len(seq),
+                    len(result.loops),
+                    nfalse,
+                    *[ms[t]["mean_deviation"] for t in ("vo", "snaps", "isam2", "batch")],
+                    *[ms[t]["ate_rmse"] for t in ("vo", "snaps", "isam2", "batch")],
+                ]
+            )
             print(rows[-1])
     text = "# Heuristic vs optimised corrections\n\n"
     text += f"Command: `python experiments/heuristic_vs_optimised.py --paths {' '.join(args.paths)} --seeds {' '.join(map(str, args.seeds))} --width {args.width} --height {args.height}`\n\n"
-    text += md_table(["path", "seed", "frames", "loops", "false", "VO mean dev m", "SNAPS", "iSAM2", "batch",
-                      "VO ATE m", "SNAPS", "iSAM2", "batch"], rows)
+    text += md_table(
+        [
+            "path",
+            "seed",
+            "frames",
+            "loops",
+            "false",
+            "VO mean dev m",
+            "SNAPS",
+            "iSAM2",
+            "batch",
+            "VO ATE m",
+            "SNAPS",
+            "iSAM2",
+            "batch",
+        ],
+        rows,
+    )
     text += "\nMean over all runs, mean deviation [m]: " + ", ".join(f"{t} {np.mean(v):.3f}" for t, v in summary.items()) + "\n"
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "heuristic_vs_optimised.md").write_text(text)

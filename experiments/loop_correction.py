@@ -94,9 +94,26 @@ def main() -> None:
         gt = cache.gt
         vo = np.array([cache.results[int(i)].pose for i in cache.indices])
         m_vo = evaluate(vo, gt)
-        rows.append([seq_dir.name, "VO", "", "", f"{m_vo['mean_deviation']:.3f}", f"{m_vo['mean_deviation_horizontal']:.3f}",
-                     f"{m_vo['mean_deviation_vertical']:.3f}", f"{m_vo['ate_rmse']:.3f}", "", "", "", "", ""])
-        print(f"  VO: mean dev {m_vo['mean_deviation']:.3f} (h {m_vo['mean_deviation_horizontal']:.3f} v {m_vo['mean_deviation_vertical']:.3f}) ATE {m_vo['ate_rmse']:.3f}")
+        rows.append(
+            [
+                seq_dir.name,
+                "VO",
+                "",
+                "",
+                f"{m_vo['mean_deviation']:.3f}",
+                f"{m_vo['mean_deviation_horizontal']:.3f}",
+                f"{m_vo['mean_deviation_vertical']:.3f}",
+                f"{m_vo['ate_rmse']:.3f}",
+                "",
+                "",
+                "",
+                "",
+                "",
+            ]
+        )
+        print(
+            f"  VO: mean dev {m_vo['mean_deviation']:.3f} (h {m_vo['mean_deviation_horizontal']:.3f} v {m_vo['mean_deviation_vertical']:.3f}) ATE {m_vo['ate_rmse']:.3f}"
+        )
         for name in args.variants:
             cfg = copy.deepcopy(base)
             for k, v in VARIANTS[name].items():
@@ -107,11 +124,17 @@ def main() -> None:
             if args.write_runs:
                 write_results(Path(args.write_runs) / f"{seq_dir.name}_{name}", pipe, result, gt, overwrite=True)
             m = evaluate(result.trajectories["snaps"], gt)
-            ev = evaluate_loops(pipe.snaps.candidate_records(), [(l.frame, l.reference) for l in result.loops], gt, cache.indices,
-                                LoopEvalSettings(frame_distance=cfg.loop.frame_distance, max_yaw_deg=cfg.loop.max_yaw_deg),
-                                cfg.loop.min_similarity)
+            ev = evaluate_loops(
+                pipe.snaps.candidate_records(),
+                [(l.frame, l.reference) for l in result.loops],
+                gt,
+                cache.indices,
+                LoopEvalSettings(frame_distance=cfg.loop.frame_distance, max_yaw_deg=cfg.loop.max_yaw_deg),
+                cfg.loop.min_similarity,
+            )
             t_cand = [r.t_loop_ms for r in result.records if r.loop_candidates > 0]
             t_none = [r.t_loop_ms for r in result.records if r.loop_candidates == 0]
+
             def ratio(key: str, m: dict = m, m_vo: dict = m_vo) -> float:
                 return m[key] / m_vo[key] if m_vo[key] > 0 else float("nan")
 
@@ -125,29 +148,81 @@ def main() -> None:
                 k_of = {int(i): k for k, i in enumerate(cache.indices)}
                 ev_ref = np.array([vo[k_of[l.reference], 1, 3] - gt[k_of[l.reference], 1, 3] for l in result.loops])
                 ev_cur = np.array([vo[k_of[l.frame], 1, 3] - gt[k_of[l.frame], 1, 3] for l in result.loops])
-                print(f"  VO height error at the {len(ev_ref)} loops: reference |e| mean {np.abs(ev_ref).mean():.3f} m, "
-                      f"loop frame {np.abs(ev_cur).mean():.3f} m; reference's larger at {int((np.abs(ev_ref) > np.abs(ev_cur)).sum())}")
-            rows.append([seq_dir.name, name, ev["loops"], ev["false_loops"],
-                         f"{m['mean_deviation']:.3f} ({ratio('mean_deviation'):.2f}x)",
-                         f"{m['mean_deviation_horizontal']:.3f} ({ratio('mean_deviation_horizontal'):.2f}x)",
-                         f"{m['mean_deviation_vertical']:.3f} ({ratio('mean_deviation_vertical'):.2f}x)",
-                         f"{m['ate_rmse']:.3f} ({ratio('ate_rmse'):.2f}x)",
-                         f"{ev['max_recall_at_100_precision']:.2f} / {ev['max_recall_at_100_precision_verified']:.2f}",
-                         f"{ev['segments_found']}/{ev['segments']}",
-                         f"{np.median(t_cand):.2f}" if t_cand else "n/a", f"{1e3 * np.median(t_none):.1f}" if t_none else "n/a", batch])
-            print(f"  {name:<12} loops {ev['loops']} (false {ev['false_loops']}), mean dev {rows[-1][4]}, h {rows[-1][5]}, v {rows[-1][6]}, "
-                  f"ATE {rows[-1][7]}, recall@P=1 {rows[-1][8]}, segments {rows[-1][9]}, SNAPS ms {rows[-1][10]} / us {rows[-1][11]}"
-                  + (f", batch {batch}" if batch else "") + f" [{wall:.1f} s]")
+                print(
+                    f"  VO height error at the {len(ev_ref)} loops: reference |e| mean {np.abs(ev_ref).mean():.3f} m, "
+                    f"loop frame {np.abs(ev_cur).mean():.3f} m; reference's larger at {int((np.abs(ev_ref) > np.abs(ev_cur)).sum())}"
+                )
+            rows.append(
+                [
+                    seq_dir.name,
+                    name,
+                    ev["loops"],
+                    ev["false_loops"],
+                    f"{m['mean_deviation']:.3f} ({ratio('mean_deviation'):.2f}x)",
+                    f"{m['mean_deviation_horizontal']:.3f} ({ratio('mean_deviation_horizontal'):.2f}x)",
+                    f"{m['mean_deviation_vertical']:.3f} ({ratio('mean_deviation_vertical'):.2f}x)",
+                    f"{m['ate_rmse']:.3f} ({ratio('ate_rmse'):.2f}x)",
+                    f"{ev['max_recall_at_100_precision']:.2f} / {ev['max_recall_at_100_precision_verified']:.2f}",
+                    f"{ev['segments_found']}/{ev['segments']}",
+                    f"{np.median(t_cand):.2f}" if t_cand else "n/a",
+                    f"{1e3 * np.median(t_none):.1f}" if t_none else "n/a",
+                    batch,
+                ]
+            )
+            print(
+                f"  {name:<12} loops {ev['loops']} (false {ev['false_loops']}), mean dev {rows[-1][4]}, h {rows[-1][5]}, v {rows[-1][6]}, "
+                f"ATE {rows[-1][7]}, recall@P=1 {rows[-1][8]}, segments {rows[-1][9]}, SNAPS ms {rows[-1][10]} / us {rows[-1][11]}"
+                + (f", batch {batch}" if batch else "")
+                + f" [{wall:.1f} s]"
+            )
         if args.batch:
             r0 = result.records
             o = loop_oracle(vo, gt, base, [r.vo_inliers for r in r0], [r.vo_ok for r in r0])
-            rows.append([seq_dir.name, f"oracle ({len(o.pairs)} exact loops, batch)", "", "", f"{o.mean_deviation:.3f}", "", "",
-                         f"{o.ate_rmse:.3f}", "", "", "", "", ""])
-            print(f"  oracle: {len(o.pairs)} exact loops, mean dev {o.mean_deviation:.3f} ({o.mean_deviation / m_vo['mean_deviation']:.2f}x VO), ATE {o.ate_rmse:.3f}")
-    header = ["sequence", "eq. 6 variant", "loops", "false", "mean dev m (x VO)", "horizontal m", "vertical m", "ATE m",
-              "max recall @P=1 Q / Q+verif.", "segments found", "SNAPS ms (cand.)", "SNAPS us (none)", "batch mean dev m"]
+            rows.append(
+                [
+                    seq_dir.name,
+                    f"oracle ({len(o.pairs)} exact loops, batch)",
+                    "",
+                    "",
+                    f"{o.mean_deviation:.3f}",
+                    "",
+                    "",
+                    f"{o.ate_rmse:.3f}",
+                    "",
+                    "",
+                    "",
+                    "",
+                    "",
+                ]
+            )
+            print(
+                f"  oracle: {len(o.pairs)} exact loops, mean dev {o.mean_deviation:.3f} ({o.mean_deviation / m_vo['mean_deviation']:.2f}x VO), ATE {o.ate_rmse:.3f}"
+            )
+    header = [
+        "sequence",
+        "eq. 6 variant",
+        "loops",
+        "false",
+        "mean dev m (x VO)",
+        "horizontal m",
+        "vertical m",
+        "ATE m",
+        "max recall @P=1 Q / Q+verif.",
+        "segments found",
+        "SNAPS ms (cand.)",
+        "SNAPS us (none)",
+        "batch mean dev m",
+    ]
     text = "# Eq. 6 variants: what the real-time correction corrects\n\n"
-    text += "Command: `python experiments/loop_correction.py --seq " + " ".join(args.seq) + (" --variants " + " ".join(args.variants) if args.variants != list(VARIANTS) else "") + (" --batch" if args.batch else "") + (" --verify-all" if args.verify_all else "") + (" --set " + " ".join(args.set) if args.set else "") + "`\n\n"
+    text += (
+        "Command: `python experiments/loop_correction.py --seq "
+        + " ".join(args.seq)
+        + (" --variants " + " ".join(args.variants) if args.variants != list(VARIANTS) else "")
+        + (" --batch" if args.batch else "")
+        + (" --verify-all" if args.verify_all else "")
+        + (" --set " + " ".join(args.set) if args.set else "")
+        + "`\n\n"
+    )
     text += md_table(header, rows)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(text)

@@ -51,8 +51,9 @@ def frame_columns(run: Path, n: int) -> tuple[np.ndarray, np.ndarray, list[int]]
     return inliers, ok, [int(r["frame"]) for r in rows]
 
 
-def rebuilt_batch(run: Path, cfg: Config, vo: np.ndarray, inliers: np.ndarray, ok: np.ndarray,
-                  frame_ids: list[int]) -> np.ndarray:
+def rebuilt_batch(
+    run: Path, cfg: Config, vo: np.ndarray, inliers: np.ndarray, ok: np.ndarray, frame_ids: list[int]
+) -> np.ndarray:
     """The run's graph rebuilt from its files (VO steps, loops.jsonl), batch-optimised from the
     SNAPS poses (the initial estimates a run uses)."""
     init = read_poses(run / "poses_snaps.txt") if (run / "poses_snaps.txt").is_file() else vo
@@ -96,23 +97,38 @@ def main() -> None:
             rows.append([name, "", md, 100 * (md / vo_md - 1), ate_rmse(est, gt)])
 
     o = loop_oracle(vo, gt, cfg, inliers, ok, step=args.step)
-    rows.append(["oracle", f"{len(o.pairs)} exact loops, run's geometry", o.mean_deviation,
-                 100 * (o.mean_deviation / vo_md - 1), o.ate_rmse])
+    rows.append(
+        [
+            "oracle",
+            f"{len(o.pairs)} exact loops, run's geometry",
+            o.mean_deviation,
+            100 * (o.mean_deviation / vo_md - 1),
+            o.ate_rmse,
+        ]
+    )
     wide = copy.deepcopy(cfg)
     wide.loop.radius_m, wide.loop.max_yaw_deg = 30.0, 180.0
     wide.graph.robust_kernel = "none"
     wide.graph.loop_sigma_rot_rad, wide.graph.loop_sigma_trans_m = 1e-4, 1e-3
     ow = loop_oracle(vo, gt, wide, inliers, ok, step=args.step)
-    rows.append(["oracle, generous", f"{len(ow.pairs)} exact loops, 30 m, any heading, 100x tighter",
-                 ow.mean_deviation, 100 * (ow.mean_deviation / vo_md - 1), ow.ate_rmse])
+    rows.append(
+        [
+            "oracle, generous",
+            f"{len(ow.pairs)} exact loops, 30 m, any heading, 100x tighter",
+            ow.mean_deviation,
+            100 * (ow.mean_deviation / vo_md - 1),
+            ow.ate_rmse,
+        ]
+    )
 
     for on in (False, True):
         gcfg = copy.deepcopy(cfg)
         gcfg.graph.gravity_prior = on
         est = rebuilt_batch(run, gcfg, vo, inliers, ok, frame_ids)
         md = mean_deviation(est, gt)
-        rows.append([f"batch, rebuilt, gravity prior {'on' if on else 'off'}", "the run's", md,
-                     100 * (md / vo_md - 1), ate_rmse(est, gt)])
+        rows.append(
+            [f"batch, rebuilt, gravity prior {'on' if on else 'off'}", "the run's", md, 100 * (md / vo_md - 1), ate_rmse(est, gt)]
+        )
 
     anchor_rows = []
     for k in (0, 10, 50, 100, 200, 400):

@@ -75,7 +75,21 @@ def main() -> None:
     defaults = ", ".join(f"{k} {getattr(base.loop, k)}" for k in SWEEPS)
     text += f"VO alone: mean deviation {vo_md:.3f} m, ATE {vo_ate:.3f} m. Every row changes one parameter from the defaults: {defaults}.\n"
     text += "False loops: reference farther than 10 m from the current frame in the ground truth. Time: median SNAPS ms on frames that compared candidates.\n\n"
-    text += md_table(["parameter", "value", "loops", "false", "SNAPS mean dev m", "SNAPS ATE m", "batch mean dev m", "batch ATE m", "SNAPS ms (cand.)", "similarities"], rows)
+    text += md_table(
+        [
+            "parameter",
+            "value",
+            "loops",
+            "false",
+            "SNAPS mean dev m",
+            "SNAPS ATE m",
+            "batch mean dev m",
+            "batch ATE m",
+            "SNAPS ms (cand.)",
+            "similarities",
+        ],
+        rows,
+    )
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "table1_sweep.md").write_text(text)
     _plot(curves, vo_md, RESULTS / "table1_sweep.png")
@@ -106,9 +120,20 @@ def _by_batch(seq_dir, base: Config, args):
         loops = read_loops(run_dir)
         fr = read_frames(run_dir)
         cand = fr["loop_candidates"] > 0
-        rows.append([param, value, len(loops), false_loops(loops, seq.gt_poses, seq.indices, base.loop.radius_m),
-                     tr["snaps"]["mean_deviation"], tr["snaps"]["ate_rmse"], tr["batch"]["mean_deviation"], tr["batch"]["ate_rmse"],
-                     float(np.median(fr["t_loop_ms"][cand])) if cand.any() else float("nan"), int(fr["loop_candidates"].sum())])
+        rows.append(
+            [
+                param,
+                value,
+                len(loops),
+                false_loops(loops, seq.gt_poses, seq.indices, base.loop.radius_m),
+                tr["snaps"]["mean_deviation"],
+                tr["snaps"]["ate_rmse"],
+                tr["batch"]["mean_deviation"],
+                tr["batch"]["ate_rmse"],
+                float(np.median(fr["t_loop_ms"][cand])) if cand.any() else float("nan"),
+                int(fr["loop_candidates"].sum()),
+            ]
+        )
     return rows, {}, vo_md, vo_ate, n_frames
 
 
@@ -129,12 +154,22 @@ def _by_replay(seq_dir, base: Config, args):
             wall = time.perf_counter() - t0
             tr = result.trajectories
             t_loop = [r.t_loop_ms for r in result.records if r.loop_candidates > 0]
-            row = [param, v, len(result.loops), false_loops(result.loops, gt, cache.indices, base.loop.radius_m),
-                   mean_deviation(tr["snaps"], gt), ate_rmse(tr["snaps"], gt),
-                   mean_deviation(tr["batch"], gt), ate_rmse(tr["batch"], gt),
-                   float(np.median(t_loop)) if t_loop else float("nan"), sum(r.loop_candidates for r in result.records)]
+            row = [
+                param,
+                v,
+                len(result.loops),
+                false_loops(result.loops, gt, cache.indices, base.loop.radius_m),
+                mean_deviation(tr["snaps"], gt),
+                ate_rmse(tr["snaps"], gt),
+                mean_deviation(tr["batch"], gt),
+                ate_rmse(tr["batch"], gt),
+                float(np.median(t_loop)) if t_loop else float("nan"),
+                sum(r.loop_candidates for r in result.records),
+            ]
             rows.append(row)
-            print(f"{param}={v}: loops {row[2]} (false {row[3]}), SNAPS mean dev {row[4]:.2f} m, batch {row[6]:.2f} m, {wall:.1f} s")
+            print(
+                f"{param}={v}: loops {row[2]} (false {row[3]}), SNAPS mean dev {row[4]:.2f} m, batch {row[6]:.2f} m, {wall:.1f} s"
+            )
     return rows, {}, vo_md, vo_ate, len(seq)
 
 

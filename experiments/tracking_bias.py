@@ -39,7 +39,9 @@ def band_table(title: str, v: np.ndarray, err: np.ndarray) -> None:
         m = (v >= lo) & (v < hi) & (np.abs(err) < 2)
         if m.any():
             sem = err[m].std() / np.sqrt(m.sum())
-            print(f"  rows {lo:>3}-{min(hi, 999):<3}  n {m.sum():5d}  median {np.median(err[m]):+.4f}  mean {err[m].mean():+.4f} (+- {sem:.4f}) px")
+            print(
+                f"  rows {lo:>3}-{min(hi, 999):<3}  n {m.sum():5d}  median {np.median(err[m]):+.4f}  mean {err[m].mean():+.4f} (+- {sem:.4f}) px"
+            )
 
 
 def rotvec(R: np.ndarray) -> np.ndarray:
@@ -101,7 +103,9 @@ def main() -> None:
     band_table("stereo: sparse LK disparity - exact disparity", np.concatenate(stereo_v), np.concatenate(stereo_err))
     for (w, g), parts in track.items():
         a = np.concatenate(parts)
-        band_table(f"tracking over {g} frame(s), {w} px window: KLT row - exact row (positive = too low in the image)", a[:, 0], a[:, 1])
+        band_table(
+            f"tracking over {g} frame(s), {w} px window: KLT row - exact row (positive = too low in the image)", a[:, 0], a[:, 1]
+        )
 
 
 if __name__ == "__main__":

@@ -11,12 +11,8 @@ from .errors import SnapsGraphError
 from .io_utils import atomic_write_text
 
 # P0/P1 of KITTI odometry sequence 00 (grey cameras), the synthetic renderer's default camera.
-KITTI00_P0 = np.array(
-    [[718.856, 0.0, 607.1928, 0.0], [0.0, 718.856, 185.2157, 0.0], [0.0, 0.0, 1.0, 0.0]]
-)
-KITTI00_P1 = np.array(
-    [[718.856, 0.0, 607.1928, -386.1448], [0.0, 718.856, 185.2157, 0.0], [0.0, 0.0, 1.0, 0.0]]
-)
+KITTI00_P0 = np.array([[718.856, 0.0, 607.1928, 0.0], [0.0, 718.856, 185.2157, 0.0], [0.0, 0.0, 1.0, 0.0]])
+KITTI00_P1 = np.array([[718.856, 0.0, 607.1928, -386.1448], [0.0, 718.856, 185.2157, 0.0], [0.0, 0.0, 1.0, 0.0]])
 KITTI00_SIZE = (1241, 376)  # width, height
 
 # Plausible calibration: anything outside is a malformed calib.txt, not a camera.
@@ -58,12 +54,12 @@ class StereoCamera:
         if not self.width or not self.height:
             raise ValueError("scaled() needs a camera with a known size")
         sx, sy = width / self.width, height / self.height
-        return StereoCamera(
-            self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, self.baseline_m, width, height
-        )
+        return StereoCamera(self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, self.baseline_m, width, height)
 
     @classmethod
-    def from_projections(cls, P0: np.ndarray, P1: np.ndarray, width: int = 0, height: int = 0, source: str = "calib") -> "StereoCamera":
+    def from_projections(
+        cls, P0: np.ndarray, P1: np.ndarray, width: int = 0, height: int = 0, source: str = "calib"
+    ) -> "StereoCamera":
         P0 = np.asarray(P0, float).reshape(3, 4)
         P1 = np.asarray(P1, float).reshape(3, 4)
         fx, fy, cx, cy = P0[0, 0], P0[1, 1], P0[0, 2], P0[1, 2]
@@ -71,7 +67,9 @@ class StereoCamera:
             raise SnapsGraphError(f"{source}: P0/P1 contain non-finite numbers")
         for f, name in ((fx, "P0[0,0] (fx)"), (fy, "P0[1,1] (fy)")):
             if not MIN_FOCAL_PX < f <= MAX_FOCAL_PX:
-                raise SnapsGraphError(f"{source}: focal length {name} = {f:.6g} px is not in ({MIN_FOCAL_PX:g}, {MAX_FOCAL_PX:g}]")
+                raise SnapsGraphError(
+                    f"{source}: focal length {name} = {f:.6g} px is not in ({MIN_FOCAL_PX:g}, {MAX_FOCAL_PX:g}]"
+                )
         if not (abs(cx) <= MAX_FOCAL_PX and abs(cy) <= MAX_FOCAL_PX):
             raise SnapsGraphError(f"{source}: principal point ({cx:.6g}, {cy:.6g}) px is absurd")
         # A rectified pair shares K: P1 = K [I | -B e_x] (a different focal length would silently

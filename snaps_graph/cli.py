@@ -47,8 +47,12 @@ def _progress(total: int | None, desc: str):
 
 @app.command()
 def synth(
-    out: Path = typer.Option(..., "--out", help="Sequence folder to write (image_0/, image_1/, calib.txt, times.txt, poses.txt)."),
-    trajectory: str = typer.Option("loop", "--trajectory", help="A KITTI pose file to drive along, or 'loop' for the built-in closed loop."),
+    out: Path = typer.Option(
+        ..., "--out", help="Sequence folder to write (image_0/, image_1/, calib.txt, times.txt, poses.txt)."
+    ),
+    trajectory: str = typer.Option(
+        "loop", "--trajectory", help="A KITTI pose file to drive along, or 'loop' for the built-in closed loop."
+    ),
     times: Optional[Path] = typer.Option(None, "--times", help="Timestamps file for the trajectory (default 10 Hz)."),
     frames: Optional[str] = typer.Option(None, "--frames", help="Frame range A:B (A included, B excluded)."),
     width: int = typer.Option(1241, "--width", help="Image width, pixels."),
@@ -56,15 +60,35 @@ def synth(
     seed: int = typer.Option(0, "--seed", help="World and noise seed (same seed, same images)."),
     noise: float = typer.Option(0.0, "--noise", help="Sensor noise, grey-level standard deviation."),
     exposure: float = typer.Option(0.0, "--exposure", help="Exposure change between passes (0 = none)."),
-    depth: bool = typer.Option(False, "--depth/--no-depth", help="Also write exact depth of the left camera (depth_0/, uint16 mm)."),
+    depth: bool = typer.Option(
+        False, "--depth/--no-depth", help="Also write exact depth of the left camera (depth_0/, uint16 mm)."
+    ),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty OUT folder (whole)."),
-    scene: str = typer.Option("street", "--scene", help="street (buildings from 5 m) | open (fields, trees and farms 30-200 m away) | mixed (alternating stretches)."),
-    aliasing: bool = typer.Option(False, "--aliasing", help="Hard world: buildings from a few facade modules in one repeated block."),
+    scene: str = typer.Option(
+        "street",
+        "--scene",
+        help="street (buildings from 5 m) | open (fields, trees and farms 30-200 m away) | mixed (alternating stretches).",
+    ),
+    aliasing: bool = typer.Option(
+        False, "--aliasing", help="Hard world: buildings from a few facade modules in one repeated block."
+    ),
     traffic: bool = typer.Option(False, "--traffic", help="Hard world: parked cars that differ between passes, oncoming cars."),
-    lighting: bool = typer.Option(False, "--lighting", help="Hard world: sun and cast shadows follow a time of day along the trajectory's time."),
-    rectification_error: float = typer.Option(0.0, "--rectification-error", help="Sensor: every disparity reads this many pixels smaller than calib.txt implies (a rig's rectification residual; depth reads long, the more the farther)."),
-    world_mesh: Optional[Path] = typer.Option(None, "--world-mesh", help="Also write the static world geometry (no traffic) as a triangle mesh (.ply) in the frame of poses.txt."),
-    mesh_only: bool = typer.Option(False, "--mesh-only", help="With --world-mesh: write the mesh only (no images; OUT is not touched)."),
+    lighting: bool = typer.Option(
+        False, "--lighting", help="Hard world: sun and cast shadows follow a time of day along the trajectory's time."
+    ),
+    rectification_error: float = typer.Option(
+        0.0,
+        "--rectification-error",
+        help="Sensor: every disparity reads this many pixels smaller than calib.txt implies (a rig's rectification residual; depth reads long, the more the farther).",
+    ),
+    world_mesh: Optional[Path] = typer.Option(
+        None,
+        "--world-mesh",
+        help="Also write the static world geometry (no traffic) as a triangle mesh (.ply) in the frame of poses.txt.",
+    ),
+    mesh_only: bool = typer.Option(
+        False, "--mesh-only", help="With --world-mesh: write the mesh only (no images; OUT is not touched)."
+    ),
 ) -> None:
     """Render a synthetic stereo sequence along a trajectory, in KITTI layout."""
     from .datasets.synthetic import SCENES, SyntheticSequence, WorldConfig, load_trajectory, render_to_folder
@@ -88,8 +112,17 @@ def synth(
                 raise_user(f"{out}: --out would replace the input {given}")
     world = WorldConfig(scene=scene, aliasing=aliasing, traffic=traffic, lighting=lighting)
     poses, ts = load_trajectory(trajectory, frames, times=str(times) if times else None)
-    seq = SyntheticSequence(poses, width=width, height=height, seed=seed, noise_std=noise, exposure_change=exposure, times=ts,
-                            world_config=world, rectification_error_px=rectification_error)
+    seq = SyntheticSequence(
+        poses,
+        width=width,
+        height=height,
+        seed=seed,
+        noise_std=noise,
+        exposure_change=exposure,
+        times=ts,
+        world_config=world,
+        rectification_error_px=rectification_error,
+    )
     if world_mesh is not None:
         seq.write_world_mesh(world_mesh)
         typer.echo(f"wrote the world mesh ({len(seq.world.triangles)} triangles) to {world_mesh}")
@@ -102,7 +135,10 @@ def synth(
 
 @app.command()
 def run(
-    seq_dir: Path = typer.Argument(..., help="A KITTI folder (image_0/, image_1/, calib.txt), a EuRoC mav0/ folder, a ROS 1 .bag, a ROS 2 bag folder or .mcap, or live:DEV[,DEV]."),
+    seq_dir: Path = typer.Argument(
+        ...,
+        help="A KITTI folder (image_0/, image_1/, calib.txt), a EuRoC mav0/ folder, a ROS 1 .bag, a ROS 2 bag folder or .mcap, or live:DEV[,DEV].",
+    ),
     out: Path = typer.Option(..., "--out", help="Results folder."),
     frames: Optional[str] = typer.Option(None, "--frames", help="Frame range A:B (A included, B excluded)."),
     config: Optional[Path] = typer.Option(None, "--config", help="A TOML config (see `snaps-graph config`)."),
@@ -110,15 +146,22 @@ def run(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty OUT folder (whole, at the end of the run)."),
     left_topic: Optional[str] = typer.Option(None, "--left-topic", help="ROS bag: left image topic (default: found by name)."),
     right_topic: Optional[str] = typer.Option(None, "--right-topic", help="ROS bag: right image topic (default: found by name)."),
-    calib: Optional[Path] = typer.Option(None, "--calib", help="live:DEV, or a bag without CameraInfo: calib.txt of rectified cameras, or a folder with cam0/ and cam1/ sensor.yaml."),
+    calib: Optional[Path] = typer.Option(
+        None,
+        "--calib",
+        help="live:DEV, or a bag without CameraInfo: calib.txt of rectified cameras, or a folder with cam0/ and cam1/ sensor.yaml.",
+    ),
     loops: Optional[str] = typer.Option(None, "--loops", help="snaps | none (default from config: snaps)."),
     refine: Optional[str] = typer.Option(None, "--refine", help="none | isam2 | batch | both (default from config: none)."),
     map_: Optional[bool] = typer.Option(None, "--map/--no-map", help="Build the point-cloud map (default from config: off)."),
     mode: Optional[str] = typer.Option(None, "--mode", help="Front-end mode override: klt | orb | sift."),
     map_all: bool = typer.Option(False, "--map-all", help="With --map: also map_<trajectory>.ply for every trajectory."),
-    world_mesh: Optional[Path] = typer.Option(None, "--world-mesh", help="With --map: the true world mesh (PLY); map accuracy per trajectory."),
+    world_mesh: Optional[Path] = typer.Option(
+        None, "--world-mesh", help="With --map: the true world mesh (PLY); map accuracy per trajectory."
+    ),
     gravity_prior: Optional[bool] = typer.Option(
-        None, "--gravity-prior/--no-gravity-prior",
+        None,
+        "--gravity-prior/--no-gravity-prior",
         help="Batch refinement: level-vehicle prior on every frame's attitude (default from config: off).",
     ),
     viewer: bool = typer.Option(False, "--viewer", help="Spawn the rerun viewer and stream the run to it (needs rerun-sdk)."),
@@ -169,7 +212,14 @@ def run(
 
         try:
             result, metrics = run_sequence(
-                seq, out, cfg, loops=loops, refine=refine, build_map=map_, overwrite=overwrite, on_frame=on_frame,
+                seq,
+                out,
+                cfg,
+                loops=loops,
+                refine=refine,
+                build_map=map_,
+                overwrite=overwrite,
+                on_frame=on_frame,
                 observer=observer,
             )
         except BaseException:
@@ -195,7 +245,9 @@ def batch(
     plan: Path = typer.Argument(..., help="A plan (TOML): sequences, run options, variants (config overrides)."),
     out: Path = typer.Option(..., "--out", help="Folder for DIR/<sequence>/<variant>/ run folders and summary.csv / summary.md."),
     address: Optional[str] = typer.Option(None, "--address", help="Join this Ray cluster (default: start Ray on this machine)."),
-    max_parallel: Optional[int] = typer.Option(None, "--max-parallel", help="At most this many cells at once (default: as many as Ray has CPUs for)."),
+    max_parallel: Optional[int] = typer.Option(
+        None, "--max-parallel", help="At most this many cells at once (default: as many as Ray has CPUs for)."
+    ),
 ) -> None:
     """Run every (sequence, variant) cell of a plan as a Ray task; resumable; summary.csv / .md.
 
@@ -210,11 +262,16 @@ def batch(
     try:
         rows = run_batch(p, out, address=address, max_parallel=max_parallel)
     except (Interrupted, KeyboardInterrupt):
-        print(f"interrupted: running cells cancelled; finished cells are kept (a re-run resumes); see {out / 'summary.md'}", file=sys.stderr)
+        print(
+            f"interrupted: running cells cancelled; finished cells are kept (a re-run resumes); see {out / 'summary.md'}",
+            file=sys.stderr,
+        )
         raise typer.Exit(EXIT_INTERRUPTED) from None
     counts = {s: sum(r["status"] == s for r in rows) for s in ("ok", "skipped", "failed")}
-    typer.echo(f"{len(rows)} cells: {counts['ok']} ok, {counts['skipped']} skipped, {counts['failed']} failed "
-               f"in {time.perf_counter() - t0:.1f} s; summary in {out / 'summary.md'}")
+    typer.echo(
+        f"{len(rows)} cells: {counts['ok']} ok, {counts['skipped']} skipped, {counts['failed']} failed "
+        f"in {time.perf_counter() - t0:.1f} s; summary in {out / 'summary.md'}"
+    )
     if counts["failed"]:
         raise typer.Exit(EXIT_CELLS_FAILED)
 
@@ -222,12 +279,16 @@ def batch(
 @app.command()
 def convert(
     src: Path = typer.Argument(..., help="Any readable source: KITTI folder, EuRoC mav0/ folder, ROS 1/2 bag, live:DEV[,DEV]."),
-    out: Path = typer.Option(..., "--out", help="KITTI folder to write (image_0/, image_1/, calib.txt, times.txt, poses.txt when known)."),
+    out: Path = typer.Option(
+        ..., "--out", help="KITTI folder to write (image_0/, image_1/, calib.txt, times.txt, poses.txt when known)."
+    ),
     frames: Optional[str] = typer.Option(None, "--frames", help="Frame range A:B (A included, B excluded)."),
     gt: Optional[Path] = typer.Option(None, "--gt", help="Ground truth of the source (EuRoC state csv; KITTI poses for a bag)."),
     left_topic: Optional[str] = typer.Option(None, "--left-topic", help="ROS bag: left image topic (default: found by name)."),
     right_topic: Optional[str] = typer.Option(None, "--right-topic", help="ROS bag: right image topic (default: found by name)."),
-    calib: Optional[Path] = typer.Option(None, "--calib", help="live:DEV, or a bag without CameraInfo: calib.txt, or a folder with cam0/ and cam1/ sensor.yaml."),
+    calib: Optional[Path] = typer.Option(
+        None, "--calib", help="live:DEV, or a bag without CameraInfo: calib.txt, or a folder with cam0/ and cam1/ sensor.yaml."
+    ),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty OUT folder (whole, at the end)."),
 ) -> None:
     """Write any readable source as a KITTI folder of rectified pairs."""
@@ -276,7 +337,9 @@ def eval_(
 def compare(
     run_dir: Path = typer.Argument(..., help="A results folder written by `snaps-graph run`."),
     gt: Optional[Path] = typer.Option(None, "--gt", help="Ground truth (default: RUN_DIR/poses_gt.txt)."),
-    world_mesh: Optional[Path] = typer.Option(None, "--world-mesh", help="The true world mesh (PLY): accuracy of the run's maps."),
+    world_mesh: Optional[Path] = typer.Option(
+        None, "--world-mesh", help="The true world mesh (PLY): accuracy of the run's maps."
+    ),
 ) -> None:
     """Heuristic (SNAPS) against optimised corrections: report.md, PNGs and metrics.json."""
     from .evaluation.report import compare_run
@@ -286,8 +349,9 @@ def compare(
         from .mapping.outputs import accuracy_from_files
 
         def measure(run, trajs, entry, gt_poses, mc):
-            acc = accuracy_from_files(run, world_mesh, trajs, entry, gt_poses, mc.accuracy_range_m,
-                                      mc.accuracy_tolerance_m, mc.accuracy_samples)
+            acc = accuracy_from_files(
+                run, world_mesh, trajs, entry, gt_poses, mc.accuracy_range_m, mc.accuracy_tolerance_m, mc.accuracy_samples
+            )
             return {"accuracy": acc, "world_mesh": str(world_mesh)}
 
     compare_run(run_dir, gt, map_accuracy=measure)
@@ -365,8 +429,10 @@ def _fmt(v, nd=3) -> str:
 
 
 def _metrics_table(per_traj: dict[str, dict]) -> str:
-    head = (f"{'trajectory':<14}{'frames':>8}{'mean dev m':>12}{'horiz':>8}{'vert':>8}{'ATE m':>10}{'t_rel %':>9}"
-            f"{'r_rel °/100m':>14}{'end drift %':>13}")
+    head = (
+        f"{'trajectory':<14}{'frames':>8}{'mean dev m':>12}{'horiz':>8}{'vert':>8}{'ATE m':>10}{'t_rel %':>9}"
+        f"{'r_rel °/100m':>14}{'end drift %':>13}"
+    )
     lines = [head, "-" * len(head)]
     for name, m in per_traj.items():
         lines.append(
@@ -382,13 +448,14 @@ def _print_summary(metrics: dict, out: Path) -> None:
     fps = lat.get("frames_per_s")
     typer.echo(
         f"{metrics['frames']} frames ({metrics.get('flagged_frames', 0)} flagged), {metrics['loops']} loops, "
-        f"median {_fmt(lat.get('total', {}).get('median'), 1)} ms/frame"
-        + (f" ({fps:.1f} frames/s)" if fps else "")
+        f"median {_fmt(lat.get('total', {}).get('median'), 1)} ms/frame" + (f" ({fps:.1f} frames/s)" if fps else "")
     )
     if "trajectories" in metrics:
         typer.echo(_metrics_table(metrics["trajectories"]))
     if "map" in metrics:
-        typer.echo(f"map: {metrics['map']['keyframes']} keyframes, {metrics['map']['bytes'] / 2**20:.0f} MiB of stored depth, fused under {metrics['map']['trajectory']}")
+        typer.echo(
+            f"map: {metrics['map']['keyframes']} keyframes, {metrics['map']['bytes'] / 2**20:.0f} MiB of stored depth, fused under {metrics['map']['trajectory']}"
+        )
     typer.echo(f"peak memory {metrics.get('peak_rss_mb', 0):.0f} MiB")
     if metrics.get("graph_failures"):
         typer.echo(f"graph: {len(metrics['graph_failures'])} flagged updates (see metrics.json)")

@@ -48,7 +48,6 @@ class _Section:
         pass
 
 
-
 @dataclass
 class FrontendConfig(_Section):
     """Stereo visual odometry (SPEC "Front end")."""
@@ -133,6 +132,11 @@ class FrontendConfig(_Section):
     # far_min_disparity_px are kept for the stereo BA (they constrain rotation), never for PnP.
     sba_far_points: bool = False
     far_min_disparity_px: float = 1.0  # "numpy" (vectorised Schur Gauss-Newton) or "gtsam" (GenericStereoFactor3D + LM)
+    # klt: when PnP on the KLT tracks fails or has fewer than min_inliers inliers (large motion:
+    # a fast drive, or frames skipped), retry once by matching ORB keypoints detected afresh in
+    # the reference and the current frame ("orb"), or flag at once ("none").
+    klt_retry: Literal["none", "orb"] = "orb"
+    klt_retry_features: int = 4000  # ORB keypoints detected per image by the retry
 
     def _cross_checks(self, source: str) -> None:
         if not self.min_depth_m < self.max_depth_m:
@@ -314,7 +318,9 @@ class MapConfig(_Section):
 
     def _cross_checks(self, source: str) -> None:
         if self.depth_method == "bm" and self.depth_block_size < 5:
-            raise SnapsGraphError(f"{source}: map.depth_block_size must be >= 5 for depth_method 'bm', got {self.depth_block_size}")
+            raise SnapsGraphError(
+                f"{source}: map.depth_block_size must be >= 5 for depth_method 'bm', got {self.depth_block_size}"
+            )
 
 
 @dataclass
@@ -346,7 +352,9 @@ class Config:
                 "batch": self.graph.refine in ("batch", "both"),
             }[self.map.trajectory]
             if not need:
-                what = "loops = 'snaps'" if self.map.trajectory == "snaps" else f"graph.refine = '{self.map.trajectory}' or 'both'"
+                what = (
+                    "loops = 'snaps'" if self.map.trajectory == "snaps" else f"graph.refine = '{self.map.trajectory}' or 'both'"
+                )
                 raise SnapsGraphError(
                     f"{source}: map.trajectory = '{self.map.trajectory}' needs {what} "
                     f"(this run has loops = '{self.loops}', graph.refine = '{self.graph.refine}')"
@@ -561,6 +569,7 @@ RULES: dict[str, Range] = {
     "frontend.klt_anchor_gap": NON_NEGATIVE,
     "frontend.klt_anchor_max_px": POSITIVE,
     "frontend.far_min_disparity_px": POSITIVE,
+    "frontend.klt_retry_features": AT_LEAST_1,
     "loop.radius_m": POSITIVE,
     "loop.frame_distance": AT_LEAST_1,
     "loop.discount_length": NON_NEGATIVE,

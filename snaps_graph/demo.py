@@ -18,7 +18,9 @@ from .io_utils import output_folder
 from .runner import run_sequence
 
 
-def run_demo(out: str | Path, frames: int = 300, width: int = 1241, height: int = 376, refine: str = "isam2", progress=None) -> dict:
+def run_demo(
+    out: str | Path, frames: int = 300, width: int = 1241, height: int = 376, refine: str = "isam2", progress=None
+) -> dict:
     out = Path(out)
     seq_dir = out / "sequence"
     run_dir = out / "run"
@@ -34,16 +36,19 @@ def run_demo(out: str | Path, frames: int = 300, width: int = 1241, height: int 
     cfg.map.enabled = True
     t1 = time.perf_counter()
     result, metrics = _with_bar(
-        progress, len(seq), "slam", lambda cb: run_sequence(
-            seq, run_dir, cfg, loops="snaps", refine=refine, build_map=True, overwrite=True, on_frame=cb
-        ),
+        progress,
+        len(seq),
+        "slam",
+        lambda cb: run_sequence(seq, run_dir, cfg, loops="snaps", refine=refine, build_map=True, overwrite=True, on_frame=cb),
     )
     t_run = time.perf_counter() - t1
     compare_run(run_dir)
 
     lat = metrics["latency_ms"]
-    print(f"demo: rendered {len(synth)} stereo pairs in {t_render:.1f} s; SLAM at {lat['frames_per_s']:.1f} frames/s "
-          f"({t_run:.1f} s), {metrics['loops']} loops closed")
+    print(
+        f"demo: rendered {len(synth)} stereo pairs in {t_render:.1f} s; SLAM at {lat['frames_per_s']:.1f} frames/s "
+        f"({t_run:.1f} s), {metrics['loops']} loops closed"
+    )
     for name, m in metrics.get("trajectories", {}).items():
         print(f"  {name:<6} mean deviation {m['mean_deviation']:.3f} m   ATE {m['ate_rmse']:.3f} m")
     print(f"  report: {run_dir / 'report.md'}   map: {run_dir / 'map.ply'}")

@@ -38,3 +38,45 @@ def rotation_angle_deg(R: np.ndarray) -> float:
 
 def is_finite_pose(T: np.ndarray) -> bool:
     return bool(np.all(np.isfinite(T)))
+
+
+def _hat(w: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def _left_jacobian(w: np.ndarray) -> np.ndarray:
+    """V(w) of SE(3)'s exponential: t = V(w) u for the twist (w, u)."""
+    th = float(np.linalg.norm(w))
+    W = _hat(w)
+    if th < 1e-8:
+        return np.eye(3) + 0.5 * W
+    return np.eye(3) + (1.0 - np.cos(th)) / th**2 * W + (th - np.sin(th)) / th**3 * (W @ W)
+
+
+def scale_motion(T: np.ndarray, s: float) -> np.ndarray:
+    """T**s for a rigid motion T (4x4): the twist log(T) scaled by ``s`` then exponentiated, so
+    a constant-velocity step over one interval predicts the step over ``s`` intervals
+    (``scale_motion(T, 2) == T @ T``). Rotations near 180 degrees (no unique log) and
+    non-finite input give the identity."""
+    T = np.asarray(T, np.float64)
+    if not np.all(np.isfinite(T)) or not np.isfinite(s):
+        return np.eye(4)
+    R = T[:3, :3]
+    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    th = float(np.arccos(c))
+    if th > np.pi - 1e-3:
+        return np.eye(4)
+    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    w = v * (0.5 if th < 1e-8 else th / (2.0 * np.sin(th)))
+    u = np.linalg.solve(_left_jacobian(w), T[:3, 3])
+    ws = s * w
+    ths = float(np.linalg.norm(ws))
+    Ws = _hat(ws)
+    if ths < 1e-8:
+        Rs = np.eye(3) + Ws
+    else:
+        Rs = np.eye(3) + np.sin(ths) / ths * Ws + (1.0 - np.cos(ths)) / ths**2 * (Ws @ Ws)
+    out = np.eye(4)
+    out[:3, :3] = Rs
+    out[:3, 3] = _left_jacobian(ws) @ (s * u)
+    return out

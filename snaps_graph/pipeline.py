@@ -127,7 +127,9 @@ class SlamPipeline:
             raise SnapsGraphError(f"frame {index}: {exc}") from None
         h, w = frame.left.shape  # the camera's size is the front end's check (a custom one may differ)
         if self._shape is not None and (h, w) != self._shape:
-            raise SnapsGraphError(f"frame {index}: image {w}x{h} differs from the first frame's {self._shape[1]}x{self._shape[0]}")
+            raise SnapsGraphError(
+                f"frame {index}: image {w}x{h} differs from the first frame's {self._shape[1]}x{self._shape[0]}"
+            )
         if self._shape is None and self.snaps is not None:
             th, tw = make_thumbnail(frame.left, self.cfg.loop.thumbnail_scale).shape
             if min(th, tw) < self.cfg.loop.window:
@@ -274,4 +276,3 @@ class SlamPipeline:
     @property
     def timestamps(self) -> np.ndarray:
         return np.array(self._timestamps)
-

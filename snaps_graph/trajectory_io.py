@@ -113,9 +113,7 @@ def tum_text(poses: np.ndarray, times: np.ndarray | None = None) -> str:
     for t, T in zip(times, poses):
         q = rotation_to_quaternion(T[:3, :3])
         p = T[:3, 3]
-        rows.append(
-            f"{t:.6f} {p[0]:.9f} {p[1]:.9f} {p[2]:.9f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}"
-        )
+        rows.append(f"{t:.6f} {p[0]:.9f} {p[1]:.9f} {p[2]:.9f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}")
     return "\n".join(rows) + "\n"
 
 

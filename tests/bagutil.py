@@ -8,9 +8,19 @@ import cv2
 import numpy as np
 
 
-def write_stereo_bag(path: Path, seq, kind: str = "mcap", compressed: bool = False, encoding: str = "mono8",
-                     prefix: str = "/stereo", n: int | None = None, camera_info: bool = True, extra_topics=(),
-                     infos=None, raw_pairs=None) -> Path:
+def write_stereo_bag(
+    path: Path,
+    seq,
+    kind: str = "mcap",
+    compressed: bool = False,
+    encoding: str = "mono8",
+    prefix: str = "/stereo",
+    n: int | None = None,
+    camera_info: bool = True,
+    extra_topics=(),
+    infos=None,
+    raw_pairs=None,
+) -> Path:
     """kind: 'mcap' | 'sqlite3' (ROS 2 bag folder) or 'ros1' (a .bag file). ``seq``: a dataset
     (rectified: CameraInfo from its camera, D = 0, R = I); or ``raw_pairs`` [(t s, left, right)]
     with ``infos`` ((K, D, R, P) left, (K, D, R, P) right) of raw cameras."""
@@ -41,7 +51,9 @@ def write_stereo_bag(path: Path, seq, kind: str = "mcap", compressed: bool = Fal
         cam = seq.camera
         count = len(seq) if n is None else n
         raw_pairs = [(f.timestamp, f.left, f.right) for f in (seq[i] for i in range(count))]
-        infos = tuple((P[:, :3].reshape(-1).copy(), np.zeros(5), np.eye(3).reshape(-1), P.reshape(-1).copy()) for P in (cam.P0, cam.P1))
+        infos = tuple(
+            (P[:, :3].reshape(-1).copy(), np.zeros(5), np.eye(3).reshape(-1), P.reshape(-1).copy()) for P in (cam.P0, cam.P1)
+        )
     itype = "sensor_msgs/msg/CompressedImage" if compressed else "sensor_msgs/msg/Image"
     with writer:
         conns = {}
@@ -49,7 +61,9 @@ def write_stereo_bag(path: Path, seq, kind: str = "mcap", compressed: bool = Fal
             topic = f"{prefix}/{side}/image_raw" + ("/compressed" if compressed else "")
             conns[side] = writer.add_connection(topic, itype, typestore=ts)
             if camera_info:
-                conns[side + "_info"] = writer.add_connection(f"{prefix}/{side}/camera_info", "sensor_msgs/msg/CameraInfo", typestore=ts)
+                conns[side + "_info"] = writer.add_connection(
+                    f"{prefix}/{side}/camera_info", "sensor_msgs/msg/CameraInfo", typestore=ts
+                )
         for topic in extra_topics:
             conns[topic] = writer.add_connection(topic, "sensor_msgs/msg/Image", typestore=ts)
         for t_s, left, right in raw_pairs:
@@ -63,13 +77,22 @@ def write_stereo_bag(path: Path, seq, kind: str = "mcap", compressed: bool = Fal
                     msg = make_image(Image, h, img, encoding)
                 writer.write(conns[side], t_ns, ser(msg, itype))
                 if camera_info:
-                    kw = dict(header=h, height=img.shape[0], width=img.shape[1], distortion_model="plumb_bob",
-                              binning_x=0, binning_y=0, roi=Roi(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
+                    kw = dict(
+                        header=h,
+                        height=img.shape[0],
+                        width=img.shape[1],
+                        distortion_model="plumb_bob",
+                        binning_x=0,
+                        binning_y=0,
+                        roi=Roi(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
+                    )
                     mats = dict(zip("kdrp", (np.asarray(m, np.float64).reshape(-1) for m in info)))
                     kw.update({k.upper(): v for k, v in mats.items()} if kind == "ros1" else mats)
                     writer.write(conns[side + "_info"], t_ns, ser(Info(**kw), "sensor_msgs/msg/CameraInfo"))
             for topic in extra_topics:
-                writer.write(conns[topic], t_ns, ser(make_image(Image, header(t_ns, "x"), left, "mono8"), "sensor_msgs/msg/Image"))
+                writer.write(
+                    conns[topic], t_ns, ser(make_image(Image, header(t_ns, "x"), left, "mono8"), "sensor_msgs/msg/Image")
+                )
     return path
 
 
@@ -87,5 +110,12 @@ def make_image(Image, h, grey: np.ndarray, encoding: str):
     else:
         data = grey
         step = grey.shape[1]
-    return Image(header=h, height=grey.shape[0], width=grey.shape[1], encoding=encoding, is_bigendian=0, step=step,
-                 data=np.ascontiguousarray(data).reshape(-1))
+    return Image(
+        header=h,
+        height=grey.shape[0],
+        width=grey.shape[1],
+        encoding=encoding,
+        is_bigendian=0,
+        step=step,
+        data=np.ascontiguousarray(data).reshape(-1),
+    )

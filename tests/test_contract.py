@@ -122,8 +122,9 @@ def test_ctrl_c_prints_one_line_exits_130_and_leaves_no_folder(seq, tmp_path):
     _long_sequence(seq, 3000)
     out = tmp_path / "run"
     env = dict(os.environ, PYTHONWARNINGS="ignore")
-    proc = subprocess.Popen(CLI + ["run", str(seq), "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, env=env)
+    proc = subprocess.Popen(
+        CLI + ["run", str(seq), "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
+    )
     time.sleep(6.0)  # imports (~2 s) done, frames being processed
     assert proc.poll() is None, "the run ended before it could be interrupted"
     proc.send_signal(signal.SIGINT)
@@ -254,7 +255,9 @@ def test_bad_calibration(seq, tmp_path, p0, p1, expect):
 def test_calibration_with_p0_offset_gives_the_true_baseline():
     from snaps_graph.camera import StereoCamera
 
-    cam = StereoCamera.from_projections(np.array(_p(700, 600, 180, 70.0)).reshape(3, 4), np.array(_p(700, 600, 180, -308.0)).reshape(3, 4))
+    cam = StereoCamera.from_projections(
+        np.array(_p(700, 600, 180, 70.0)).reshape(3, 4), np.array(_p(700, 600, 180, -308.0)).reshape(3, 4)
+    )
     assert cam.baseline_m == pytest.approx(0.54)
 
 
@@ -264,14 +267,14 @@ BAD_CONFIGS = [
     ("[graph]\nodom_sigma_trans_m = -1\n", "graph.odom_sigma_trans_m must be > 0, got -1"),
     ("[graph]\nprior_sigma_rot_rad = 0.0\n", "graph.prior_sigma_rot_rad must be > 0"),
     ("[graph]\nloop_sigma_trans_m = -0.1\n", "graph.loop_sigma_trans_m must be > 0"),
-    ("[frontend]\nmode = \"fast\"\n", "frontend.mode must be one of 'sift', 'orb', 'klt', got 'fast'"),
-    ("[graph]\nrefine = \"turbo\"\n", "graph.refine must be one of"),
-    ("[graph]\nrobust_kernel = \"tukey\"\n", "graph.robust_kernel must be one of"),
-    ("loops = \"maybe\"\n", "loops must be one of 'snaps', 'none'"),
+    ('[frontend]\nmode = "fast"\n', "frontend.mode must be one of 'sift', 'orb', 'klt', got 'fast'"),
+    ('[graph]\nrefine = "turbo"\n', "graph.refine must be one of"),
+    ('[graph]\nrobust_kernel = "tukey"\n', "graph.robust_kernel must be one of"),
+    ('loops = "maybe"\n', "loops must be one of 'snaps', 'none'"),
     ("[frontend]\nmin_depth_m = 90.0\n", "frontend.min_depth_m must be < frontend.max_depth_m"),
     ("[loop]\nmin_similarity = 1.5\n", "loop.min_similarity must be in (0, 1]"),
     ("[frontend]\nblock_size = 8\n", "frontend.block_size must be odd"),
-    ("[map]\nenabled = true\ntrajectory = \"batch\"\n", "map.trajectory = 'batch' needs graph.refine"),
+    ('[map]\nenabled = true\ntrajectory = "batch"\n', "map.trajectory = 'batch' needs graph.refine"),
     ("[graph]\nodom_sigma_scale_min = 5.0\n", "odom_sigma_scale_min must be <="),
     ("[frontend]\nthreads = 0\n", "frontend.threads must be in [1, 256]"),
     ("[nonsense]\nx = 1\n", "unknown key 'nonsense'"),
@@ -506,7 +509,11 @@ def _package_imports(path: Path) -> set[str]:
 
 @pytest.mark.parametrize("part", sorted(ALLOWED))
 def test_imports_follow_the_data_flow(part):
-    files = sorted((ROOT / "snaps_graph" / part).glob("*.py")) if (ROOT / "snaps_graph" / part).is_dir() else [ROOT / "snaps_graph" / f"{part}.py"]
+    files = (
+        sorted((ROOT / "snaps_graph" / part).glob("*.py"))
+        if (ROOT / "snaps_graph" / part).is_dir()
+        else [ROOT / "snaps_graph" / f"{part}.py"]
+    )
     for f in files:
         wrong = _package_imports(f) - ALLOWED[part]
         assert not wrong, f"{f.relative_to(ROOT)} imports {sorted(wrong)} against the data flow"

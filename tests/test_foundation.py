@@ -40,8 +40,9 @@ def test_config_roundtrip(tmp_path):
     assert back.to_dict() == cfg.to_dict()
 
 
-@pytest.mark.parametrize("path", sorted((Path(__file__).resolve().parents[1] / "benchmarks" / "configs").glob("*.toml")),
-                         ids=lambda p: p.name)
+@pytest.mark.parametrize(
+    "path", sorted((Path(__file__).resolve().parents[1] / "benchmarks" / "configs").glob("*.toml")), ids=lambda p: p.name
+)
 def test_shipped_benchmark_configs_load(path):
     cfg = Config.load(path)
     assert cfg.to_dict() != Config().to_dict()  # each one changes something

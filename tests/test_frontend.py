@@ -176,15 +176,25 @@ def _corrupt(f: StereoFrame, kind: str) -> StereoFrame:
         return StereoFrame(f.index, f.timestamp, cv2.GaussianBlur(f.left, (0, 0), 4), cv2.GaussianBlur(f.right, (0, 0), 4))
     if kind == "noise":
         rng = np.random.default_rng(3)
-        return StereoFrame(f.index, f.timestamp, rng.integers(0, 256, f.left.shape, dtype=np.uint8),
-                           rng.integers(0, 256, f.left.shape, dtype=np.uint8))
+        return StereoFrame(
+            f.index,
+            f.timestamp,
+            rng.integers(0, 256, f.left.shape, dtype=np.uint8),
+            rng.integers(0, 256, f.left.shape, dtype=np.uint8),
+        )
     assert kind == "swapped"
     return StereoFrame(f.index, f.timestamp, f.right, f.left)
 
 
-@pytest.mark.parametrize("kind,reason", [
-    ("black", "flat or black"), ("blurred", "blurred"), ("noise", "PnP failed|too few PnP inliers"), ("swapped", "stereo depth"),
-])
+@pytest.mark.parametrize(
+    "kind,reason",
+    [
+        ("black", "flat or black"),
+        ("blurred", "blurred"),
+        ("noise", "PnP failed|too few PnP inliers"),
+        ("swapped", "stereo depth"),
+    ],
+)
 def test_bad_frame_is_flagged_and_follows_constant_velocity(kitti06_dir, kind, reason):
     seq = _kitti(kitti06_dir, "0:9")
     gt = seq.gt_poses

@@ -31,8 +31,22 @@ from snaps_graph.types import CANDIDATE_COLUMNS, CandidateRecord
 
 
 def rec(frame, ref, q, passed=False, tried=None, accepted=False) -> CandidateRecord:
-    return CandidateRecord(frame, ref, 1.0, 0.0, q, q, 1.0, 1.0, 0, q >= 0.15,
-                           passed if tried is None else tried, passed, 30 if passed else 0, accepted)
+    return CandidateRecord(
+        frame,
+        ref,
+        1.0,
+        0.0,
+        q,
+        q,
+        1.0,
+        1.0,
+        0,
+        q >= 0.15,
+        passed if tried is None else tried,
+        passed,
+        30 if passed else 0,
+        accepted,
+    )
 
 
 def test_pr_curve_known_counts():
@@ -117,7 +131,10 @@ def test_candidates_csv_roundtrip(tmp_path):
     with open(tmp_path / "c.csv") as fh:
         assert tuple(next(csv.reader(fh))) == CANDIDATE_COLUMNS
     back = read_candidates_csv(tmp_path / "c.csv")
-    assert [(r.frame, r.reference, r.verify_passed, r.accepted, r.inliers) for r in back] == [(10, 2, True, True, 30), (10, 3, False, False, 0)]
+    assert [(r.frame, r.reference, r.verify_passed, r.accepted, r.inliers) for r in back] == [
+        (10, 2, True, True, 30),
+        (10, 3, False, False, 0),
+    ]
     assert back[0].q == pytest.approx(0.25)
     (tmp_path / "bad.csv").write_text("frame,reference\n1,2\n")
     with pytest.raises(SnapsGraphError, match="missing column"):
@@ -148,12 +165,28 @@ def test_tiny_run_writes_candidates_and_loops_cli(tmp_path):
     for r in rows:  # Q is the product of the factors window by window, so bounded by the factors' range
         assert -1.0 <= float(r["q"]) <= 1.0 and 0.0 <= float(r["luminance"]) <= 1.0
     env = dict(os.environ, PYTHONWARNINGS="ignore")
-    proc = subprocess.run([sys.executable, "-m", "snaps_graph.cli", "loops", str(run), "--json"],
-                          capture_output=True, text=True, env=env, timeout=120)
+    proc = subprocess.run(
+        [sys.executable, "-m", "snaps_graph.cli", "loops", str(run), "--json"],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
     assert proc.returncode == 0, proc.stderr
     ev = json.loads(proc.stdout)
-    for key in ("pairs", "true_pairs", "false_pairs", "max_recall_at_100_precision", "max_recall_at_100_precision_verified",
-                "revisit_frames", "revisit_frames_searched", "segments_found", "segments_missed", "loops", "false_loops"):
+    for key in (
+        "pairs",
+        "true_pairs",
+        "false_pairs",
+        "max_recall_at_100_precision",
+        "max_recall_at_100_precision_verified",
+        "revisit_frames",
+        "revisit_frames_searched",
+        "segments_found",
+        "segments_missed",
+        "loops",
+        "false_loops",
+    ):
         assert key in ev, key
     assert ev["pairs"] == len(rows) and ev["false_loops"] == 0 and ev["loops"] == len(result.loops)
     assert (run / "loops_pr.png").stat().st_size > 1000
@@ -162,6 +195,11 @@ def test_tiny_run_writes_candidates_and_loops_cli(tmp_path):
     metrics = compare_run(run)  # compare puts the same into report.md and metrics.json
     assert "## Loop closure against ground truth" in (run / "report.md").read_text()
     assert metrics["loop_evaluation"]["pairs"] == ev["pairs"]
-    bad = subprocess.run([sys.executable, "-m", "snaps_graph.cli", "loops", str(tmp_path / "nope")],
-                         capture_output=True, text=True, env=env, timeout=120)
+    bad = subprocess.run(
+        [sys.executable, "-m", "snaps_graph.cli", "loops", str(tmp_path / "nope")],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
     assert bad.returncode == 2 and bad.stderr.startswith("error:")

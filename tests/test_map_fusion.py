@@ -68,8 +68,12 @@ def test_map_depth_options_and_errors():
     assert np.median(z[z > 0]) == pytest.approx(15.625, rel=0.02)
     z1 = map_depth(left, right, CAM, FrontendConfig(), MapConfig(depth_scale=1.0, depth_block_size=11, max_range_m=40.0))
     assert z1.shape == (320, 640)
-    for bad, msg in ((dict(depth_method="wls"), "depth_method"), (dict(depth_scale=2.0), "depth_scale"),
-                     (dict(depth_block_size=4), "depth_block_size"), (dict(depth_method="bm", depth_block_size=3), "depth_block_size")):
+    for bad, msg in (
+        (dict(depth_method="wls"), "depth_method"),
+        (dict(depth_scale=2.0), "depth_scale"),
+        (dict(depth_block_size=4), "depth_block_size"),
+        (dict(depth_method="bm", depth_block_size=3), "depth_block_size"),
+    ):
         with pytest.raises(SnapsGraphError, match=msg):
             MapConfig(**bad)
     c = map_camera(CAM, 0.5, 640, 320)
@@ -192,8 +196,7 @@ def test_write_map_outputs_and_compare_report(tmp_path):
     yn = (v - (cam.cy + 0.5) * 0.5 + 0.5) / (cam.fy * 0.5)
     ground = np.where(yn > 0.01, 1.65 / np.maximum(yn, 1e-6), 0).astype(np.float32)
     ground[ground > 20] = 0
-    cfg = MapConfig(tsdf_voxel_m=0.1, tsdf_trunc_voxels=4.0, world_mesh=str(world), per_trajectory=True,
-                    accuracy_samples=20_000)
+    cfg = MapConfig(tsdf_voxel_m=0.1, tsdf_trunc_voxels=4.0, world_mesh=str(world), per_trajectory=True, accuracy_samples=20_000)
     m = FusedMap(cam, cfg)
     n = 21
     gt = np.array([_pose((0.0, 0.0, 0.5 * k)) for k in range(n)])
@@ -236,7 +239,7 @@ def test_pictures_colour_height_above_the_local_ground():
     road = np.array([[x, -10.0, z] for x in range(4) for z in range(4)], float)
     wall = np.array([[1.0, -10.0 - h, 1.0] for h in (1.0, 3.0)])
     h = _local_height(np.vstack([road, wall]))
-    assert np.allclose(h[: len(road)], 0.0) and np.allclose(h[len(road):], [1.0, 3.0])
+    assert np.allclose(h[: len(road)], 0.0) and np.allclose(h[len(road) :], [1.0, 3.0])
     q = _local_height(np.vstack([road, wall]), np.array([[2.0, -12.0, 2.0], [50.0, -7.0, 50.0]]))
     assert np.allclose(q, [2.0, 0.0])  # a query in an empty cell counts as ground
 

@@ -53,13 +53,15 @@ def test_run_kitti06_results_folder_and_determinism(kitti06_dir, tmp_path):
     metrics = json.loads((a / "metrics.json").read_text())
     vo = metrics["trajectories"]["vo"]
     assert vo["frames"] == 25 and vo["ate_rmse"] < 0.3  # measured 0.05-0.15 m on this clip
-    assert "loops = \"snaps\"" in (a / "config.toml").read_text()
+    assert 'loops = "snaps"' in (a / "config.toml").read_text()
     assert (a / "graph.g2o").stat().st_size > 0
     assert not list(a.glob(".*.tmp"))  # no half-written file left behind
     # evo reads our files.
     evo = Path(sys.executable).parent / "evo_ape"
     if evo.exists():
-        r = subprocess.run([str(evo), "kitti", str(a / "poses_gt.txt"), str(a / "poses_vo.txt"), "-a"], capture_output=True, text=True)
+        r = subprocess.run(
+            [str(evo), "kitti", str(a / "poses_gt.txt"), str(a / "poses_vo.txt"), "-a"], capture_output=True, text=True
+        )
         assert r.returncode == 0 and "rmse" in r.stdout
 
 
@@ -170,7 +172,20 @@ def test_synthetic_loop_closes_and_helps(tmp_path):
     lines = (tmp_path / "run" / "loops.jsonl").read_text().splitlines()
     assert len(lines) == len(loops)
     first = json.loads(lines[0])
-    for key in ("frame", "reference", "distance_m", "yaw_diff_deg", "q", "correlation", "luminance", "contrast", "delta", "n_corrected", "t_ms", "verified"):
+    for key in (
+        "frame",
+        "reference",
+        "distance_m",
+        "yaw_diff_deg",
+        "q",
+        "correlation",
+        "luminance",
+        "contrast",
+        "delta",
+        "n_corrected",
+        "t_ms",
+        "verified",
+    ):
         assert key in first
 
 
@@ -179,7 +194,9 @@ def test_synth_run_compare_cli_roundtrip(tmp_path):
     seq = tmp_path / "seq"
     cli("synth", "--trajectory", "loop", "--frames", "0:12", "--width", "320", "--height", "96", "--out", str(seq))
     assert len(list((seq / "image_0").glob("*.png"))) == 12 and (seq / "poses.txt").is_file()
-    again = cli("synth", "--trajectory", "loop", "--frames", "0:12", "--width", "320", "--height", "96", "--out", str(seq), check=False)
+    again = cli(
+        "synth", "--trajectory", "loop", "--frames", "0:12", "--width", "320", "--height", "96", "--out", str(seq), check=False
+    )
     assert again.returncode == 2 and "error:" in again.stderr  # refuses to overwrite without --overwrite
     m = json.loads(cli("eval", str(seq / "poses.txt"), "--gt", str(seq / "poses.txt"), "--json").stdout)
     assert m["mean_deviation"] == 0.0 and m["ate_rmse"] < 1e-9

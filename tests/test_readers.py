@@ -143,7 +143,10 @@ def test_euroc_ground_truth_for_the_rectified_left_camera(euroc_dir, tmp_path):
 @pytest.mark.parametrize(
     "mangle, expect",
     [
-        (lambda t: t.replace("intrinsics: [458.654, 457.296, 367.215, 248.375]", "intrinsics: [458.654, 457.296]"), "'intrinsics' needs 4 numbers"),
+        (
+            lambda t: t.replace("intrinsics: [458.654, 457.296, 367.215, 248.375]", "intrinsics: [458.654, 457.296]"),
+            "'intrinsics' needs 4 numbers",
+        ),
         (lambda t: t.replace("T_BS:", "T_BS: [1, 2\nbroken:"), "not valid YAML"),
         (lambda t: t.replace("radial-tangential", "equidistant"), "distortion_model 'equidistant' is not supported"),
     ],
@@ -195,7 +198,9 @@ def kitti8_poses(kitti8):
 @pytest.mark.parametrize("kind, compressed, name", [("mcap", False, "b.mcap"), ("ros1", True, "b.bag")])
 def test_bag_gives_the_folders_poses(kind, compressed, name, kitti8, kitti8_poses, tmp_path):
     bag_dir = tmp_path / "bag"
-    write_stereo_bag(bag_dir, kitti8, kind, compressed=compressed) if kind != "ros1" else write_stereo_bag(tmp_path / name, kitti8, kind, compressed=compressed)
+    write_stereo_bag(bag_dir, kitti8, kind, compressed=compressed) if kind != "ros1" else write_stereo_bag(
+        tmp_path / name, kitti8, kind, compressed=compressed
+    )
     path = bag_dir if kind != "ros1" else tmp_path / name
     if kind == "mcap":
         assert list(bag_dir.glob("*.mcap"))  # a real MCAP storage file inside the ROS 2 bag folder
@@ -227,8 +232,7 @@ def test_bag_raw_images_rectified_from_camera_info(euroc_dir, tmp_path):
     for a, b in zip(seq, eu):
         assert np.array_equal(a.left, b.left) and np.array_equal(a.right, b.right)
     # EuRoC's own bags carry no CameraInfo: --calib gives the sensor.yaml pair instead.
-    write_stereo_bag(tmp_path / "nocal", None, "mcap", raw_pairs=pairs, infos=eu.rectifier.info,
-                     prefix="/x", camera_info=False)
+    write_stereo_bag(tmp_path / "nocal", None, "mcap", raw_pairs=pairs, infos=eu.rectifier.info, prefix="/x", camera_info=False)
     with pytest.raises(SnapsGraphError, match="give the calibration with --calib"):
         open_dataset(tmp_path / "nocal")
     seq = open_dataset(tmp_path / "nocal", calib=euroc_dir)
@@ -249,7 +253,9 @@ def test_image_encodings(encoding, kitti8):
     if encoding == "rgb8":  # channel order matters: a pure red image is dark in grey, pure blue darker
         rgb = np.zeros((4, 4, 3), np.uint8)
         rgb[..., 0] = 255
-        m = T["sensor_msgs/msg/Image"](header=h, height=4, width=4, encoding="rgb8", is_bigendian=0, step=12, data=rgb.reshape(-1))
+        m = T["sensor_msgs/msg/Image"](
+            header=h, height=4, width=4, encoding="rgb8", is_bigendian=0, step=12, data=rgb.reshape(-1)
+        )
         assert decode_image(m, "sensor_msgs/msg/Image")[0, 0] == 76  # 0.299 * 255
         m.encoding = "bgr8"
         assert decode_image(m, "sensor_msgs/msg/Image")[0, 0] == 29  # 0.114 * 255
@@ -263,12 +269,16 @@ def test_bad_bags_are_one_line(kitti8, tmp_path):
 
     T = get_typestore(Stores.LATEST).types
     h = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=1, nanosec=0), frame_id="x")
-    m = T["sensor_msgs/msg/Image"](header=h, height=2, width=2, encoding="yuv422", is_bigendian=0, step=4, data=np.zeros(8, np.uint8))
+    m = T["sensor_msgs/msg/Image"](
+        header=h, height=2, width=2, encoding="yuv422", is_bigendian=0, step=4, data=np.zeros(8, np.uint8)
+    )
     with pytest.raises(SnapsGraphError, match="encoding 'yuv422' is not supported"):
         decode_image(m, "sensor_msgs/msg/Image", "b.bag: /cam/image")
     write_stereo_bag(tmp_path / "yuv", kitti8, "mcap", n=2, encoding="yuv422")
     proc = cli("run", str(tmp_path / "yuv"), "--out", str(tmp_path / "o"))
-    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "image encoding 'yuv422' is not supported" in proc.stderr, proc.stderr
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "image encoding 'yuv422' is not supported" in proc.stderr, (
+        proc.stderr
+    )
     # a bag with no stereo pair
     _write_single_topic_bag(tmp_path / "single", kitti8)
     proc = cli("run", str(tmp_path / "single"), "--out", str(tmp_path / "o"))
@@ -299,17 +309,31 @@ def _write_single_topic_bag(path: Path, seq) -> None:
         c = w.add_connection("/camera/image_raw", "sensor_msgs/msg/Image", typestore=ts)
         for i in range(2):
             h = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=10 + i, nanosec=0), frame_id="c")
-            w.write(c, (10 + i) * 10**9, ts.serialize_cdr(make_image(T["sensor_msgs/msg/Image"], h, seq[i].left, "mono8"), "sensor_msgs/msg/Image"))
+            w.write(
+                c,
+                (10 + i) * 10**9,
+                ts.serialize_cdr(make_image(T["sensor_msgs/msg/Image"], h, seq[i].left, "mono8"), "sensor_msgs/msg/Image"),
+            )
 
 
 def test_stereo_topics_found_by_name():
     from snaps_graph.datasets.rosbag import _camera_info_topic, find_stereo_topics
 
-    realsense = ["/camera/infra1/image_rect_raw", "/camera/infra2/image_rect_raw", "/camera/color/image_raw", "/camera/depth/image_rect_raw"]
+    realsense = [
+        "/camera/infra1/image_rect_raw",
+        "/camera/infra2/image_rect_raw",
+        "/camera/color/image_raw",
+        "/camera/depth/image_rect_raw",
+    ]
     assert find_stereo_topics(realsense) == [("/camera/infra1/image_rect_raw", "/camera/infra2/image_rect_raw")]
     assert find_stereo_topics(["/cam0/image_raw", "/cam1/image_raw", "/imu0"]) == [("/cam0/image_raw", "/cam1/image_raw")]
-    zed = ["/zed/zed_node/left/image_rect_color", "/zed/zed_node/right/image_rect_color",
-           "/zed/zed_node/left_raw/image_raw_color", "/zed/zed_node/right_raw/image_raw_color", "/zed/zed_node/rgb/image_rect_color"]
+    zed = [
+        "/zed/zed_node/left/image_rect_color",
+        "/zed/zed_node/right/image_rect_color",
+        "/zed/zed_node/left_raw/image_raw_color",
+        "/zed/zed_node/right_raw/image_raw_color",
+        "/zed/zed_node/rgb/image_rect_color",
+    ]
     assert len(find_stereo_topics(zed)) == 2  # raw and rectified pairs: the user chooses
     assert find_stereo_topics(["/camera/image_raw", "/lefty/image"]) == []
     infos = ["/zed/zed_node/left/camera_info", "/zed/zed_node/right/camera_info"]
@@ -401,8 +425,21 @@ class _InjectLoop:
         if out.k == 6:
             from snaps_graph.types import LoopEvent
 
-            loop = LoopEvent(frame=out.frame, reference=1, distance_m=1.0, yaw_diff_deg=2.0, q=0.3, correlation=0.5,
-                             luminance=0.9, contrast=2 / 3, delta=np.zeros(3), n_corrected=4, alpha=1, candidates=3, t_ms=1.0)
+            loop = LoopEvent(
+                frame=out.frame,
+                reference=1,
+                distance_m=1.0,
+                yaw_diff_deg=2.0,
+                q=0.3,
+                correlation=0.5,
+                luminance=0.9,
+                contrast=2 / 3,
+                delta=np.zeros(3),
+                n_corrected=4,
+                alpha=1,
+                candidates=3,
+                t_ms=1.0,
+            )
             out = dataclasses.replace(out, loop=loop)
         self.logger.on_frame(pipe, frame, out)
 
@@ -422,9 +459,23 @@ def test_rrd_recording_holds_the_entities(kitti8, tmp_path):
     logger.close()
     chunks = list(RrdReader(rrd).stream())
     paths = {c.entity_path for c in chunks}
-    for e in ("/world", "/world/camera", "/world/camera/image", "/world/camera/image/features", "/world/trajectory/vo",
-              "/world/trajectory/snaps", "/world/trajectory/refined", "/world/trajectory/gt", "/world/loops", "/loops",
-              "/metrics/frame_ms", "/metrics/vo_ms", "/metrics/inliers", "/metrics/q", "/world/map/kf_0"):
+    for e in (
+        "/world",
+        "/world/camera",
+        "/world/camera/image",
+        "/world/camera/image/features",
+        "/world/trajectory/vo",
+        "/world/trajectory/snaps",
+        "/world/trajectory/refined",
+        "/world/trajectory/gt",
+        "/world/loops",
+        "/loops",
+        "/metrics/frame_ms",
+        "/metrics/vo_ms",
+        "/metrics/inliers",
+        "/metrics/q",
+        "/world/map/kf_0",
+    ):
         assert e in paths, (e, sorted(paths))
     image_rows = sum(c.num_rows for c in chunks if c.entity_path == "/world/camera/image" and not c.is_static)
     assert image_rows == N_BAG
@@ -450,8 +501,13 @@ def test_failed_run_leaves_no_recording(kitti06_dir, tmp_path):
 def test_viewer_without_display_is_one_line(kitti06_dir, tmp_path):
     pytest.importorskip("rerun")
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
-    proc = subprocess.run(CLI + ["run", str(kitti06_dir), "--frames", "0:2", "--out", str(tmp_path / "o"), "--viewer"],
-                          capture_output=True, text=True, env=env, timeout=300)
+    proc = subprocess.run(
+        CLI + ["run", str(kitti06_dir), "--frames", "0:2", "--out", str(tmp_path / "o"), "--viewer"],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
     if sys.platform.startswith("linux"):
         assert proc.returncode == 2 and proc.stderr.strip().splitlines()[-1].startswith("error: --viewer: no display")
         assert not (tmp_path / "o").exists()

@@ -73,7 +73,12 @@ def write_frames_csv(path: Path, frames: np.ndarray, loop_row: int | None, colum
         w = csv.writer(fh)
         w.writerow(names)
         for k in range(n):
-            w.writerow([cols[c][k] if isinstance(cols[c][k], str) else f"{cols[c][k]:.4f}" if c.startswith("t") else cols[c][k] for c in names])
+            w.writerow(
+                [
+                    cols[c][k] if isinstance(cols[c][k], str) else f"{cols[c][k]:.4f}" if c.startswith("t") else cols[c][k]
+                    for c in names
+                ]
+            )
     return cols
 
 
@@ -93,16 +98,39 @@ def run07(tmp_path_factory, kitti_gt_dir):
     write_kitti_poses(run / "poses_snaps.txt", snaps)
     write_kitti_poses(run / "poses_batch.txt", batch)
     cols = write_frames_csv(run / "frames.csv", frames, row)
-    loop = {"frame": LOOP_FRAME, "reference": LOOP_REF, "distance_m": float(np.linalg.norm(delta)),
-            "yaw_diff_deg": 3.0, "q": Q, "correlation": CORR, "luminance": LUM, "contrast": Q / (CORR * LUM),
-            "delta": delta.tolist(), "n_corrected": K + 1, "alpha": 1, "candidates": 3, "t_ms": 25.0,
-            "verified": True, "verify_inliers": 80}
+    loop = {
+        "frame": LOOP_FRAME,
+        "reference": LOOP_REF,
+        "distance_m": float(np.linalg.norm(delta)),
+        "yaw_diff_deg": 3.0,
+        "q": Q,
+        "correlation": CORR,
+        "luminance": LUM,
+        "contrast": Q / (CORR * LUM),
+        "delta": delta.tolist(),
+        "n_corrected": K + 1,
+        "alpha": 1,
+        "candidates": 3,
+        "t_ms": 25.0,
+        "verified": True,
+        "verify_inliers": 80,
+    }
     (run / "loops.jsonl").write_text(json.dumps(loop) + "\n")
-    (run / "config.toml").write_text("loops = \"snaps\"\n\n[loop]\ndiscount_offset = 3.0\n")
+    (run / "config.toml").write_text('loops = "snaps"\n\n[loop]\ndiscount_offset = 3.0\n')
     (run / "metrics.json").write_text(json.dumps({"frames": len(gt), "wall_s": 12.5, "latency_ms": {"old": 1}}))
     result = compare_run(run, gt_file)
-    return {"run": run, "gt": gt, "vo": vo, "snaps": snaps, "batch": batch, "delta": delta, "cols": cols,
-            "row": row, "result": result, "report": (run / "report.md").read_text()}
+    return {
+        "run": run,
+        "gt": gt,
+        "vo": vo,
+        "snaps": snaps,
+        "batch": batch,
+        "delta": delta,
+        "cols": cols,
+        "row": row,
+        "result": result,
+        "report": (run / "report.md").read_text(),
+    }
 
 
 def table_rows(report: str, header_start: str) -> list[list[str]]:
@@ -176,8 +204,16 @@ def test_metrics_json_is_updated_and_strict(run07):
     data = json.loads(text, parse_constant=lambda c: pytest.fail(f"non-JSON constant {c}"))
     assert data["wall_s"] == 12.5 and data["frames"] == len(run07["gt"])  # kept
     assert set(data["trajectories"]) == {"vo", "snaps", "batch"}
-    assert set(data["trajectories"]["vo"]) >= {"mean_deviation", "ate_rmse", "t_rel", "r_rel", "frames",
-                                                "path_length_m", "end_error_m", "end_drift_percent"}
+    assert set(data["trajectories"]["vo"]) >= {
+        "mean_deviation",
+        "ate_rmse",
+        "t_rel",
+        "r_rel",
+        "frames",
+        "path_length_m",
+        "end_error_m",
+        "end_drift_percent",
+    }
     assert data["trajectories"]["batch"]["mean_deviation"] == pytest.approx(0.5, abs=1e-6)
     assert data["latency_ms"]["total"]["n"] == len(run07["gt"]) and "old" not in data["latency_ms"]
     assert data["loop_corrections"][0]["optimised_m"]["batch"] > 0

@@ -422,7 +422,9 @@ def _height_error_case(axes: str, rotation: str = "none"):
     images = [tex(k) for k in range(7)]
     images[6] = tex(2) // 2  # Q = 0.64 against frame 2 only
     T_meas = inv(true[2]) @ true[6]
-    closer = SnapsLoopCloser(cfg(discount_length=3, correction_weight="verified", correction_axes=axes, correction_rotation=rotation))
+    closer = SnapsLoopCloser(
+        cfg(discount_length=3, correction_weight="verified", correction_axes=axes, correction_rotation=rotation)
+    )
     for k in range(7):
         T_rel = np.eye(4) if k == 0 else inv(est[k - 1]) @ est[k]
         step = closer.step(k, T_rel, images[k], verify=lambda ref: (T_meas, 50))
@@ -455,8 +457,15 @@ def test_eq6_rotation_correction_turns_window_to_verified_heading(rotation, sigm
     images = [tex(k) for k in range(6)]
     images[5] = tex(0) // 2
     T_meas = inv(true[0]) @ true[5]
-    closer = SnapsLoopCloser(cfg(correction_weight="verified", correction_axes="ground", correction_rotation=rotation,
-                                 heading_drift_deg=1.0, verified_heading_sigma_deg=sigma))
+    closer = SnapsLoopCloser(
+        cfg(
+            correction_weight="verified",
+            correction_axes="ground",
+            correction_rotation=rotation,
+            heading_drift_deg=1.0,
+            verified_heading_sigma_deg=sigma,
+        )
+    )
     for k in range(6):
         T_rel = np.eye(4) if k == 0 else inv(est[k - 1]) @ est[k]
         step = closer.step(k, T_rel, images[k], verify=lambda ref: (T_meas, 50))

@@ -23,6 +23,7 @@ def _motion(yaw_deg=0.5, t=(0.02, 0.01, -1.0)) -> np.ndarray:
 
 def _observe(X, T, rng, sigma, outliers=0.0):
     """Stereo measurements (uv, disparity) of reference points X in the reference and current frames."""
+
     def proj(P):
         return np.c_[CAM.fx * P[:, 0] / P[:, 2] + CAM.cx, CAM.fy * P[:, 1] / P[:, 2] + CAM.cy], CAM.fx * CAM.baseline_m / P[:, 2]
 

@@ -51,7 +51,9 @@ def test_street_renders_bit_identical_to_before_the_scenes():
     """Digests of frames rendered by the code before scenes and hard worlds existed."""
     seq = SyntheticSequence(builtin_loop_trajectory(120), width=W, height=H, seed=3)
     assert digest(seq, [0, 37, 105]) == "fc09e1fe9e819a2b"
-    explicit = SyntheticSequence(builtin_loop_trajectory(120), width=W, height=H, seed=3, world_config=WorldConfig(scene="street"))
+    explicit = SyntheticSequence(
+        builtin_loop_trajectory(120), width=W, height=H, seed=3, world_config=WorldConfig(scene="street")
+    )
     assert digest(explicit, [37]) == digest(seq, [37])
 
 
@@ -94,8 +96,11 @@ def test_mixed_scene_alternates_street_and_open():
     is_open = seq.world.sample_open
     assert is_open.any() and (~is_open).any()
     # street buildings stand only along street stretches, trees only beside open ones
-    k_box = [int(np.argmin(np.linalg.norm(seq.world.samples - b.corners.mean(0), axis=1))) for b in seq.world.boxes
-             if b.style == "building"]
+    k_box = [
+        int(np.argmin(np.linalg.norm(seq.world.samples - b.corners.mean(0), axis=1)))
+        for b in seq.world.boxes
+        if b.style == "building"
+    ]
     assert k_box and not is_open[k_box].any()
     # the view down an open stretch is deeper than down a street stretch
     z_frame = P[:, 2, 3]
@@ -120,6 +125,7 @@ def test_aliasing_repeats_modules_and_blocks():
     assert len(same) >= 2
     plain = SyntheticSequence(P, width=W, height=H, seed=4)
     assert len({round(b.height, 6) for b in plain.world.boxes if b.style == "building"}) > 10
+
     # distinct places look more alike: mean similarity of frames 40-100 m apart
     def mean_ncc(s: SyntheticSequence) -> float:
         th = {i: s[i].left.astype(float) for i in range(10, 150, 10)}
@@ -130,8 +136,11 @@ def test_aliasing_repeats_modules_and_blocks():
                     a, b = th[i] - th[i].mean(), th[j] - th[j].mean()
                     vals.append((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum()))
         return float(np.mean(vals))
+
     assert mean_ncc(seq) > mean_ncc(plain) + 0.05
-    assert digest(SyntheticSequence(P, width=W, height=H, seed=4, world_config=WorldConfig(aliasing=True)), [30]) == digest(seq, [30])
+    assert digest(SyntheticSequence(P, width=W, height=H, seed=4, world_config=WorldConfig(aliasing=True)), [30]) == digest(
+        seq, [30]
+    )
 
 
 @pytest.fixture(scope="module")
@@ -165,7 +174,9 @@ def test_traffic_differs_between_passes(loop300):
     assert np.array_equal(plain.world.vertices, seq.world.vertices)  # traffic leaves the static world alone
     # a car is never where the camera is: the nearest depth in view stays above 1.5 m
     assert min(seq.depth(k)[seq.depth(k) > 0].min() for k in range(0, 300, 15)) > 1.5
-    assert digest(SyntheticSequence(P, width=W, height=H, seed=5, times=times, world_config=cfg), [10, 260]) == digest(seq, [10, 260])
+    assert digest(SyntheticSequence(P, width=W, height=H, seed=5, times=times, world_config=cfg), [10, 260]) == digest(
+        seq, [10, 260]
+    )
 
 
 def test_lighting_differs_between_passes(loop300):
@@ -188,8 +199,25 @@ def test_world_mesh_agrees_with_rendered_depth(tmp_path):
     import open3d as o3d
 
     out, mesh = tmp_path / "seq", tmp_path / "world.ply"
-    r = cli("synth", "--trajectory", "loop", "--frames", "100:106", "--width", str(W), "--height", str(H),
-            "--scene", "mixed", "--traffic", "--depth", "--out", str(out), "--world-mesh", str(mesh))
+    r = cli(
+        "synth",
+        "--trajectory",
+        "loop",
+        "--frames",
+        "100:106",
+        "--width",
+        str(W),
+        "--height",
+        str(H),
+        "--scene",
+        "mixed",
+        "--traffic",
+        "--depth",
+        "--out",
+        str(out),
+        "--world-mesh",
+        str(mesh),
+    )
     assert r.returncode == 0, r.stderr
     m = o3d.io.read_triangle_mesh(str(mesh))
     assert len(m.triangles) > 1000
@@ -212,6 +240,7 @@ def test_world_mesh_agrees_with_rendered_depth(tmp_path):
         assert np.percentile(np.abs(z[ok] - ref[ok]) / ref[ok], 99) < 1e-3
     # the written depth (with traffic) agrees with the mesh wherever no car stands in front
     import cv2
+
     mm = cv2.imread(str(out / "depth_0" / "000000.png"), cv2.IMREAD_UNCHANGED) / 1000.0
     ref = seq.depth(0)
     both = (mm > 0) & (ref > 0) & (ref < 60)
@@ -221,31 +250,53 @@ def test_world_mesh_agrees_with_rendered_depth(tmp_path):
 def test_mesh_only_writes_no_images(tmp_path):
     import open3d as o3d
 
-    r = cli("synth", "--trajectory", "loop", "--frames", "0:5", "--out", str(tmp_path / "s"),
-            "--world-mesh", str(tmp_path / "w.ply"), "--mesh-only")
+    r = cli(
+        "synth",
+        "--trajectory",
+        "loop",
+        "--frames",
+        "0:5",
+        "--out",
+        str(tmp_path / "s"),
+        "--world-mesh",
+        str(tmp_path / "w.ply"),
+        "--mesh-only",
+    )
     assert r.returncode == 0, r.stderr
     assert not (tmp_path / "s").exists()
     assert len(o3d.io.read_triangle_mesh(str(tmp_path / "w.ply")).triangles) > 1000
 
 
-@pytest.mark.parametrize("args, needle", [
-    (["--scene", "desert"], "--scene 'desert'"),
-    (["--world-mesh", "world.txt"], "--world-mesh"),
-    (["--mesh-only"], "--mesh-only"),
-    (["--rectification-error", "9"], "rectification error"),
-])
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["--scene", "desert"], "--scene 'desert'"),
+        (["--world-mesh", "world.txt"], "--world-mesh"),
+        (["--mesh-only"], "--mesh-only"),
+        (["--rectification-error", "9"], "rectification error"),
+    ],
+)
 def test_bad_synth_options_are_one_line_errors(tmp_path, args, needle):
-    r = cli("synth", "--trajectory", "loop", "--frames", "0:3", "--width", "64", "--height", "32",
-            "--out", str(tmp_path / "s"), *args)
+    r = cli(
+        "synth", "--trajectory", "loop", "--frames", "0:3", "--width", "64", "--height", "32", "--out", str(tmp_path / "s"), *args
+    )
     assert r.returncode == 2
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error:") and needle in lines[0]
 
 
-@pytest.mark.parametrize("kwargs", [
-    dict(scene="desert"), dict(open_distance_m=(2.0, 200.0)), dict(tree_height_m=(10.0, 5.0)),
-    dict(parked_probability=1.5), dict(alias_modules=0), dict(oncoming_period_s=0.0), dict(day_hours_per_minute=-1.0),
-])
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        dict(scene="desert"),
+        dict(open_distance_m=(2.0, 200.0)),
+        dict(tree_height_m=(10.0, 5.0)),
+        dict(parked_probability=1.5),
+        dict(alias_modules=0),
+        dict(oncoming_period_s=0.0),
+        dict(day_hours_per_minute=-1.0),
+    ],
+)
 def test_bad_world_config_is_a_one_line_error(kwargs):
     with pytest.raises(SnapsGraphError) as err:
         SyntheticSequence(straight(5), width=64, height=32, world_config=WorldConfig(**kwargs))

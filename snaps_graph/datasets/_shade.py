@@ -102,8 +102,8 @@ class NoiseBank:
         out = np.zeros(tu.shape, f32)
         for (scale, amp), tile, (c, s) in zip(OCTAVES, self.tiles, self.rot):
             inv = f32(1.0 / scale)
-            x = (tu * (c * inv) - tv * (s * inv))
-            y = (tu * (s * inv) + tv * (c * inv))
+            x = tu * (c * inv) - tv * (s * inv)
+            y = tu * (s * inv) + tv * (c * inv)
             w = np.clip(inv_fp * f32(1.5 * scale) - f32(1.0), f32(0.0), f32(1.0))
             w *= f32(amp)
             out += w * self.sample(tile, x, y)
@@ -154,7 +154,9 @@ class Renderer:
         self.noise = NoiseBank(seed)
         self._local = threading.local()
 
-    def cast(self, R: np.ndarray, origin: np.ndarray, layer: Layer | None = None, sun: np.ndarray | None = None) -> dict[str, Any]:
+    def cast(
+        self, R: np.ndarray, origin: np.ndarray, layer: Layer | None = None, sun: np.ndarray | None = None
+    ) -> dict[str, Any]:
         """Cast one image's rays from ``origin`` with camera rotation ``R`` (world from camera),
         into the static world and, when given, a ``layer`` of the instant (traffic). With ``sun``
         (unit vector towards the sun, world axes) the hits are also tested for cast shadows."""
@@ -172,9 +174,15 @@ class Renderer:
             d.append(rays[:, 3 + k])
         tensor = o3d.core.Tensor.from_numpy(rays)
         out = self.world.scene.cast_rays(tensor)
-        hit = {"t": out["t_hit"].numpy(), "prim": out["primitive_ids"].numpy(),
-               "normal": out["primitive_normals"].numpy(), "R": R, "origin": np.asarray(origin, np.float32),
-               "tri_face": self.world.tri_face, "faces": self.world.faces}
+        hit = {
+            "t": out["t_hit"].numpy(),
+            "prim": out["primitive_ids"].numpy(),
+            "normal": out["primitive_normals"].numpy(),
+            "R": R,
+            "origin": np.asarray(origin, np.float32),
+            "tri_face": self.world.tri_face,
+            "faces": self.world.faces,
+        }
         if layer is not None:
             o2 = layer.scene.cast_rays(tensor)
             t2 = o2["t_hit"].numpy()
@@ -379,8 +387,12 @@ class Renderer:
         grass = f32(0.30) + f32(0.16) * noise
         # open-road asphalt is smooth: a third of the street's grain, few repairs
         road = f32(0.34) + f32(0.3) * (albedo - f32(0.36)) + f32(0.3) * street
-        open_delta = (on_road * (road - albedo) + verge * (grass - albedo) + in_field * (field - albedo)
-                      + line * (f32(0.85) - albedo - on_road * (road - albedo)))
+        open_delta = (
+            on_road * (road - albedo)
+            + verge * (grass - albedo)
+            + in_field * (field - albedo)
+            + line * (f32(0.85) - albedo - on_road * (road - albedo))
+        )
         if w.open_map is None:
             return open_delta
         op = cv2.remap(w.open_map, gx, gz, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(-1)

@@ -118,12 +118,16 @@ class WorldConfig:
 # offset (tu_off, tv_off) that decorrelates surfaces; without it, tu runs along a facade from its
 # corner and tv is the height above the facade's ground.
 MAIN_FIELDS = (
-    "tu_x", "tu_z", "tu_c", "tv_c",
+    "tu_x",
+    "tu_z",
+    "tu_c",
+    "tv_c",
     "albedo",  # base brightness 0..1
     "noise_amp",  # amplitude of the multi-scale noise
 )
 DETAIL_FIELDS = (  # facades only
-    "tu_off", "tv_off",
+    "tu_off",
+    "tv_off",
     "brick_w",  # brick / stone / plank length (m); 0 = no bricks
     "brick_h",  # brick course height (m)
     "brick_amp",  # per-brick brightness spread
@@ -164,8 +168,14 @@ class Box:
 class World:
     """Geometry of one world: the mesh, the face table and the open3d scene to cast rays into."""
 
-    def __init__(self, positions: np.ndarray, down_axes: np.ndarray, seed: int = 0, config: WorldConfig | None = None,
-                 times: np.ndarray | None = None):
+    def __init__(
+        self,
+        positions: np.ndarray,
+        down_axes: np.ndarray,
+        seed: int = 0,
+        config: WorldConfig | None = None,
+        times: np.ndarray | None = None,
+    ):
         """Build the world along ``positions`` (N, 3) camera centres with camera down axes (N, 3)
         (``times``, s, place the traffic; default 10 Hz)."""
 
@@ -177,7 +187,8 @@ class World:
         self.rng = np.random.default_rng([int(seed), 0x5EED])
         ground_pts = positions + cfg.camera_height_m * np.asarray(down_axes, dtype=np.float64)
         self.samples, self.tangents, self.sample_ground_y = _resample_path(
-            positions, ground_pts[:, 1], cfg.path_step_m, cfg.extend_m)
+            positions, ground_pts[:, 1], cfg.path_step_m, cfg.extend_m
+        )
         # Per path sample: does it lie in an open stretch? (None: all street, today's world.)
         self.sample_open = self._stretches()
         self.ground_dist = self.open_map = None  # open scenes: rasters the ground shader reads
@@ -198,8 +209,12 @@ class World:
 
         # -- ground --
         gv, gt = self._build_ground()
-        add(gv, gt, np.zeros(len(gt), np.int32),
-            [self._face_row(GROUND, np.zeros(3), np.array([1.0, 0.0, 0.0]), albedo=0.36, noise_amp=0.11)])
+        add(
+            gv,
+            gt,
+            np.zeros(len(gt), np.int32),
+            [self._face_row(GROUND, np.zeros(3), np.array([1.0, 0.0, 0.0]), albedo=0.36, noise_amp=0.11)],
+        )
 
         # -- boxes --
         if cfg.aliasing:
@@ -239,7 +254,7 @@ class World:
         k = 0
         while k < n:
             m = int(round(self.rng.uniform(*cfg.stretch_m) / cfg.path_step_m))
-            out[k:k + max(m, 1)] = is_open
+            out[k : k + max(m, 1)] = is_open
             k += max(m, 1)
             is_open = not is_open
         return out
@@ -303,8 +318,10 @@ class World:
         fz, fx = gz - i0, gx - j0
         H = self.height_grid
         return (
-            H[i0, j0] * (1 - fx) * (1 - fz) + H[i0, j0 + 1] * fx * (1 - fz)
-            + H[i0 + 1, j0] * (1 - fx) * fz + H[i0 + 1, j0 + 1] * fx * fz
+            H[i0, j0] * (1 - fx) * (1 - fz)
+            + H[i0, j0 + 1] * fx * (1 - fz)
+            + H[i0 + 1, j0] * (1 - fx) * fz
+            + H[i0 + 1, j0 + 1] * fx * fz
         )
 
     # ------------------------------------------------------------------ boxes
@@ -331,8 +348,9 @@ class World:
         boxes: list[Box] = []
         s_total = len(self.samples) * cfg.path_step_m
 
-        def try_box(k: int, side: float, frontage: float, offset: float, depth: float, height: float, style: str,
-                    module: int = -1) -> bool:
+        def try_box(
+            k: int, side: float, frontage: float, offset: float, depth: float, height: float, style: str, module: int = -1
+        ) -> bool:
             if self.sample_open is not None and self.sample_open[k]:
                 return False  # an open stretch: no street buildings
             p, t = self.samples[k], self.tangents[k]
@@ -391,8 +409,12 @@ class World:
                     # On a bend a long slot may touch the corridor (inside of the bend: its ends
                     # swing in) or a neighbour (its back converges): try shallower, then shorter.
                     shallow = min(depth, 6.0)
-                    for f, off, dep in ((frontage, offset, depth), (frontage, offset, shallow),
-                                        (frontage / 2, offset, shallow), (frontage / 2, offset + 3.0, shallow)):
+                    for f, off, dep in (
+                        (frontage, offset, depth),
+                        (frontage, offset, shallow),
+                        (frontage / 2, offset, shallow),
+                        (frontage / 2, offset + 3.0, shallow),
+                    ):
                         if try_box(at(s + f / 2), side, f, off, dep, height, style):
                             break
                     gap = rng.uniform(*cfg.gap_m) if rng.random() < cfg.gap_probability else 1.2
@@ -416,17 +438,33 @@ class World:
         self.modules: list[dict[str, Any]] = []
         for _ in range(cfg.alias_modules):
             bricks = arng.random() < 0.5
-            self.modules.append(dict(
-                albedo=arng.uniform(0.3, 0.75), win_w=arng.uniform(2.2, 4.0), win_h=arng.uniform(2.8, 3.8),
-                win_fx=arng.uniform(0.35, 0.7), win_fy=arng.uniform(0.4, 0.65),
-                brick_w=arng.uniform(0.45, 0.8) if bricks else 0.0, brick_h=arng.uniform(0.18, 0.32) if bricks else 0.0,
-                brick_amp=arng.uniform(0.1, 0.25) if bricks else 0.0, noise_amp=arng.uniform(0.06, 0.14),
-                offsets=arng.uniform(0.0, 1000.0, (5, 2)), idents=arng.integers(1, 2**24, 5)))
+            self.modules.append(
+                dict(
+                    albedo=arng.uniform(0.3, 0.75),
+                    win_w=arng.uniform(2.2, 4.0),
+                    win_h=arng.uniform(2.8, 3.8),
+                    win_fx=arng.uniform(0.35, 0.7),
+                    win_fy=arng.uniform(0.4, 0.65),
+                    brick_w=arng.uniform(0.45, 0.8) if bricks else 0.0,
+                    brick_h=arng.uniform(0.18, 0.32) if bricks else 0.0,
+                    brick_amp=arng.uniform(0.1, 0.25) if bricks else 0.0,
+                    noise_amp=arng.uniform(0.06, 0.14),
+                    offsets=arng.uniform(0.0, 1000.0, (5, 2)),
+                    idents=arng.integers(1, 2**24, 5),
+                )
+            )
         # a block: a few sizes, repeated (the modules alternate through it)
-        self._block = [(float(arng.uniform(*cfg.frontage_m)), float(arng.uniform(*cfg.depth_m)),
-                        float(arng.uniform(*cfg.height_m)), float(arng.uniform(0.0, 1.0)),
-                        float(arng.uniform(*cfg.gap_m)) if arng.random() < cfg.gap_probability else 1.2,
-                        j % cfg.alias_modules) for j in range(cfg.alias_block)]
+        self._block = [
+            (
+                float(arng.uniform(*cfg.frontage_m)),
+                float(arng.uniform(*cfg.depth_m)),
+                float(arng.uniform(*cfg.height_m)),
+                float(arng.uniform(0.0, 1.0)),
+                float(arng.uniform(*cfg.gap_m)) if arng.random() < cfg.gap_probability else 1.2,
+                j % cfg.alias_modules,
+            )
+            for j in range(cfg.alias_block)
+        ]
 
     # ------------------------------------------------------------------ open road
     def _place_open(self) -> None:
@@ -521,8 +559,9 @@ class World:
                     depth = rng.uniform(8.0, 25.0)
                     height = rng.uniform(*cfg.farm_height_m)
                     f0 = p + n * offset + t * along
-                    corners = np.array([f0 - t * front / 2, f0 + t * front / 2,
-                                        f0 + t * front / 2 + n * depth, f0 - t * front / 2 + n * depth])
+                    corners = np.array(
+                        [f0 - t * front / 2, f0 + t * front / 2, f0 + t * front / 2 + n * depth, f0 - t * front / 2 + n * depth]
+                    )
                     if side < 0:
                         corners = corners[::-1]
                     along += front + rng.uniform(4.0, 15.0)
@@ -532,7 +571,9 @@ class World:
                     sl, m = fp
                     if (dist[sl][m] < d_lo).any() or occ_build[sl][m].any() or occ_tree[sl][m].any():
                         continue
-                    halo = cv2.dilate(m.astype(np.uint8), np.ones((3, 3), np.uint8), iterations=int(round(2.0 / cell))).astype(bool)
+                    halo = cv2.dilate(m.astype(np.uint8), np.ones((3, 3), np.uint8), iterations=int(round(2.0 / cell))).astype(
+                        bool
+                    )
                     occ_build[sl] |= halo
                     gy = self.ground_y(corners[:, 0], corners[:, 1])
                     module = len(self.boxes) % cfg.alias_modules if cfg.aliasing else -1
@@ -612,8 +653,16 @@ class World:
             tris.append([idx(nr - 1, i), idx(nr - 1, i + 1), it])
             faces += [f] * (2 * nr)
             a = az[i] + np.pi / n_az
-            rows.append(self._face_row(TREE, np.array([x, gy, z]), np.array([-np.sin(a), 0.0, np.cos(a)]),
-                                       albedo=albedo * rng.uniform(0.9, 1.1), noise_amp=noise_amp, offset=offset))
+            rows.append(
+                self._face_row(
+                    TREE,
+                    np.array([x, gy, z]),
+                    np.array([-np.sin(a), 0.0, np.cos(a)]),
+                    albedo=albedo * rng.uniform(0.9, 1.1),
+                    noise_amp=noise_amp,
+                    offset=offset,
+                )
+            )
         # trunk: a thin box from below the ground to the crown's centre
         base = len(ring) + 2
         w = 0.15 + 0.02 * height
@@ -625,7 +674,9 @@ class World:
             k1 = (k + 1) % 4
             tris += [[base + k, base + k1, base + 4 + k1], [base + k, base + 4 + k1, base + 4 + k]]
             faces += [f] * 2
-        rows.append(self._face_row(TREE, np.array([x, gy, z]), np.array([1.0, 0.0, 0.0]), albedo=0.18, noise_amp=0.08, offset=offset))
+        rows.append(
+            self._face_row(TREE, np.array([x, gy, z]), np.array([1.0, 0.0, 0.0]), albedo=0.18, noise_amp=0.08, offset=offset)
+        )
         return np.concatenate(v), np.array(tris), np.array(faces, np.int32), rows
 
     def _box_mesh(self, box: Box, face0: int):
@@ -675,11 +726,23 @@ class World:
             t3[1] = 0.0
             t3 /= max(np.linalg.norm(t3), 1e-9)
             origin = np.array([v[k, 0], box.ground_y, v[k, 2]])
-            rows.append(self._face_row(
-                FACADE, origin, t3, albedo=albedo * rng.uniform(0.9, 1.1), noise_amp=noise_amp,
-                win_w=win_w, win_h=win_h, win_fx=win_fx, win_fy=win_fy, top=box.height,
-                brick_w=brick_w, brick_h=brick_h, brick_amp=brick_amp,
-            ))
+            rows.append(
+                self._face_row(
+                    FACADE,
+                    origin,
+                    t3,
+                    albedo=albedo * rng.uniform(0.9, 1.1),
+                    noise_amp=noise_amp,
+                    win_w=win_w,
+                    win_h=win_h,
+                    win_fx=win_fx,
+                    win_fy=win_fy,
+                    top=box.height,
+                    brick_w=brick_w,
+                    brick_h=brick_h,
+                    brick_amp=brick_amp,
+                )
+            )
         tris += [[4, 5, 6], [4, 6, 7]]
         faces += [face0 + len(rows)] * 2
         rows.append(self._face_row(ROOF, np.zeros(3), np.array([1.0, 0.0, 0.0]), albedo=albedo * 0.8, noise_amp=noise_amp))
@@ -698,12 +761,32 @@ class World:
             t3[1] = 0.0
             t3 /= max(np.linalg.norm(t3), 1e-9)
             origin = np.array([v[k, 0], box.ground_y, v[k, 2]])
-            rows.append(self._face_row(FACADE, origin, t3, albedo=mod["albedo"], noise_amp=mod["noise_amp"], top=box.height,
-                                       offset=mod["offsets"][k], ident=int(mod["idents"][k]), **look))
+            rows.append(
+                self._face_row(
+                    FACADE,
+                    origin,
+                    t3,
+                    albedo=mod["albedo"],
+                    noise_amp=mod["noise_amp"],
+                    top=box.height,
+                    offset=mod["offsets"][k],
+                    ident=int(mod["idents"][k]),
+                    **look,
+                )
+            )
         tris += [[4, 5, 6], [4, 6, 7]]
         faces += [face0 + len(rows)] * 2
-        rows.append(self._face_row(ROOF, np.zeros(3), np.array([1.0, 0.0, 0.0]), albedo=mod["albedo"] * 0.8,
-                                   noise_amp=mod["noise_amp"], offset=mod["offsets"][4], ident=int(mod["idents"][4])))
+        rows.append(
+            self._face_row(
+                ROOF,
+                np.zeros(3),
+                np.array([1.0, 0.0, 0.0]),
+                albedo=mod["albedo"] * 0.8,
+                noise_amp=mod["noise_amp"],
+                offset=mod["offsets"][4],
+                ident=int(mod["idents"][4]),
+            )
+        )
         return v, np.array(tris), np.array(faces, np.int32), rows
 
     def _backdrop_mesh(self, face0: int):
@@ -742,10 +825,25 @@ class World:
             rows.append(self._face_row(BACKDROP, origin, t3, albedo=0.3, noise_amp=0.16, same_offset=True))
         return v, np.array(tris), np.array(faces, np.int32), rows
 
-    def _face_row(self, kind: int, origin: np.ndarray, tangent: np.ndarray, albedo: float, noise_amp: float,
-                  win_w: float = 0.0, win_h: float = 0.0, win_fx: float = 0.0, win_fy: float = 0.0,
-                  top: float = 0.0, brick_w: float = 0.0, brick_h: float = 0.0, brick_amp: float = 0.0,
-                  same_offset: bool = False, offset: np.ndarray | None = None, ident: int | None = None) -> dict:
+    def _face_row(
+        self,
+        kind: int,
+        origin: np.ndarray,
+        tangent: np.ndarray,
+        albedo: float,
+        noise_amp: float,
+        win_w: float = 0.0,
+        win_h: float = 0.0,
+        win_fx: float = 0.0,
+        win_fy: float = 0.0,
+        top: float = 0.0,
+        brick_w: float = 0.0,
+        brick_h: float = 0.0,
+        brick_amp: float = 0.0,
+        same_offset: bool = False,
+        offset: np.ndarray | None = None,
+        ident: int | None = None,
+    ) -> dict:
         if offset is not None:
             pass
         elif same_offset and getattr(self, "_backdrop_offset", None) is not None:
@@ -754,21 +852,45 @@ class World:
             offset = self.rng.uniform(0.0, 1000.0, 2)
             if same_offset:
                 self._backdrop_offset = offset
-        return dict(kind=kind, origin=origin, tangent=tangent, offset=offset, albedo=albedo, noise_amp=noise_amp,
-                    win_w=win_w, win_h=win_h, win_fx=win_fx, win_fy=win_fy, top=top,
-                    brick_w=brick_w, brick_h=brick_h, brick_amp=brick_amp,
-                    ident=int(self.rng.integers(1, 2**24)) if ident is None else ident)
+        return dict(
+            kind=kind,
+            origin=origin,
+            tangent=tangent,
+            offset=offset,
+            albedo=albedo,
+            noise_amp=noise_amp,
+            win_w=win_w,
+            win_h=win_h,
+            win_fx=win_fx,
+            win_fy=win_fy,
+            top=top,
+            brick_w=brick_w,
+            brick_h=brick_h,
+            brick_amp=brick_amp,
+            ident=int(self.rng.integers(1, 2**24)) if ident is None else ident,
+        )
 
 
 def _check_config(cfg: WorldConfig) -> None:
     """One-line errors for world settings that cannot build a world."""
+
     def bad(what: str) -> None:
         raise SnapsGraphError(f"synthetic world: {what}")
 
     if cfg.scene not in SCENES:
         bad(f"scene '{cfg.scene}' is not one of {', '.join(SCENES)}")
-    for name in ("open_distance_m", "tree_spacing_m", "tree_line_length_m", "tree_height_m", "crown_radius_m",
-                 "farm_frontage_m", "farm_height_m", "field_size_m", "stretch_m", "oncoming_speed_mps"):
+    for name in (
+        "open_distance_m",
+        "tree_spacing_m",
+        "tree_line_length_m",
+        "tree_height_m",
+        "crown_radius_m",
+        "farm_frontage_m",
+        "farm_height_m",
+        "field_size_m",
+        "stretch_m",
+        "oncoming_speed_mps",
+    ):
         lo, hi = getattr(cfg, name)
         if not (np.isfinite(lo) and np.isfinite(hi) and 0 < lo <= hi):
             bad(f"{name} {(lo, hi)} must be a range 0 < lo <= hi")
@@ -788,8 +910,9 @@ def _raycasting_scene(vertices: np.ndarray, triangles: np.ndarray):
     import open3d as o3d
 
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, np.float32)),
-                        o3d.core.Tensor(np.ascontiguousarray(triangles, np.uint32)))
+    scene.add_triangles(
+        o3d.core.Tensor(np.ascontiguousarray(vertices, np.float32)), o3d.core.Tensor(np.ascontiguousarray(triangles, np.uint32))
+    )
     # Commit the acceleration structure now (the first cast does it), so concurrent casts
     # from several render threads never race on the lazy commit.
     scene.cast_rays(o3d.core.Tensor(np.array([[0, -1e4, 0, 0, 1, 0]], np.float32)))
@@ -873,8 +996,9 @@ class Traffic:
         t = self.times[0] + rng.exponential(cfg.oncoming_period_s)
         while t < self.times[-1]:
             a0 = float(np.interp(t, self.times, self.frame_arc))
-            self.oncoming.append((t, a0 + rng.uniform(80.0, 150.0), rng.uniform(*cfg.oncoming_speed_mps),
-                                  self._dims(rng), self._look(rng)))
+            self.oncoming.append(
+                (t, a0 + rng.uniform(80.0, 150.0), rng.uniform(*cfg.oncoming_speed_mps), self._dims(rng), self._look(rng))
+            )
             t += rng.exponential(cfg.oncoming_period_s)
 
     @staticmethod
@@ -936,8 +1060,9 @@ class Traffic:
             gy = float(world.ground_y(np.array([c[0]]), np.array([c[1]]))[0])
             parts = [(self._footprint(c, t, length, width), gy + 0.3, gy - body_h, paint)]
             if total_h > body_h:  # a cabin, inset, set back a little
-                parts.append((self._footprint(c - 0.1 * length * t, t, 0.55 * length, width - 0.2),
-                              gy - body_h + 0.01, gy - total_h, 0.12))
+                parts.append(
+                    (self._footprint(c - 0.1 * length * t, t, 0.55 * length, width - 0.2), gy - body_h + 0.01, gy - total_h, 0.12)
+                )
             for corners, bottom, top, albedo in parts:
                 v = np.zeros((8, 3))
                 v[:4, 0], v[:4, 2], v[:4, 1] = corners[:, 0], corners[:, 1], bottom
@@ -949,13 +1074,31 @@ class Traffic:
                     t3 = v[k1] - v[k]
                     t3[1] = 0.0
                     t3 /= max(np.linalg.norm(t3), 1e-9)
-                    rows.append(world._face_row(FACADE, np.array([v[k, 0], gy, v[k, 2]]), t3, albedo=albedo, noise_amp=0.03,
-                                                offset=offset, ident=ident))
+                    rows.append(
+                        world._face_row(
+                            FACADE,
+                            np.array([v[k, 0], gy, v[k, 2]]),
+                            t3,
+                            albedo=albedo,
+                            noise_amp=0.03,
+                            offset=offset,
+                            ident=ident,
+                        )
+                    )
                 tris += [[nv + 4, nv + 5, nv + 6], [nv + 4, nv + 6, nv + 7]]
                 faces += [face0 + len(rows)] * 2
                 # roof texture in the car's own frame: tu along it, tv across (moves with it)
-                rows.append(world._face_row(FACADE, np.array([v[4, 0], gy, v[4, 2]]), np.array([t[0], 0.0, t[1]]),
-                                            albedo=albedo * 0.9, noise_amp=0.03, offset=offset, ident=ident))
+                rows.append(
+                    world._face_row(
+                        FACADE,
+                        np.array([v[4, 0], gy, v[4, 2]]),
+                        np.array([t[0], 0.0, t[1]]),
+                        albedo=albedo * 0.9,
+                        noise_amp=0.03,
+                        offset=offset,
+                        ident=ident,
+                    )
+                )
                 rows[-1]["kind"] = ROOF
                 verts.append(v)
                 nv += 8
@@ -971,9 +1114,11 @@ class Traffic:
             return None
         v, t, f, rows = m
         local = _table(rows)
-        faces = FaceTable(np.concatenate([world.faces.kind, local.kind]),
-                          np.concatenate([world.faces.main, local.main], axis=1),
-                          np.concatenate([world.faces.detail, local.detail], axis=1))
+        faces = FaceTable(
+            np.concatenate([world.faces.kind, local.kind]),
+            np.concatenate([world.faces.main, local.main], axis=1),
+            np.concatenate([world.faces.detail, local.detail], axis=1),
+        )
         return Layer(_raycasting_scene(v, t), np.concatenate([world.tri_face, f]), faces, len(world.triangles))
 
 
@@ -984,11 +1129,13 @@ def _table(rows: list[dict]) -> FaceTable:
     kind = np.array([r["kind"] for r in rows], dtype=np.uint8)
     vertical = (kind == FACADE) | (kind == BACKDROP) | (kind == TREE)
     cols = {
-        "tu_x": tangent[:, 0], "tu_z": tangent[:, 2],
+        "tu_x": tangent[:, 0],
+        "tu_z": tangent[:, 2],
         # horizontal faces have tangent (1, 0, 0) and origin 0: tu = x + off_u, tv = z + off_v
         "tu_c": offset[:, 0] - (origin[:, 0] * tangent[:, 0] + origin[:, 2] * tangent[:, 2]),
         "tv_c": np.where(vertical, origin[:, 1], 0.0) + offset[:, 1],
-        "tu_off": offset[:, 0], "tv_off": offset[:, 1],
+        "tu_off": offset[:, 0],
+        "tv_off": offset[:, 1],
     }
     for name in MAIN_FIELDS + DETAIL_FIELDS:
         if name not in cols:
@@ -1029,7 +1176,7 @@ def _resample_path(positions: np.ndarray, ground_y: np.ndarray, step: float, ext
     else:
         # a single pose: its camera heading (z axis) is not known here, extend along +z
         t_end = t_start = tangents[0]
-    head = _free_run(samples[0] - k * t_start, samples[int(30 / step):], 3 * 5.0)[::-1]
+    head = _free_run(samples[0] - k * t_start, samples[int(30 / step) :], 3 * 5.0)[::-1]
     tail = _free_run(samples[-1] + k * t_end, samples[: max(len(samples) - int(30 / step), 0)], 3 * 5.0)
     samples = np.concatenate([head, samples, tail])
     tangents = np.concatenate([np.repeat(t_start[None], len(head), 0), tangents, np.repeat(t_end[None], len(tail), 0)])

@@ -19,7 +19,9 @@ from ..io_utils import atomic_write_bytes
 from ..trajectory_io import write_kitti_poses, write_times
 
 
-def write_kitti_folder(dataset, out_dir: str | Path, progress: Callable[[], object] | None = None, overwrite: bool = False) -> int:
+def write_kitti_folder(
+    dataset, out_dir: str | Path, progress: Callable[[], object] | None = None, overwrite: bool = False
+) -> int:
     """Write ``dataset`` to ``out_dir``; returns the number of pairs written."""
     out = Path(out_dir)
     if out.exists() and not out.is_dir():

@@ -96,12 +96,16 @@ class LiveStereo:
         else:
             left, right = imgs
         if left.shape != right.shape:
-            raise SnapsGraphError(f"{self.source}: left {left.shape[1]}x{left.shape[0]} and right {right.shape[1]}x{right.shape[0]} differ")
+            raise SnapsGraphError(
+                f"{self.source}: left {left.shape[1]}x{left.shape[0]} and right {right.shape[1]}x{right.shape[0]} differ"
+            )
         if self.rectifier is not None:
             left, right = self.rectifier.rectify(left, right)
         want = (self.camera.height, self.camera.width)
         if self.camera.width and left.shape != want:
-            raise SnapsGraphError(f"{self.source}: frames are {left.shape[1]}x{left.shape[0]}, the calibration is for {want[1]}x{want[0]}")
+            raise SnapsGraphError(
+                f"{self.source}: frames are {left.shape[1]}x{left.shape[0]}, the calibration is for {want[1]}x{want[0]}"
+            )
         if self._t0 is None:
             self._t0 = t
             if not self.camera.width:

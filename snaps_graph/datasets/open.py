@@ -76,7 +76,7 @@ def open_live(spec: str, frames: str | None = None, calib: str | Path | None = N
     B - A frames (``:`` alone or None: until the device stops)."""
     from .live import LiveStereo, open_capture
 
-    devices = [d for d in spec[len("live:"):].split(",") if d.strip()]
+    devices = [d for d in spec[len("live:") :].split(",") if d.strip()]
     if len(devices) not in (1, 2):
         raise SnapsGraphError(f"{spec}: expected live:DEV (side by side) or live:LEFT,RIGHT")
     if calib is None:
@@ -86,8 +86,9 @@ def open_live(spec: str, frames: str | None = None, calib: str | Path | None = N
     max_frames = None if rng is None or rng[1] is None else rng[1] - rng[0]
     factory = capture_factory or open_capture
     caps = [factory(d.strip()) for d in devices]
-    return LiveStereo(caps[0], caps[1] if len(caps) == 2 else None, camera=camera, rectifier=rectifier,
-                      max_frames=max_frames, source=spec)
+    return LiveStereo(
+        caps[0], caps[1] if len(caps) == 2 else None, camera=camera, rectifier=rectifier, max_frames=max_frames, source=spec
+    )
 
 
 def load_calibration(calib: str | Path):

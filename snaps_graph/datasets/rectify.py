@@ -50,8 +50,15 @@ class StereoRectifier:
             raise SnapsGraphError(f"{source}: the two cameras are at the same place (zero baseline)")
         try:
             R1, R2, P1, P2, _Q, _roi1, _roi2 = cv2.stereoRectify(
-                np.asarray(K0, float), np.asarray(D0, float).reshape(1, -1), np.asarray(K1, float), np.asarray(D1, float).reshape(1, -1),
-                tuple(int(v) for v in size), np.ascontiguousarray(R), t.reshape(3, 1).copy(), flags=cv2.CALIB_ZERO_DISPARITY, alpha=0,
+                np.asarray(K0, float),
+                np.asarray(D0, float).reshape(1, -1),
+                np.asarray(K1, float),
+                np.asarray(D1, float).reshape(1, -1),
+                tuple(int(v) for v in size),
+                np.ascontiguousarray(R),
+                t.reshape(3, 1).copy(),
+                flags=cv2.CALIB_ZERO_DISPARITY,
+                alpha=0,
             )
         except cv2.error as exc:
             raise SnapsGraphError(f"{source}: stereo rectification failed ({str(exc).strip().splitlines()[-1]})") from None
@@ -73,8 +80,12 @@ class StereoRectifier:
         for K, D, R, P in ((K0, D0, R0, P0), (K1, D1, R1, P1)):
             maps.append(
                 cv2.initUndistortRectifyMap(
-                    np.asarray(K, float).reshape(3, 3), np.asarray(D, float).reshape(-1), np.asarray(R, float).reshape(3, 3),
-                    P[:3, :3], (w, h), cv2.CV_16SC2,
+                    np.asarray(K, float).reshape(3, 3),
+                    np.asarray(D, float).reshape(-1),
+                    np.asarray(R, float).reshape(3, 3),
+                    P[:3, :3],
+                    (w, h),
+                    cv2.CV_16SC2,
                 )
             )
         rect = cls(maps[0], maps[1], camera, np.asarray(R0, float).reshape(3, 3))
@@ -156,7 +167,11 @@ def interpolate_poses(t_src: np.ndarray, p: np.ndarray, q_wxyz: np.ndarray, t_qu
     t_src, t_query = np.asarray(t_src, np.float64), np.asarray(t_query, np.float64)
     q = np.asarray(q_wxyz, float)
     q = q / np.linalg.norm(q, axis=1, keepdims=True)
-    i = np.clip(np.searchsorted(t_src, t_query, side="right") - 1, 0, len(t_src) - 2) if len(t_src) > 1 else np.zeros(len(t_query), np.int64)
+    i = (
+        np.clip(np.searchsorted(t_src, t_query, side="right") - 1, 0, len(t_src) - 2)
+        if len(t_src) > 1
+        else np.zeros(len(t_query), np.int64)
+    )
     if len(t_src) == 1:
         a = np.zeros(len(t_query))
         q0, q1, p0, p1 = q[i], q[i], p[i], p[i]

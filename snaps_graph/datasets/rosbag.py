@@ -100,10 +100,22 @@ def decode_image(msg, msgtype: str, source: str = "image") -> np.ndarray:
     enc = msg.encoding.lower()
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     data = np.asarray(msg.data, np.uint8)
-    channels = {"mono8": 1, "8uc1": 1, "mono16": 1, "16uc1": 1, "rgb8": 3, "bgr8": 3, "8uc3": 3,
-                "rgba8": 4, "bgra8": 4, "8uc4": 4}
+    channels = {
+        "mono8": 1,
+        "8uc1": 1,
+        "mono16": 1,
+        "16uc1": 1,
+        "rgb8": 3,
+        "bgr8": 3,
+        "8uc3": 3,
+        "rgba8": 4,
+        "bgra8": 4,
+        "8uc4": 4,
+    }
     if enc not in channels:
-        raise SnapsGraphError(f"{source}: image encoding '{msg.encoding}' is not supported (mono8, mono16, rgb8, bgr8, rgba8, bgra8)")
+        raise SnapsGraphError(
+            f"{source}: image encoding '{msg.encoding}' is not supported (mono8, mono16, rgb8, bgr8, rgba8, bgra8)"
+        )
     c = channels[enc]
     bpp = 2 if enc in ("mono16", "16uc1") else 1
     if h <= 0 or w <= 0 or step < w * c * bpp or data.size < h * step:
@@ -177,7 +189,9 @@ class RosbagSequence:
         if len(il) == 0:
             raise SnapsGraphError(f"{self.path}: no {left_topic} and {right_topic} messages share a stamp")
         if len(il) < len(sl) or len(ir) < len(sr):
-            self.notes.append(f"{self.path}: {len(sl) - len(il)} left and {len(sr) - len(ir)} right images have no partner (dropped)")
+            self.notes.append(
+                f"{self.path}: {len(sl) - len(il)} left and {len(sr) - len(ir)} right images have no partner (dropped)"
+            )
         self._pair_stamps = np.stack([sl[ol][il], sr[orr][ir]], 1)
         self._pair_bag_t = np.stack([bl[ol][il], br[orr][ir]], 1)
         self._times_all = (self._pair_stamps[:, 0] - self._pair_stamps[0, 0]) * 1e-9
@@ -249,7 +263,9 @@ class RosbagSequence:
         src = f"{self.path}: {self.right_topic} CameraInfo"
         size = (int(info_l.width), int(info_l.height))
         if (int(info_r.width), int(info_r.height)) != size:
-            raise SnapsGraphError(f"{src}: size {info_r.width}x{info_r.height} differs from the left camera's {size[0]}x{size[1]}")
+            raise SnapsGraphError(
+                f"{src}: size {info_r.width}x{info_r.height} differs from the left camera's {size[0]}x{size[1]}"
+            )
         Kl, Dl, Rl, Pl = _info_mats(info_l)
         Kr, Dr, Rr, Pr = _info_mats(info_r)
         for name, arr, n in (("K", Kl, 9), ("R", Rl, 9), ("P", Pl, 12), ("K", Kr, 9), ("R", Rr, 9), ("P", Pr, 12)):
@@ -261,7 +277,9 @@ class RosbagSequence:
             raise SnapsGraphError(f"{src}: P[0,3] = 0, so the baseline is unknown (a stereo right camera has P[0,3] = -fx*B)")
         for info in (info_l, info_r):
             if info.distortion_model not in ("plumb_bob", "rational_polynomial", "") and np.any(_info_mats(info)[1] != 0):
-                raise SnapsGraphError(f"{self.path}: distortion model '{info.distortion_model}' is not supported (plumb_bob, rational_polynomial)")
+                raise SnapsGraphError(
+                    f"{self.path}: distortion model '{info.distortion_model}' is not supported (plumb_bob, rational_polynomial)"
+                )
         rectified_topics = "rect" in self.left_topic.lower() and "rect" in self.right_topic.lower()
         identity = all(
             np.allclose(r.reshape(3, 3), np.eye(3)) and not np.any(d) and np.allclose(k.reshape(3, 3), p.reshape(3, 4)[:, :3])
@@ -280,7 +298,9 @@ class RosbagSequence:
         want = (self.camera.height, self.camera.width)
         for img, conn in ((left, lconn), (right, rconn)):
             if img.shape != want:
-                raise SnapsGraphError(f"{self.path}: {conn.topic}: image {img.shape[1]}x{img.shape[0]} differs from its CameraInfo {want[1]}x{want[0]}")
+                raise SnapsGraphError(
+                    f"{self.path}: {conn.topic}: image {img.shape[1]}x{img.shape[0]} differs from its CameraInfo {want[1]}x{want[0]}"
+                )
         if self.rectifier is not None:
             left, right = self.rectifier.rectify(left, right)
         return StereoFrame(k, float(self._times_all[k]), left, right)
@@ -288,8 +308,10 @@ class RosbagSequence:
     def _stream(self, k0: int, k1: int) -> Iterator[StereoFrame]:
         """Pairs k0..k1-1 in order, from one sweep over the bag's messages in that time range."""
         lt, rt = self.left_topic, self.right_topic
-        want = {lt: {int(s): k for k, s in enumerate(self._pair_stamps[k0:k1, 0], k0)},
-                rt: {int(s): k for k, s in enumerate(self._pair_stamps[k0:k1, 1], k0)}}
+        want = {
+            lt: {int(s): k for k, s in enumerate(self._pair_stamps[k0:k1, 0], k0)},
+            rt: {int(s): k for k, s in enumerate(self._pair_stamps[k0:k1, 1], k0)},
+        }
         got: dict[int, list] = {}
         nxt = k0
         t_lo = int(self._pair_bag_t[k0:k1].min())

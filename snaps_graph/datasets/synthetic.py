@@ -191,8 +191,10 @@ class SyntheticSequence:
         import open3d as o3d
 
         path = Path(path)
-        mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(self.world.vertices.astype(np.float64)),
-                                         o3d.utility.Vector3iVector(self.world.triangles.astype(np.int32)))
+        mesh = o3d.geometry.TriangleMesh(
+            o3d.utility.Vector3dVector(self.world.vertices.astype(np.float64)),
+            o3d.utility.Vector3iVector(self.world.triangles.astype(np.int32)),
+        )
         try:
             with atomic_output(path, suffix=path.suffix or ".ply") as tmp:
                 if not o3d.io.write_triangle_mesh(str(tmp), mesh, write_ascii=False, compressed=False):
@@ -353,8 +355,11 @@ def load_trajectory(spec: str, frames: str | None = None, times: str | Path | No
             raise SnapsGraphError(f"{path}: trajectory file not found (give a KITTI pose file or 'loop')")
         poses = read_kitti_poses(path)
         stamps = None
-        for cand in (path.with_name(f"{path.stem}_times.txt"), path.with_name("times.txt"),
-                     path.parent.parent / "sequences" / path.stem / "times.txt"):
+        for cand in (
+            path.with_name(f"{path.stem}_times.txt"),
+            path.with_name("times.txt"),
+            path.parent.parent / "sequences" / path.stem / "times.txt",
+        ):
             if given_times is None and cand.is_file():
                 stamps = read_times(cand)
                 if len(stamps) != len(poses):

@@ -55,8 +55,7 @@ def candidates_csv_text(records: list[CandidateRecord]) -> str:
     w.writerow(CANDIDATE_COLUMNS)
     for r in records:
         w.writerow(
-            f"{v:.6f}" if name in _FLOATS else (int(v) if name in _BOOLS else v)
-            for name, v in zip(CANDIDATE_COLUMNS, astuple(r))
+            f"{v:.6f}" if name in _FLOATS else (int(v) if name in _BOOLS else v) for name, v in zip(CANDIDATE_COLUMNS, astuple(r))
         )
     return buf.getvalue()
 
@@ -216,7 +215,8 @@ def evaluate_loops(
     fid = np.asarray(frame_ids)
     false_loops = [
         {"frame": int(a), "reference": int(b), "distance_gt_m": float(d)}
-        for (a, b), d, lab in zip(loops, d_loop, loop_labels) if lab == 0
+        for (a, b), d, lab in zip(loops, d_loop, loop_labels)
+        if lab == 0
     ]
     at_threshold = {}
     if min_similarity is not None:
@@ -227,8 +227,13 @@ def evaluate_loops(
             at_threshold[f"precision_at_min_similarity{key}"] = tp / (tp + fp) if tp + fp else None
             at_threshold[f"recall_at_min_similarity{key}"] = tp / n_true if n_true else None
     return at_threshold | {
-        "settings": {"true_m": s.true_m, "false_m": s.false_m, "frame_distance": s.frame_distance,
-                     "max_yaw_deg": s.max_yaw_deg, "segment_gap": s.segment_gap},
+        "settings": {
+            "true_m": s.true_m,
+            "false_m": s.false_m,
+            "frame_distance": s.frame_distance,
+            "max_yaw_deg": s.max_yaw_deg,
+            "segment_gap": s.segment_gap,
+        },
         "pairs": len(records),
         "true_pairs": int((labels == 1).sum()),
         "false_pairs": int((labels == 0).sum()),
@@ -261,7 +266,9 @@ def evaluate_loops(
     }
 
 
-def plot_loops(path: str | Path, ev: dict, records: list[CandidateRecord], labels: np.ndarray, min_similarity: float | None, title: str) -> None:
+def plot_loops(
+    path: str | Path, ev: dict, records: list[CandidateRecord], labels: np.ndarray, min_similarity: float | None, title: str
+) -> None:
     """Two panels: precision-recall (Q alone, Q + verification) and Q of true / false pairs."""
     import matplotlib
 
@@ -272,8 +279,13 @@ def plot_loops(path: str | Path, ev: dict, records: list[CandidateRecord], label
     for key, lab, style in (("q", "Q alone", "-"), ("q_verified", "Q + verification", "--")):
         c = ev["curve"][key]
         if c["recall"]:
-            a.plot(c["recall"], c["precision"], style, drawstyle="steps-post",
-                   label=f"{lab} (max recall at P=1: {c['max_recall_at_100_precision']:.2f})")
+            a.plot(
+                c["recall"],
+                c["precision"],
+                style,
+                drawstyle="steps-post",
+                label=f"{lab} (max recall at P=1: {c['max_recall_at_100_precision']:.2f})",
+            )
     a.set_xlabel("recall")
     a.set_ylabel("precision")
     a.set_xlim(0, 1.02)
@@ -284,9 +296,11 @@ def plot_loops(path: str | Path, ev: dict, records: list[CandidateRecord], label
     passed = np.array([r.verify_passed for r in records], bool)
     lo, hi = (float(q.min()), float(q.max())) if len(q) else (0.0, 1.0)
     bins = np.linspace(lo, hi if hi > lo else lo + 1e-3, 41)
-    for val, name, col in ((1, f"true (<= {ev['settings']['true_m']:g} m)", "tab:green"),
-                           (0, f"false (> {ev['settings']['false_m']:g} m)", "tab:red"),
-                           (-1, "ignored", "tab:grey")):
+    for val, name, col in (
+        (1, f"true (<= {ev['settings']['true_m']:g} m)", "tab:green"),
+        (0, f"false (> {ev['settings']['false_m']:g} m)", "tab:red"),
+        (-1, "ignored", "tab:grey"),
+    ):
         sel = labels == val
         if sel.any():
             b.hist(q[sel], bins=bins, alpha=0.5, color=col, label=f"{name}: {int(sel.sum())}")
@@ -348,7 +362,8 @@ def loops_run(
     loops = [(int(lp["frame"]), int(lp["reference"])) for lp in _read_loops(run / "loops.jsonl", row_of)]
     loop_cfg, min_sim = _run_loop_settings(run)
     settings = LoopEvalSettings(
-        true_m=true_m, false_m=false_m,
+        true_m=true_m,
+        false_m=false_m,
         frame_distance=int(loop_cfg.get("frame_distance", LoopEvalSettings.frame_distance)),
         max_yaw_deg=float(loop_cfg.get("max_yaw_deg", LoopEvalSettings.max_yaw_deg)),
     )
@@ -379,9 +394,15 @@ def summary_lines(ev: dict) -> list[str]:
         f"(threshold {f(ev['threshold_at_100_precision'], 4)}, highest false Q {f(ev['q_max_false'], 4)}); "
         f"Q + verification {f(ev['max_recall_at_100_precision_verified'])} "
         f"(threshold {f(ev['threshold_at_100_precision_verified'], 4)}, highest verified false Q {f(ev['q_max_false_verified'], 4)})",
-        *([f"at the run's min_similarity {ev['min_similarity']:g}: precision {f(ev.get('precision_at_min_similarity'))}, "
-           f"recall {f(ev.get('recall_at_min_similarity'))}; with verification {f(ev.get('precision_at_min_similarity_verified'))}, "
-           f"{f(ev.get('recall_at_min_similarity_verified'))}"] if ev.get("min_similarity") is not None else []),
+        *(
+            [
+                f"at the run's min_similarity {ev['min_similarity']:g}: precision {f(ev.get('precision_at_min_similarity'))}, "
+                f"recall {f(ev.get('recall_at_min_similarity'))}; with verification {f(ev.get('precision_at_min_similarity_verified'))}, "
+                f"{f(ev.get('recall_at_min_similarity_verified'))}"
+            ]
+            if ev.get("min_similarity") is not None
+            else []
+        ),
         f"verification tried on {ev['verification_tried']} of {ev['pairs']} pairs"
         + (f" ({100 * cov:.0f}%)" if cov is not None else "")
         + f"; passed on {ev['verified_true_pairs']} true and {ev['verified_false_pairs']} false pairs",
@@ -390,7 +411,11 @@ def summary_lines(ev: dict) -> list[str]:
         f"revisit segments {ev['segments']}: found {ev['segments_found']}, missed {ev['segments_missed']}"
         + (f" {ev['segments_missed_frames']}" if ev["segments_missed"] else ""),
         f"loops accepted {ev['loops']}: true {ev['true_loops']}, ignored band {ev['ignored_loops']}, false {ev['false_loops']}"
-        + (f" {[(x['frame'], x['reference'], round(x['distance_gt_m'], 2)) for x in ev['false_loop_pairs']]}" if ev["false_loops"] else ""),
+        + (
+            f" {[(x['frame'], x['reference'], round(x['distance_gt_m'], 2)) for x in ev['false_loop_pairs']]}"
+            if ev["false_loops"]
+            else ""
+        ),
     ]
 
 
@@ -401,4 +426,15 @@ def json_text(ev: dict, with_curve: bool = True) -> str:
     return json.dumps(json_clean(out), indent=2)
 
 
-__all__ = ["LoopEvalSettings", "read_candidates_csv", "write_candidates_csv", "evaluate_loops", "label_pairs", "loops_run", "pr_curve", "revisit_mask", "segments", "summary_lines"]
+__all__ = [
+    "LoopEvalSettings",
+    "read_candidates_csv",
+    "write_candidates_csv",
+    "evaluate_loops",
+    "label_pairs",
+    "loops_run",
+    "pr_curve",
+    "revisit_mask",
+    "segments",
+    "summary_lines",
+]

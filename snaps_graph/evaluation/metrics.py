@@ -73,9 +73,7 @@ def path_length(poses: np.ndarray) -> float:
     return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
 
 
-def umeyama_alignment(
-    src_xyz: np.ndarray, dst_xyz: np.ndarray, with_scale: bool = False
-) -> tuple[np.ndarray, np.ndarray, float]:
+def umeyama_alignment(src_xyz: np.ndarray, dst_xyz: np.ndarray, with_scale: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
     """Least-squares similarity (R, t, s) with dst ~ s R src + t (Umeyama 1991, eq. 34-43).
 
     ``src_xyz`` and ``dst_xyz`` are (N, 3) matched points. Same formulas as evo's

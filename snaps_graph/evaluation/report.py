@@ -161,8 +161,7 @@ def _load_gt(run: Path, gt_path: str | Path | None, frame_ids: np.ndarray) -> tu
         selected = gt[frame_ids]  # a whole-sequence file: pick the processed frames
     else:
         raise SnapsGraphError(
-            f"{p}: {len(gt)} poses cover neither the run's {n} rows nor its dataset frames "
-            f"{frame_ids.min()}..{frame_ids.max()}"
+            f"{p}: {len(gt)} poses cover neither the run's {n} rows nor its dataset frames {frame_ids.min()}..{frame_ids.max()}"
         )
     return _rebase(selected), p
 
@@ -311,17 +310,13 @@ def _loop_corrections(loops: list[dict], trajs: dict[str, np.ndarray], gt: np.nd
             "contrast": lp.get("contrast"),
             "verified": lp.get("verified"),
             "snaps_step_m": step,
-            "heuristic_m": (
-                float(np.linalg.norm(trajs["snaps"][row, :3, 3] - p_vo[row])) if "snaps" in trajs else None
-            ),
+            "heuristic_m": (float(np.linalg.norm(trajs["snaps"][row, :3, 3] - p_vo[row])) if "snaps" in trajs else None),
             "optimised_m": {
                 name: float(np.linalg.norm(trajs[name][row, :3, 3] - p_vo[row])) for name in REFINED_NAMES if name in trajs
             },
         }
         if gt is not None:
-            entry["error_m"] = {
-                name: float(np.linalg.norm(poses[row, :3, 3] - gt[row, :3, 3])) for name, poses in trajs.items()
-            }
+            entry["error_m"] = {name: float(np.linalg.norm(poses[row, :3, 3] - gt[row, :3, 3])) for name, poses in trajs.items()}
         out.append(entry)
     return out
 
@@ -346,13 +341,27 @@ def _trajectory_lines(trajs: dict, metrics: dict | None, paths: dict) -> list[st
         header = ["trajectory", "frames", "path length [m]", "end offset from vo [m]"]
         p_vo_end = trajs["vo"][-1, :3, 3]
         rows = [
-            [name, str(paths[name]["frames"]), _f(paths[name]["path_length_m"], 3),
-             _f(float(np.linalg.norm(trajs[name][-1, :3, 3] - p_vo_end)), 3)]
+            [
+                name,
+                str(paths[name]["frames"]),
+                _f(paths[name]["path_length_m"], 3),
+                _f(float(np.linalg.norm(trajs[name][-1, :3, 3] - p_vo_end)), 3),
+            ]
             for name in trajs
         ]
         return _table(header, rows)
-    header = ["trajectory", "frames", "mean deviation [m]", "vs vo", "horizontal / vertical [m]", "ATE RMSE [m]",
-              "t_rel [%]", "r_rel [deg/100 m]", "end error [m]", "end drift [%]"]
+    header = [
+        "trajectory",
+        "frames",
+        "mean deviation [m]",
+        "vs vo",
+        "horizontal / vertical [m]",
+        "ATE RMSE [m]",
+        "t_rel [%]",
+        "r_rel [deg/100 m]",
+        "end error [m]",
+        "end drift [%]",
+    ]
     md_vo = metrics["vo"]["mean_deviation"]
     rows = []
     for name, m in metrics.items():
@@ -361,24 +370,52 @@ def _trajectory_lines(trajs: dict, metrics: dict | None, paths: dict) -> list[st
         else:
             change = "n/a" if md_vo <= 0 else f"{(m['mean_deviation'] - md_vo) / md_vo * 100.0:+.1f}%"
         split = f"{_f(m.get('mean_deviation_horizontal'), 3)} / {_f(m.get('mean_deviation_vertical'), 3)}"
-        rows.append([name, str(m["frames"]), _f(m["mean_deviation"], 3), change, split, _f(m["ate_rmse"], 3),
-                     _f(m["t_rel"], 3), _f(m["r_rel"], 4), _f(m["end_error_m"], 3), _f(m["end_drift_percent"], 3)])
+        rows.append(
+            [
+                name,
+                str(m["frames"]),
+                _f(m["mean_deviation"], 3),
+                change,
+                split,
+                _f(m["ate_rmse"], 3),
+                _f(m["t_rel"], 3),
+                _f(m["r_rel"], 4),
+                _f(m["end_error_m"], 3),
+                _f(m["end_drift_percent"], 3),
+            ]
+        )
     return _table(header, rows)
 
 
 def _loop_lines(corrections: list[dict], trajs: dict, with_gt: bool) -> list[str]:
     refined = [n for n in REFINED_NAMES if n in trajs]
-    header = ["frame", "reference", "Q", "correlation", "luminance", "contrast", "verified",
-              "SNAPS step [m]", "heuristic [m]"] + [f"optimised {n} [m]" for n in refined]
+    header = [
+        "frame",
+        "reference",
+        "Q",
+        "correlation",
+        "luminance",
+        "contrast",
+        "verified",
+        "SNAPS step [m]",
+        "heuristic [m]",
+    ] + [f"optimised {n} [m]" for n in refined]
     if with_gt:
         header += [f"error {n} [m]" for n in trajs]
     rows = []
     for c in corrections:
         verified = c["verified"]
-        row = [str(c["frame"]), str(c["reference"]), _f(c["q"], 4), _f(c["correlation"], 4),
-               _f(c["luminance"], 4), _f(c["contrast"], 4),
-               "n/a" if verified is None else ("yes" if verified else "no"),
-               _f(c["snaps_step_m"], 3), _f(c["heuristic_m"], 3)]
+        row = [
+            str(c["frame"]),
+            str(c["reference"]),
+            _f(c["q"], 4),
+            _f(c["correlation"], 4),
+            _f(c["luminance"], 4),
+            _f(c["contrast"], 4),
+            "n/a" if verified is None else ("yes" if verified else "no"),
+            _f(c["snaps_step_m"], 3),
+            _f(c["heuristic_m"], 3),
+        ]
         row += [_f(c["optimised_m"].get(n), 3) for n in refined]
         if with_gt:
             row += [_f(c["error_m"][n], 3) for n in trajs]
@@ -393,8 +430,7 @@ def _latency_lines(latency: dict) -> list[str]:
         s = latency.get(key)
         if s is None:
             continue
-        rows.append([label, str(s["n"]), _f(s.get("median"), 4), _f(s.get("mean"), 4),
-                     _f(s.get("p95"), 4), _f(s.get("max"), 4)])
+        rows.append([label, str(s["n"]), _f(s.get("median"), 4), _f(s.get("mean"), 4), _f(s.get("p95"), 4), _f(s.get("max"), 4)])
     return _table(header, rows)
 
 
@@ -453,19 +489,25 @@ def map_section_lines(run_dir: str | Path, map_entry: dict | None) -> list[str]:
     if map_entry.get("empty"):
         return md + [f"No map: {map_entry['empty']}.", ""]
     surf = map_entry.get("surfaces", {}).get(map_entry.get("trajectory"), {})
-    md.append(f"Fused under **{map_entry.get('trajectory')}** from {map_entry.get('keyframes')} keyframes "
-              f"({map_entry.get('bytes', 0) / 2**20:.1f} MiB of compressed depth): "
-              f"{surf.get('triangles', 'n/a')} triangles (`map_mesh.ply`), {surf.get('vertices', 'n/a')} surface points (`map.ply`, the mesh vertices).")
+    md.append(
+        f"Fused under **{map_entry.get('trajectory')}** from {map_entry.get('keyframes')} keyframes "
+        f"({map_entry.get('bytes', 0) / 2**20:.1f} MiB of compressed depth): "
+        f"{surf.get('triangles', 'n/a')} triangles (`map_mesh.ply`), {surf.get('vertices', 'n/a')} surface points (`map.ply`, the mesh vertices)."
+    )
     acc = map_entry.get("accuracy")
     if acc:
         any_acc = next(iter(acc.values()))
         any_acc = next(iter(acc.values()))
-        md += ["", f"Accuracy against the true world (`{map_entry.get('world_mesh', '?')}`): distance of the map's "
-               "points (= the mesh vertices, `map.ply`) to the true surface; completeness = share of the true "
-               f"surface within {any_acc['range_m']:g} m of the path that lies within {any_acc['tolerance_m']:g} m of "
-               "the map, over all of it and over the part a keyframe camera saw (in view, within range, "
-               "unoccluded: upper floors, roofs and the backs of buildings are never seen). "
-               "**gt** = the same keyframe depth fused under the true poses.", ""]
+        md += [
+            "",
+            f"Accuracy against the true world (`{map_entry.get('world_mesh', '?')}`): distance of the map's "
+            "points (= the mesh vertices, `map.ply`) to the true surface; completeness = share of the true "
+            f"surface within {any_acc['range_m']:g} m of the path that lies within {any_acc['tolerance_m']:g} m of "
+            "the map, over all of it and over the part a keyframe camera saw (in view, within range, "
+            "unoccluded: upper floors, roofs and the backs of buildings are never seen). "
+            "**gt** = the same keyframe depth fused under the true poses.",
+            "",
+        ]
         md.append("| map posed by | error p50 m | error p90 m | within tol. | completeness | completeness (seen) | points |")
         md.append("|---|---|---|---|---|---|---|")
 
@@ -474,10 +516,16 @@ def map_section_lines(run_dir: str | Path, map_entry: dict | None) -> list[str]:
 
         for name, a in acc.items():
             p = a["points"]
-            md.append(f"| {name} | {f(p['error_median_m'])} | {f(p['error_p90_m'])} | {f(p['share_within_tolerance'], True)} | "
-                      f"{f(p['completeness'], True)} | {f(p['completeness_seen'], True)} | {p['n']} |")
+            md.append(
+                f"| {name} | {f(p['error_median_m'])} | {f(p['error_p90_m'])} | {f(p['share_within_tolerance'], True)} | "
+                f"{f(p['completeness'], True)} | {f(p['completeness_seen'], True)} | {p['n']} |"
+            )
     md.append("")
-    for fig, alt in (("map.png", "map, top-down"), ("map_mesh.png", "mesh, perspective"), ("map_compare.png", "maps side by side")):
+    for fig, alt in (
+        ("map.png", "map, top-down"),
+        ("map_mesh.png", "mesh, perspective"),
+        ("map_compare.png", "maps side by side"),
+    ):
         if (run / fig).is_file():
             md += [f"![{alt}]({fig})", ""]
     return md
@@ -546,10 +594,12 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accu
 
     # report.md
     md = [f"# Heuristic vs optimised: `{run.name}`", ""]
-    md.append(f"Run folder `{run}`; {n} frames (dataset frames {frame_ids[0]}..{frame_ids[-1]}); "
-              f"{len(loops)} loop(s) closed.")
-    md.append(f"Ground truth: `{gt_file}` (re-based to the first processed frame)." if gt is not None
-              else "Ground truth: none (no poses_gt.txt and no --gt), so no error columns and no errors.png.")
+    md.append(f"Run folder `{run}`; {n} frames (dataset frames {frame_ids[0]}..{frame_ids[-1]}); {len(loops)} loop(s) closed.")
+    md.append(
+        f"Ground truth: `{gt_file}` (re-based to the first processed frame)."
+        if gt is not None
+        else "Ground truth: none (no poses_gt.txt and no --gt), so no error columns and no errors.png."
+    )
     md.append("Trajectories: " + "; ".join(f"**{k}** = {TRAJECTORY_LABELS[k]}" for k in trajs) + ".")
     md += ["", "## Trajectories", ""]
     md += _trajectory_lines(trajs, per_traj, paths)
@@ -589,17 +639,22 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accu
         loop_eval = loops_run(run, gt_path)
         md += ["", "## Loop closure against ground truth", ""]
         md += [f"- {line}" for line in summary_lines(loop_eval)]
-        md += ["", "Pairs: true within the first distance, false beyond the second, ignored in between; "
-               "precision-recall over the Q threshold for Q alone and for Q + geometric verification "
-               "(`snaps-graph loops RUN_DIR --json` prints the curve).", "", "![loop precision-recall](loops_pr.png)", ""]
+        md += [
+            "",
+            "Pairs: true within the first distance, false beyond the second, ignored in between; "
+            "precision-recall over the Q threshold for Q alone and for Q + geometric verification "
+            "(`snaps-graph loops RUN_DIR --json` prints the curve).",
+            "",
+            "![loop precision-recall](loops_pr.png)",
+            "",
+        ]
         if "plot" in loop_eval:
             figures.append(Path(loop_eval["plot"]).name)
     md += ["", "## Latency", ""]
     if samples:
         md += _latency_lines(latency)
         fps = latency.get("frames_per_s")
-        md += ["", f"Throughput: {fps:.2f} frames/s (from the total per frame)." if fps else "",
-               "", "![latency](latency.png)"]
+        md += ["", f"Throughput: {fps:.2f} frames/s (from the total per frame)." if fps else "", "", "![latency](latency.png)"]
     else:
         md.append("frames.csv has no timing columns.")
     md.append("")

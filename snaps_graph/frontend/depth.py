@@ -106,8 +106,9 @@ def map_camera(camera: StereoCamera, scale: float, width: int, height: int) -> S
     c' = (c + 0.5) s - 0.5), sized to the resized image."""
     w, h = max(1, int(round(width * scale))), max(1, int(round(height * scale)))
     sx, sy = w / width, h / height
-    return StereoCamera(camera.fx * sx, camera.fy * sy, (camera.cx + 0.5) * sx - 0.5, (camera.cy + 0.5) * sy - 0.5,
-                        camera.baseline_m, w, h)
+    return StereoCamera(
+        camera.fx * sx, camera.fy * sy, (camera.cx + 0.5) * sx - 0.5, (camera.cy + 0.5) * sy - 0.5, camera.baseline_m, w, h
+    )
 
 
 def map_depth(left: np.ndarray, right: np.ndarray, camera: StereoCamera, cfg: FrontendConfig, mcfg: MapConfig) -> np.ndarray:
@@ -145,8 +146,14 @@ def map_depth(left: np.ndarray, right: np.ndarray, camera: StereoCamera, cfg: Fr
         # SGBM's own left-right check (disp12MaxDiff) reuses its cost volume: no second match
         lr = int(max(1, round(mcfg.depth_lr_check_px))) if mcfg.depth_lr_check_px > 0 else -1
         matcher = cv2.StereoSGBM.create(
-            minDisparity=0, numDisparities=ndisp, blockSize=b, P1=8 * b * b, P2=32 * b * b, disp12MaxDiff=lr,
-            uniquenessRatio=int(mcfg.depth_uniqueness), mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+            minDisparity=0,
+            numDisparities=ndisp,
+            blockSize=b,
+            P1=8 * b * b,
+            P2=32 * b * b,
+            disp12MaxDiff=lr,
+            uniquenessRatio=int(mcfg.depth_uniqueness),
+            mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
         )
     disp_l = matcher.compute(left, right)  # int16, x16; < 0 = no match
     d = disp_l.astype(np.float32) / 16.0
@@ -223,8 +230,14 @@ def sparse_disparity(
         init[:, 0] -= g
         flags = cv2.OPTFLOW_USE_INITIAL_FLOW
     p1, st, _ = cv2.calcOpticalFlowPyrLK(
-        left, right, uv.reshape(-1, 1, 2), None if init is None else init.reshape(-1, 1, 2),
-        winSize=win, maxLevel=cfg.stereo_levels, criteria=crit, flags=flags,
+        left,
+        right,
+        uv.reshape(-1, 1, 2),
+        None if init is None else init.reshape(-1, 1, 2),
+        winSize=win,
+        maxLevel=cfg.stereo_levels,
+        criteria=crit,
+        flags=flags,
     )
     p1 = p1.reshape(-1, 2)
     d = uv[:, 0] - p1[:, 0]
@@ -234,8 +247,14 @@ def sparse_disparity(
     if cfg.stereo_lr_check_px > 0 and np.any(ok):
         idx = np.flatnonzero(ok)
         back, st2, _ = cv2.calcOpticalFlowPyrLK(
-            right, left, p1[idx].reshape(-1, 1, 2), uv[idx].reshape(-1, 1, 2).copy(),
-            winSize=win, maxLevel=1, criteria=crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+            right,
+            left,
+            p1[idx].reshape(-1, 1, 2),
+            uv[idx].reshape(-1, 1, 2).copy(),
+            winSize=win,
+            maxLevel=1,
+            criteria=crit,
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
         )
         err = np.linalg.norm(back.reshape(-1, 2) - uv[idx], axis=1)
         bad = (st2.reshape(-1) != 1) | ~(err <= cfg.stereo_lr_check_px)

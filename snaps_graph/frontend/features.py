@@ -172,9 +172,14 @@ def track_klt(
     init = None if guess is None else np.ascontiguousarray(guess, np.float32).reshape(-1, 1, 2)
     flags = 0 if guess is None else cv2.OPTFLOW_USE_INITIAL_FLOW
     p1, st, _ = cv2.calcOpticalFlowPyrLK(
-        prev_img, cur_img, uv.reshape(-1, 1, 2), init,
-        winSize=(cfg.klt_window_px, cfg.klt_window_px), maxLevel=cfg.klt_levels,
-        criteria=crit, flags=flags,
+        prev_img,
+        cur_img,
+        uv.reshape(-1, 1, 2),
+        init,
+        winSize=(cfg.klt_window_px, cfg.klt_window_px),
+        maxLevel=cfg.klt_levels,
+        criteria=crit,
+        flags=flags,
     )
     p1 = p1.reshape(-1, 2)
     h, w = cur_img.shape

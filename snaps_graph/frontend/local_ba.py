@@ -53,9 +53,20 @@ class LocalBAStats:
 class LocalBundleAdjuster:
     """Windowed stereo BA; ``add_keyframe`` returns the refined pose of the keyframe just added."""
 
-    def __init__(self, camera: StereoCamera, window: int = 6, sigma_px: float = 0.5, huber_px: float = 1.0,
-                 iterations: int = 5, max_landmarks: int = 300, solver: str = "numpy", min_landmarks: int = 30,
-                 max_shift_m: float = 0.25, max_turn_deg: float = 1.0, select: str = "longest"):
+    def __init__(
+        self,
+        camera: StereoCamera,
+        window: int = 6,
+        sigma_px: float = 0.5,
+        huber_px: float = 1.0,
+        iterations: int = 5,
+        max_landmarks: int = 300,
+        solver: str = "numpy",
+        min_landmarks: int = 30,
+        max_shift_m: float = 0.25,
+        max_turn_deg: float = 1.0,
+        select: str = "longest",
+    ):
         self.camera = camera
         self.window = max(2, int(window))
         self.K = gtsam.Cal3_S2Stereo(camera.fx, camera.fy, 0.0, camera.cx, camera.cy, camera.baseline_m)
@@ -147,7 +158,10 @@ class LocalBundleAdjuster:
             m = np.isin(k.ids, shared)
             ids, uvd = k.ids[m], k.uvd[m]
             z = cam.fx * cam.baseline_m / uvd[:, 2]
-            pw = (np.c_[(uvd[:, 0] - cam.cx) / cam.fx * z, (uvd[:, 1] - cam.cy) / cam.fy * z, z]) @ k.pose[:3, :3].T + k.pose[:3, 3]
+            pw = (
+                (np.c_[(uvd[:, 0] - cam.cx) / cam.fx * z, (uvd[:, 1] - cam.cy) / cam.fy * z, z]) @ k.pose[:3, :3].T
+                + k.pose[:3, 3]
+            )
             for i in range(len(ids)):
                 lid = int(ids[i])
                 u, v, d = uvd[i]
@@ -244,11 +258,11 @@ class LocalBundleAdjuster:
             S = np.empty((6 * W, 6 * W))
             for a in range(W):
                 for b in range(a, W):
-                    blk = -(Fm[6 * a:6 * a + 6] @ Hm[6 * b:6 * b + 6].T)
+                    blk = -(Fm[6 * a : 6 * a + 6] @ Hm[6 * b : 6 * b + 6].T)
                     if a == b:
                         blk += Hcc[a]
-                    S[6 * a:6 * a + 6, 6 * b:6 * b + 6] = blk
-                    S[6 * b:6 * b + 6, 6 * a:6 * a + 6] = blk.T
+                    S[6 * a : 6 * a + 6, 6 * b : 6 * b + 6] = blk
+                    S[6 * b : 6 * b + 6, 6 * a : 6 * a + 6] = blk.T
             g = bc.reshape(-1) - np.einsum("wil,l->wi", Fm.reshape(W, 6, -1), bl.reshape(-1)).reshape(-1)
             S = S[6:, 6:] + 1e-6 * np.eye(6 * (W - 1))  # the oldest pose is the gauge
             try:

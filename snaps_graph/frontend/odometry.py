@@ -19,6 +19,10 @@
    sliding-window stereo BA over the last ``lba_window`` keyframes (``local_ba.py``; KLT tracks
    keep a landmark id while they live) refines it; the chain continues from the refined pose.
 
+At speed (large motion, or frames skipped: index gaps) KLT starts from the constant-velocity
+prediction scaled to the gap, also after flagged frames; when PnP on the tracks still fails,
+``klt_retry = "orb"`` retries once on ORB matches detected afresh plus the tracks.
+
 KLT tracks from the last frame (``klt_reference = "frame"``) or from the last keyframe
 ("keyframe": a frame becomes the reference only when the tracks thin out or after
 ``kf_max_gap`` frames, so one step's tracking error is not chained into every frame).
@@ -29,7 +33,7 @@ black (grey std below ``min_frame_std``), blurred (mean |Laplacian| below
 inliers, when the motion is non-finite or implausible (more than ``max_step_m`` /
 ``max_step_deg`` per frame), when stereo finds depth at fewer than ``min_stereo_points``
 keypoints (a swapped or broken stereo pair), or when OpenCV raises. A flagged frame's pose
-follows the constant-velocity guess (the last good T_rel). Its features become the new
+follows the constant-velocity guess (the last good step's motion, scaled to the index gap). Its features become the new
 reference only if they are usable (sharp, non-flat, enough keypoints with depth); otherwise
 the last good reference stays, and the next frame is tracked against it directly, so the guess
 does not enter the chain: T_world_cur = T_world_ref · T_ref_cur for the reference's pose.
@@ -43,6 +47,7 @@ beside matching + PnP. Each stage's inputs are fixed before it starts and RANSAC
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -55,7 +60,7 @@ import numpy as np
 from ..camera import StereoCamera
 from ..config import FrontendConfig
 from ..errors import SnapsGraphError
-from ..geometry import inv, rotation_angle_deg
+from ..geometry import inv, rotation_angle_deg, scale_motion
 from ..types import FrameFeatures, StereoFrame, VOResult
 from . import depth as depth_mod
 from . import features as feat
@@ -87,7 +92,10 @@ def pnp_ransac(
     K = camera.K
     cv2.setRNGSeed(cfg.ransac_seed)
     ok, rvec, tvec, inl = cv2.solvePnPRansac(
-        obj, img, K, None,
+        obj,
+        img,
+        K,
+        None,
         iterationsCount=cfg.pnp_iterations,
         reprojectionError=cfg.pnp_reprojection_px,
         confidence=cfg.pnp_confidence,
@@ -147,6 +155,7 @@ class _Keyframe:
     promote: bool = True  # becomes the reference of the next frame (klt_reference = "keyframe" decides)
     # (N,) bool: depth within max_depth_m (PnP's points); the rest are far points (stereo BA only)
     near: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    right: np.ndarray | None = None  # right image (klt_retry matches ORB keypoints with depth from it)
 
 
 class _Flag(Exception):
@@ -183,7 +192,10 @@ class StereoOdometry:
         self._pool = ThreadPoolExecutor(max_workers=self.cfg.threads - 1) if self.cfg.threads > 1 else None
         self._ref: _Keyframe | None = None
         self._pose = np.eye(4)  # pose of the last processed frame
-        self._velocity = np.eye(4)  # T_rel of the last good frame (constant-velocity guess)
+        self._velocity = np.eye(4)  # T_rel of the last good frame (constant-velocity guess) ...
+        self._velocity_gap = 1  # ... over this many frame indices
+        self._have_velocity = False  # a good step has been measured
+        self._last_index = 0  # index of the last processed frame
         self._last_ok = False
         self._n = 0  # frames processed
         self._next_id = 0  # next landmark id (klt)
@@ -195,9 +207,15 @@ class StereoOdometry:
         if self.cfg.local_ba and self.cfg.mode == "klt":  # needs persistent tracks (landmark ids)
             from .local_ba import LocalBundleAdjuster
 
-            self._lba = LocalBundleAdjuster(camera, self.cfg.lba_window, huber_px=self.cfg.sba_huber_px,
-                                            iterations=self.cfg.lba_iterations, max_landmarks=self.cfg.lba_max_landmarks,
-                                            solver=self.cfg.lba_solver, select=self.cfg.lba_select)
+            self._lba = LocalBundleAdjuster(
+                camera,
+                self.cfg.lba_window,
+                huber_px=self.cfg.sba_huber_px,
+                iterations=self.cfg.lba_iterations,
+                max_landmarks=self.cfg.lba_max_landmarks,
+                solver=self.cfg.lba_solver,
+                select=self.cfg.lba_select,
+            )
 
     # ---- lifecycle ----
     def close(self) -> None:
@@ -234,14 +252,16 @@ class StereoOdometry:
         first = self._n == 0
         self._n += 1
         prev_pose = self._pose
+        gap_last = max(1, frame.index - self._last_index) if not first else 1
+        ref = self._ref  # the frame this one is measured from
         result = None
         try:
             kf_or_none, T_ref_cur, inliers, matches = self._estimate(frame, first, timings)
         except _Flag as flag:
-            result = self._flagged(frame, prev_pose, flag.reason, flag.keyframe, timings)
+            result = self._flagged(frame, prev_pose, flag.reason, flag.keyframe, timings, gap_last)
         except cv2.error as exc:  # OpenCV refusing an odd image: flag, do not crash
             msg = str(exc).strip().splitlines()[-1] if str(exc).strip() else "error"
-            result = self._flagged(frame, prev_pose, f"OpenCV error: {msg}", None, timings)
+            result = self._flagged(frame, prev_pose, f"OpenCV error: {msg}", None, timings, gap_last)
         if result is None:
             if first:
                 pose = np.eye(4)
@@ -262,20 +282,35 @@ class StereoOdometry:
             if self.cfg.klt_anchor_gap > 0 and (self._anchor is None or frame.index - self._anchor[0] >= self.cfg.klt_anchor_gap):
                 self._anchor = (frame.index, frame.left, kf.ids.copy(), kf.uv.copy())
             self._pose = pose
-            if not first:
-                self._velocity = T_rel
+            if not first:  # measured motion from the reference (not through a flagged frame's guess)
+                self._velocity = inv(ref.pose) @ pose
+                self._velocity_gap = max(1, frame.index - ref.index)
+                self._have_velocity = True
             self._last_ok = True
             result = VOResult(
-                index=frame.index, T_rel=T_rel, pose=pose, ok=True, inliers=inliers,
-                matches=matches, features=kf.features,
+                index=frame.index,
+                T_rel=T_rel,
+                pose=pose,
+                ok=True,
+                inliers=inliers,
+                matches=matches,
+                features=kf.features,
             )
+        self._last_index = frame.index
         timings["total"] = (time.perf_counter() - t_start) * 1000.0
         result.timings_ms = timings
         return result
 
-    def _flagged(self, frame: StereoFrame, prev_pose: np.ndarray, reason: str,
-                 keyframe: _Keyframe | None, timings: dict[str, float]) -> VOResult:
-        T_rel = self._velocity.copy() if self._n > 1 else np.eye(4)
+    def _flagged(
+        self,
+        frame: StereoFrame,
+        prev_pose: np.ndarray,
+        reason: str,
+        keyframe: _Keyframe | None,
+        timings: dict[str, float],
+        gap: int = 1,
+    ) -> VOResult:
+        T_rel = self._scaled_velocity(gap) if self._n > 1 else np.eye(4)
         pose = prev_pose @ T_rel
         if self._lba is not None:
             self._lba.reset()
@@ -323,9 +358,17 @@ class StereoOdometry:
             raise _Flag(f"implausible motion ({step:.2f} m, {angle:.1f} deg over {gap} frame(s))")
         return T_ref_cur
 
-    def _make_keyframe(self, frame: StereoFrame, uv: np.ndarray, z: np.ndarray, disp: np.ndarray,
-                       desc: np.ndarray | None, sharp: float, timings: dict[str, float],
-                       ids: np.ndarray | None = None) -> _Keyframe:
+    def _make_keyframe(
+        self,
+        frame: StereoFrame,
+        uv: np.ndarray,
+        z: np.ndarray,
+        disp: np.ndarray,
+        desc: np.ndarray | None,
+        sharp: float,
+        timings: dict[str, float],
+        ids: np.ndarray | None = None,
+    ) -> _Keyframe:
         """Keep keypoints with valid depth; back-project them (eq. 2); pick the loop features."""
         cfg = self.cfg
         valid = z > 0
@@ -354,7 +397,9 @@ class StereoOdometry:
             pick = pick[keep]
         features = FrameFeatures(np.ascontiguousarray(uv[pick]), np.ascontiguousarray(pts3d[pick]), np.ascontiguousarray(fdesc))
         timings["features"] = timings.get("features", 0.0) + (time.perf_counter() - t0) * 1000.0
-        return _Keyframe(frame.index, np.eye(4), frame.left, uv, pts3d, disp, desc, sharp, features, ids, near=near)
+        return _Keyframe(
+            frame.index, np.eye(4), frame.left, uv, pts3d, disp, desc, sharp, features, ids, near=near, right=frame.right
+        )
 
     def _conclude(self, kf: _Keyframe, T_cur_ref: np.ndarray | None, n_inl: int, gap: int, failure: str):
         """Flag or accept the frame. Motion problems are reported first; a frame whose own
@@ -372,8 +417,16 @@ class StereoOdometry:
             raise _Flag(f"too few keypoints with stereo depth ({n_near} < {self.cfg.min_stereo_points})")
         return T_ref_cur
 
-    def _refine_motion(self, T_cur_ref: np.ndarray, inl: np.ndarray, ref_uv: np.ndarray, ref_disp: np.ndarray,
-                       cur_uv: np.ndarray, cur_disp: np.ndarray, timings: dict[str, float]):
+    def _refine_motion(
+        self,
+        T_cur_ref: np.ndarray,
+        inl: np.ndarray,
+        ref_uv: np.ndarray,
+        ref_disp: np.ndarray,
+        cur_uv: np.ndarray,
+        cur_disp: np.ndarray,
+        timings: dict[str, float],
+    ):
         """Stereo BA on PnP's inliers (``motion = "stereo_ba"``): (T_cur_ref, inlier indices).
 
         ``inl`` indexes the arrays; the BA's own outliers are dropped from it. If the BA is
@@ -383,8 +436,15 @@ class StereoOdometry:
         t0 = time.perf_counter()
         cfg = self.cfg
         r = stereo_two_view_ba(
-            T_cur_ref, ref_uv[inl], ref_disp[inl], cur_uv[inl], cur_disp[inl], self.camera,
-            huber_px=cfg.sba_huber_px, outlier_px=cfg.sba_outlier_px, iterations=cfg.sba_iterations,
+            T_cur_ref,
+            ref_uv[inl],
+            ref_disp[inl],
+            cur_uv[inl],
+            cur_disp[inl],
+            self.camera,
+            huber_px=cfg.sba_huber_px,
+            outlier_px=cfg.sba_outlier_px,
+            iterations=cfg.sba_iterations,
         )
         timings["sba"] = (time.perf_counter() - t0) * 1000.0
         if not r.ok:
@@ -392,15 +452,24 @@ class StereoOdometry:
             return T_cur_ref, inl
         return r.T_cur_ref, inl[r.inliers]
 
+    def _scaled_velocity(self, gap: int) -> np.ndarray:
+        """The last good step's motion scaled to ``gap`` frame indices (constant velocity per
+        index: its twist times gap / the step's own gap). Identity before any good step."""
+        if gap == self._velocity_gap:
+            return self._velocity.copy()
+        return scale_motion(self._velocity, gap / self._velocity_gap)
+
     def _prediction(self, gap: int) -> np.ndarray | None:
-        """T_cur_ref predicted by constant velocity, when the last frame was tracked (gap 1)."""
-        if not self._last_ok or gap != 1:
+        """T_cur_ref predicted by constant velocity over ``gap`` frame indices from the last
+        good step (also across index gaps and after flagged frames); None before any step."""
+        if not (self._have_velocity or self._last_ok):
             return None
-        return inv(self._velocity)
+        return inv(self._scaled_velocity(gap))
 
     # -- klt --
-    def _stereo_klt(self, frame: StereoFrame, uv: np.ndarray, guess: np.ndarray | None,
-                    timings: dict[str, float], detect: bool = True):
+    def _stereo_klt(
+        self, frame: StereoFrame, uv: np.ndarray, guess: np.ndarray | None, timings: dict[str, float], detect: bool = True
+    ):
         """Stereo depth at tracked points; if too few (and ``detect``), detect new corners and add theirs."""
         cfg = self.cfg
         t0 = time.perf_counter()
@@ -439,7 +508,7 @@ class StereoOdometry:
         anchored = cfg.klt_reference == "keyframe"
         gap = max(1, frame.index - ref.index)
         t0 = time.perf_counter()
-        pred = self._prediction(gap) if not anchored else self._prediction_from(ref)
+        pred = self._prediction(gap) if not anchored else self._prediction_from(ref, frame.index)
         guess = None
         dguess = ref.disp
         if pred is not None:
@@ -471,6 +540,15 @@ class StereoOdometry:
             n_inl = len(inl)
             keep = np.zeros(len(idx), bool)
             keep[inl] = True  # drop PnP outliers: mostly bad tracks
+        if cfg.klt_retry == "orb" and n_inl < cfg.min_inliers and ref.right is not None:
+            klt = (ref.pts3d[idx[near_pos]], ref.uv[idx[near_pos]], ref.disp[idx[near_pos]], uv_cur[idx[near_pos]], d[near_pos])
+            retry = self._orb_retry(ref, frame, klt, timings)
+            if retry is not None and len(retry[1]) > n_inl:
+                T_cur_ref, n_inl = retry[0], len(retry[1])
+                pnp = retry
+                keep = np.zeros(len(idx), bool)  # keep the KLT tracks among the inliers
+                keep[near_pos[retry[1][retry[1] < len(near_pos)]]] = True
+                timings["retry_ok"] = 1.0
         promote = True
         if anchored:
             promote = pnp is None or gap >= cfg.kf_max_gap or n_inl < cfg.kf_min_ratio * len(ref.uv)
@@ -491,6 +569,42 @@ class StereoOdometry:
         T_ref_cur = self._conclude(kf, T_cur_ref, n_inl, gap, f"PnP failed ({len(idx)} tracks)")
         return kf, T_ref_cur, n_inl, len(idx)
 
+    def _orb_retry(self, ref: _Keyframe, frame: StereoFrame, klt: tuple, timings: dict[str, float]):
+        """Motion from ``klt_retry_features`` ORB keypoints detected afresh in the reference and
+        this frame, matched by descriptor (scale-invariant, so they survive the looming and the
+        large flow of a fast drive that KLT does not), together with the KLT correspondences
+        ``klt`` = (ref points 3D, ref uv, ref disparity, cur uv, cur disparity): PnP RANSAC on
+        the union, then the stereo BA. (T_cur_ref, inliers: indices into the union, the KLT ones first) or None."""
+        cfg, cam = self.cfg, self.camera
+        assert ref.right is not None
+        t0 = time.perf_counter()
+        ocfg = dataclasses.replace(cfg, orb_features=cfg.klt_retry_features)
+        uv_r, desc_r = feat.detect_orb(ref.left, ocfg)
+        z_r, d_r = depth_mod.sparse_depth(ref.left, ref.right, uv_r, cam, cfg)
+        has_depth = np.flatnonzero(z_r > 0)
+        uv_c, desc_c = feat.detect_orb(frame.left, ocfg)
+        ia, ib = feat.match_descriptors(desc_r[has_depth], desc_c, cfg.ratio_test)
+        ia = has_depth[ia]
+        k_pts, k_ruv, k_rd, k_cuv, k_cd = klt
+        res = None
+        if len(ia) + len(k_pts) >= max(6, cfg.min_inliers):
+            pts = np.concatenate([k_pts, cam.backproject(uv_r[ia, 0], uv_r[ia, 1], z_r[ia])]).astype(np.float64)
+            cur_uv = np.concatenate([k_cuv, uv_c[ib]]).astype(np.float32)
+            res = pnp_ransac(pts, cur_uv, cam, cfg)
+        if res is not None and cfg.motion == "stereo_ba":
+            _, d_c = depth_mod.sparse_depth(frame.left, frame.right, uv_c[ib], cam, cfg)
+            res = self._refine_motion(
+                res[0],
+                res[1],
+                np.concatenate([k_ruv, uv_r[ia]]).astype(np.float32),
+                np.concatenate([k_rd, d_r[ia]]).astype(np.float32),
+                cur_uv,
+                np.concatenate([k_cd, d_c]).astype(np.float32),
+                timings,
+            )
+        timings["retry"] = (time.perf_counter() - t0) * 1000.0
+        return res
+
     def _anchor_refine(self, frame: StereoFrame, uv_cur: np.ndarray, ids: np.ndarray, idx: np.ndarray) -> np.ndarray:
         """Re-track the points the anchor frame also has directly from the anchor image, starting
         at their frame-to-frame position (one pyramid level): the position then carries one LK
@@ -510,12 +624,21 @@ class StereoOdometry:
         cfg = self.cfg
         crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
         p1, st, _ = cv2.calcOpticalFlowPyrLK(
-            a_left, frame.left, np.ascontiguousarray(src, np.float32).reshape(-1, 1, 2),
+            a_left,
+            frame.left,
+            np.ascontiguousarray(src, np.float32).reshape(-1, 1, 2),
             np.ascontiguousarray(uv_cur[sel], np.float32).reshape(-1, 1, 2).copy(),
-            winSize=(cfg.klt_window_px, cfg.klt_window_px), maxLevel=1, criteria=crit, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+            winSize=(cfg.klt_window_px, cfg.klt_window_px),
+            maxLevel=1,
+            criteria=crit,
+            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
         )
         p1 = p1.reshape(-1, 2)
-        good = (st.reshape(-1) == 1) & np.all(np.isfinite(p1), 1) & (np.linalg.norm(p1 - uv_cur[sel], axis=1) <= cfg.klt_anchor_max_px)
+        good = (
+            (st.reshape(-1) == 1)
+            & np.all(np.isfinite(p1), 1)
+            & (np.linalg.norm(p1 - uv_cur[sel], axis=1) <= cfg.klt_anchor_max_px)
+        )
         out = uv_cur.copy()
         out[sel[good]] = p1[good]
         return out
@@ -526,11 +649,11 @@ class StereoOdometry:
         self._next_id += n
         return ids
 
-    def _prediction_from(self, ref: _Keyframe) -> np.ndarray | None:
+    def _prediction_from(self, ref: _Keyframe, index: int) -> np.ndarray | None:
         """T_cur_ref predicted by constant velocity from the last frame, for any reference."""
         if not self._last_ok:
             return None
-        return inv(self._pose @ self._velocity) @ ref.pose
+        return inv(self._pose @ self._scaled_velocity(max(1, index - self._last_index))) @ ref.pose
 
     # -- sift / orb --
     def _detect(self, img: np.ndarray):

@@ -67,7 +67,9 @@ def _inv3(M: np.ndarray) -> np.ndarray:
     g, h, i = M[:, 2, 0], M[:, 2, 1], M[:, 2, 2]
     A, Bc, C = e * i - f * h, -(d * i - f * g), d * h - e * g
     det = a * A + b * Bc + c * C
-    out = np.stack([A, -(b * i - c * h), b * f - c * e, Bc, a * i - c * g, -(a * f - c * d), C, -(a * h - b * g), a * e - b * d], 1)
+    out = np.stack(
+        [A, -(b * i - c * h), b * f - c * e, Bc, a * i - c * g, -(a * f - c * d), C, -(a * h - b * g), a * e - b * d], 1
+    )
     return out.reshape(-1, 3, 3) / det[:, None, None]
 
 

@@ -225,8 +225,7 @@ class SnapsLoopCloser:
         thumb = make_thumbnail(left, self.cfg.thumbnail_scale)
         if self._thumbs and thumb.shape != self._thumbs[0].shape:
             raise SnapsGraphError(
-                f"SNAPS: frame {index}: image size {np.shape(left)[1]}x{np.shape(left)[0]} "
-                "differs from the first frame's"
+                f"SNAPS: frame {index}: image size {np.shape(left)[1]}x{np.shape(left)[0]} differs from the first frame's"
             )
         if min(thumb.shape) < self.cfg.window:
             raise SnapsGraphError(
@@ -384,8 +383,9 @@ class SnapsLoopCloser:
             delta[1] = 0.0
         rotvec = None
         if verified and self.cfg.correction_rotation != "none":
-            rotvec = _rotation_correction(self._R[ref] @ np.asarray(T_ref_cur, float)[:3, :3] @ self._R[n].T,
-                                          self.cfg.correction_rotation) * self.heading_gain(n - ref)
+            rotvec = _rotation_correction(
+                self._R[ref] @ np.asarray(T_ref_cur, float)[:3, :3] @ self._R[n].T, self.cfg.correction_rotation
+            ) * self.heading_gain(n - ref)
         alpha = len(self._loops) + 1
         # Eq. 6 weighs the move by Q: the confidence that N stands where the reference stood. A
         # verified loop measured where N stands, so with correction_weight = "verified" it moves
@@ -433,8 +433,21 @@ class SnapsLoopCloser:
         app = self._cand.append
         for i, j in enumerate(ids.tolist()):
             res = outcome.get(i, False)
-            app((n, j, float(dists[i]), float(yaws[j]) - yaw_n, float(qs[i]), int(shifts[i]), bool(qs[i] >= thr),
-                 res is not False, bool(res), res[1] if res else 0, i == accepted))
+            app(
+                (
+                    n,
+                    j,
+                    float(dists[i]),
+                    float(yaws[j]) - yaw_n,
+                    float(qs[i]),
+                    int(shifts[i]),
+                    bool(qs[i] >= thr),
+                    res is not False,
+                    bool(res),
+                    res[1] if res else 0,
+                    i == accepted,
+                )
+            )
 
     def candidate_records(self) -> list[CandidateRecord]:
         """Every similarity computed so far as :class:`CandidateRecord` (dataset frame indices),
@@ -451,19 +464,30 @@ class SnapsLoopCloser:
             a, b = st(n), st(j)
             margin = min(self.cfg.shift_px, (a.shape[1] - a.window) // 2)
             sim = similarity(*shifted_pair(a, b, dx, margin))
-            out.append(CandidateRecord(
-                frame=int(self._index[n]), reference=int(self._index[j]), distance_m=d,
-                yaw_diff_deg=float(wrap_deg(dyaw)), q=q, correlation=sim.correlation, luminance=sim.luminance,
-                contrast=sim.contrast, shift_px=dx, above_threshold=above,
-                verify_tried=tried, verify_passed=passed, inliers=int(inl), accepted=acc,
-            ))
+            out.append(
+                CandidateRecord(
+                    frame=int(self._index[n]),
+                    reference=int(self._index[j]),
+                    distance_m=d,
+                    yaw_diff_deg=float(wrap_deg(dyaw)),
+                    q=q,
+                    correlation=sim.correlation,
+                    luminance=sim.luminance,
+                    contrast=sim.contrast,
+                    shift_px=dx,
+                    above_threshold=above,
+                    verify_tried=tried,
+                    verify_passed=passed,
+                    inliers=int(inl),
+                    accepted=acc,
+                )
+            )
             if len(stats) > 64:  # records come frame by frame: keep the memory bounded
                 stats.clear()
         return out
 
     # ---- eq. 6 ----
-    def _correct(self, n: int, q: float, delta: np.ndarray, alpha: int, rotvec: np.ndarray | None = None,
-                 first: int = 0) -> int:
+    def _correct(self, n: int, q: float, delta: np.ndarray, alpha: int, rotvec: np.ndarray | None = None, first: int = 0) -> int:
         """Eq. 6 (our reading): p_s += w·γ_s·δ for s in [max(N−K, first), N], w = Q (or 1 for a
         verified loop under correction_weight = "verified"); with ``rotvec`` (world-frame
         axis-angle toward the verified orientation) also R_s ← Exp(w·γ_s·rotvec)·R_s. ``first``

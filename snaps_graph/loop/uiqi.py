@@ -256,8 +256,14 @@ def _workspace(ns: int, h: int, wc: int, hv: int, wv: int) -> _Workspace:
     ws = _WORKSPACES.get(key)
     if ws is None:
         f = np.float32
-        ws = _Workspace(np.empty((ns, h, wc), f), np.empty((ns * h, wc), f), np.empty((ns, hv, wv), f),
-                        np.empty((ns, hv, wv), f), np.empty((ns, hv, wv), f), np.empty((ns, hv, wv), f))
+        ws = _Workspace(
+            np.empty((ns, h, wc), f),
+            np.empty((ns * h, wc), f),
+            np.empty((ns, hv, wv), f),
+            np.empty((ns, hv, wv), f),
+            np.empty((ns, hv, wv), f),
+            np.empty((ns, hv, wv), f),
+        )
         _WORKSPACES.clear()  # one thumbnail shape per run: keep only the latest
         _WORKSPACES[key] = ws
     return ws

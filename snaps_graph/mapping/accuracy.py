@@ -56,8 +56,15 @@ class WorldSurface:
             return np.zeros(0, np.float32)
         return self.scene.compute_distance(o3d.core.Tensor(np.ascontiguousarray(points, np.float32))).numpy()
 
-    def samples_near(self, poses: np.ndarray, range_m: float, K: np.ndarray, size: tuple[int, int],
-                     seed: int = 0, min_samples: int = MIN_SAMPLES) -> tuple[np.ndarray, np.ndarray]:
+    def samples_near(
+        self,
+        poses: np.ndarray,
+        range_m: float,
+        K: np.ndarray,
+        size: tuple[int, int],
+        seed: int = 0,
+        min_samples: int = MIN_SAMPLES,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Uniform area samples of the surface within ``range_m`` of the positions of ``poses``
         ((n, 4, 4) T_world_cam), and for each whether one of these cameras (intrinsics ``K``,
         image ``size`` = (w, h)) sees it (see the module docstring). Cached."""
@@ -117,9 +124,17 @@ class WorldSurface:
         return seen
 
 
-def map_accuracy(world: WorldSurface, points: np.ndarray, vertices: np.ndarray, views: np.ndarray,
-                 K: np.ndarray, size: tuple[int, int], range_m: float, tolerance_m: float,
-                 min_samples: int = MIN_SAMPLES) -> dict:
+def map_accuracy(
+    world: WorldSurface,
+    points: np.ndarray,
+    vertices: np.ndarray,
+    views: np.ndarray,
+    K: np.ndarray,
+    size: tuple[int, int],
+    range_m: float,
+    tolerance_m: float,
+    min_samples: int = MIN_SAMPLES,
+) -> dict:
     """Accuracy and completeness of one map (surface ``points`` and mesh ``vertices``, world
     frame) against ``world``; the surface that should be mapped is the one within ``range_m`` of
     the cameras ``views`` ((n, 4, 4) T_world_cam, intrinsics ``K``, image ``size`` (w, h)) --
@@ -136,8 +151,9 @@ def map_accuracy(world: WorldSurface, points: np.ndarray, vertices: np.ndarray, 
             "error_p90_m": float(np.percentile(d, 90)) if len(d) else None,
             "share_within_tolerance": float(np.mean(d <= tolerance_m)) if len(d) else None,
         }
-    samples, seen = world.samples_near(np.asarray(views, np.float64), range_m, np.asarray(K, np.float64), size,
-                                       min_samples=min_samples)
+    samples, seen = world.samples_near(
+        np.asarray(views, np.float64), range_m, np.asarray(K, np.float64), size, min_samples=min_samples
+    )
     for name, pts in sets:
         if len(pts) and len(samples):
             d, _ = cKDTree(pts).query(samples, distance_upper_bound=tolerance_m)

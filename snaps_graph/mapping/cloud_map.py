@@ -67,13 +67,14 @@ class CloudMap:
         h, w = depth.shape
         cam = self.camera
         if cam.width and cam.height and (w, h) != (cam.width, cam.height):
-            raise SnapsGraphError(
-                f"keyframe {k}: depth is {w}x{h} but the camera is {cam.width}x{cam.height}"
-            )
+            raise SnapsGraphError(f"keyframe {k}: depth is {w}x{h} but the camera is {cam.width}x{cam.height}")
         if image is not None:
             image = np.asarray(image)
-            if image.dtype != np.uint8 or image.shape[:2] != (h, w) or image.ndim not in (2, 3) or (
-                image.ndim == 3 and image.shape[2] != 3
+            if (
+                image.dtype != np.uint8
+                or image.shape[:2] != (h, w)
+                or image.ndim not in (2, 3)
+                or (image.ndim == 3 and image.shape[2] != 3)
             ):
                 raise SnapsGraphError(
                     f"keyframe {k}: image must be uint8 (H, W) or (H, W, 3) matching depth {h}x{w}, "
@@ -175,9 +176,7 @@ class CloudMap:
         pts = np.asarray(merged.points)
         cols = np.asarray(merged.colors) if merged.has_colors() else None
         tile = np.floor(pts[:, [0, 2]] / self.cfg.build_tile_m).astype(np.int64)
-        key = (tile[:, 0] - tile[:, 0].min()) * (int(tile[:, 1].max() - tile[:, 1].min()) + 1) + (
-            tile[:, 1] - tile[:, 1].min()
-        )
+        key = (tile[:, 0] - tile[:, 0].min()) * (int(tile[:, 1].max() - tile[:, 1].min()) + 1) + (tile[:, 1] - tile[:, 1].min())
         del tile
         order = np.argsort(key, kind="stable")
         starts = np.flatnonzero(np.diff(key[order])) + 1
@@ -269,8 +268,17 @@ class CloudMap:
         FigureCanvasAgg(fig)
         ax = fig.add_subplot(1, 1, 1)
         ax.set_facecolor("black" if cmap == "gray" else "white")
-        sc = ax.scatter(xyz[order, 0], xyz[order, 2], c=values[order], s=0.3, cmap=cmap,
-                        vmin=lo, vmax=hi if hi > lo else lo + 1e-6, linewidths=0, rasterized=True)
+        sc = ax.scatter(
+            xyz[order, 0],
+            xyz[order, 2],
+            c=values[order],
+            s=0.3,
+            cmap=cmap,
+            vmin=lo,
+            vmax=hi if hi > lo else lo + 1e-6,
+            linewidths=0,
+            rasterized=True,
+        )
         fig.colorbar(sc, ax=ax, shrink=0.7, label=label)
         for name, traj in (trajectories or {}).items():
             p = _positions(traj, name)
@@ -281,8 +289,10 @@ class CloudMap:
         ax.set_aspect("equal", adjustable="datalim")
         ax.set_xlabel("x (m)")
         ax.set_ylabel("z (m)")
-        ax.set_title(f"map top-down: {len(np.asarray(pcd.points))} points, voxel {self.cfg.voxel_size_m} m, "
-                     f"{len(self)} keyframes", fontsize=9)
+        ax.set_title(
+            f"map top-down: {len(np.asarray(pcd.points))} points, voxel {self.cfg.voxel_size_m} m, {len(self)} keyframes",
+            fontsize=9,
+        )
         fig.tight_layout()
 
         with atomic_output(path, suffix=".png") as tmp:
@@ -320,9 +330,7 @@ def _check_index(k: int) -> int:
     return int(k)
 
 
-def _voxel_downsample(
-    xyz: np.ndarray, colour: np.ndarray | None, voxel_m: float
-) -> tuple[np.ndarray, np.ndarray | None]:
+def _voxel_downsample(xyz: np.ndarray, colour: np.ndarray | None, voxel_m: float) -> tuple[np.ndarray, np.ndarray | None]:
     """open3d voxel downsample of one keyframe cloud; averages points and intensities per voxel."""
     grey = colour is not None and colour.ndim == 1
     rgb = None

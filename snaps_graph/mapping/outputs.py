@@ -59,8 +59,9 @@ def write_points_ply(path: Path, points: np.ndarray, grey: np.ndarray | None = N
             raise SnapsGraphError(f"{path}: open3d could not write the point cloud")
 
 
-def write_map_outputs(out_dir: str | Path, fused_map, trajectories: dict[str, np.ndarray],
-                      gt: np.ndarray | None, cfg: MapConfig) -> dict | None:
+def write_map_outputs(
+    out_dir: str | Path, fused_map, trajectories: dict[str, np.ndarray], gt: np.ndarray | None, cfg: MapConfig
+) -> dict | None:
     """Fuse ``fused_map`` (a ``FusedMap``) under the trajectory ``cfg.trajectory`` names and
     write the map files into ``out_dir``; fuse again under the other trajectories when
     ``cfg.per_trajectory`` or ``cfg.world_mesh`` asks. Returns metrics.json's ``map`` entry
@@ -78,9 +79,14 @@ def write_map_outputs(out_dir: str | Path, fused_map, trajectories: dict[str, np
 
         world = WorldSurface(cfg.world_mesh)
     cam = fused_map.camera
-    entry: dict = {"trajectory": chosen, "keyframes": len(fused_map), "bytes": fused_map.memory_bytes(),
-                   "camera": [cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height],
-                   "keyframe_every": cfg.keyframe_every, "surfaces": {}}
+    entry: dict = {
+        "trajectory": chosen,
+        "keyframes": len(fused_map),
+        "bytes": fused_map.memory_bytes(),
+        "camera": [cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height],
+        "keyframe_every": cfg.keyframe_every,
+        "surfaces": {},
+    }
     names = [chosen] + ([n for n in trajectories if n != chosen] if (cfg.per_trajectory or world is not None) else [])
     if world is not None and gt is not None:
         names.append("gt")  # the map under the true poses: what depth and fusion alone achieve
@@ -90,8 +96,10 @@ def write_map_outputs(out_dir: str | Path, fused_map, trajectories: dict[str, np
         surf = fused_map.fuse(gt if name == "gt" else trajectories[name])
         if len(surf.vertices) == 0:
             if name == chosen:  # flagged, not fatal: the rest of the run's results stand
-                entry["empty"] = (f"the fused map is empty (no surface seen by {cfg.tsdf_min_weight:g} "
-                                  "keyframe(s) with valid depth); no map files written")
+                entry["empty"] = (
+                    f"the fused map is empty (no surface seen by {cfg.tsdf_min_weight:g} "
+                    "keyframe(s) with valid depth); no map files written"
+                )
                 return entry
             continue
         tf = time.perf_counter()
@@ -104,10 +112,19 @@ def write_map_outputs(out_dir: str | Path, fused_map, trajectories: dict[str, np
         if name == chosen:
             tp = time.perf_counter()
             trajs = ({"gt": gt} if gt is not None else {}) | dict(trajectories)
-            topdown_png(out / "map.png", surf.points, trajs,
-                        title=f"fused map ({chosen}), top-down: {len(surf.points)} surface points, voxel {cfg.tsdf_voxel_m:g} m")
-            perspective_png(out / "map_mesh.png", surf.vertices, surf.triangles, trajectories[chosen],
-                            title=f"fused mesh ({chosen}): {len(surf.triangles)} triangles, voxel {cfg.tsdf_voxel_m:g} m")
+            topdown_png(
+                out / "map.png",
+                surf.points,
+                trajs,
+                title=f"fused map ({chosen}), top-down: {len(surf.points)} surface points, voxel {cfg.tsdf_voxel_m:g} m",
+            )
+            perspective_png(
+                out / "map_mesh.png",
+                surf.vertices,
+                surf.triangles,
+                trajectories[chosen],
+                title=f"fused mesh ({chosen}): {len(surf.triangles)} triangles, voxel {cfg.tsdf_voxel_m:g} m",
+            )
             entry["t_pictures_s"] = time.perf_counter() - tp  # map.png and map_mesh.png
         entry["surfaces"][name] = {k: v for k, v in surf.stats.items()}
         stride = max(1, len(surf.points) // _PICTURE_POINTS)
@@ -117,9 +134,17 @@ def write_map_outputs(out_dir: str | Path, fused_map, trajectories: dict[str, np
 
             ta = time.perf_counter()
             ref = gt if gt is not None else trajectories[name]  # the surface to map: seen from the true path
-            acc = map_accuracy(world, surf.points, surf.vertices, ref[fused_map.keyframes], cam.K,
-                               (cam.width, cam.height), cfg.accuracy_range_m, cfg.accuracy_tolerance_m,
-                               min_samples=cfg.accuracy_samples)
+            acc = map_accuracy(
+                world,
+                surf.points,
+                surf.vertices,
+                ref[fused_map.keyframes],
+                cam.K,
+                (cam.width, cam.height),
+                cfg.accuracy_range_m,
+                cfg.accuracy_tolerance_m,
+                min_samples=cfg.accuracy_samples,
+            )
             entry.setdefault("accuracy", {})[name] = acc
             err = world.distance(surf.points[::stride])
             t_acc += time.perf_counter() - ta
@@ -134,9 +159,16 @@ def write_map_outputs(out_dir: str | Path, fused_map, trajectories: dict[str, np
     return entry
 
 
-def accuracy_from_files(run_dir: str | Path, world_mesh: str | Path, trajectories: dict[str, np.ndarray],
-                        map_entry: dict, gt: np.ndarray | None, range_m: float, tolerance_m: float,
-                        min_samples: int = 200_000) -> dict:
+def accuracy_from_files(
+    run_dir: str | Path,
+    world_mesh: str | Path,
+    trajectories: dict[str, np.ndarray],
+    map_entry: dict,
+    gt: np.ndarray | None,
+    range_m: float,
+    tolerance_m: float,
+    min_samples: int = 200_000,
+) -> dict:
     """Accuracy of every map in a results folder (map.ply / map_mesh.ply of the chosen
     trajectory, map_<name>.ply / map_mesh_<name>.ply of the others) against ``world_mesh``;
     the camera and keyframe spacing come from metrics.json's ``map`` entry."""
@@ -161,6 +193,7 @@ def accuracy_from_files(run_dir: str | Path, world_mesh: str | Path, trajectorie
         pts = np.asarray(o3d.io.read_point_cloud(str(pp)).points, np.float32)
         verts = np.asarray(o3d.io.read_triangle_mesh(str(mp)).vertices, np.float32)
         ref = gt if gt is not None and len(gt) == len(poses) else poses
-        out[name] = map_accuracy(world, pts, verts, ref[::every], K, (int(w), int(h)), range_m, tolerance_m,
-                                 min_samples=min_samples)
+        out[name] = map_accuracy(
+            world, pts, verts, ref[::every], K, (int(w), int(h)), range_m, tolerance_m, min_samples=min_samples
+        )
     return out

@@ -68,13 +68,22 @@ def _positions(traj: np.ndarray) -> np.ndarray:
     return t[:, :3, 3] if t.ndim == 3 else t
 
 
-def _topdown_axes(ax, points: np.ndarray, values: np.ndarray, trajectories: dict, *, cmap: str, vmin: float,
-                  vmax: float, max_points: int, title: str):
+def _topdown_axes(
+    ax,
+    points: np.ndarray,
+    values: np.ndarray,
+    trajectories: dict,
+    *,
+    cmap: str,
+    vmin: float,
+    vmax: float,
+    max_points: int,
+    title: str,
+):
     stride = max(1, int(np.ceil(len(points) / max_points)))
     p, v = points[::stride], values[::stride]
     order = np.argsort(v, kind="stable")  # high values drawn last: walls over ground
-    sc = ax.scatter(p[order, 0], p[order, 2], c=v[order], s=0.2, cmap=cmap, vmin=vmin, vmax=vmax,
-                    linewidths=0, rasterized=True)
+    sc = ax.scatter(p[order, 0], p[order, 2], c=v[order], s=0.2, cmap=cmap, vmin=vmin, vmax=vmax, linewidths=0, rasterized=True)
     for name, traj in trajectories.items():
         q = _positions(traj)
         ax.plot(q[:, 0], q[:, 2], lw=1.0, label=name)
@@ -87,8 +96,15 @@ def _topdown_axes(ax, points: np.ndarray, values: np.ndarray, trajectories: dict
     return sc
 
 
-def topdown_png(path: str | Path, points: np.ndarray, trajectories: dict[str, np.ndarray], *, title: str = "",
-                max_points: int = 300_000, dpi: int = 150) -> None:
+def topdown_png(
+    path: str | Path,
+    points: np.ndarray,
+    trajectories: dict[str, np.ndarray],
+    *,
+    title: str = "",
+    max_points: int = 300_000,
+    dpi: int = 150,
+) -> None:
     """Top-down view (x across, z up the page) of surface ``points`` coloured by height above the
     local ground (``_local_height``),
     with each trajectory ((N, 4, 4) or (N, 3)) drawn over it."""
@@ -99,16 +115,31 @@ def topdown_png(path: str | Path, points: np.ndarray, trajectories: dict[str, np
     hi = max(float(np.percentile(h, 98)), 1e-3)
     fig = _figure(8, 8)
     ax = fig.add_subplot(1, 1, 1)
-    sc = _topdown_axes(ax, points, h, trajectories, cmap="viridis", vmin=0.0, vmax=hi,
-                       max_points=max_points, title=title or f"fused map, top-down: {len(points)} surface points")
+    sc = _topdown_axes(
+        ax,
+        points,
+        h,
+        trajectories,
+        cmap="viridis",
+        vmin=0.0,
+        vmax=hi,
+        max_points=max_points,
+        title=title or f"fused map, top-down: {len(points)} surface points",
+    )
     fig.colorbar(sc, ax=ax, shrink=0.7, label=f"height above the local ground (m; lowest point in {_GROUND_CELL_M:g} m cells)")
     fig.tight_layout()
     _save(fig, path, dpi)
 
 
-def side_by_side_png(path: str | Path, maps: dict[str, tuple[np.ndarray, np.ndarray | None]],
-                     trajectories: dict[str, np.ndarray], *, max_points: int = 200_000, dpi: int = 120,
-                     error_max_m: float = 0.5) -> None:
+def side_by_side_png(
+    path: str | Path,
+    maps: dict[str, tuple[np.ndarray, np.ndarray | None]],
+    trajectories: dict[str, np.ndarray],
+    *,
+    max_points: int = 200_000,
+    dpi: int = 120,
+    error_max_m: float = 0.5,
+) -> None:
     """One top-down panel per trajectory's map (``maps``: name -> (points, error to the true
     surface or None)), same axes; coloured by the error when known, else by height."""
     path = Path(path)
@@ -126,11 +157,21 @@ def side_by_side_png(path: str | Path, maps: dict[str, tuple[np.ndarray, np.ndar
         if "gt" in trajectories:
             traj = {"gt": trajectories["gt"], **traj}
         if err is not None:
-            sc = _topdown_axes(ax, pts, np.minimum(err, error_max_m), traj, cmap="inferno_r", vmin=0.0, vmax=error_max_m,
-                               max_points=max_points, title=f"{n}: p90 error {np.percentile(err, 90):.2f} m")
+            sc = _topdown_axes(
+                ax,
+                pts,
+                np.minimum(err, error_max_m),
+                traj,
+                cmap="inferno_r",
+                vmin=0.0,
+                vmax=error_max_m,
+                max_points=max_points,
+                title=f"{n}: p90 error {np.percentile(err, 90):.2f} m",
+            )
         else:
-            sc = _topdown_axes(ax, pts, -pts[:, 1], traj, cmap="viridis", vmin=lo, vmax=max(hi, lo + 1e-3),
-                               max_points=max_points, title=n)
+            sc = _topdown_axes(
+                ax, pts, -pts[:, 1], traj, cmap="viridis", vmin=lo, vmax=max(hi, lo + 1e-3), max_points=max_points, title=n
+            )
     xs = [ax.get_xlim() for ax in axes]
     ys = [ax.get_ylim() for ax in axes]
     for ax in axes:
@@ -141,9 +182,18 @@ def side_by_side_png(path: str | Path, maps: dict[str, tuple[np.ndarray, np.ndar
     _save(fig, path, dpi)
 
 
-def perspective_png(path: str | Path, vertices: np.ndarray, triangles: np.ndarray, trajectory: np.ndarray | None = None,
-                    *, width: int = 1100, height: int = 620, elevation_deg: float = 35.0, fov_deg: float = 50.0,
-                    title: str = "") -> None:
+def perspective_png(
+    path: str | Path,
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    trajectory: np.ndarray | None = None,
+    *,
+    width: int = 1100,
+    height: int = 620,
+    elevation_deg: float = 35.0,
+    fov_deg: float = 50.0,
+    title: str = "",
+) -> None:
     """A perspective view of the mesh from above and behind its start (KITTI axes: y down,
     z forward), ray-cast on the CPU; coloured by height above the local ground, shaded by the
     surface normal."""
@@ -160,8 +210,9 @@ def perspective_png(path: str | Path, vertices: np.ndarray, triangles: np.ndarra
     if cell > 0.2:
         vertices, triangles = _cluster_vertices(vertices, triangles, cell)
     scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, np.float32)),
-                        o3d.core.Tensor(np.ascontiguousarray(triangles, np.uint32)))
+    scene.add_triangles(
+        o3d.core.Tensor(np.ascontiguousarray(vertices, np.float32)), o3d.core.Tensor(np.ascontiguousarray(triangles, np.uint32))
+    )
     centre = (lo + hi) / 2.0
     extent = float(np.linalg.norm((hi - lo)[[0, 2]]))
     # look at the centre from the side the path starts on, raised by elevation_deg

@@ -62,6 +62,7 @@ class FusedSurface:
             m.vertex_colors = o3d.utility.Vector3dVector(np.repeat(g, 3, axis=1))
         return m
 
+
 class FusedMap:
     """Compressed keyframe depth; ``fuse(poses)`` integrates it into a TSDF under a trajectory."""
 
@@ -190,8 +191,16 @@ class FusedMap:
                     depth, K, ext, depth_scale=_MM, depth_max=cfg.max_range_m, trunc_voxel_multiplier=cfg.tsdf_trunc_voxels
                 )
                 n_in_grid = 0
-            vbg.integrate(blocks, depth, colour, K, ext, depth_scale=_MM, depth_max=cfg.max_range_m,
-                          trunc_voxel_multiplier=cfg.tsdf_trunc_voxels)
+            vbg.integrate(
+                blocks,
+                depth,
+                colour,
+                K,
+                ext,
+                depth_scale=_MM,
+                depth_max=cfg.max_range_m,
+                trunc_voxel_multiplier=cfg.tsdf_trunc_voxels,
+            )
             n_in_grid += 1
         n_blocks_max = max(n_blocks_max, vbg.hashmap().size())
         parts.append(self._extract(vbg))
@@ -199,9 +208,14 @@ class FusedMap:
         surf = _concat(parts)
         dt = time.perf_counter() - t0
         self.t_fuse_s += dt
-        surf.stats = {"keyframes": len(self._kf), "chunks": len(parts), "max_blocks": int(n_blocks_max),
-                      "vertices": len(surf.vertices), "triangles": len(surf.triangles),
-                      "fuse_s": dt}
+        surf.stats = {
+            "keyframes": len(self._kf),
+            "chunks": len(parts),
+            "max_blocks": int(n_blocks_max),
+            "vertices": len(surf.vertices),
+            "triangles": len(surf.triangles),
+            "fuse_s": dt,
+        }
         return surf
 
     def _extract(self, vbg) -> tuple:

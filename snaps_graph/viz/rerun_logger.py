@@ -47,7 +47,9 @@ def _check_display() -> None:
     import sys
 
     if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-        raise SnapsGraphError("--viewer: no display (DISPLAY/WAYLAND_DISPLAY unset); record with --rrd FILE and open it with `rerun FILE`")
+        raise SnapsGraphError(
+            "--viewer: no display (DISPLAY/WAYLAND_DISPLAY unset); record with --rrd FILE and open it with `rerun FILE`"
+        )
 
 
 def _viewer_on_path() -> None:
@@ -122,7 +124,9 @@ class RerunLogger:
                 try:
                     self.rec.spawn(connect=False)
                 except Exception as exc:  # no viewer binary, no display
-                    raise SnapsGraphError(f"--viewer: cannot start the rerun viewer ({str(exc).strip().splitlines()[0]})") from None
+                    raise SnapsGraphError(
+                        f"--viewer: cannot start the rerun viewer ({str(exc).strip().splitlines()[0]})"
+                    ) from None
                 sinks.append(rr.GrpcSink())
             if rrd is not None:  # written under a temporary name, renamed by close(): whole or absent
                 self._rrd = Path(rrd)
@@ -138,11 +142,19 @@ class RerunLogger:
         rr, rec, cam = self.rr, self.rec, self.camera
         rec.log("world", rr.ViewCoordinates.RDF, static=True)
         # Styling once, as static components: per frame only the data is logged.
-        rec.log("world/camera/image/features", rr.Points2D.from_fields(colors=[(255, 200, 0)], radii=rr.Radius.ui_points(2.0)), static=True)
+        rec.log(
+            "world/camera/image/features",
+            rr.Points2D.from_fields(colors=[(255, 200, 0)], radii=rr.Radius.ui_points(2.0)),
+            static=True,
+        )
         rec.log(
             "world/camera/image",
-            rr.Pinhole(image_from_camera=cam.K, resolution=[cam.width or 2 * cam.cx, cam.height or 2 * cam.cy],
-                       camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.5),
+            rr.Pinhole(
+                image_from_camera=cam.K,
+                resolution=[cam.width or 2 * cam.cx, cam.height or 2 * cam.cy],
+                camera_xyz=rr.ViewCoordinates.RDF,
+                image_plane_distance=0.5,
+            ),
             static=True,
         )
         rec.log("metrics/frame_ms", rr.SeriesLines(names="frame ms", colors=[(230, 160, 40)]), static=True)
@@ -150,7 +162,11 @@ class RerunLogger:
         rec.log("metrics/inliers", rr.SeriesLines(names="inliers", colors=[(60, 200, 90)]), static=True)
         rec.log("metrics/q", rr.SeriesPoints(names="Q", colors=[(240, 60, 200)], markers="circle", marker_sizes=4), static=True)
         if gt_poses is not None:
-            rec.log("world/trajectory/gt", rr.LineStrips3D([gt_poses[:, :3, 3]], colors=[TRAJ_COLOURS["gt"]], radii=rr.Radius.ui_points(1.0)), static=True)
+            rec.log(
+                "world/trajectory/gt",
+                rr.LineStrips3D([gt_poses[:, :3, 3]], colors=[TRAJ_COLOURS["gt"]], radii=rr.Radius.ui_points(1.0)),
+                static=True,
+            )
 
     # ---- observer hooks ----
     def on_frame(self, pipe, frame, out) -> None:
@@ -246,7 +262,10 @@ class RerunLogger:
         rr = self.rr
         for name, xyz in self._positions(pipe, trajs).items():
             if len(xyz) >= 2:
-                self.rec.log(f"world/trajectory/{name}", rr.LineStrips3D([xyz], colors=[TRAJ_COLOURS[name]], radii=rr.Radius.ui_points(1.5)))
+                self.rec.log(
+                    f"world/trajectory/{name}",
+                    rr.LineStrips3D([xyz], colors=[TRAJ_COLOURS[name]], radii=rr.Radius.ui_points(1.5)),
+                )
 
     def _log_loop(self, pipe, loop) -> None:
         rr = self.rr
@@ -256,8 +275,12 @@ class RerunLogger:
         if snaps is not None and k_ref is not None and k_cur is not None:
             self._loop_segments.append(np.stack([snaps[k_cur, :3, 3], snaps[k_ref, :3, 3]]))
             self._loop_labels.append(f"Q {loop.q:.2f}")
-            self.rec.log("world/loops", rr.LineStrips3D(self._loop_segments, colors=[(240, 60, 200)], labels=self._loop_labels,
-                                                        radii=rr.Radius.ui_points(2.0)))
+            self.rec.log(
+                "world/loops",
+                rr.LineStrips3D(
+                    self._loop_segments, colors=[(240, 60, 200)], labels=self._loop_labels, radii=rr.Radius.ui_points(2.0)
+                ),
+            )
         text = (
             f"frame {loop.frame} -> {loop.reference}: Q {loop.q:.3f} = correlation {loop.correlation:.3f} x luminance "
             f"{loop.luminance:.3f} x contrast {loop.contrast:.3f}; {'verified (' + str(loop.verify_inliers) + ' inliers)' if loop.verified else 'unverified'}, "
