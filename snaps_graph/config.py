@@ -153,11 +153,10 @@ class LoopConfig(_Section):
 
     radius_m: float = 10.0  # candidates lie within this distance of the current position
     frame_distance: int = 100  # M: candidate j must satisfy N - j >= M
-    # K: poses N-K..N are corrected (never the reference or older). 300 = where gamma itself ends
-    # for the first loop (3 / (1 * 0.01)); measured against the SPEC's 100 with the default eq. 6
-    # (experiments/loop_correction.py): horizontal mean deviation 0.71x -> 0.54x VO on the KITTI 07
-    # rendering, 0.60x -> 0.41x on its hard world, unchanged on 00 (0.28x).
-    discount_length: int = 300
+    # K: poses N-K..N are corrected (never the reference or older). 100 = the paper's Table I. 300
+    # (where gamma ends for the first loop) helped the KITTI 07 renderings but bent the whole
+    # 300-frame demo loop: SNAPS worse than VO there (README, eq. 6 decisions).
+    discount_length: int = 100
     # Q threshold for a loop. The paper's 0.75 is unreachable with the exact Wang-Bovik index on
     # a moving camera (real KITTI 06: Q = 0.33-0.44 between frames 1.2 m apart); tuned on the
     # synthetic KITTI 00 rendering: true revisits median 0.14 unshifted (0.26 with shift_px = 8),
