@@ -6,6 +6,7 @@ rendering of a KITTI path (seed 0: the world /work/data/seq00_street shows), for
 
   python benchmarks/bench_map.py --write-world results/world00.ply
   python benchmarks/bench_map.py RUN_DIR [RUN_DIR ...]
+  python benchmarks/bench_map.py --run SEQ OUT      # first `snaps-graph run SEQ --out OUT --refine batch --map`
 """
 
 import argparse
@@ -20,7 +21,17 @@ ap.add_argument("runs", nargs="*")
 ap.add_argument("--write-world", default="", help="write the synthetic world mesh here and exit")
 ap.add_argument("--path", default=str(Path(__file__).resolve().parents[1].parent / "shared/data/kitti_gt/00.txt"))
 ap.add_argument("--far-m", type=float, default=30.0)
+ap.add_argument("--run", nargs=2, metavar=("SEQ", "OUT"), help="run SEQ with --map into OUT (replaced) first, then report it")
 a = ap.parse_args()
+
+if a.run:
+    import subprocess
+    import sys
+
+    seq, out = a.run
+    cmd = [sys.executable, "-m", "snaps_graph.cli", "run", seq, "--out", out, "--refine", "batch", "--map", "--overwrite"]
+    subprocess.run(cmd, check=True)
+    a.runs = [*a.runs, out]
 
 if a.write_world:
     import open3d as o3d

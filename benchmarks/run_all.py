@@ -26,7 +26,7 @@ BENCHMARKS: list[tuple[str, str, list[str], Path | None]] = [
     ("synth", "bench_synth.py", ["--frames", "20", "--width", "620", "--height", "188"], None),
     ("snaps", "bench_snaps.py", ["--frames", "1500"], KITTI00_GT),
     ("graph", "bench_graph.py", ["--frames", "1500"], KITTI00_GT),
-    ("map", "bench_map.py", ["--out", str(ROOT / "results" / "bench"), "--gt00", ""], KITTI06),
+    ("map", "bench_map.py", ["--run", str(KITTI06), str(ROOT / "results" / "bench" / "map06")], KITTI06),
     (  # the built-in loop (300 frames, closes loops; no data needed), rendered once into results/bench
         "pipeline",
         "bench_pipeline.py",
