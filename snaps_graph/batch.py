@@ -45,7 +45,6 @@ import subprocess
 import sys
 import threading
 import time
-import tomllib
 from collections import deque
 from collections.abc import Iterator
 from pathlib import Path
@@ -55,7 +54,7 @@ from . import __version__
 from .config import Config, FrontendMode, LoopMode, RefineMode, choices
 from .datasets.open import open_dataset
 from .errors import SnapsGraphError
-from .io_utils import atomic_write_text, parse_frame_range
+from .io_utils import atomic_write_text, parse_frame_range, read_toml
 from .runner import mostly_flagged, run_sequence
 
 CELL_FILE = "batch.json"  # written into a cell's folder after its run: the resume record
@@ -114,18 +113,7 @@ class Plan:
 def load_plan(path: str | Path) -> Plan:
     """Read and check a plan file (see the module docstring); a one-line error names it."""
     path = Path(path)
-    try:
-        data = tomllib.loads(path.read_bytes().decode("utf-8"))
-    except FileNotFoundError:
-        raise SnapsGraphError(f"{path}: plan file not found") from None
-    except IsADirectoryError:
-        raise SnapsGraphError(f"{path}: is a folder, not a plan file") from None
-    except OSError as exc:
-        raise SnapsGraphError(f"{path}: cannot read ({exc.strerror or exc})") from None
-    except UnicodeDecodeError:
-        raise SnapsGraphError(f"{path}: not a text (UTF-8) file") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise SnapsGraphError(f"{path}: malformed TOML ({exc})") from None
+    data = read_toml(path, "plan")
     return plan_from_dict(data, source=str(path), base_dir=path.parent)
 
 

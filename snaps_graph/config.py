@@ -12,13 +12,12 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, get_args, get_origin, get_type_hints
 
 from .errors import SnapsGraphError
-from .io_utils import atomic_write_text
+from .io_utils import atomic_write_text, read_toml
 
 # The one vocabulary of modes (the CLI's --mode/--loops/--refine use the same lists).
 FrontendMode = Literal["sift", "orb", "klt"]
@@ -377,18 +376,7 @@ class Config:
     @classmethod
     def load(cls, path: str | Path) -> "Config":
         path = Path(path)
-        try:
-            data = tomllib.loads(path.read_bytes().decode("utf-8"))
-        except FileNotFoundError:
-            raise SnapsGraphError(f"{path}: config file not found") from None
-        except IsADirectoryError:
-            raise SnapsGraphError(f"{path}: is a folder, not a config file") from None
-        except OSError as exc:
-            raise SnapsGraphError(f"{path}: cannot read ({exc.strerror or exc})") from None
-        except UnicodeDecodeError:
-            raise SnapsGraphError(f"{path}: not a text (UTF-8) file") from None
-        except tomllib.TOMLDecodeError as exc:
-            raise SnapsGraphError(f"{path}: malformed TOML ({exc})") from None
+        data = read_toml(path, "config")
         return cls.from_dict(data, source=str(path))
 
     @classmethod

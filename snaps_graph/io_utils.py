@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
+import tomllib
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -75,6 +76,24 @@ def read_text(path: str | Path, what: str) -> str:
         return data.decode("utf-8")
     except UnicodeDecodeError:
         raise SnapsGraphError(f"{path}: not a text (UTF-8) file, expected a {what} file") from None
+
+
+def read_toml(path: str | Path, what: str) -> dict:
+    """A TOML file's tables; a one-line SnapsGraphError naming it when it is missing, a folder,
+    unreadable, not UTF-8 text or malformed TOML. ``what`` names the file's role ("config")."""
+    path = Path(path)
+    try:
+        return tomllib.loads(path.read_bytes().decode("utf-8"))
+    except FileNotFoundError:
+        raise SnapsGraphError(f"{path}: {what} file not found") from None
+    except IsADirectoryError:
+        raise SnapsGraphError(f"{path}: is a folder, not a {what} file") from None
+    except OSError as exc:
+        raise SnapsGraphError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    except UnicodeDecodeError:
+        raise SnapsGraphError(f"{path}: not a text (UTF-8) file") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise SnapsGraphError(f"{path}: malformed TOML ({exc})") from None
 
 
 def check_output_folder(path: str | Path, overwrite: bool = False) -> Path:

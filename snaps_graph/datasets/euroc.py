@@ -26,6 +26,7 @@ import numpy as np
 from ..errors import SnapsGraphError
 from ..io_utils import parse_frame_range, read_text
 from ..types import StereoFrame
+from ._selection import FrameSelection
 from .kitti import read_grey
 from .rectify import StereoRectifier, interpolate_poses, match_stamps
 
@@ -151,7 +152,7 @@ def stereo_rectifier(mav0: Path) -> tuple[StereoRectifier, np.ndarray]:
     return rect, c0["T_BS"]
 
 
-class EurocSequence:
+class EurocSequence(FrameSelection):
     """A EuRoC MAV stereo sequence, rectified, read frame by frame (the dataset protocol)."""
 
     def __init__(self, path: str | Path, frames: str | None = None, gt: str | Path | None = None):
@@ -203,24 +204,6 @@ class EurocSequence:
         self.raw_pair(0)  # the first pair now: an unreadable image or a wrong size stops before the run
 
     # ---- dataset protocol ----
-    def __len__(self) -> int:
-        return self.stop - self.start
-
-    @property
-    def indices(self) -> np.ndarray:
-        return np.arange(self.start, self.stop)
-
-    @property
-    def timestamps(self) -> np.ndarray:
-        return self._times_all[self.start : self.stop]
-
-    @property
-    def gt_poses(self) -> np.ndarray | None:
-        if self._gt_all is None:
-            return None
-        gt = self._gt_all[self.start : self.stop]
-        return np.linalg.inv(gt[0]) @ gt
-
     def raw_pair(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """The unrectified images of frame ``i`` (position in the selection)."""
         k = self.start + i

@@ -30,6 +30,7 @@ from ..errors import SnapsGraphError
 from ..io_utils import parse_frame_range
 from ..trajectory_io import read_kitti_poses, read_times
 from ..types import StereoFrame
+from ._selection import FrameSelection
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".pgm", ".bmp", ".tif", ".tiff")
 
@@ -70,7 +71,7 @@ def read_grey(path: Path) -> np.ndarray:
     return img
 
 
-class KittiSequence:
+class KittiSequence(FrameSelection):
     """A KITTI-format stereo sequence, read frame by frame."""
 
     def __init__(self, path: str | Path, frames: str | None = None, gt: str | Path | None = None):
@@ -137,25 +138,10 @@ class KittiSequence:
         return None
 
     # ---- dataset protocol ----
-    def __len__(self) -> int:
-        return self.stop - self.start
-
     @property
     def indices(self) -> np.ndarray:
         """The selected frames' numbers (the files' numbers)."""
         return self._numbers[self.start : self.stop]
-
-    @property
-    def timestamps(self) -> np.ndarray:
-        return self._times_all[self.start : self.stop]
-
-    @property
-    def gt_poses(self) -> np.ndarray | None:
-        """Ground truth for the selected frames, re-based so the first selected frame is identity."""
-        if self._gt_all is None:
-            return None
-        gt = self._gt_all[self.start : self.stop]
-        return np.linalg.inv(gt[0]) @ gt
 
     def frame_source(self, number: int) -> str | None:
         """The left image file of frame ``number`` (for error messages), None if not in the sequence."""

@@ -29,6 +29,7 @@ import numpy as np
 from ..errors import SnapsGraphError
 from ..io_utils import parse_frame_range
 from ..types import StereoFrame
+from ._selection import FrameSelection
 from .rectify import StereoRectifier, match_stamps, to_grey
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
@@ -130,7 +131,7 @@ def decode_image(msg, msgtype: str, source: str = "image") -> np.ndarray:
     return to_grey(img, enc if enc.startswith(("rgb", "bgr")) else "", source)
 
 
-class RosbagSequence:
+class RosbagSequence(FrameSelection):
     """A stereo image pair stream from a ROS 1 or ROS 2 bag (the dataset protocol)."""
 
     def __init__(
@@ -332,24 +333,6 @@ class RosbagSequence:
             raise SnapsGraphError(f"{self.path}: pair {nxt} could not be read back from the bag")
 
     # ---- dataset protocol ----
-    def __len__(self) -> int:
-        return self.stop - self.start
-
-    @property
-    def indices(self) -> np.ndarray:
-        return np.arange(self.start, self.stop)
-
-    @property
-    def timestamps(self) -> np.ndarray:
-        return self._times_all[self.start : self.stop]
-
-    @property
-    def gt_poses(self) -> np.ndarray | None:
-        if self._gt_all is None:
-            return None
-        gt = self._gt_all[self.start : self.stop]
-        return np.linalg.inv(gt[0]) @ gt
-
     def __getitem__(self, i: int) -> StereoFrame:
         if i < 0:
             i += len(self)

@@ -1,0 +1,33 @@
+"""The part of the dataset protocol every reader shares: a selected range ``start:stop`` of its
+frames, with their timestamps and ground truth (``_times_all``, ``_gt_all`` over all frames)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+class FrameSelection:
+    start: int
+    stop: int
+    _times_all: np.ndarray
+    _gt_all: np.ndarray | None
+
+    def __len__(self) -> int:
+        return self.stop - self.start
+
+    @property
+    def indices(self) -> np.ndarray:
+        """The selected frames' numbers (positions, unless a reader numbers its frames itself)."""
+        return np.arange(self.start, self.stop)
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return self._times_all[self.start : self.stop]
+
+    @property
+    def gt_poses(self) -> np.ndarray | None:
+        """Ground truth for the selected frames, re-based so the first selected frame is identity."""
+        if self._gt_all is None:
+            return None
+        gt = self._gt_all[self.start : self.stop]
+        return np.linalg.inv(gt[0]) @ gt
