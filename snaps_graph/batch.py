@@ -54,7 +54,7 @@ from . import __version__
 from .config import Config, FrontendMode, LoopMode, RefineMode, choices
 from .datasets.open import open_dataset
 from .errors import SnapsGraphError
-from .io_utils import atomic_write_text, parse_frame_range, read_toml
+from .io_utils import atomic_write_text, check_output_folder, parse_frame_range, read_toml
 from .runner import mostly_flagged, run_sequence
 
 CELL_FILE = "batch.json"  # written into a cell's folder after its run: the resume record
@@ -496,14 +496,7 @@ def run_batch(
 
 
 def _prepare_out(out_dir: str | Path) -> Path:
-    out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise SnapsGraphError(f"{out}: exists and is not a folder")
-    for parent in out.absolute().parents:
-        if parent.exists():
-            if not parent.is_dir():
-                raise SnapsGraphError(f"{parent}: is a file, cannot create the folder {out} under it")
-            break
+    out = check_output_folder(out_dir, reuse=True)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

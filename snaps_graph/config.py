@@ -12,6 +12,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, get_args, get_origin, get_type_hints
@@ -277,16 +278,7 @@ class MapConfig(_Section):
 
     enabled: bool = False
     keyframe_every: int = 5  # one keyframe cloud every this many frames
-    pixel_step: int = 4  # subsample depth pixels on this grid
     max_range_m: float = 20.0  # depth beyond this is dropped (stereo depth error grows with z^2; README)
-    voxel_size_m: float = 0.3  # voxel of the global map (open3d voxel_down_sample)
-    # Voxel each keyframe cloud is pre-downsampled with in its own camera frame, to bound memory;
-    # half the map voxel so the global downsample decides the final spacing. 0 disables.
-    keyframe_voxel_size_m: float = 0.15
-    # build() voxelises consecutive keyframes in chunks of about this many points, then the
-    # union of the chunks once more: bounds peak memory on long runs (KITTI 00: ~10 M points).
-    build_chunk_points: int = 2_000_000
-    build_tile_m: float = 100.0  # ...and the union is voxelised again in x-z tiles of this size
     topdown_colour_by: Literal["height", "intensity"] = "height"  # top-down PNG: "height" (-y, metres) or "intensity"
     topdown_dpi: int = 150  # top-down PNG resolution (a 8x8 inch figure)
     trajectory: Literal["vo", "snaps", "isam2", "batch", "best"] = "best"  # best: the most refined available
@@ -391,6 +383,11 @@ class Config:
                 if not isinstance(value, dict):
                     raise SnapsGraphError(f"{source}: [{key}] must be a table")
                 for sub, subval in value.items():
+                    if f"{key}.{sub}" in RETIRED:  # an older version wrote it into config.toml
+                        print(
+                            f"note: {source}: {key}.{sub} is no longer used ({RETIRED[f'{key}.{sub}']}); ignored", file=sys.stderr
+                        )
+                        continue
                     if not hasattr(current, sub):
                         raise SnapsGraphError(f"{source}: unknown key '{key}.{sub}'")
                     setattr(current, sub, _coerce(getattr(current, sub), subval, f"{source}: {key}.{sub}"))
@@ -508,6 +505,12 @@ ANGLE = Range(0, 180, lo_open=True)  # (0, 180] degrees
 
 # The range of every numeric field, keyed "section.field" (booleans and Literal fields are checked
 # by their type). A new numeric field needs a line here (tests/test_config.py checks it).
+# Keys older versions had (and wrote into every run's config.toml): read back with a note.
+RETIRED = {
+    k: "the map is a TSDF fusion now, not a union of point clouds"
+    for k in ("map.pixel_step", "map.voxel_size_m", "map.keyframe_voxel_size_m", "map.build_chunk_points", "map.build_tile_m")
+}
+
 RULES: dict[str, Range] = {
     "frontend.num_disparities": Range(16, 1024, multiple=16),
     "frontend.block_size": Range(5, 255, odd=True),
@@ -599,12 +602,7 @@ RULES: dict[str, Range] = {
     "graph.gravity_sigma_deg": Range(0, 90, lo_open=True),
     "graph.gravity_rounds": AT_LEAST_1,
     "map.keyframe_every": AT_LEAST_1,
-    "map.pixel_step": AT_LEAST_1,
     "map.max_range_m": POSITIVE,
-    "map.voxel_size_m": NON_NEGATIVE,
-    "map.keyframe_voxel_size_m": NON_NEGATIVE,
-    "map.build_chunk_points": AT_LEAST_1,
-    "map.build_tile_m": POSITIVE,
     "map.topdown_dpi": Range(10, 1200),
     "map.depth_scale": Range(0.1, 1),
     "map.depth_block_size": Range(1, 255, odd=True),

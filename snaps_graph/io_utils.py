@@ -96,10 +96,11 @@ def read_toml(path: str | Path, what: str) -> dict:
         raise SnapsGraphError(f"{path}: malformed TOML ({exc})") from None
 
 
-def check_output_folder(path: str | Path, overwrite: bool = False) -> Path:
+def check_output_folder(path: str | Path, overwrite: bool = False, reuse: bool = False) -> Path:
     """Refuse, with a one-line SnapsGraphError, an output folder a run could not replace whole:
     a path that is a file or lies under a file, a folder whose parent cannot be written, or a
-    non-empty folder without ``overwrite``. Call it before any work; returns the path."""
+    non-empty folder without ``overwrite`` (``reuse``: a non-empty folder is fine, as a resumed
+    batch wants). Call it before any work; returns the path."""
     out = Path(path)
     if out.exists() and not out.is_dir():
         raise SnapsGraphError(f"{out}: exists and is not a folder")
@@ -110,7 +111,7 @@ def check_output_folder(path: str | Path, overwrite: bool = False) -> Path:
             if not os.access(parent, os.W_OK | os.X_OK):
                 raise SnapsGraphError(f"{parent}: not writable, cannot create {out}")
             break
-    if out.is_dir() and any(out.iterdir()) and not overwrite:
+    if out.is_dir() and not (overwrite or reuse) and any(out.iterdir()):
         raise SnapsGraphError(f"{out}: folder exists and is not empty (use --overwrite to replace it)")
     return out
 

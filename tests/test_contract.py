@@ -347,6 +347,18 @@ def test_dumped_config_loads_back(tmp_path):
     assert Config.load(path) == Config()
 
 
+def test_an_older_runs_config_with_retired_keys_loads_with_a_note(tmp_path, capsys):
+    path = tmp_path / "c.toml"
+    path.write_text("[map]\npixel_step = 4\nbuild_tile_m = 100.0\nkeyframe_every = 7\n")
+    cfg = Config.load(path)
+    assert cfg.map.keyframe_every == 7
+    notes = capsys.readouterr().err.strip().splitlines()
+    assert len(notes) == 2 and all(n.startswith(f"note: {path}: map.") and "ignored" in n for n in notes)
+    path.write_text("[map]\npixel_stepp = 4\n")
+    with pytest.raises(SnapsGraphError, match="unknown key 'map.pixel_stepp'"):
+        Config.load(path)
+
+
 # ------------------------------------------------------------------ streaming API
 def test_rejected_frame_leaves_the_pipeline_usable(tiny_seq, tmp_path):
     seq = KittiSequence(tiny_seq)

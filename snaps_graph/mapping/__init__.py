@@ -1,13 +1,11 @@
 """Map (SPEC "Map"): keyframe depth fused into a TSDF mesh under any trajectory (``FusedMap``),
-its files and pictures (``outputs``), accuracy against a true world mesh (``accuracy``); the
-older point-cloud union (``CloudMap``).
+its files and pictures (``outputs``), accuracy against a true world mesh (``accuracy``).
 
 The only part of the package that imports open3d, and only lazily inside methods, so
 ``import snaps_graph`` does not load it.
 """
 
-from .cloud_map import CloudMap
 from .outputs import write_map_outputs
 from .tsdf import FusedMap, FusedSurface
 
-__all__ = ["CloudMap", "FusedMap", "FusedSurface", "write_map_outputs"]
+__all__ = ["FusedMap", "FusedSurface", "write_map_outputs"]
