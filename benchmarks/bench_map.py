@@ -96,3 +96,10 @@ for run in map(Path, a.runs):
             f"(seen {100 * (me['completeness_seen'] or 0):.1f} %) | {acc['surface_samples']} samples within "
             f"{acc['range_m']:g} m, {100 * acc['surface_seen_share']:.0f} % seen"
         )
+        if "aligned" in acc:  # moved by the trajectory's SE(3) alignment onto the truth (as the ATE)
+            a, am = acc["aligned"]["points"], acc["aligned"]["mesh"]
+            print(
+                f"  {'':<6} aligned as the ATE: points p50 {a['error_median_m']:.3f} p90 {a['error_p90_m']:.3f} m, "
+                f"completeness {100 * a['completeness']:.1f} % (seen {100 * (a['completeness_seen'] or 0):.1f} %) | mesh "
+                f"vertices p50 {am['error_median_m']:.3f} p90 {am['error_p90_m']:.3f} m, seen {100 * (am['completeness_seen'] or 0):.1f} %"
+            )

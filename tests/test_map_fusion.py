@@ -178,6 +178,18 @@ def test_accuracy_of_exact_offset_and_partial_maps(tmp_path):
     c = map_accuracy(world, half, half, poses, CAM.K, (640, 320), 10.0, 0.2, min_samples=20_000)
     assert 0.4 < c["points"]["completeness"] < 0.6
     assert c["points"]["completeness_seen"] is not None and 0.0 < c["surface_seen_share"] < 1.0
+    # a trajectory off by a rigid motion (lifted 0.5 m): the map is too, and the trajectory's own
+    # alignment onto the truth puts it back, while the anchored figure keeps the offset
+    from snaps_graph.mapping.outputs import trajectory_alignment
+
+    est = poses.copy()
+    est[:, 1, 3] += 0.5
+    d = map_accuracy(
+        world, lifted, lifted, poses, CAM.K, (640, 320), 10.0, 0.2, min_samples=20_000, alignment=trajectory_alignment(est, poses)
+    )
+    assert d["points"]["error_median_m"] == pytest.approx(0.5, abs=1e-3)
+    assert d["aligned"]["points"]["error_p90_m"] < 1e-3 and d["aligned"]["points"]["completeness"] > 0.95
+    assert trajectory_alignment(est, None) is None and trajectory_alignment(est, poses[:5]) is None
     with pytest.raises(SnapsGraphError, match="not found"):
         WorldSurface(tmp_path / "missing.ply")
 

@@ -25,6 +25,7 @@ import math
 import numpy as np
 
 from ..errors import SnapsGraphError
+from ..geometry import umeyama_alignment
 
 # The KITTI odometry benchmark's segment lengths, metres (devkit evaluate_odometry.cpp).
 KITTI_LENGTHS_M: tuple[float, ...] = (100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0)
@@ -71,39 +72,6 @@ def path_length(poses: np.ndarray) -> float:
     """Length of the polyline through the positions, metres."""
     p = _check_poses(poses, "trajectory")[:, :3, 3]
     return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
-
-
-def umeyama_alignment(src_xyz: np.ndarray, dst_xyz: np.ndarray, with_scale: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
-    """Least-squares similarity (R, t, s) with dst ~ s R src + t (Umeyama 1991, eq. 34-43).
-
-    ``src_xyz`` and ``dst_xyz`` are (N, 3) matched points. Same formulas as evo's
-    ``geometry.umeyama_alignment`` (which takes 3xN), so ATE agrees with ``evo_ape -a``. The
-    reflection guard (S = diag(1, 1, -1) when det(U) det(V) < 0) keeps R a rotation.
-    Degenerate inputs still give a minimiser: collinear points (a straight drive) leave the roll
-    about the line free, and any choice gives the same residuals; a single distinct point gives
-    R = I. Scale is 1 unless ``with_scale`` (and a point cloud with no spread keeps s = 1).
-    """
-    src = np.asarray(src_xyz, dtype=float)
-    dst = np.asarray(dst_xyz, dtype=float)
-    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) == 0:
-        raise SnapsGraphError(f"umeyama_alignment: need two matching (N, 3) arrays, got {src.shape} and {dst.shape}")
-    if not (np.all(np.isfinite(src)) and np.all(np.isfinite(dst))):
-        raise SnapsGraphError("umeyama_alignment: non-finite points")
-    n = len(src)
-    mean_src = src.mean(axis=0)
-    mean_dst = dst.mean(axis=0)
-    xs = src - mean_src
-    ys = dst - mean_dst
-    var_src = float((xs**2).sum()) / n  # eq. 36
-    cov = ys.T @ xs / n  # eq. 38
-    u, d, vt = np.linalg.svd(cov)
-    s_mat = np.eye(3)
-    if np.linalg.det(u) * np.linalg.det(vt) < 0.0:
-        s_mat[2, 2] = -1.0  # eq. 43
-    R = u @ s_mat @ vt  # eq. 40
-    scale = float(np.trace(np.diag(d) @ s_mat) / var_src) if (with_scale and var_src > 0.0) else 1.0  # eq. 42
-    t = mean_dst - scale * R @ mean_src  # eq. 41
-    return R, t, scale
 
 
 def ate_rmse(est: np.ndarray, gt: np.ndarray) -> float:

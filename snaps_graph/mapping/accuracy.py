@@ -134,11 +134,36 @@ def map_accuracy(
     range_m: float,
     tolerance_m: float,
     min_samples: int = MIN_SAMPLES,
+    alignment: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> dict:
     """Accuracy and completeness of one map (surface ``points`` and mesh ``vertices``, world
     frame) against ``world``; the surface that should be mapped is the one within ``range_m`` of
     the cameras ``views`` ((n, 4, 4) T_world_cam, intrinsics ``K``, image ``size`` (w, h)) --
-    the true poses when known, so every trajectory is measured against the same surface."""
+    the true poses when known, so every trajectory is measured against the same surface.
+
+    ``alignment`` (R, t): the map is measured a second time moved by x -> R x + t, under the key
+    ``"aligned"`` -- the trajectory's own SE(3) alignment onto the true one (as the ATE aligns;
+    the map plays no part in it), which removes the first frame's arbitrary anchoring."""
+    samples, seen = world.samples_near(
+        np.asarray(views, np.float64), range_m, np.asarray(K, np.float64), size, min_samples=min_samples
+    )
+    out = _measure(world, points, vertices, samples, seen, tolerance_m)
+    if alignment is not None:
+        R, t = (np.asarray(a, np.float64) for a in alignment)
+        moved_points = (points.astype(np.float64) @ R.T + t).astype(np.float32)
+        moved_vertices = moved_points if vertices is points else (vertices.astype(np.float64) @ R.T + t).astype(np.float32)
+        out["aligned"] = _measure(world, moved_points, moved_vertices, samples, seen, tolerance_m)
+    out["surface_samples"] = int(len(samples))
+    out["surface_seen_share"] = float(seen.mean()) if len(seen) else None
+    out["range_m"] = float(range_m)
+    out["tolerance_m"] = float(tolerance_m)
+    return out
+
+
+def _measure(
+    world: WorldSurface, points: np.ndarray, vertices: np.ndarray, samples: np.ndarray, seen: np.ndarray, tolerance_m: float
+) -> dict:
+    """Error (median, p90, share within tolerance) and completeness of the points and vertices."""
     from scipy.spatial import cKDTree
 
     out: dict = {}
@@ -151,21 +176,13 @@ def map_accuracy(
             "error_p90_m": float(np.percentile(d, 90)) if len(d) else None,
             "share_within_tolerance": float(np.mean(d <= tolerance_m)) if len(d) else None,
         }
-    samples, seen = world.samples_near(
-        np.asarray(views, np.float64), range_m, np.asarray(K, np.float64), size, min_samples=min_samples
-    )
-    for name, pts in sets:
         if len(pts) and len(samples):
-            d, _ = cKDTree(pts).query(samples, distance_upper_bound=tolerance_m)
-            hit = np.isfinite(d)
+            dd, _ = cKDTree(pts).query(samples, distance_upper_bound=tolerance_m)
+            hit = np.isfinite(dd)
             out[name]["completeness"] = float(hit.mean())
             out[name]["completeness_seen"] = float(hit[seen].mean()) if seen.any() else None
         else:
             out[name]["completeness"] = out[name]["completeness_seen"] = 0.0 if len(samples) else None
     if vertices is points:  # map.ply holds the mesh vertices: one set, reported under both names
         out["mesh"] = out["points"]
-    out["surface_samples"] = int(len(samples))
-    out["surface_seen_share"] = float(seen.mean()) if len(seen) else None
-    out["range_m"] = float(range_m)
-    out["tolerance_m"] = float(tolerance_m)
     return out

@@ -17,6 +17,7 @@ import numpy as np
 
 from ..config import MapConfig
 from ..errors import SnapsGraphError
+from ..geometry import umeyama_alignment
 from ..io_utils import atomic_output
 
 _PICTURE_POINTS = 200_000
@@ -134,6 +135,7 @@ def write_map_outputs(
 
             ta = time.perf_counter()
             ref = gt if gt is not None else trajectories[name]  # the surface to map: seen from the true path
+            align = trajectory_alignment(trajectories[name], gt) if name != "gt" else None
             acc = map_accuracy(
                 world,
                 surf.points,
@@ -144,6 +146,7 @@ def write_map_outputs(
                 cfg.accuracy_range_m,
                 cfg.accuracy_tolerance_m,
                 min_samples=cfg.accuracy_samples,
+                alignment=align,
             )
             entry.setdefault("accuracy", {})[name] = acc
             err = world.distance(surf.points[::stride])
@@ -194,6 +197,24 @@ def accuracy_from_files(
         verts = np.asarray(o3d.io.read_triangle_mesh(str(mp)).vertices, np.float32)
         ref = gt if gt is not None and len(gt) == len(poses) else poses
         out[name] = map_accuracy(
-            world, pts, verts, ref[::every], K, (int(w), int(h)), range_m, tolerance_m, min_samples=min_samples
+            world,
+            pts,
+            verts,
+            ref[::every],
+            K,
+            (int(w), int(h)),
+            range_m,
+            tolerance_m,
+            min_samples=min_samples,
+            alignment=trajectory_alignment(poses, gt),
         )
     return out
+
+
+def trajectory_alignment(poses: np.ndarray, gt: np.ndarray | None) -> tuple[np.ndarray, np.ndarray] | None:
+    """(R, t) moving ``poses``' positions onto ``gt``'s (SE(3) Umeyama, as the ATE), or None
+    without a ground truth of the same length."""
+    if gt is None or len(gt) != len(poses) or len(poses) < 3:
+        return None
+    R, t, _ = umeyama_alignment(poses[:, :3, 3], gt[:, :3, 3])
+    return R, t
