@@ -56,6 +56,7 @@ MODES = {
     "sift_sparse": dict(mode="sift", disparity="sparse"),  # what mode = "sift" runs by default
     "sift_fo-1": dict(mode="sift", disparity="sparse", sift_first_octave=-1),
     "orb": dict(mode="orb"),
+    "offset": dict(estimate_disparity_offset=True),  # the default + the online disparity offset estimate
 }
 
 
@@ -154,6 +155,8 @@ def run(name, seq, frames, base=None):
         poses = np.array([r.pose for r in res])
         flagged = sum(not r.ok for r in res)
         timings = [r.timings_ms for r in res]
+        if res and res[-1].disparity_offset_px != 0.0:
+            print(f"{'':12s} disparity offset applied at the end: {res[-1].disparity_offset_px:+.3f} px")
     return poses, flagged, timings
 
 

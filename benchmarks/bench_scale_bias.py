@@ -7,7 +7,9 @@ the frames and prints
 * step-length bias: sum of VO step lengths / sum of ground-truth step lengths - 1 (%): a
   front end that reads far points as too far overestimates every step;
 * end drift: |p_end_vo - p_end_gt| / ground-truth path length (%);
-* ATE RMSE (SE(3)-aligned, m) and the number of flagged frames.
+* ATE RMSE (SE(3)-aligned, m) and the number of flagged frames;
+* the disparity offset the front end applied at the end (px, measured - true; mode "offset"
+  estimates it online).
 
     python benchmarks/bench_scale_bias.py /work/data/seq00_street /work/data/seq00_open --frames 0:1000
     python benchmarks/bench_scale_bias.py SEQ --modes default,sift,orb
@@ -38,6 +40,7 @@ MODES = {
     "sift": dict(mode="sift"),
     "orb": dict(mode="orb"),
     "paper": dict(mode="sift", disparity="bm_wls", sift_first_octave=-1, motion="pnp", local_ba=False),
+    "offset": dict(estimate_disparity_offset=True),  # the default + the online disparity offset estimate
 }
 
 
@@ -48,7 +51,7 @@ def step_bias(est: np.ndarray, gt: np.ndarray) -> float:
     return float(se / max(sg, 1e-12) - 1.0)
 
 
-def run(seq: KittiSequence, overrides: dict, stride: int = 1, gaps: bool = False) -> tuple[np.ndarray, int, float]:
+def run(seq: KittiSequence, overrides: dict, stride: int = 1, gaps: bool = False) -> tuple[np.ndarray, int, float, float]:
     cfg = Config()
     for k, v in overrides.items():
         setattr(cfg.frontend, k, v)
@@ -58,7 +61,8 @@ def run(seq: KittiSequence, overrides: dict, stride: int = 1, gaps: bool = False
         for j, i in enumerate(range(0, len(seq), stride)):
             f = seq[i]  # numbered as a recording of the faster drive would be (the front end reads the index)
             res.append(vo.process(f if gaps else StereoFrame(j, f.timestamp, f.left, f.right)))
-    return np.array([r.pose for r in res]), sum(not r.ok for r in res), time.perf_counter() - t0
+    offset = res[-1].disparity_offset_px if res else 0.0
+    return np.array([r.pose for r in res]), sum(not r.ok for r in res), time.perf_counter() - t0, offset
 
 
 def main() -> None:
@@ -78,7 +82,7 @@ def main() -> None:
     if args.stride < 1:
         sys.exit("error: --stride must be >= 1")
     print(
-        f"{'sequence':<34}{'mode':<9}{'frames':>7}{'path m':>9}{'step bias %':>13}{'end drift %':>13}{'ATE m':>8}{'flagged':>9}{'fps':>7}"
+        f"{'sequence':<34}{'mode':<9}{'frames':>7}{'path m':>9}{'step bias %':>13}{'end drift %':>13}{'ATE m':>8}{'flagged':>9}{'fps':>7}{'offset px':>11}"
     )
     for path in args.seqs:
         seq = KittiSequence(path, frames=args.frames)
@@ -89,11 +93,11 @@ def main() -> None:
             print(f"{path}: no ground truth, skipped")
             continue
         for m in modes:
-            est, flagged, wall = run(seq, MODES[m], args.stride, args.gaps)
+            est, flagged, wall, offset = run(seq, MODES[m], args.stride, args.gaps)
             drift = 100.0 * np.linalg.norm(est[-1, :3, 3] - gt[-1, :3, 3]) / max(path_length(gt), 1e-9)
             print(
                 f"{str(path)[-34:]:<34}{m:<9}{len(gt):>7}{path_length(gt):>9.1f}{100 * step_bias(est, gt):>13.2f}"
-                f"{drift:>13.2f}{ate_rmse(est, gt):>8.3f}{flagged:>9}{len(gt) / wall:>7.1f}",
+                f"{drift:>13.2f}{ate_rmse(est, gt):>8.3f}{flagged:>9}{len(gt) / wall:>7.1f}{offset:>+11.3f}",
                 flush=True,
             )
 

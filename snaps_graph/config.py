@@ -137,6 +137,17 @@ class FrontendConfig(_Section):
     # the reference and the current frame ("orb"), or flag at once ("none").
     klt_retry: Literal["none", "orb"] = "orb"
     klt_retry_features: int = 4000  # ORB keypoints detected per image by the retry
+    # Constant disparity offset, measured - true, px (a rig's rectification residual: a rig whose
+    # disparities read 0.3 px small has -0.3); every disparity the front end uses is corrected.
+    disparity_offset_px: float = 0.0
+    # klt + local BA: estimate the offset online (one more unknown in each local-BA solve, Gaussian
+    # prior of disparity_offset_prior_px around the running estimate); the information-weighted
+    # mean of the solves, clamped to +-disparity_offset_max_px, replaces disparity_offset_px once
+    # disparity_offset_min_solves solves contributed.
+    estimate_disparity_offset: bool = False
+    disparity_offset_prior_px: float = 0.5
+    disparity_offset_max_px: float = 2.0
+    disparity_offset_min_solves: int = 10
 
     def _cross_checks(self, source: str) -> None:
         if not self.min_depth_m < self.max_depth_m:
@@ -560,6 +571,10 @@ RULES: dict[str, Range] = {
     "frontend.klt_anchor_max_px": POSITIVE,
     "frontend.far_min_disparity_px": POSITIVE,
     "frontend.klt_retry_features": AT_LEAST_1,
+    "frontend.disparity_offset_px": Range(-10, 10),
+    "frontend.disparity_offset_prior_px": POSITIVE,
+    "frontend.disparity_offset_max_px": Range(0, 10),
+    "frontend.disparity_offset_min_solves": AT_LEAST_1,
     "loop.radius_m": POSITIVE,
     "loop.frame_distance": AT_LEAST_1,
     "loop.discount_length": NON_NEGATIVE,

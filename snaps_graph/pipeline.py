@@ -192,6 +192,7 @@ class SlamPipeline:
                 t_graph_ms=t_graph_ms,
                 graph_ok=int(graph_ok),
                 t_map_ms=t_map_ms,
+                vo_disparity_offset_px=float(vo.disparity_offset_px),
             )
         )
         pose = heuristic

@@ -48,6 +48,7 @@ class VOResult:
     matches: int = 0
     features: FrameFeatures | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)  # per stage
+    disparity_offset_px: float = 0.0  # disparity offset (measured - true, px) this frame was measured with
 
 
 @dataclass
@@ -119,6 +120,7 @@ class FrameRecord:
     t_graph_ms: float
     graph_ok: int
     t_map_ms: float
+    vo_disparity_offset_px: float = 0.0  # VOResult.disparity_offset_px (the running estimate, if on)
 
 
 FRAME_COLUMNS: tuple[str, ...] = tuple(f.name for f in dataclasses.fields(FrameRecord))

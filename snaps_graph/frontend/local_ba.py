@@ -14,6 +14,16 @@ are refined; the newest keyframe's refined pose is what the odometry chains from
 Landmarks start at the stereo point of their first observation in the window, posed by that
 keyframe's current estimate.
 
+Disparity offset. Disparities are taken as ``measured = true + offset_px`` (a rig's
+rectification residual; ``offset_px`` is set by the caller, the running estimate). With
+``estimate_offset`` the numpy solver adds the offset as one more unknown shared by every
+observation (its right-image residual is ``proj_r - offset - u_r``) under a Gaussian prior
+(``offset_prior_px``) around ``offset_px``; it is observable because a landmark's disparities
+across keyframes at different ranges must follow f·B/Z_k with Z_k tied by the shared motion.
+Each solve records in ``LocalBAStats.offsets`` the offset the data alone say (the prior taken
+back out) and that estimate's information (1/px^2). The ``"gtsam"`` solver applies
+``offset_px`` but does not estimate it (``GenericStereoFactor3D`` has no offset parameter).
+
 The adjuster does no I/O and never raises for bad data: a failed or non-finite solve leaves the
 poses as given and is reported in ``LocalBAStats``.
 """
@@ -48,6 +58,7 @@ class LocalBAStats:
     failures: list = field(default_factory=list)  # (key, reason)
     times_ms: list = field(default_factory=list)  # per keyframe
     landmarks: list = field(default_factory=list)  # landmarks per solve
+    offsets: list = field(default_factory=list)  # (data-only offset px, its information 1/px^2) per solve
 
 
 class LocalBundleAdjuster:
@@ -66,6 +77,9 @@ class LocalBundleAdjuster:
         max_shift_m: float = 0.25,
         max_turn_deg: float = 1.0,
         select: str = "longest",
+        offset_px: float = 0.0,
+        estimate_offset: bool = False,
+        offset_prior_px: float = 0.5,
     ):
         self.camera = camera
         self.window = max(2, int(window))
@@ -81,6 +95,9 @@ class LocalBundleAdjuster:
         self.max_shift_m, self.max_turn_deg = float(max_shift_m), float(max_turn_deg)
         self.sigma_px, self.huber_px = float(sigma_px), float(huber_px)
         self.kfs: deque[_KF] = deque(maxlen=self.window)
+        self.offset_px = float(offset_px)  # disparity offset applied (and the prior's mean)
+        self.estimate_offset = bool(estimate_offset) and solver == "numpy"
+        self.offset_prior_px = float(offset_prior_px)
         self.stats = LocalBAStats()
 
     def add_keyframe(self, key: int, pose: np.ndarray, ids: np.ndarray, uv: np.ndarray, disp: np.ndarray) -> np.ndarray:
@@ -157,7 +174,7 @@ class LocalBundleAdjuster:
                 graph.add(gtsam.PriorFactorPose3(X(k.key), pose, self.prior))
             m = np.isin(k.ids, shared)
             ids, uvd = k.ids[m], k.uvd[m]
-            z = cam.fx * cam.baseline_m / uvd[:, 2]
+            z = cam.fx * cam.baseline_m / np.maximum(uvd[:, 2] - self.offset_px, 1e-3)
             pw = (
                 (np.c_[(uvd[:, 0] - cam.cx) / cam.fx * z, (uvd[:, 1] - cam.cy) / cam.fy * z, z]) @ k.pose[:3, :3].T
                 + k.pose[:3, 3]
@@ -165,6 +182,7 @@ class LocalBundleAdjuster:
             for i in range(len(ids)):
                 lid = int(ids[i])
                 u, v, d = uvd[i]
+                d -= self.offset_px
                 graph.add(gtsam.GenericStereoFactor3D(gtsam.StereoPoint2(u, u - d, v), self.noise, X(k.key), L(lid), self.K))
                 if lid not in seen:
                     seen.add(lid)
@@ -200,21 +218,26 @@ class LocalBundleAdjuster:
         tcw = np.array([-k.pose[:3, :3].T @ k.pose[:3, 3] for k in kfs])
         fo = np.full(Lm, -1)
         fo[ol[::-1]] = np.arange(len(ol))[::-1]  # the first observation of each landmark
-        zz = fx * B / np.maximum(z[fo, 0] - z[fo, 2], 1e-3)
+        off0 = self.offset_px
+        est = self.estimate_offset
+        off = off0
+        zz = fx * B / np.maximum(z[fo, 0] - z[fo, 2] - off0, 1e-3)
         pc = np.c_[(z[fo, 0] - cx) / fx * zz, (z[fo, 1] - cy) / fy * zz, zz]
         jf = oj[fo]
         X = np.einsum("nji,nj->ni", Rcw[jf], pc - tcw[jf])  # world = R^T (pc - t)
         info = 1.0 / self.sigma_px**2
         active = np.ones(len(oj), bool)
 
-        def project(Rcw, tcw, X):
+        def project(Rcw, tcw, X, off):
             pc = np.einsum("nij,nj->ni", Rcw[oj], X[ol]) + tcw[oj]
             zc = np.where(pc[:, 2] > 1e-3, pc[:, 2], 1e-3)
-            pred = np.c_[fx * pc[:, 0] / zc + cx, fy * pc[:, 1] / zc + cy, fx * (pc[:, 0] - B) / zc + cx]
+            pred = np.c_[fx * pc[:, 0] / zc + cx, fy * pc[:, 1] / zc + cy, fx * (pc[:, 0] - B) / zc + cx - off]
             return pc, zc, pred - z, pc[:, 2] > 1e-3
 
+        prior_info = 1.0 / self.offset_prior_px**2
+        S_full = None
         for it in range(self.iterations):
-            pc, zc, r, front = project(Rcw, tcw, X)
+            pc, zc, r, front = project(Rcw, tcw, X, off)
             err = np.linalg.norm(r, axis=1)
             if it == self.iterations - 1 or it == 2:
                 active &= front & (err <= 4.0 * self.huber_px)
@@ -265,22 +288,54 @@ class LocalBundleAdjuster:
                     S[6 * b : 6 * b + 6, 6 * a : 6 * a + 6] = blk.T
             g = bc.reshape(-1) - np.einsum("wil,l->wi", Fm.reshape(W, 6, -1), bl.reshape(-1)).reshape(-1)
             S = S[6:, 6:] + 1e-6 * np.eye(6 * (W - 1))  # the oldest pose is the gauge
+            g = g[6:]
+            if est:  # the offset: one more column, d(u_r residual)/d(offset) = -1
+                wr = w * (active & front)
+                Hdl = np.zeros((Lm, 3))
+                np.add.at(Hdl, ol, -wr[:, None] * Jl[:, 2, :])
+                Hdc = np.zeros((W, 6))
+                np.add.at(Hdc, oj, -wr[:, None] * Jc[:, 2, :])
+                FdHll = (Hll_inv @ Hdl[:, :, None])[:, :, 0]  # (L,3) Hll^-1 Hld
+                s_dc = Hdc - np.einsum("lwij,lj->wi", Hcl, FdHll)
+                s_dd = wr.sum() - np.einsum("li,li->", Hdl, FdHll) + prior_info
+                g_d = (wr * r[:, 2]).sum() - prior_info * (off - off0) - np.einsum("li,li->", FdHll, bl)
+                n = 6 * (W - 1)
+                S2 = np.empty((n + 1, n + 1))
+                S2[:n, :n], S2[:n, n], S2[n, :n], S2[n, n] = S, s_dc[1:].reshape(-1), s_dc[1:].reshape(-1), s_dd
+                S, g = S2, np.r_[g, g_d]
             try:
-                dxi = np.linalg.solve(S, g[6:])
+                sol = np.linalg.solve(S, g)
             except np.linalg.LinAlgError:
                 self.stats.failures.append((kfs[-1].key, "singular local BA system"))
                 return None
+            S_full = S
+            dxi, dd = (sol[:-1], float(sol[-1])) if est else (sol, 0.0)
             dx = np.r_[np.zeros(6), dxi].reshape(W, 6)
-            dX = (Hll_inv @ (bl - np.einsum("lwij,wi->lj", Hcl, dx))[:, :, None])[:, :, 0]
+            rhs = bl - np.einsum("lwij,wi->lj", Hcl, dx)
+            if est:
+                rhs = rhs - Hdl * dd
+            dX = (Hll_inv @ rhs[:, :, None])[:, :, 0]
+            off = off + dd
             for j in range(1, W):
                 dR = _exp_so3(dx[j, :3])
                 Rcw[j], tcw[j] = dR @ Rcw[j], dR @ tcw[j] + dx[j, 3:]
             X = X + dX
-            if not (np.all(np.isfinite(Rcw)) and np.all(np.isfinite(tcw)) and np.all(np.isfinite(X))):
+            if not (np.all(np.isfinite(Rcw)) and np.all(np.isfinite(tcw)) and np.all(np.isfinite(X)) and np.isfinite(off)):
                 self.stats.failures.append((kfs[-1].key, "non-finite local BA update"))
                 return None
-            if np.abs(dx).max() < 1e-7:
+            if np.abs(dx).max() < 1e-7 and abs(dd) < 1e-6:
                 break
+        if est and S_full is not None:
+            # The offset's posterior information (the cameras marginalised), then the prior taken
+            # back out: what this window's data alone say, for the caller's running estimate.
+            try:
+                e = np.linalg.solve(S_full, np.eye(len(S_full))[-1])
+                post = 1.0 / max(float(e[-1]), 1e-12)
+            except np.linalg.LinAlgError:
+                post = 0.0
+            data = post - prior_info
+            if data > 1e-6 and np.isfinite(data):
+                self.stats.offsets.append((off0 + (off - off0) * post / data, data))
         poses = []
         for j in range(W):
             U, _, Vt = np.linalg.svd(Rcw[j])

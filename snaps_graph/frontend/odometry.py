@@ -27,6 +27,15 @@ KLT tracks from the last frame (``klt_reference = "frame"``) or from the last ke
 ("keyframe": a frame becomes the reference only when the tracks thin out or after
 ``kf_max_gap`` frames, so one step's tracking error is not chained into every frame).
 
+Disparity offset. Every disparity the front end uses (depth for PnP and the next reference,
+the stereo BA, the local BA) is corrected as true = measured - offset, with the offset
+``disparity_offset_px`` (a known rig residual) or, with ``estimate_disparity_offset`` in klt +
+local BA, the running estimate: each local-BA solve estimates the offset jointly (``local_ba.py``)
+and reports what its data alone say; their information-weighted mean, clamped to
+±``disparity_offset_max_px``, replaces the configured offset once
+``disparity_offset_min_solves`` solves contributed. ``VOResult.disparity_offset_px`` is the
+offset each frame was measured with.
+
 Robustness. A frame is flagged (``ok=False`` with a ``reason``) when its left image is flat or
 black (grey std below ``min_frame_std``), blurred (mean |Laplacian| below
 ``min_sharpness_ratio`` times the reference's), when PnP has fewer than ``min_inliers``
@@ -65,6 +74,15 @@ from ..types import FrameFeatures, StereoFrame, VOResult
 from . import depth as depth_mod
 from . import features as feat
 from .stereo_ba import stereo_two_view_ba
+
+
+def true_disparity(d: np.ndarray, offset_px: float) -> np.ndarray:
+    """Measured disparities corrected for a constant offset (measured = true + offset); invalid
+    ones (<= 0, NaN) stay invalid, and a corrected one that is not positive becomes invalid."""
+    if offset_px == 0.0:
+        return d
+    d = np.asarray(d)
+    return np.where(d > 0, d - np.asarray(offset_px, d.dtype), d).astype(d.dtype)
 
 
 def pose_from_rvec(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
@@ -204,6 +222,8 @@ class StereoOdometry:
         self._anchor: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None
         self._lba = None
         self._lba_last = -(10**9)  # frame index of the last local BA keyframe
+        self._offset = float(self.cfg.disparity_offset_px)  # disparity offset applied (measured - true, px)
+        self._offset_sum = [0.0, 0.0, 0]  # running estimate: sum of info * offset, sum of info, solves
         if self.cfg.local_ba and self.cfg.mode == "klt":  # needs persistent tracks (landmark ids)
             from .local_ba import LocalBundleAdjuster
 
@@ -215,7 +235,36 @@ class StereoOdometry:
                 max_landmarks=self.cfg.lba_max_landmarks,
                 solver=self.cfg.lba_solver,
                 select=self.cfg.lba_select,
+                offset_px=self._offset,
+                estimate_offset=self.cfg.estimate_disparity_offset,
+                offset_prior_px=self.cfg.disparity_offset_prior_px,
             )
+
+    @property
+    def disparity_offset_px(self) -> float:
+        """The disparity offset applied now (configured, or the running estimate)."""
+        return self._offset
+
+    def _update_offset(self, n_before: int) -> None:
+        """Fold the local BA's new per-solve offset estimates into the running estimate."""
+        assert self._lba is not None
+        acc = self._offset_sum
+        for off, info in self._lba.stats.offsets[n_before:]:
+            if np.isfinite(off) and np.isfinite(info) and info > 0:
+                acc[0] += info * off
+                acc[1] += info
+                acc[2] += 1
+        if acc[2] >= self.cfg.disparity_offset_min_solves and acc[1] > 0:
+            lim = self.cfg.disparity_offset_max_px
+            self._offset = float(np.clip(acc[0] / acc[1], -lim, lim))
+            self._lba.offset_px = self._offset
+
+    def _sparse_depth(self, left: np.ndarray, right: np.ndarray, uv: np.ndarray, guess: np.ndarray | None = None):
+        """(depth from the corrected disparity, measured disparity) at ``uv``."""
+        z, d = depth_mod.sparse_depth(left, right, uv, self.camera, self.cfg, guess)
+        if self._offset != 0.0:
+            z = depth_mod.depth_from_disparity(true_disparity(d, self._offset), self.camera, self.cfg)
+        return z, d
 
     # ---- lifecycle ----
     def close(self) -> None:
@@ -272,7 +321,10 @@ class StereoOdometry:
             if self._lba is not None and kf.promote and (first or frame.index - self._lba_last >= self.cfg.lba_every):
                 self._lba_last = frame.index
                 t_ba = time.perf_counter()
+                n_off = len(self._lba.stats.offsets)
                 pose = self._lba.add_keyframe(frame.index, pose, kf.ids[kf.near], kf.uv[kf.near], kf.disp[kf.near])
+                if self.cfg.estimate_disparity_offset:
+                    self._update_offset(n_off)
                 timings["lba"] = (time.perf_counter() - t_ba) * 1000.0
             if not first:
                 T_rel = inv(prev_pose) @ pose
@@ -296,6 +348,7 @@ class StereoOdometry:
                 matches=matches,
                 features=kf.features,
             )
+        result.disparity_offset_px = self._offset
         self._last_index = frame.index
         timings["total"] = (time.perf_counter() - t_start) * 1000.0
         result.timings_ms = timings
@@ -374,8 +427,9 @@ class StereoOdometry:
         valid = z > 0
         fb = self.camera.fx * self.camera.baseline_m
         if self._far_points:  # beyond max_depth_m: kept for the stereo BA (rotation), never for PnP
-            far = ~valid & (disp >= cfg.far_min_disparity_px) & (disp * cfg.max_depth_m < fb)
-            z = np.where(far, fb / np.maximum(disp, 1e-6), z).astype(np.float32)
+            dt = true_disparity(disp, self._offset)
+            far = ~valid & (dt >= cfg.far_min_disparity_px) & (dt * cfg.max_depth_m < fb)
+            z = np.where(far, fb / np.maximum(dt, 1e-6), z).astype(np.float32)
             valid = valid | far
         uv, z, disp = uv[valid], z[valid], disp[valid]
         near = z <= cfg.max_depth_m
@@ -438,9 +492,9 @@ class StereoOdometry:
         r = stereo_two_view_ba(
             T_cur_ref,
             ref_uv[inl],
-            ref_disp[inl],
+            true_disparity(ref_disp[inl], self._offset),
             cur_uv[inl],
-            cur_disp[inl],
+            true_disparity(cur_disp[inl], self._offset),
             self.camera,
             huber_px=cfg.sba_huber_px,
             outlier_px=cfg.sba_outlier_px,
@@ -473,7 +527,7 @@ class StereoOdometry:
         """Stereo depth at tracked points; if too few (and ``detect``), detect new corners and add theirs."""
         cfg = self.cfg
         t0 = time.perf_counter()
-        z, d = depth_mod.sparse_depth(frame.left, frame.right, uv, self.camera, cfg, guess)
+        z, d = self._sparse_depth(frame.left, frame.right, uv, guess)
         t1 = time.perf_counter()
         n_valid = int(np.count_nonzero(z > 0))
         new_uv = np.zeros((0, 2), np.float32)
@@ -481,7 +535,7 @@ class StereoOdometry:
             new_uv = feat.detect_corners(frame.left, cfg.klt_features - n_valid, cfg, avoid=uv[z > 0])
         t2 = time.perf_counter()
         if len(new_uv):
-            z2, d2 = depth_mod.sparse_depth(frame.left, frame.right, new_uv, self.camera, cfg)
+            z2, d2 = self._sparse_depth(frame.left, frame.right, new_uv)
         else:
             z2, d2 = np.zeros(0, np.float32), np.zeros(0, np.float32)
         t3 = time.perf_counter()
@@ -515,7 +569,7 @@ class StereoOdometry:
             guess, zp = project(pred, ref.pts3d, self.camera)
             guess = np.where((zp > 0)[:, None], guess, ref.uv)
             if anchored:  # the disparity changes over several frames: predict it too
-                dguess = np.where(zp > 0, self.camera.fx * self.camera.baseline_m / np.maximum(zp, 1e-6), ref.disp)
+                dguess = np.where(zp > 0, self.camera.fx * self.camera.baseline_m / np.maximum(zp, 1e-6) + self._offset, ref.disp)
         uv_cur, ok = feat.track_klt(ref.left, frame.left, ref.uv, cfg, guess)
         idx = np.flatnonzero(ok)
         if cfg.klt_anchor_gap > 0 and not anchored and self._anchor is not None:
@@ -557,7 +611,7 @@ class StereoOdometry:
                 tracked = uv_cur[idx][keep & (z > 0)]
                 new_uv = feat.detect_corners(frame.left, cfg.klt_features - len(tracked), cfg, avoid=tracked)
                 t3 = time.perf_counter()
-                z2, d2 = depth_mod.sparse_depth(frame.left, frame.right, new_uv, self.camera, cfg)
+                z2, d2 = self._sparse_depth(frame.left, frame.right, new_uv)
                 timings["features"] = timings.get("features", 0.0) + (t3 - t2) * 1000.0
                 timings["depth"] = timings.get("depth", 0.0) + (time.perf_counter() - t3) * 1000.0
         uv_next = np.concatenate([uv_cur[idx][keep], new_uv])
@@ -580,7 +634,7 @@ class StereoOdometry:
         t0 = time.perf_counter()
         ocfg = dataclasses.replace(cfg, orb_features=cfg.klt_retry_features)
         uv_r, desc_r = feat.detect_orb(ref.left, ocfg)
-        z_r, d_r = depth_mod.sparse_depth(ref.left, ref.right, uv_r, cam, cfg)
+        z_r, d_r = self._sparse_depth(ref.left, ref.right, uv_r)
         has_depth = np.flatnonzero(z_r > 0)
         uv_c, desc_c = feat.detect_orb(frame.left, ocfg)
         ia, ib = feat.match_descriptors(desc_r[has_depth], desc_c, cfg.ratio_test)
@@ -681,10 +735,10 @@ class StereoOdometry:
                 disp_map, ms = dense_future.result()
                 t = time.perf_counter()
                 disp = depth_mod.sample_depth(disp_map, uv)  # nearest-pixel disparity
-                z = depth_mod.depth_from_disparity(disp, cam, cfg)
+                z = depth_mod.depth_from_disparity(true_disparity(disp, self._offset), cam, cfg)
                 return z, disp, ms + (time.perf_counter() - t) * 1000.0
             t = time.perf_counter()
-            z, disp = depth_mod.sparse_depth(frame.left, frame.right, uv, cam, cfg)
+            z, disp = self._sparse_depth(frame.left, frame.right, uv)
             return z, disp, (time.perf_counter() - t) * 1000.0
 
         depth_future = dense_future if dense else self._submit(depth_task)
