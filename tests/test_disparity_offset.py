@@ -36,7 +36,9 @@ def _window_offsets(offset_px: float, seed: int = 3, estimate: bool = True):
         if k > 0:  # a VO chain with a 2 % scale error, continued from the refined keyframe
             seed_pose[:3, 3] = poses[-1][:3, 3] + [0.0, 0.0, 2.04]
         poses.append(
-            lba.add_keyframe(k, seed_pose, np.flatnonzero(vis), uv[vis] + rng.normal(0, 0.2, (n, 2)), d[vis] + rng.normal(0, 0.3, n))
+            lba.add_keyframe(
+                k, seed_pose, np.flatnonzero(vis), uv[vis] + rng.normal(0, 0.2, (n, 2)), d[vis] + rng.normal(0, 0.3, n)
+            )
         )
         gts.append(gt)
     return lba.stats, np.array(poses), np.array(gts)
@@ -98,7 +100,10 @@ def _vo(seq, frames, **extra):
     P = np.array([r.pose for r in res])
     gt = seq.gt_poses
     assert all(r.ok for r in res) and np.all(np.isfinite(P))
-    bias = np.linalg.norm(np.diff(P[:, :3, 3], axis=0), axis=1).sum() / np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1).sum() - 1
+    bias = (
+        np.linalg.norm(np.diff(P[:, :3, 3], axis=0), axis=1).sum() / np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1).sum()
+        - 1
+    )
     return res[-1].disparity_offset_px, float(bias), ate_rmse(P, gt)
 
 
