@@ -156,7 +156,7 @@ def run(name, seq, frames, base=None):
         flagged = sum(not r.ok for r in res)
         timings = [r.timings_ms for r in res]
         if res and res[-1].disparity_offset_px != 0.0:
-            print(f"{'':12s} disparity offset applied at the end: {res[-1].disparity_offset_px:+.3f} px")
+            timings[-1] = dict(timings[-1], offset_px=res[-1].disparity_offset_px)
     return poses, flagged, timings
 
 
@@ -213,6 +213,8 @@ def main() -> None:
                 f"{'':12s} mean deviation {m['mean_deviation']:.3f} m (horizontal {m['mean_deviation_horizontal']:.3f}, "
                 f"vertical {m['mean_deviation_vertical']:.3f}), t_rel {m['t_rel']:.3f} %, r_rel {m['r_rel']:.4f} deg/100 m"
             )
+        if "offset_px" in timings[-1]:
+            print(f"{'':12s} disparity offset applied at the end: {timings[-1]['offset_px']:+.3f} px")
         kf_ms = [t["lba"] for t in timings if "lba" in t]
         if kf_ms:
             print(f"{'':12s} local BA on {len(kf_ms)} keyframes: median {np.median(kf_ms):.1f} ms, max {np.max(kf_ms):.1f} ms")
