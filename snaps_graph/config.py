@@ -143,11 +143,13 @@ class FrontendConfig(_Section):
     # klt + local BA: estimate the offset online (one more unknown in each local-BA solve, Gaussian
     # prior of disparity_offset_prior_px around the running estimate); the information-weighted
     # mean of the solves, clamped to +-disparity_offset_max_px, replaces disparity_offset_px once
-    # disparity_offset_min_solves solves contributed.
+    # disparity_offset_min_solves solves contributed and it differs by disparity_offset_min_px or
+    # more (the numpy lba_solver only; otherwise disparity_offset_px is applied unchanged).
     estimate_disparity_offset: bool = False
     disparity_offset_prior_px: float = 0.5
     disparity_offset_max_px: float = 2.0
     disparity_offset_min_solves: int = 10
+    disparity_offset_min_px: float = 0.05
 
     def _cross_checks(self, source: str) -> None:
         if not self.min_depth_m < self.max_depth_m:
@@ -575,6 +577,7 @@ RULES: dict[str, Range] = {
     "frontend.disparity_offset_prior_px": POSITIVE,
     "frontend.disparity_offset_max_px": Range(0, 10),
     "frontend.disparity_offset_min_solves": AT_LEAST_1,
+    "frontend.disparity_offset_min_px": NON_NEGATIVE,
     "loop.radius_m": POSITIVE,
     "loop.frame_distance": AT_LEAST_1,
     "loop.discount_length": NON_NEGATIVE,

@@ -21,7 +21,10 @@ observation (its right-image residual is ``proj_r - offset - u_r``) under a Gaus
 (``offset_prior_px``) around ``offset_px``; it is observable because a landmark's disparities
 across keyframes at different ranges must follow f·B/Z_k with Z_k tied by the shared motion.
 Each solve records in ``LocalBAStats.offsets`` the offset the data alone say (the prior taken
-back out) and that estimate's information (1/px^2). The ``"gtsam"`` solver applies
+back out) and that estimate's information (1/px^2). With ``offset_joint`` False the poses are
+solved with the offset held at ``offset_px`` (the same system as without the estimate) and the
+estimate is one Gauss-Newton step of the offset alone, the cameras marginalised, at the end;
+the caller holds it until its running estimate is applied. The ``"gtsam"`` solver applies
 ``offset_px`` but does not estimate it (``GenericStereoFactor3D`` has no offset parameter).
 
 The adjuster does no I/O and never raises for bad data: a failed or non-finite solve leaves the
@@ -98,6 +101,7 @@ class LocalBundleAdjuster:
         self.offset_px = float(offset_px)  # disparity offset applied (and the prior's mean)
         self.estimate_offset = bool(estimate_offset) and solver == "numpy"
         self.offset_prior_px = float(offset_prior_px)
+        self.offset_joint = True  # False: hold the offset in the pose solve, only estimate it
         self.stats = LocalBAStats()
 
     def add_keyframe(self, key: int, pose: np.ndarray, ids: np.ndarray, uv: np.ndarray, disp: np.ndarray) -> np.ndarray:
@@ -235,6 +239,7 @@ class LocalBundleAdjuster:
             return pc, zc, pred - z, pc[:, 2] > 1e-3
 
         prior_info = 1.0 / self.offset_prior_px**2
+        held: tuple[float, float] | None = None
         S_full = None
         for it in range(self.iterations):
             pc, zc, r, front = project(Rcw, tcw, X, off)
@@ -300,11 +305,19 @@ class LocalBundleAdjuster:
                 s_dd = wr.sum() - np.einsum("li,li->", Hdl, FdHll) + prior_info
                 g_d = (wr * r[:, 2]).sum() - prior_info * (off - off0) - np.einsum("li,li->", FdHll, bl)
                 n = 6 * (W - 1)
-                S2 = np.empty((n + 1, n + 1))
-                S2[:n, :n], S2[:n, n], S2[n, :n], S2[n, n] = S, s_dc[1:].reshape(-1), s_dc[1:].reshape(-1), s_dd
-                S, g = S2, np.r_[g, g_d]
+                if self.offset_joint:
+                    S2 = np.empty((n + 1, n + 1))
+                    S2[:n, :n], S2[:n, n], S2[n, :n], S2[n, n] = S, s_dc[1:].reshape(-1), s_dc[1:].reshape(-1), s_dd
+                    S, g = S2, np.r_[g, g_d]
             try:
-                sol = np.linalg.solve(S, g)
+                if est and not self.offset_joint:  # poses with the offset held; the offset's own step
+                    x = np.linalg.solve(S, np.c_[g, s_dc[1:].reshape(-1)])
+                    red = s_dd - prior_info - float(s_dc[1:].reshape(-1) @ x[:, 1])
+                    step = (g_d - float(s_dc[1:].reshape(-1) @ x[:, 0])) / red if red > 1e-6 else np.nan
+                    held = (off + step, red)
+                    sol = np.r_[x[:, 0], 0.0]
+                else:
+                    sol = np.linalg.solve(S, g)
             except np.linalg.LinAlgError:
                 self.stats.failures.append((kfs[-1].key, "singular local BA system"))
                 return None
@@ -325,7 +338,10 @@ class LocalBundleAdjuster:
                 return None
             if np.abs(dx).max() < 1e-7 and abs(dd) < 1e-6:
                 break
-        if est and S_full is not None:
+        if est and not self.offset_joint:
+            if held is not None and np.all(np.isfinite(held)):
+                self.stats.offsets.append(held)
+        elif est and S_full is not None:
             # The offset's posterior information (the cameras marginalised), then the prior taken
             # back out: what this window's data alone say, for the caller's running estimate.
             try:

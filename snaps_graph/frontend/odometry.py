@@ -33,7 +33,10 @@ the stereo BA, the local BA) is corrected as true = measured - offset, with the 
 local BA, the running estimate: each local-BA solve estimates the offset jointly (``local_ba.py``)
 and reports what its data alone say; their information-weighted mean, clamped to
 ±``disparity_offset_max_px``, replaces the configured offset once
-``disparity_offset_min_solves`` solves contributed. ``VOResult.disparity_offset_px`` is the
+``disparity_offset_min_solves`` solves contributed and it differs from it by at least
+``disparity_offset_min_px``. Until then the local BA holds the offset in its pose solve, so a
+rig without an offset runs exactly as with the estimate off; once applied, the offset is solved
+jointly with the window's poses. ``VOResult.disparity_offset_px`` is the
 offset each frame was measured with.
 
 Robustness. A frame is flagged (``ok=False`` with a ``reason``) when its left image is flat or
@@ -239,6 +242,7 @@ class StereoOdometry:
                 estimate_offset=self.cfg.estimate_disparity_offset,
                 offset_prior_px=self.cfg.disparity_offset_prior_px,
             )
+            self._lba.offset_joint = False  # held until the running estimate is applied
 
     @property
     def disparity_offset_px(self) -> float:
@@ -256,8 +260,11 @@ class StereoOdometry:
                 acc[2] += 1
         if acc[2] >= self.cfg.disparity_offset_min_solves and acc[1] > 0:
             lim = self.cfg.disparity_offset_max_px
-            self._offset = float(np.clip(acc[0] / acc[1], -lim, lim))
-            self._lba.offset_px = self._offset
+            est = float(np.clip(acc[0] / acc[1], -lim, lim))
+            if self._lba.offset_joint or abs(est - self.cfg.disparity_offset_px) >= self.cfg.disparity_offset_min_px:
+                self._offset = est
+                self._lba.offset_px = est
+                self._lba.offset_joint = True
 
     def _sparse_depth(self, left: np.ndarray, right: np.ndarray, uv: np.ndarray, guess: np.ndarray | None = None):
         """(depth from the corrected disparity, measured disparity) at ``uv``."""
