@@ -56,7 +56,7 @@ MODES = {
     "sift_sparse": dict(mode="sift", disparity="sparse"),  # what mode = "sift" runs by default
     "sift_fo-1": dict(mode="sift", disparity="sparse", sift_first_octave=-1),
     "orb": dict(mode="orb"),
-    "offset": dict(estimate_disparity_offset=True),  # the default + the online disparity offset estimate
+    "no_offset": dict(estimate_disparity_offset=False),  # the default without the online disparity offset estimate
 }
 
 

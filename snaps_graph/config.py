@@ -145,7 +145,7 @@ class FrontendConfig(_Section):
     # mean of the solves, clamped to +-disparity_offset_max_px, replaces disparity_offset_px once
     # disparity_offset_min_solves solves contributed and it differs by disparity_offset_min_px or
     # more (the numpy lba_solver only; otherwise disparity_offset_px is applied unchanged).
-    estimate_disparity_offset: bool = False
+    estimate_disparity_offset: bool = True
     disparity_offset_prior_px: float = 0.5
     disparity_offset_max_px: float = 2.0
     disparity_offset_min_solves: int = 10
