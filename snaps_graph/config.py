@@ -274,6 +274,14 @@ class GraphConfig(_Section):
     gravity_prior: bool = False
     gravity_sigma_deg: float = 2.0
     gravity_rounds: int = 3
+    # Odometry noise model: "inliers" (odom_sigma_* scaled by the inlier count, above) or "ba": the
+    # front end's stereo-BA covariance of the step (VOResult.cov) times odom_cov_scale^2, plus
+    # odom_cov_floor_* squared on the diagonal so it is never over-confident; steps without a
+    # covariance keep "inliers".
+    odom_noise: Literal["inliers", "ba"] = "inliers"
+    odom_cov_scale: float = 1.0
+    odom_cov_floor_rot_rad: float = 1e-4
+    odom_cov_floor_trans_m: float = 1e-3
 
     def _cross_checks(self, source: str) -> None:
         if not self.odom_sigma_scale_min <= self.odom_sigma_scale_max:
@@ -619,6 +627,9 @@ RULES: dict[str, Range] = {
     "graph.gnc_inlier_probability": PROBABILITY,
     "graph.gravity_sigma_deg": Range(0, 90, lo_open=True),
     "graph.gravity_rounds": AT_LEAST_1,
+    "graph.odom_cov_scale": POSITIVE,
+    "graph.odom_cov_floor_rot_rad": POSITIVE,
+    "graph.odom_cov_floor_trans_m": POSITIVE,
     "map.keyframe_every": AT_LEAST_1,
     "map.max_range_m": POSITIVE,
     "map.topdown_dpi": Range(10, 1200),

@@ -162,7 +162,7 @@ class SlamPipeline:
             heuristic = vo.pose
 
         tg = time.perf_counter()
-        self.graph.add_frame(k, heuristic, None if k == 0 else vo.T_rel, inliers=vo.inliers, ok=vo.ok)
+        self.graph.add_frame(k, heuristic, None if k == 0 else vo.T_rel, inliers=vo.inliers, ok=vo.ok, cov=vo.cov)
         if loop is not None:
             self._add_loop_factor(loop, vo)
         n_fail = len(self.graph.failures)

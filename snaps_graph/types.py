@@ -49,6 +49,9 @@ class VOResult:
     features: FrameFeatures | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)  # per stage
     disparity_offset_px: float = 0.0  # disparity offset (measured - true, px) this frame was measured with
+    # 6x6 covariance of T_rel from the stereo BA (rotation rad, translation m: GTSAM's Pose3
+    # tangent at T_rel); None when not estimated (flagged, PnP only, not measured from the previous frame)
+    cov: np.ndarray | None = None
 
 
 @dataclass

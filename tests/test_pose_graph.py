@@ -8,7 +8,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from snaps_graph.backend import PoseGraph, loop_sigma_scale, loop_sigmas, odometry_sigmas
+from snaps_graph.backend import PoseGraph, loop_sigma_scale, loop_sigmas, odometry_covariance, odometry_sigmas
 from snaps_graph.config import GraphConfig
 from snaps_graph.errors import SnapsGraphError
 
@@ -126,6 +126,36 @@ def test_odometry_sigmas_follow_inliers_and_flag():
     assert np.allclose(odometry_sigmas(cfg, 100000, True), 0.5 * base)  # clamp
     assert np.allclose(odometry_sigmas(cfg, 0, True), base)  # not reported
     assert np.allclose(odometry_sigmas(cfg, 200, False), 100 * base)  # flagged
+
+
+def test_odometry_covariance_scaled_floored_and_checked():
+    C = np.diag([1e-8] * 3 + [1e-6] * 3)
+    assert odometry_covariance(GraphConfig(), C) is None  # odom_noise = "inliers"
+    cfg = GraphConfig(odom_noise="ba", odom_cov_scale=2.0, odom_cov_floor_rot_rad=1e-3, odom_cov_floor_trans_m=1e-2)
+    assert np.allclose(odometry_covariance(cfg, C), 4 * C + np.diag([1e-6] * 3 + [1e-4] * 3))
+    assert odometry_covariance(cfg, None) is None
+    assert odometry_covariance(cfg, np.full((6, 6), np.nan)) is None
+    assert odometry_covariance(cfg, np.eye(3)) is None
+    assert odometry_covariance(cfg, -np.eye(6)) is None
+
+
+def test_ba_noise_puts_the_correction_on_the_uncertain_step():
+    """odom_noise = "ba": the step whose covariance is loose (step 10, VO says 3 m) takes the
+    loop's correction; with the inlier sigmas every step shares it."""
+    n = 20
+    rel = np.array([pose(t=(0, 0, 3.0 if k == 10 else 1.0)) for k in range(n + 1)])
+    init = chain(rel)
+    tight, loose = np.diag([1e-8] * 3 + [1e-6] * 3), np.diag([1e-8] * 3 + [1.0] * 3)
+    steps = {}
+    for mode in ("ba", "inliers"):
+        cfg = GraphConfig(robust_kernel="none", loop_sigma_trans_m=0.001, loop_sigma_rot_rad=0.001, odom_noise=mode)
+        g = PoseGraph(cfg, mode="batch")
+        for k in range(n + 1):
+            g.add_frame(k, init[k], None if k == 0 else rel[k], inliers=200, cov=loose if k == 10 else tight)
+        g.add_loop(0, n, 1.0, pose(t=(0, 0, float(n))))
+        steps[mode] = np.diff(g.optimize_batch()[:, 2, 3])
+    assert abs(steps["ba"][9] - 1.0) < 0.01 and np.allclose(np.delete(steps["ba"], 9), 1.0, atol=0.001)
+    assert steps["inliers"][9] > 2.8
 
 
 def test_flagged_step_absorbs_the_correction():

@@ -194,6 +194,22 @@ def odometry_sigmas(cfg: GraphConfig, inliers: int, ok: bool) -> np.ndarray:
     return scale * np.array([cfg.odom_sigma_rot_rad] * 3 + [cfg.odom_sigma_trans_m] * 3)
 
 
+def odometry_covariance(cfg: GraphConfig, cov: np.ndarray | None) -> np.ndarray | None:
+    """The step covariance with ``odom_noise = "ba"``: ``odom_cov_scale^2 * cov`` plus the floor
+    sigmas squared on the diagonal; None (use :func:`odometry_sigmas`) when the mode is
+    "inliers" or ``cov`` is missing, not a finite symmetric 6x6 or not positive semi-definite."""
+    if cfg.odom_noise != "ba" or cov is None:
+        return None
+    C = np.asarray(cov, dtype=float)
+    if C.shape != (6, 6) or not np.all(np.isfinite(C)):
+        return None
+    C = 0.5 * (C + C.T)
+    if np.linalg.eigvalsh(C).min() < -1e-12 * max(float(np.abs(C).max()), 1e-300):
+        return None
+    floor = np.array([cfg.odom_cov_floor_rot_rad] * 3 + [cfg.odom_cov_floor_trans_m] * 3)
+    return cfg.odom_cov_scale**2 * C + np.diag(floor**2)
+
+
 def loop_sigma_scale(cfg: GraphConfig, q: float) -> float:
     """UIQI-to-noise mapping: ``clip((1 - q0) / (Q - q0), 1, loop_sigma_scale_max)``, q0 =
     ``loop_q_floor``. 1 at Q = 1, growing as Q falls toward q0 (information ~ (Q - q0)^2)."""
@@ -265,12 +281,14 @@ class PoseGraph:
         T_rel: np.ndarray | None = None,
         inliers: int = 0,
         ok: bool = True,
+        cov: np.ndarray | None = None,
     ) -> None:
         """Add frame ``k`` (stream position; must be the next one) with its initial estimate.
 
         ``initial_pose`` is the heuristic (SNAPS-corrected) T_world_cam. Frame 0 gets a prior at
         it; frame k > 0 gets BetweenFactorPose3(k-1, k, T_rel) with :func:`odometry_sigmas`.
         ``T_rel`` None for k > 0 falls back on the relative pose of the two initial estimates.
+        ``cov`` (6x6, Pose3 tangent at ``T_rel``) is the step's noise with ``odom_noise = "ba"``.
         """
         if k != len(self._initial):
             raise SnapsGraphError(f"graph: frame key {k} out of order (expected {len(self._initial)})")
@@ -284,8 +302,11 @@ class PoseGraph:
             if T_rel is None:
                 T_rel = np.linalg.solve(self._initial[k - 1], T)
             T_rel = _check_pose(T_rel, f"graph frame {k} relative pose")
-            sig = odometry_sigmas(self.cfg, int(inliers), bool(ok))
-            noise = gtsam.noiseModel.Diagonal.Sigmas(sig)
+            C = odometry_covariance(self.cfg, cov) if ok else None
+            if C is not None:
+                noise = gtsam.noiseModel.Gaussian.Covariance(C)
+            else:
+                noise = gtsam.noiseModel.Diagonal.Sigmas(odometry_sigmas(self.cfg, int(inliers), bool(ok)))
             factor = gtsam.BetweenFactorPose3(k - 1, k, _to_pose3(T_rel), noise)
             self.stats.n_odometry_factors += 1
             self.stats.n_flagged_odometry += int(not ok)

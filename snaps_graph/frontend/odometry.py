@@ -223,6 +223,7 @@ class StereoOdometry:
         self._far_points = self.cfg.mode == "klt" and self.cfg.motion == "stereo_ba" and self.cfg.sba_far_points
         # (frame index, left image, ids, uv) that tracks are re-tracked from (klt_anchor_gap)
         self._anchor: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._sba_cov: np.ndarray | None = None  # the last stereo BA's pose covariance (VOResult.cov)
         self._lba = None
         self._lba_last = -(10**9)  # frame index of the last local BA keyframe
         self._offset = float(self.cfg.disparity_offset_px)  # disparity offset applied (measured - true, px)
@@ -310,6 +311,7 @@ class StereoOdometry:
         prev_pose = self._pose
         gap_last = max(1, frame.index - self._last_index) if not first else 1
         ref = self._ref  # the frame this one is measured from
+        self._sba_cov = None
         result = None
         try:
             kf_or_none, T_ref_cur, inliers, matches = self._estimate(frame, first, timings)
@@ -329,10 +331,15 @@ class StereoOdometry:
                 self._lba_last = frame.index
                 t_ba = time.perf_counter()
                 n_off = len(self._lba.stats.offsets)
+                chained = pose
                 pose = self._lba.add_keyframe(frame.index, pose, kf.ids[kf.near], kf.uv[kf.near], kf.disp[kf.near])
                 if self.cfg.estimate_disparity_offset:
                     self._update_offset(n_off)
                 timings["lba"] = (time.perf_counter() - t_ba) * 1000.0
+                if self._sba_cov is not None:  # the step now carries the local BA's correction: its size joins the noise
+                    c = inv(chained) @ pose
+                    w = 0.5 * np.array([c[2, 1] - c[1, 2], c[0, 2] - c[2, 0], c[1, 0] - c[0, 1]])  # small angles
+                    self._sba_cov = self._sba_cov + np.diag(np.r_[w, c[:3, 3]] ** 2)
             if not first:
                 T_rel = inv(prev_pose) @ pose
             kf.pose = pose
@@ -346,6 +353,8 @@ class StereoOdometry:
                 self._velocity_gap = max(1, frame.index - ref.index)
                 self._have_velocity = True
             self._last_ok = True
+            # The stereo BA measured T_ref_cur: it is T_rel when ref is the previous frame.
+            from_prev = not first and ref is not None and ref.index == self._last_index
             result = VOResult(
                 index=frame.index,
                 T_rel=T_rel,
@@ -354,6 +363,7 @@ class StereoOdometry:
                 inliers=inliers,
                 matches=matches,
                 features=kf.features,
+                cov=self._sba_cov if from_prev else None,
             )
         result.disparity_offset_px = self._offset
         self._last_index = frame.index
@@ -510,7 +520,9 @@ class StereoOdometry:
         timings["sba"] = (time.perf_counter() - t0) * 1000.0
         if not r.ok:
             timings["sba_fallback"] = 1.0
+            self._sba_cov = None
             return T_cur_ref, inl
+        self._sba_cov = r.cov
         return r.T_cur_ref, inl[r.inliers]
 
     def _scaled_velocity(self, gap: int) -> np.ndarray:
@@ -603,7 +615,10 @@ class StereoOdometry:
             keep[inl] = True  # drop PnP outliers: mostly bad tracks
         if cfg.klt_retry == "orb" and n_inl < cfg.min_inliers and ref.right is not None:
             klt = (ref.pts3d[idx[near_pos]], ref.uv[idx[near_pos]], ref.disp[idx[near_pos]], uv_cur[idx[near_pos]], d[near_pos])
+            cov_klt = self._sba_cov
             retry = self._orb_retry(ref, frame, klt, timings)
+            if not (retry is not None and len(retry[1]) > n_inl):
+                self._sba_cov = cov_klt
             if retry is not None and len(retry[1]) > n_inl:
                 T_cur_ref, n_inl = retry[0], len(retry[1])
                 pnp = retry
