@@ -18,6 +18,9 @@ Decisions, and why:
   odom_sigma_scale_min, odom_sigma_scale_max)``. ``inliers <= 0`` means "not reported" and gives
   the reference sigmas. A flagged step (``ok=False``: the front end fell back on a
   constant-velocity guess) is multiplied by ``flagged_sigma_scale`` so loops can bend it freely.
+  With ``odom_noise = "ba"`` a step that carries the front end's stereo-BA covariance
+  (``VOResult.cov``) uses it instead, scaled by ``odom_cov_scale`` and floored by
+  ``odom_cov_floor_*`` (:func:`odometry_covariance`).
 * **Loop noise from the UIQI Q** (paper eq. 4; SPEC: a higher Q gives a tighter model). Q is a
   similarity, not a calibrated probability; what it tells us is how far the match clears the
   acceptance threshold. We take the margin above a floor ``q0 = loop_q_floor`` and let the
