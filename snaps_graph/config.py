@@ -150,6 +150,26 @@ class FrontendConfig(_Section):
     disparity_offset_max_px: float = 2.0
     disparity_offset_min_solves: int = 10
     disparity_offset_min_px: float = 0.05
+    # Loop verification (issue 12): "separate" = multi-scale keypoints with stereo 3D points kept
+    # for every loop_reference_every-th frame and computed for the current frame only when a
+    # candidate is verified (frontend/loop_features.py); "tracker" = the front end's own per-frame
+    # features (KLT: single-scale ORB at the tracked corners; before issue 12's verification work).
+    loop_verify_features: Literal["separate", "tracker"] = "separate"
+    loop_detector: Literal["orb", "sift"] = "orb"  # "orb": ORB pyramid; "sift": SIFT from octave 0
+    loop_orb_features: int = 1000  # keypoints per reference frame (before the stereo check)
+    loop_query_features: int = 1500  # keypoints of the current frame when verifying
+    loop_orb_levels: int = 8
+    loop_orb_scale: float = 1.2  # pyramid ratio between levels
+    loop_orb_fast_threshold: int = 20
+    loop_orb_upright: bool = True  # descriptors at angle 0 (cameras do not roll)
+    loop_reference_every: int = 5  # reference features every this many frames (nearest one is used)
+    loop_ratio_test: float = 0.8  # Lowe's ratio for loop matches
+    # After PnP, an inlier's current-frame stereo disparity must agree with its predicted one
+    # within this many pixels (0 disables), and at least loop_depth_min_ratio of the inliers with
+    # a current disparity must agree: a look-alike place at another distance fails.
+    loop_depth_check_px: float = 1.0
+    loop_depth_min_ratio: float = 0.5
+    loop_min_sigma_px: float = 0.5  # floor of the reprojection sigma in the loop covariance
 
     def _cross_checks(self, source: str) -> None:
         if not self.min_depth_m < self.max_depth_m:
@@ -282,6 +302,14 @@ class GraphConfig(_Section):
     odom_cov_scale: float = 1.0
     odom_cov_floor_rot_rad: float = 1e-4
     odom_cov_floor_trans_m: float = 1e-3
+    # Noise of a verified loop factor: "verification" = the PnP covariance of the loop's own
+    # inliers (frontend/loop_features.py) times loop_cov_scale, plus the floors below, in
+    # quadrature; "q" = loop_sigma_* scaled by Q (before issue 12). Unverified loops and loops
+    # without a covariance (loop_verify_features = "tracker") always use "q".
+    loop_sigma_source: Literal["verification", "q"] = "verification"
+    loop_cov_scale: float = 4.0  # covariance multiplier (sigma x2): unmodelled errors of the points
+    loop_sigma_floor_rot_rad: float = 0.002
+    loop_sigma_floor_trans_m: float = 0.02
 
     def _cross_checks(self, source: str) -> None:
         if not self.odom_sigma_scale_min <= self.odom_sigma_scale_max:
@@ -586,6 +614,16 @@ RULES: dict[str, Range] = {
     "frontend.disparity_offset_max_px": Range(0, 10),
     "frontend.disparity_offset_min_solves": AT_LEAST_1,
     "frontend.disparity_offset_min_px": NON_NEGATIVE,
+    "frontend.loop_orb_features": AT_LEAST_1,
+    "frontend.loop_query_features": AT_LEAST_1,
+    "frontend.loop_orb_levels": Range(1, 16),
+    "frontend.loop_orb_scale": Range(1, 2, lo_open=True),
+    "frontend.loop_orb_fast_threshold": Range(1, 255),
+    "frontend.loop_reference_every": AT_LEAST_1,
+    "frontend.loop_ratio_test": FRACTION,
+    "frontend.loop_depth_check_px": NON_NEGATIVE,
+    "frontend.loop_depth_min_ratio": Range(0, 1),
+    "frontend.loop_min_sigma_px": POSITIVE,
     "loop.radius_m": POSITIVE,
     "loop.frame_distance": AT_LEAST_1,
     "loop.discount_length": NON_NEGATIVE,
@@ -630,6 +668,9 @@ RULES: dict[str, Range] = {
     "graph.odom_cov_scale": POSITIVE,
     "graph.odom_cov_floor_rot_rad": POSITIVE,
     "graph.odom_cov_floor_trans_m": POSITIVE,
+    "graph.loop_cov_scale": POSITIVE,
+    "graph.loop_sigma_floor_rot_rad": NON_NEGATIVE,
+    "graph.loop_sigma_floor_trans_m": NON_NEGATIVE,
     "map.keyframe_every": AT_LEAST_1,
     "map.max_range_m": POSITIVE,
     "map.topdown_dpi": Range(10, 1200),

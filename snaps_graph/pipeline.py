@@ -31,6 +31,7 @@ from .camera import StereoCamera
 from .config import Config
 from .errors import SnapsGraphError
 from .frontend.depth import check_stereo_pair, map_depth
+from .frontend.loop_features import LoopFeatureBank, verify_features
 from .frontend.odometry import StereoOdometry
 from .frontend.verify import verify_loop
 from .loop.snaps import SnapsLoopCloser
@@ -79,11 +80,14 @@ class SlamPipeline:
         refine: str | None = None,
         build_map: bool | None = None,
         frontend=None,
+        loop_features: LoopFeatureBank | None = None,
     ):
         """``cfg`` is copied, never changed; ``loops``/``refine``/``build_map`` override it in the
         copy (``self.cfg``, what ran). ``frontend``: any object with ``process(frame) -> VOResult``
         and ``close()`` (the paper: "it is possible to substitute the visual odometry part with
-        any desired model"); default: ``StereoOdometry`` configured by ``cfg.frontend``."""
+        any desired model"); default: ``StereoOdometry`` configured by ``cfg.frontend``.
+        ``loop_features``: the loop-verification feature store (default: a new
+        ``LoopFeatureBank`` when ``frontend.loop_verify_features = "separate"`` and SNAPS runs)."""
         self.cfg = (cfg or Config()).resolved(loops=loops, refine=refine, build_map=build_map)
         self.loops_mode = self.cfg.loops
         self.refine = self.cfg.graph.refine
@@ -93,6 +97,10 @@ class SlamPipeline:
         self.snaps = SnapsLoopCloser(self.cfg.loop) if self.loops_mode == "snaps" else None
         self.graph = PoseGraph(self.cfg.graph, mode="isam2" if self.refine == "both" else self.refine)
         self.map = FusedMap(camera, self.cfg.map) if self.cfg.map.enabled else None
+        if loop_features is None and self.snaps is not None and self.cfg.frontend.loop_verify_features == "separate":
+            loop_features = LoopFeatureBank(camera, self.cfg.frontend)
+        self.loop_features = loop_features
+        self._loop_cov: dict[int, np.ndarray] = {}  # reference index -> covariance of this frame's verified loop
 
         self._features: list[FrameFeatures | None] = []
         self._frame_ids: list[int] = []
@@ -154,8 +162,11 @@ class SlamPipeline:
         loop: LoopEvent | None = None
         candidates = 0
         t_loop_ms = t_verify_ms = 0.0
+        if self.loop_features is not None:
+            self.loop_features.add(k, frame)
         if self.snaps is not None:
-            step = self.snaps.step(frame.index, vo.T_rel, frame.left, verify=lambda ref: self._verify(ref, vo))
+            self._loop_cov.clear()
+            step = self.snaps.step(frame.index, vo.T_rel, frame.left, verify=lambda ref: self._verify(ref, vo, frame, k))
             heuristic = step.pose
             loop, candidates, t_loop_ms, t_verify_ms = step.loop, step.candidates, step.t_ms, step.t_verify_ms
         else:
@@ -205,10 +216,33 @@ class SlamPipeline:
             self.observer.on_frame(self, frame, output)
         return output
 
-    def _verify(self, ref_index: int, vo: VOResult):
+    def _verify(self, ref_index: int, vo: VOResult, frame: StereoFrame | None = None, k: int | None = None):
         """Geometric verification of a SNAPS loop: PnP from the reference frame's 3D points to
-        this frame's keypoints. Returns (T_ref_cur, inliers) or None; never raises."""
+        this frame's keypoints. Returns (T_ref_cur, inliers) or None; never raises.
+
+        With a loop-feature bank, the stored reference nearest to the candidate is verified and
+        the result carried to the candidate by the VO poses between the two (at most a few
+        frames); the covariance is kept for the loop factor."""
         k_ref = self._k_of_frame.get(ref_index)
+        if self.loop_features is not None and frame is not None and k is not None:
+            if k_ref is None:
+                return None
+            k_feat = self.loop_features.nearest(k_ref)
+            if k_feat is None:
+                return None
+            try:
+                cur = self.loop_features.query(k, frame)
+                m = verify_features(self.loop_features.reference(k_feat), cur, frame, self.camera, self.cfg.frontend)
+            except Exception as exc:  # best effort: an unverifiable candidate is not a loop
+                self.graph.failures.append((k, f"loop verification raised {type(exc).__name__}: {exc}"))
+                return None
+            if m is None:
+                return None
+            T = m.T_ref_cur
+            if k_feat != k_ref:
+                T = np.linalg.solve(self._vo_poses[k_ref], self._vo_poses[k_feat]) @ T
+            self._loop_cov[int(ref_index)] = m.cov
+            return T, m.inliers
         ref_feat = None if k_ref is None else self._features[k_ref]
         if ref_feat is None or vo.features is None:
             return None
@@ -223,7 +257,8 @@ class SlamPipeline:
         (done once, inside the SNAPS step), else the paper's same-place assumption."""
         k_ref = self._k_of_frame.get(loop.reference, -1)
         k_cur = self._k_of_frame[loop.frame]
-        self.graph.add_loop(k_ref, k_cur, loop.q, loop.T_ref_cur if loop.verified else None)
+        cov = self._loop_cov.get(int(loop.reference)) if loop.verified else None
+        self.graph.add_loop(k_ref, k_cur, loop.q, loop.T_ref_cur if loop.verified else None, covariance=cov)
         self.loops.append(loop)
 
     def _add_map_keyframe(self, k: int, frame: StereoFrame) -> None:

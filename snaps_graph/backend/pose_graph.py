@@ -167,6 +167,7 @@ class _Loop:
     measurement: gtsam.Pose3
     sigmas: np.ndarray
     active: bool = True
+    cov: np.ndarray | None = None  # full 6x6 covariance (rot, trans) when verification gave one
 
 
 def _check_pose(T: np.ndarray | None, what: str) -> np.ndarray:
@@ -230,6 +231,22 @@ def loop_sigmas(cfg: GraphConfig, q: float, verified: bool) -> np.ndarray:
     else:
         base = [cfg.unverified_sigma_rot_rad] * 3 + [cfg.unverified_sigma_trans_m] * 3
     return loop_sigma_scale(cfg, q) * np.array(base)
+
+
+def loop_covariance(cfg: GraphConfig, covariance: np.ndarray) -> np.ndarray | None:
+    """A verified loop's factor covariance: ``loop_cov_scale`` x the verification's 6x6
+    covariance (rot rad, trans m) plus the ``loop_sigma_floor_*`` squared on the diagonal; None
+    when the input is not a finite symmetric positive-definite 6x6."""
+    C = np.asarray(covariance, dtype=float)
+    if C.shape != (6, 6) or not np.all(np.isfinite(C)):
+        return None
+    floor = np.array([cfg.loop_sigma_floor_rot_rad] * 3 + [cfg.loop_sigma_floor_trans_m] * 3)
+    C = cfg.loop_cov_scale * 0.5 * (C + C.T) + np.diag(floor**2)
+    try:
+        np.linalg.cholesky(C)
+    except np.linalg.LinAlgError:
+        return None
+    return C
 
 
 class PoseGraph:
@@ -323,12 +340,16 @@ class PoseGraph:
             self._pending_values.insert(k, pose)
         self._estimate_cache = None
 
-    def add_loop(self, ref: int, cur: int, q: float, T_ref_cur: np.ndarray | None) -> LoopFactorInfo:
+    def add_loop(
+        self, ref: int, cur: int, q: float, T_ref_cur: np.ndarray | None, covariance: np.ndarray | None = None
+    ) -> LoopFactorInfo:
         """Add a loop factor BetweenFactorPose3(ref, cur) weighted by the UIQI ``q``.
 
         Verified (``T_ref_cur`` given): the measured relative pose. Unverified: the same-place
         assumption (zero translation, heuristic relative rotation). Never raises: a loop that
-        cannot be added comes back with ``added=False`` and a ``reason``.
+        cannot be added comes back with ``added=False`` and a ``reason``. ``covariance`` (6x6,
+        rot then trans, of T_ref_cur) with ``loop_sigma_source = "verification"``: the factor's
+        noise is :func:`loop_covariance` of it instead of the Q-scaled sigmas.
         """
         verified = T_ref_cur is not None
         info = LoopFactorInfo(ref=int(ref), cur=int(cur), q=float(q), added=False, verified=verified)
@@ -357,7 +378,12 @@ class PoseGraph:
             T_meas[:3, :3] = T_ref[:3, :3].T @ T_cur[:3, :3]
             measurement = _to_pose3(T_meas)
         sig = loop_sigmas(self.cfg, float(q), verified)
-        loop = _Loop(int(ref), int(cur), measurement, sig)
+        cov = None
+        if verified and covariance is not None and self.cfg.loop_sigma_source == "verification":
+            cov = loop_covariance(self.cfg, covariance)
+            if cov is not None:
+                sig = np.sqrt(np.diag(cov))
+        loop = _Loop(int(ref), int(cur), measurement, sig, cov=cov)
         self._loops.append(loop)
         if self._isam is not None:
             self._pending_factors.add(self._loop_factor(loop, robust=True))
@@ -369,7 +395,10 @@ class PoseGraph:
         return info
 
     def _loop_factor(self, loop: _Loop, robust: bool) -> gtsam.BetweenFactorPose3:
-        noise = gtsam.noiseModel.Diagonal.Sigmas(loop.sigmas)
+        if loop.cov is not None:
+            noise = gtsam.noiseModel.Gaussian.Covariance(loop.cov)
+        else:
+            noise = gtsam.noiseModel.Diagonal.Sigmas(loop.sigmas)
         if robust and self.cfg.robust_kernel != "none":
             if self.cfg.robust_kernel == "cauchy":
                 m = gtsam.noiseModel.mEstimator.Cauchy.Create(self.cfg.robust_param)

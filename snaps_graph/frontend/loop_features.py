@@ -1,0 +1,238 @@
+"""Loop-verification features independent of the tracker (issue 12).
+
+The tracker's own per-frame features (KLT corners with single-scale ORB descriptors) are not
+repeatable when a place is revisited metres apart (README, issue 12). ``LoopFeatureBank`` keeps,
+for every ``loop_reference_every``-th frame, multi-scale keypoints with descriptors and stereo
+3D points (``FrameFeatures``: no images), and computes the current frame's keypoints only when
+a loop candidate is to be verified (:meth:`LoopFeatureBank.query`, once per frame).
+
+:func:`verify_features` matches a reference's descriptors to the current frame's, solves PnP
+RANSAC (the odometry's estimator), keeps the pose only if enough inliers *also* agree in depth
+with the current frame's own stereo (a place that merely looks alike, e.g. a repeated facade
+module at another distance, fails that), and returns the pose with its covariance from the
+inliers' reprojection Jacobian, so the graph weighs a loop by what verification measured.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ..camera import StereoCamera
+from ..config import FrontendConfig
+from ..geometry import inv, rotation_angle_deg
+from ..types import FrameFeatures, StereoFrame
+from .depth import sparse_disparity
+from .features import match_descriptors
+from .odometry import pnp_ransac
+
+
+@dataclass
+class LoopMatch:
+    """A verified loop measurement."""
+
+    T_ref_cur: np.ndarray  # 4x4: pose of the current camera in the reference camera frame
+    inliers: int  # PnP inliers that also passed the depth check
+    cov: np.ndarray  # 6x6 covariance of T_ref_cur, tangent (rot rad, trans m), right perturbation (GTSAM's Pose3)
+    rms_px: float  # reprojection rms of the inliers, pixels
+
+
+def detect_loop_keypoints(img: np.ndarray, cfg: FrontendConfig, n: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Multi-scale keypoints for loops: (uv float32 (N,2), descriptors, size float32 (N,)).
+
+    ``loop_detector`` "orb": ORB's own pyramid (``loop_orb_levels`` levels, ratio
+    ``loop_orb_scale``), descriptors computed upright (angle 0: the cameras do not roll, and
+    skipping the orientation makes descriptors of a place seen again more alike); "sift": SIFT
+    from the image's own resolution. Strongest first, ties by position (deterministic).
+    """
+    n = cfg.loop_orb_features if n is None else n
+    if cfg.loop_detector == "sift":
+        sift = cv2.SIFT.create(n)
+        half = cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2), interpolation=cv2.INTER_AREA)
+        kps, desc = sift.detectAndCompute(half, None)
+        if not kps or desc is None:
+            return np.zeros((0, 2), np.float32), np.zeros((0, 128), np.float32), np.zeros(0, np.float32)
+        uv = np.array([k.pt for k in kps], np.float32) * 2.0 + 0.5
+        size = np.array([k.size for k in kps], np.float32) * 2.0
+        resp = np.array([k.response for k in kps], np.float32)
+        order = np.lexsort((uv[:, 1], uv[:, 0], -resp))
+        return uv[order], np.ascontiguousarray(desc[order], np.float32), size[order]
+    orb = cv2.ORB.create(nfeatures=n, scaleFactor=cfg.loop_orb_scale, nlevels=cfg.loop_orb_levels, fastThreshold=cfg.loop_orb_fast_threshold)
+    kps = orb.detect(img, None)
+    if not kps:
+        return np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8), np.zeros(0, np.float32)
+    if cfg.loop_orb_upright:
+        kps = [cv2.KeyPoint(k.pt[0], k.pt[1], k.size, 0.0, k.response, k.octave, i) for i, k in enumerate(kps)]
+    else:
+        for i, k in enumerate(kps):
+            k.class_id = i
+    kps, desc = orb.compute(img, kps)
+    if desc is None or not kps:
+        return np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8), np.zeros(0, np.float32)
+    uv = np.array([k.pt for k in kps], np.float32)
+    size = np.array([k.size for k in kps], np.float32)
+    resp = np.array([k.response for k in kps], np.float32)
+    order = np.lexsort((uv[:, 1], uv[:, 0], -resp))
+    return uv[order], np.ascontiguousarray(desc[order], np.uint8), size[order]
+
+
+def stereo_points(left: np.ndarray, right: np.ndarray, uv: np.ndarray, camera: StereoCamera, cfg: FrontendConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(indices of ``uv`` with valid depth, their 3D points float32 (M,3)) by sparse stereo (eq. 1-2)."""
+    if len(uv) == 0:
+        return np.zeros(0, np.int64), np.zeros((0, 3), np.float32)
+    disp = sparse_disparity(left, right, uv, cfg)
+    fb = camera.fx * camera.baseline_m
+    with np.errstate(divide="ignore"):
+        z = np.where(disp > 0, fb / np.maximum(disp, 1e-9), 0.0)
+    ok = np.flatnonzero((z >= cfg.min_depth_m) & (z <= cfg.max_depth_m))
+    pts = camera.backproject(uv[ok, 0], uv[ok, 1], z[ok]).astype(np.float32)
+    return ok.astype(np.int64), pts
+
+
+def pose_covariance(T_cur_ref: np.ndarray, pts_ref: np.ndarray, uv: np.ndarray, camera: StereoCamera, min_sigma_px: float) -> tuple[np.ndarray, float]:
+    """Covariance (6x6, rot then trans) of T_ref_cur from the PnP inliers, and their rms in pixels.
+
+    Gauss-Newton: cov = s² (JᵀJ)⁻¹ with J the reprojection Jacobian for T_ref_cur ← T_ref_cur·Exp(ξ)
+    (so X_cur ← X_cur + [X_cur]ₓ ω − v to first order) and s² the residual variance per
+    coordinate (2n − 6 degrees of freedom), at least ``min_sigma_px``².
+    """
+    R, t = T_cur_ref[:3, :3], T_cur_ref[:3, 3]
+    X = pts_ref.astype(np.float64) @ R.T + t
+    x, y, z = X[:, 0], X[:, 1], np.maximum(X[:, 2], 1e-6)
+    fx, fy = camera.fx, camera.fy
+    res_u = fx * x / z + camera.cx - uv[:, 0]
+    res_v = fy * y / z + camera.cy - uv[:, 1]
+    n = len(X)
+    dof = max(2 * n - 6, 1)
+    s2 = max(float((res_u @ res_u + res_v @ res_v) / dof), min_sigma_px**2)
+    # d(u,v)/dX
+    Pu = np.stack([fx / z, np.zeros(n), -fx * x / z**2], axis=1)
+    Pv = np.stack([np.zeros(n), fy / z, -fy * y / z**2], axis=1)
+    # dX/dω = [X]ₓ (X + [X]ₓ ω = X − ω × X), dX/dv = −I
+    def row(P: np.ndarray) -> np.ndarray:  # P·[X]ₓ, P·(−I)
+        xx, yy, zz = X[:, 0], X[:, 1], X[:, 2]
+        dw = np.stack([P[:, 1] * zz - P[:, 2] * yy, P[:, 2] * xx - P[:, 0] * zz, P[:, 0] * yy - P[:, 1] * xx], axis=1)
+        return np.concatenate([dw, -P], axis=1)
+
+    J = np.concatenate([row(Pu), row(Pv)], axis=0)
+    H = J.T @ J
+    try:
+        cov = s2 * np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        cov = np.diag([1.0] * 3 + [100.0] * 3)
+    cov = 0.5 * (cov + cov.T)
+    return cov, float(np.sqrt(s2))
+
+
+def verify_features(
+    ref: FrameFeatures,
+    cur: FrameFeatures,
+    cur_frame: StereoFrame | None,
+    camera: StereoCamera,
+    cfg: FrontendConfig,
+) -> LoopMatch | None:
+    """Verify a loop from the reference's 3D points to the current frame's keypoints.
+
+    Ratio-test matches, PnP RANSAC (``pnp_ransac``), then, with ``cur_frame`` and
+    ``loop_depth_check_px`` > 0, the inliers' stereo disparity in the current frame must agree
+    with their predicted one within that many pixels; at least ``min_inliers`` must pass both
+    and at least ``loop_depth_min_ratio`` of the inliers that have a current disparity. Plausibility
+    as :func:`verify.verify_loop`. None if anything fails.
+    """
+    if ref is None or cur is None or len(ref.desc) < cfg.min_inliers or len(cur.desc) < 2:
+        return None
+    if ref.desc.dtype != cur.desc.dtype or ref.desc.shape[1] != cur.desc.shape[1]:
+        return None
+    ia, ib = match_descriptors(ref.desc, cur.desc, cfg.loop_ratio_test)
+    if len(ia) < cfg.min_inliers:
+        return None
+    res = pnp_ransac(ref.pts3d[ia], cur.uv[ib], camera, cfg)
+    if res is None:
+        return None
+    T_cur_ref, inl = res
+    if len(inl) < cfg.min_inliers or not np.all(np.isfinite(T_cur_ref)):
+        return None
+    pts, uv = ref.pts3d[ia[inl]], cur.uv[ib[inl]]
+    if cur_frame is not None and cfg.loop_depth_check_px > 0:
+        Xc = pts.astype(np.float64) @ T_cur_ref[:3, :3].T + T_cur_ref[:3, 3]
+        d_pred = camera.fx * camera.baseline_m / np.maximum(Xc[:, 2], 1e-6)
+        d_meas = sparse_disparity(cur_frame.left, cur_frame.right, uv, cfg)
+        has = d_meas > 0
+        agree = has & (np.abs(d_meas - d_pred) <= cfg.loop_depth_check_px)
+        if int(agree.sum()) < cfg.min_inliers or agree.sum() < cfg.loop_depth_min_ratio * max(int(has.sum()), 1):
+            return None
+        pts, uv = pts[agree], uv[agree]
+        # Re-estimate on the points that passed both tests (LM from the RANSAC pose).
+        rvec = cv2.Rodrigues(T_cur_ref[:3, :3])[0]
+        rvec, tvec = cv2.solvePnPRefineLM(pts.astype(np.float64), uv.astype(np.float64), camera.K, None, rvec, T_cur_ref[:3, 3].reshape(3, 1).copy())
+        T = np.eye(4)
+        T[:3, :3] = cv2.Rodrigues(rvec)[0]
+        T[:3, 3] = tvec.reshape(3)
+        if np.all(np.isfinite(T)):
+            T_cur_ref = T
+    T_ref_cur = inv(T_cur_ref)
+    if np.linalg.norm(T_ref_cur[:3, 3]) > cfg.verify_max_translation_m:
+        return None
+    if rotation_angle_deg(T_ref_cur[:3, :3]) > cfg.verify_max_rotation_deg:
+        return None
+    cov, rms = pose_covariance(T_cur_ref, pts, uv, camera, cfg.loop_min_sigma_px)
+    if not np.all(np.isfinite(cov)):
+        return None
+    return LoopMatch(T_ref_cur, int(len(pts)), cov, rms)
+
+
+class LoopFeatureBank:
+    """Loop features of reference frames (every ``loop_reference_every``-th stream position) and
+    of the current frame on demand. Memory per reference: N x (8 + 12 + descriptor) bytes."""
+
+    def __init__(self, camera: StereoCamera, cfg: FrontendConfig):
+        self.camera = camera
+        self.cfg = cfg
+        self._ref: dict[int, FrameFeatures] = {}
+        self._query_k: int | None = None
+        self._query: FrameFeatures | None = None
+        self.t_reference_ms = 0.0  # total time spent on reference features
+
+    def __len__(self) -> int:
+        return len(self._ref)
+
+    def nbytes(self) -> int:
+        return sum(f.uv.nbytes + f.pts3d.nbytes + f.desc.nbytes for f in self._ref.values())
+
+    def wants(self, k: int) -> bool:
+        return k % self.cfg.loop_reference_every == 0
+
+    def add(self, k: int, frame: StereoFrame) -> None:
+        """Compute and keep reference features for stream position ``k`` if it is one."""
+        if not self.wants(k):
+            return
+        uv, desc, _ = detect_loop_keypoints(frame.left, self.cfg)
+        idx, pts = stereo_points(frame.left, frame.right, uv, self.camera, self.cfg)
+        if len(idx) >= self.cfg.min_stereo_points:
+            self._ref[k] = FrameFeatures(np.ascontiguousarray(uv[idx]), pts, np.ascontiguousarray(desc[idx]))
+
+    def put(self, k: int, features: FrameFeatures) -> None:
+        """Store precomputed reference features (replays)."""
+        self._ref[k] = features
+
+    def reference(self, k: int) -> FrameFeatures | None:
+        return self._ref.get(k)
+
+    def nearest(self, k: int) -> int | None:
+        """The stored reference nearest to stream position ``k`` (ties: the older), or None."""
+        e = self.cfg.loop_reference_every
+        base = k - k % e
+        for c in (base, base + e, base - e, base + 2 * e) if k - base <= e // 2 else (base + e, base, base + 2 * e, base - e):
+            if c in self._ref:
+                return c
+        return None
+
+    def query(self, k: int, frame: StereoFrame) -> FrameFeatures:
+        """The current frame's keypoints and descriptors (no depth), computed once per ``k``."""
+        if self._query_k != k or self._query is None:
+            uv, desc, _ = detect_loop_keypoints(frame.left, self.cfg, self.cfg.loop_query_features)
+            self._query = FrameFeatures(uv, np.zeros((len(uv), 3), np.float32), desc)
+            self._query_k = k
+        return self._query
