@@ -246,6 +246,16 @@ class LoopConfig(_Section):
     # 1000 frames after it by 71 %.
     heading_drift_deg: float = 0.005
     verified_heading_sigma_deg: float = 0.1
+    # Eq. 6's window for a loop from frame N to its reference j: "fixed" = discount_length frames
+    # (the paper); "span" = min(discount_length_max, round(discount_span_factor * (N - j))), so a
+    # long loop (more drift to spread) corrects more frames than a short one.
+    discount_window: Literal["fixed", "span"] = "fixed"
+    discount_span_factor: float = 1.0
+    discount_length_max: int = 300
+    # Shape of gamma over the window: "paper" = 1 - exp(-(3 - alpha*0.01*s')) (eq. 6; steps from
+    # ~0.86 to 0 at N - K when K = 100); "window" = the same curve stretched to reach 0 just past
+    # the window's oldest frame; "linear" = a ramp from 0.95 at N to 0 there.
+    discount_shape: Literal["paper", "window", "linear"] = "paper"
 
 
 @dataclass
@@ -641,6 +651,8 @@ RULES: dict[str, Range] = {
     "loop.stats_cache_frames": NON_NEGATIVE,
     "loop.heading_drift_deg": NON_NEGATIVE,
     "loop.verified_heading_sigma_deg": NON_NEGATIVE,
+    "loop.discount_span_factor": POSITIVE,
+    "loop.discount_length_max": NON_NEGATIVE,
     "graph.prior_sigma_rot_rad": POSITIVE,
     "graph.prior_sigma_trans_m": POSITIVE,
     "graph.odom_sigma_rot_rad": POSITIVE,

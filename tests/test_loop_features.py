@@ -131,3 +131,48 @@ def test_pipeline_keeps_reference_features(tiny_seq):
     assert set(pipe.loop_features._ref) <= {0, 2, 4, 6}
     cfg.frontend.loop_verify_features = "tracker"
     assert SlamPipeline(seq.camera, cfg, loops="snaps", refine="none", build_map=False).loop_features is None
+
+
+def test_discount_window_follows_the_loop_span():
+    from snaps_graph.config import LoopConfig
+    from snaps_graph.loop.snaps import SnapsLoopCloser
+
+    fixed = SnapsLoopCloser(LoopConfig(discount_length=100))
+    assert fixed.window_length(1000) == 100 and fixed.window_length(120) == 100
+    span = SnapsLoopCloser(LoopConfig(discount_window="span", discount_span_factor=0.5, discount_length_max=300))
+    assert span.window_length(120) == 60 and span.window_length(1000) == 300
+
+
+def test_span_window_moves_fewer_frames_on_a_short_loop():
+    """Same loop, window by span: a loop 150 frames long corrects 75 frames with factor 0.5."""
+    from snaps_graph.config import LoopConfig
+    from snaps_graph.loop.snaps import SnapsLoopCloser
+
+    def moved(cfg: LoopConfig) -> int:
+        c = SnapsLoopCloser(cfg)
+        T = np.eye(4)
+        T[2, 3] = 1.0
+        img = np.full((120, 240), 100, np.uint8)
+        for k in range(151):
+            c.step(k, T, img)
+        before = c.positions
+        c._correct(150, 1.0, np.array([1.0, 0.0, 0.0]), 1, first=1)
+        return int(np.count_nonzero(np.any(c.positions != before, axis=1)))
+
+    assert moved(LoopConfig(discount_length=300)) == 150
+    assert moved(LoopConfig(discount_window="span", discount_span_factor=0.5)) == 76  # s in [N-75, N]
+
+
+@pytest.mark.parametrize("shape", ["window", "linear"])
+def test_discount_shapes_fall_to_zero_at_the_window_start(shape):
+    from snaps_graph.config import LoopConfig
+    from snaps_graph.loop.snaps import discount
+
+    cfg = LoopConfig(discount_shape=shape)
+    s = np.arange(0, 201, dtype=float)
+    g = discount(cfg, 3, s, window=200)
+    assert g[0] == pytest.approx(1 - np.exp(-3)) and np.all(np.diff(g) < 0)
+    assert g[-1] < 0.03 and np.max(np.abs(np.diff(g))) < 0.03  # no step anywhere
+    paper = discount(LoopConfig(), 1, s[:101])
+    assert paper[-1] > 0.8  # the paper's curve at K = 100: a step from 0.86 to 0 at N - K
+    assert np.array_equal(discount(cfg, 1, s[:101]), paper)  # no window given: the paper's curve

@@ -35,6 +35,11 @@
    vertical toward the verified heading R_ref·R_ref_cur by the same w·γ_s ("yaw"), so the frames
    after the loop continue on the corrected heading instead of re-growing the same drift.
 
+   The window (``discount_window``, ``discount_shape``): the paper's K = ``discount_length`` and
+   γ above; or K following the loop's span N − j ("span": min(``discount_length_max``,
+   ``discount_span_factor``·(N − j))) with γ stretched over the window ("window") or a linear ramp
+   ("linear"), so the correction ends at 0 instead of stepping there (γ is 0.86 at s' = 100).
+
 Frame numbering. Internally frames are numbered by their position in the processed stream
 (0, 1, ...): M, K and the pause count processed frames. The caller's ``index`` (the dataset's
 frame number, which differs when a frame range is processed) is what :class:`LoopEvent` records in
@@ -133,9 +138,20 @@ def _exp_so3(rotvec: np.ndarray, scales: np.ndarray) -> np.ndarray:
     return out
 
 
-def discount(cfg: LoopConfig, alpha: int, s_prime: np.ndarray) -> np.ndarray:
-    """γ of eq. 6 for offsets s' = N − s, clamped at 0 (see module docstring)."""
-    return np.maximum(0.0, 1.0 - np.exp(-(cfg.discount_offset - alpha * cfg.discount_rate * s_prime)))
+def discount(cfg: LoopConfig, alpha: int, s_prime: np.ndarray, window: int | None = None) -> np.ndarray:
+    """γ of eq. 6 for offsets s' = N − s, clamped at 0 (see module docstring).
+
+    With ``window`` = K and ``discount_shape`` "window": the paper's curve stretched so it reaches
+    0 just past the window's oldest frame, γ = 1 − exp(−c·(1 − s'/(K + 1))) (no step at N − K);
+    "linear": γ = (1 − e^−c)·(1 − s'/(K + 1)), the share of a drift that grew evenly over the window.
+    """
+    shape = cfg.discount_shape
+    if window is None or shape == "paper":
+        return np.maximum(0.0, 1.0 - np.exp(-(cfg.discount_offset - alpha * cfg.discount_rate * s_prime)))
+    frac = np.clip(1.0 - s_prime / (window + 1.0), 0.0, 1.0)
+    if shape == "linear":
+        return (1.0 - math.exp(-cfg.discount_offset)) * frac
+    return 1.0 - np.exp(-cfg.discount_offset * frac)
 
 
 class SnapsLoopCloser:
@@ -487,14 +503,21 @@ class SnapsLoopCloser:
         return out
 
     # ---- eq. 6 ----
+    def window_length(self, span: int) -> int:
+        """K of eq. 6 for a loop ``span`` = N − j frames long (``discount_window``)."""
+        if self.cfg.discount_window == "span":
+            return int(min(self.cfg.discount_length_max, round(self.cfg.discount_span_factor * span)))
+        return int(self.cfg.discount_length)
+
     def _correct(self, n: int, q: float, delta: np.ndarray, alpha: int, rotvec: np.ndarray | None = None, first: int = 0) -> int:
         """Eq. 6 (our reading): p_s += w·γ_s·δ for s in [max(N−K, first), N], w = Q (or 1 for a
         verified loop under correction_weight = "verified"); with ``rotvec`` (world-frame
         axis-angle toward the verified orientation) also R_s ← Exp(w·γ_s·rotvec)·R_s. ``first``
         is the frame after the reference: the reference and older frames are the loop's anchor
         and never move (only possible when K > M). Returns how many moved."""
-        lo = max(0, n - self.cfg.discount_length, first)
-        gamma = discount(self.cfg, alpha, n - np.arange(lo, n + 1, dtype=float))
+        K = self.window_length(n - first + 1)
+        lo = max(0, n - K, first)
+        gamma = discount(self.cfg, alpha, n - np.arange(lo, n + 1, dtype=float), n - lo)
         self._p[lo : n + 1] += (q * gamma)[:, None] * delta
         if rotvec is not None:
             self._R[lo : n + 1] = _exp_so3(rotvec, q * gamma) @ self._R[lo : n + 1]
