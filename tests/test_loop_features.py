@@ -137,7 +137,7 @@ def test_discount_window_follows_the_loop_span():
     from snaps_graph.config import LoopConfig
     from snaps_graph.loop.snaps import SnapsLoopCloser
 
-    fixed = SnapsLoopCloser(LoopConfig(discount_length=100))
+    fixed = SnapsLoopCloser(LoopConfig(discount_window="fixed", discount_length=100))
     assert fixed.window_length(1000) == 100 and fixed.window_length(120) == 100
     span = SnapsLoopCloser(LoopConfig(discount_window="span", discount_span_factor=0.5, discount_length_max=300))
     assert span.window_length(120) == 60 and span.window_length(1000) == 300
@@ -159,7 +159,7 @@ def test_span_window_moves_fewer_frames_on_a_short_loop():
         c._correct(150, 1.0, np.array([1.0, 0.0, 0.0]), 1, first=1)
         return int(np.count_nonzero(np.any(c.positions != before, axis=1)))
 
-    assert moved(LoopConfig(discount_length=300)) == 150
+    assert moved(LoopConfig(discount_window="fixed", discount_length=300)) == 150
     assert moved(LoopConfig(discount_window="span", discount_span_factor=0.5)) == 76  # s in [N-75, N]
 
 

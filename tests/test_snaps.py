@@ -35,6 +35,8 @@ def cfg(**kw) -> LoopConfig:
         window=4,
         shift_px=0,  # the candidate-rule tests compare unshifted thumbnails (shift: own tests)
         correction_weight="q",  # eq. 6 exactly as the paper weighs it (verified weight: own test)
+        discount_window="fixed",  # the paper's window K and gamma (span/shapes: test_loop_features)
+        discount_shape="paper",
     )
     base.update(kw)
     return LoopConfig(**base)
