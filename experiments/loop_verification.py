@@ -105,17 +105,42 @@ def main() -> None:
         vo = np.array([results[int(i)].pose for i in seq.indices])
         m_vo = evaluate(vo, gt)
 
-        def fmt(m: dict, key: str) -> str:
+        def fmt(m: dict, key: str, m_vo: dict = m_vo) -> str:
             return f"{m[key]:.3f} ({m[key] / m_vo[key]:.2f}x)" if m_vo[key] > 0 else f"{m[key]:.3f}"
 
-        rows.append([seq_dir.name, "VO", "", "", "", "", f"{m_vo['mean_deviation']:.3f}", f"{m_vo['mean_deviation_horizontal']:.3f}", f"{m_vo['mean_deviation_vertical']:.3f}", f"{m_vo['ate_rmse']:.3f}", "", ""])
-        print(f"  VO mean dev {m_vo['mean_deviation']:.3f} h {m_vo['mean_deviation_horizontal']:.3f} v {m_vo['mean_deviation_vertical']:.3f} ATE {m_vo['ate_rmse']:.3f}", flush=True)
+        rows.append(
+            [
+                seq_dir.name,
+                "VO",
+                "",
+                "",
+                "",
+                "",
+                f"{m_vo['mean_deviation']:.3f}",
+                f"{m_vo['mean_deviation_horizontal']:.3f}",
+                f"{m_vo['mean_deviation_vertical']:.3f}",
+                f"{m_vo['ate_rmse']:.3f}",
+                "",
+                "",
+            ]
+        )
+        print(
+            f"  VO mean dev {m_vo['mean_deviation']:.3f} h {m_vo['mean_deviation_horizontal']:.3f} v {m_vo['mean_deviation_vertical']:.3f} ATE {m_vo['ate_rmse']:.3f}",
+            flush=True,
+        )
         for spec in args.variant:
             name, _, sets = spec.partition(":")
             cfg = copy.deepcopy(base)
             apply(cfg, [s for s in sets.split(",") if s])
             t0 = time.perf_counter()
-            pipe = SlamPipeline(seq.camera, cfg, loops="snaps", refine="batch" if args.batch else "none", build_map=False, frontend=CachedOdometry(type("C", (), {"results": results})()))
+            pipe = SlamPipeline(
+                seq.camera,
+                cfg,
+                loops="snaps",
+                refine="batch" if args.batch else "none",
+                build_map=False,
+                frontend=CachedOdometry(type("C", (), {"results": results})()),
+            )
             for f in seq:
                 pipe.process(f)
             result = pipe.finish()
@@ -179,11 +204,48 @@ def main() -> None:
             r0 = result.records
             o = loop_oracle(vo, gt, base, [r.vo_inliers for r in r0], [r.vo_ok for r in r0])
             mo = {"mean_deviation": o.mean_deviation, "ate_rmse": o.ate_rmse}
-            rows.append([seq_dir.name, f"oracle ({len(o.pairs)} exact loops)", "", "", "", "", fmt(mo, "mean_deviation"), "", "", fmt(mo, "ate_rmse"), "", ""])
+            rows.append(
+                [
+                    seq_dir.name,
+                    f"oracle ({len(o.pairs)} exact loops)",
+                    "",
+                    "",
+                    "",
+                    "",
+                    fmt(mo, "mean_deviation"),
+                    "",
+                    "",
+                    fmt(mo, "ate_rmse"),
+                    "",
+                    "",
+                ]
+            )
             print(f"  oracle: {len(o.pairs)} exact loops, mean dev {rows[-1][6]}, ATE {rows[-1][9]}", flush=True)
-    header = ["sequence", "variant", "max recall @P=1 Q / verified", "revisits searched", "loops (false)", "max loop t error m", "SNAPS mean dev m", "horizontal m", "vertical m", "ATE m", "batch", "SNAPS latency"]
-    cmd = "python experiments/loop_verification.py --seq " + " ".join(args.seq) + " --variant " + " ".join(f'"{v}"' for v in args.variant)
-    cmd += (" --batch" if args.batch else "") + (" --verify-all" if args.verify_all else "") + (f" --pause {args.pause}" if args.pause is not None else "")
+    header = [
+        "sequence",
+        "variant",
+        "max recall @P=1 Q / verified",
+        "revisits searched",
+        "loops (false)",
+        "max loop t error m",
+        "SNAPS mean dev m",
+        "horizontal m",
+        "vertical m",
+        "ATE m",
+        "batch",
+        "SNAPS latency",
+    ]
+    cmd = (
+        "python experiments/loop_verification.py --seq "
+        + " ".join(args.seq)
+        + " --variant "
+        + " ".join(f'"{v}"' for v in args.variant)
+    )
+    cmd += (
+        (" --batch" if args.batch else "")
+        + (" --verify-all" if args.verify_all else "")
+        + (f" --pause {args.pause}" if args.pause is not None else "")
+    )
     text = f"# Loop verification\n\nCommand: `{cmd}`\n\n" + md_table(header, rows)
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(text)

@@ -170,6 +170,9 @@ class FrontendConfig(_Section):
     loop_depth_check_px: float = 1.0
     loop_depth_min_ratio: float = 0.5
     loop_min_sigma_px: float = 0.5  # floor of the reprojection sigma in the loop covariance
+    # A verified loop measured farther apart than this is refused: a loop is a revisit of the same
+    # place (SNAPS searches within loop.radius_m); views 10-30 m apart of one street verify too.
+    loop_max_distance_m: float = 10.0
 
     def _cross_checks(self, source: str) -> None:
         if not self.min_depth_m < self.max_depth_m:
@@ -638,6 +641,7 @@ RULES: dict[str, Range] = {
     "frontend.loop_depth_check_px": NON_NEGATIVE,
     "frontend.loop_depth_min_ratio": Range(0, 1),
     "frontend.loop_min_sigma_px": POSITIVE,
+    "frontend.loop_max_distance_m": POSITIVE,
     "loop.radius_m": POSITIVE,
     "loop.frame_distance": AT_LEAST_1,
     "loop.discount_length": NON_NEGATIVE,

@@ -241,6 +241,8 @@ class SlamPipeline:
             T = m.T_ref_cur
             if k_feat != k_ref:
                 T = np.linalg.solve(self._vo_poses[k_ref], self._vo_poses[k_feat]) @ T
+            if np.linalg.norm(T[:3, 3]) > self.cfg.frontend.loop_max_distance_m:  # not the same place
+                return None
             self._loop_cov[int(ref_index)] = m.cov
             return T, m.inliers
         ref_feat = None if k_ref is None else self._features[k_ref]

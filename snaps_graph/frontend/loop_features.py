@@ -39,7 +39,9 @@ class LoopMatch:
     rms_px: float  # reprojection rms of the inliers, pixels
 
 
-def detect_loop_keypoints(img: np.ndarray, cfg: FrontendConfig, n: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def detect_loop_keypoints(
+    img: np.ndarray, cfg: FrontendConfig, n: int | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Multi-scale keypoints for loops: (uv float32 (N,2), descriptors, size float32 (N,)).
 
     ``loop_detector`` "orb": ORB's own pyramid (``loop_orb_levels`` levels, ratio
@@ -59,7 +61,9 @@ def detect_loop_keypoints(img: np.ndarray, cfg: FrontendConfig, n: int | None = 
         resp = np.array([k.response for k in kps], np.float32)
         order = np.lexsort((uv[:, 1], uv[:, 0], -resp))
         return uv[order], np.ascontiguousarray(desc[order], np.float32), size[order]
-    orb = cv2.ORB.create(nfeatures=n, scaleFactor=cfg.loop_orb_scale, nlevels=cfg.loop_orb_levels, fastThreshold=cfg.loop_orb_fast_threshold)
+    orb = cv2.ORB.create(
+        nfeatures=n, scaleFactor=cfg.loop_orb_scale, nlevels=cfg.loop_orb_levels, fastThreshold=cfg.loop_orb_fast_threshold
+    )
     kps = orb.detect(img, None)
     if not kps:
         return np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8), np.zeros(0, np.float32)
@@ -78,7 +82,9 @@ def detect_loop_keypoints(img: np.ndarray, cfg: FrontendConfig, n: int | None = 
     return uv[order], np.ascontiguousarray(desc[order], np.uint8), size[order]
 
 
-def stereo_points(left: np.ndarray, right: np.ndarray, uv: np.ndarray, camera: StereoCamera, cfg: FrontendConfig) -> tuple[np.ndarray, np.ndarray]:
+def stereo_points(
+    left: np.ndarray, right: np.ndarray, uv: np.ndarray, camera: StereoCamera, cfg: FrontendConfig
+) -> tuple[np.ndarray, np.ndarray]:
     """(indices of ``uv`` with valid depth, their 3D points float32 (M,3)) by sparse stereo (eq. 1-2)."""
     if len(uv) == 0:
         return np.zeros(0, np.int64), np.zeros((0, 3), np.float32)
@@ -91,7 +97,9 @@ def stereo_points(left: np.ndarray, right: np.ndarray, uv: np.ndarray, camera: S
     return ok.astype(np.int64), pts
 
 
-def pose_covariance(T_cur_ref: np.ndarray, pts_ref: np.ndarray, uv: np.ndarray, camera: StereoCamera, min_sigma_px: float) -> tuple[np.ndarray, float]:
+def pose_covariance(
+    T_cur_ref: np.ndarray, pts_ref: np.ndarray, uv: np.ndarray, camera: StereoCamera, min_sigma_px: float
+) -> tuple[np.ndarray, float]:
     """Covariance (6x6, rot then trans) of T_ref_cur from the PnP inliers, and their rms in pixels.
 
     Gauss-Newton: cov = s² (JᵀJ)⁻¹ with J the reprojection Jacobian for T_ref_cur ← T_ref_cur·Exp(ξ)
@@ -110,6 +118,7 @@ def pose_covariance(T_cur_ref: np.ndarray, pts_ref: np.ndarray, uv: np.ndarray, 
     # d(u,v)/dX
     Pu = np.stack([fx / z, np.zeros(n), -fx * x / z**2], axis=1)
     Pv = np.stack([np.zeros(n), fy / z, -fy * y / z**2], axis=1)
+
     # dX/dω = [X]ₓ (X + [X]ₓ ω = X − ω × X), dX/dv = −I
     def row(P: np.ndarray) -> np.ndarray:  # P·[X]ₓ, P·(−I)
         xx, yy, zz = X[:, 0], X[:, 1], X[:, 2]
@@ -127,7 +136,7 @@ def pose_covariance(T_cur_ref: np.ndarray, pts_ref: np.ndarray, uv: np.ndarray, 
 
 
 def verify_features(
-    ref: FrameFeatures,
+    ref: FrameFeatures | None,
     cur: FrameFeatures,
     cur_frame: StereoFrame | None,
     camera: StereoCamera,
@@ -166,7 +175,9 @@ def verify_features(
         pts, uv = pts[agree], uv[agree]
         # Re-estimate on the points that passed both tests (LM from the RANSAC pose).
         rvec = cv2.Rodrigues(T_cur_ref[:3, :3])[0]
-        rvec, tvec = cv2.solvePnPRefineLM(pts.astype(np.float64), uv.astype(np.float64), camera.K, None, rvec, T_cur_ref[:3, 3].reshape(3, 1).copy())
+        rvec, tvec = cv2.solvePnPRefineLM(
+            pts.astype(np.float64), uv.astype(np.float64), camera.K, None, rvec, T_cur_ref[:3, 3].reshape(3, 1).copy()
+        )
         T = np.eye(4)
         T[:3, :3] = cv2.Rodrigues(rvec)[0]
         T[:3, 3] = tvec.reshape(3)
