@@ -163,7 +163,7 @@ class SlamPipeline:
         candidates = 0
         t_loop_ms = t_verify_ms = 0.0
         if self.loop_features is not None:
-            self.loop_features.add(k, frame)
+            self.loop_features.add(k, frame, float(getattr(vo, "disparity_offset_px", 0.0)))
         if self.snaps is not None:
             self._loop_cov.clear()
             step = self.snaps.step(frame.index, vo.T_rel, frame.left, verify=lambda ref: self._verify(ref, vo, frame, k))
@@ -232,7 +232,8 @@ class SlamPipeline:
                 return None
             try:
                 cur = self.loop_features.query(k, frame)
-                m = verify_features(self.loop_features.reference(k_feat), cur, frame, self.camera, self.cfg.frontend)
+                offset = float(getattr(vo, "disparity_offset_px", 0.0))
+                m = verify_features(self.loop_features.reference(k_feat), cur, frame, self.camera, self.cfg.frontend, offset)
             except Exception as exc:  # best effort: an unverifiable candidate is not a loop
                 self.graph.failures.append((k, f"loop verification raised {type(exc).__name__}: {exc}"))
                 return None

@@ -176,3 +176,17 @@ def test_discount_shapes_fall_to_zero_at_the_window_start(shape):
     paper = discount(LoopConfig(), 1, s[:101])
     assert paper[-1] > 0.8  # the paper's curve at K = 100: a step from 0.86 to 0 at N - K
     assert np.array_equal(discount(cfg, 1, s[:101]), paper)  # no window given: the paper's curve
+
+
+def test_reference_points_use_the_disparity_offset(kitti_pair):
+    """A rig whose disparities read 0.5 px large (offset +0.5): corrected points lie farther."""
+    from snaps_graph.frontend.loop_features import detect_loop_keypoints, stereo_points
+
+    seq, f0, _ = kitti_pair
+    cfg = FrontendConfig()
+    uv, _, _ = detect_loop_keypoints(f0.left, cfg)
+    i0, p0 = stereo_points(f0.left, f0.right, uv, seq.camera, cfg)
+    i1, p1 = stereo_points(f0.left, f0.right, uv, seq.camera, cfg, offset_px=0.5)
+    common, a, b = np.intersect1d(i0, i1, return_indices=True)
+    assert len(common) > 100
+    assert np.all(p1[b, 2] > p0[a, 2])

@@ -26,7 +26,7 @@ from ..geometry import inv, rotation_angle_deg
 from ..types import FrameFeatures, StereoFrame
 from .depth import sparse_disparity
 from .features import match_descriptors
-from .odometry import pnp_ransac
+from .odometry import pnp_ransac, true_disparity
 
 
 @dataclass
@@ -83,12 +83,13 @@ def detect_loop_keypoints(
 
 
 def stereo_points(
-    left: np.ndarray, right: np.ndarray, uv: np.ndarray, camera: StereoCamera, cfg: FrontendConfig
+    left: np.ndarray, right: np.ndarray, uv: np.ndarray, camera: StereoCamera, cfg: FrontendConfig, offset_px: float = 0.0
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(indices of ``uv`` with valid depth, their 3D points float32 (M,3)) by sparse stereo (eq. 1-2)."""
+    """(indices of ``uv`` with valid depth, their 3D points float32 (M,3)) by sparse stereo (eq. 1-2),
+    disparities corrected by the front end's disparity offset ``offset_px`` (measured - true)."""
     if len(uv) == 0:
         return np.zeros(0, np.int64), np.zeros((0, 3), np.float32)
-    disp = sparse_disparity(left, right, uv, cfg)
+    disp = true_disparity(sparse_disparity(left, right, uv, cfg), offset_px)
     fb = camera.fx * camera.baseline_m
     with np.errstate(divide="ignore"):
         z = np.where(disp > 0, fb / np.maximum(disp, 1e-9), 0.0)
@@ -141,6 +142,7 @@ def verify_features(
     cur_frame: StereoFrame | None,
     camera: StereoCamera,
     cfg: FrontendConfig,
+    offset_px: float = 0.0,
 ) -> LoopMatch | None:
     """Verify a loop from the reference's 3D points to the current frame's keypoints.
 
@@ -167,7 +169,7 @@ def verify_features(
     if cur_frame is not None and cfg.loop_depth_check_px > 0:
         Xc = pts.astype(np.float64) @ T_cur_ref[:3, :3].T + T_cur_ref[:3, 3]
         d_pred = camera.fx * camera.baseline_m / np.maximum(Xc[:, 2], 1e-6)
-        d_meas = sparse_disparity(cur_frame.left, cur_frame.right, uv, cfg)
+        d_meas = true_disparity(sparse_disparity(cur_frame.left, cur_frame.right, uv, cfg), offset_px)
         has = d_meas > 0
         agree = has & (np.abs(d_meas - d_pred) <= cfg.loop_depth_check_px)
         if int(agree.sum()) < cfg.min_inliers or agree.sum() < cfg.loop_depth_min_ratio * max(int(has.sum()), 1):
@@ -215,12 +217,13 @@ class LoopFeatureBank:
     def wants(self, k: int) -> bool:
         return k % self.cfg.loop_reference_every == 0
 
-    def add(self, k: int, frame: StereoFrame) -> None:
-        """Compute and keep reference features for stream position ``k`` if it is one."""
+    def add(self, k: int, frame: StereoFrame, offset_px: float = 0.0) -> None:
+        """Compute and keep reference features for stream position ``k`` if it is one
+        (``offset_px``: the front end's disparity offset for this frame)."""
         if not self.wants(k):
             return
         uv, desc, _ = detect_loop_keypoints(frame.left, self.cfg)
-        idx, pts = stereo_points(frame.left, frame.right, uv, self.camera, self.cfg)
+        idx, pts = stereo_points(frame.left, frame.right, uv, self.camera, self.cfg, offset_px)
         if len(idx) >= self.cfg.min_stereo_points:
             self._ref[k] = FrameFeatures(np.ascontiguousarray(uv[idx]), pts, np.ascontiguousarray(desc[idx]))
 
