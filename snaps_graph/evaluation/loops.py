@@ -290,7 +290,8 @@ def plot_loops(
     a.set_ylabel("precision")
     a.set_xlim(0, 1.02)
     a.set_ylim(0, 1.05)
-    a.legend(loc="lower left", fontsize=8)
+    if a.get_legend_handles_labels()[0]:  # no true pair compared: no curve to label
+        a.legend(loc="lower left", fontsize=8)
     a.set_title("precision-recall over the Q threshold")
     q = np.array([r.q for r in records], float)
     passed = np.array([r.verify_passed for r in records], bool)
