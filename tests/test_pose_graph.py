@@ -130,7 +130,7 @@ def test_odometry_sigmas_follow_inliers_and_flag():
 
 def test_odometry_covariance_scaled_floored_and_checked():
     C = np.diag([1e-8] * 3 + [1e-6] * 3)
-    assert odometry_covariance(GraphConfig(), C) is None  # odom_noise = "inliers"
+    assert odometry_covariance(GraphConfig(odom_noise="inliers"), C) is None
     cfg = GraphConfig(odom_noise="ba", odom_cov_scale=2.0, odom_cov_floor_rot_rad=1e-3, odom_cov_floor_trans_m=1e-2)
     assert np.allclose(odometry_covariance(cfg, C), 4 * C + np.diag([1e-6] * 3 + [1e-4] * 3))
     assert odometry_covariance(cfg, None) is None
