@@ -93,7 +93,7 @@ class FrontendConfig(_Section):
     klt_quality: float = 0.01  # goodFeaturesToTrack quality level (relative to the best corner)
     klt_min_distance_px: int = 10  # minimum spacing between corners, pixels
     klt_border_px: int = 16  # corners are not detected this close to the image border
-    loop_features: int = 500  # keypoints (with depth and descriptor) kept per frame for loops
+    loop_features: int = 500  # keypoints (with depth; ORB descriptors only when loop_verify_features = "tracker") kept per frame
     min_stereo_points: int = 40  # a frame with fewer keypoints with depth cannot be a reference
     min_sharpness_ratio: float = 0.35  # mean |Laplacian| below this x the reference's: blurred
     ransac_seed: int = 0  # cv2.setRNGSeed before every RANSAC (same input -> same output)

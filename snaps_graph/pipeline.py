@@ -278,6 +278,8 @@ class SlamPipeline:
         if not self._frame_ids:
             raise SnapsGraphError("no frame was processed, nothing to finish")
         self.vo.close()
+        if self.loop_features is not None:
+            self.loop_features.close()
         trajs: dict[str, np.ndarray] = {"vo": np.array(self._vo_poses)}
         if self.snaps is not None:
             # The loop closer's trajectory, with every eq. 6 correction applied (a pose stored at

@@ -15,6 +15,8 @@ inliers' reprojection Jacobian, so the graph weighs a loop by what verification 
 
 from __future__ import annotations
 
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -198,20 +200,28 @@ def verify_features(
 
 class LoopFeatureBank:
     """Loop features of reference frames (every ``loop_reference_every``-th stream position) and
-    of the current frame on demand. Memory per reference: N x (8 + 12 + descriptor) bytes."""
+    of the current frame on demand. Memory per reference: N x (8 + 12 + descriptor) bytes.
 
-    def __init__(self, camera: StereoCamera, cfg: FrontendConfig):
+    A reference's features are computed on one worker thread (OpenCV releases the GIL), off the
+    frame's critical path; every read waits for the pending ones, so results do not depend on
+    timing. ``background=False`` computes them inline."""
+
+    def __init__(self, camera: StereoCamera, cfg: FrontendConfig, background: bool = True):
         self.camera = camera
         self.cfg = cfg
         self._ref: dict[int, FrameFeatures] = {}
+        self._pending: dict[int, Future] = {}
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="loop-features") if background else None
         self._query_k: int | None = None
         self._query: FrameFeatures | None = None
         self.t_reference_ms = 0.0  # total time spent on reference features
 
     def __len__(self) -> int:
+        self._collect()
         return len(self._ref)
 
     def nbytes(self) -> int:
+        self._collect()
         return sum(f.uv.nbytes + f.pts3d.nbytes + f.desc.nbytes for f in self._ref.values())
 
     def wants(self, k: int) -> bool:
@@ -222,20 +232,46 @@ class LoopFeatureBank:
         (``offset_px``: the front end's disparity offset for this frame)."""
         if not self.wants(k):
             return
-        uv, desc, _ = detect_loop_keypoints(frame.left, self.cfg)
-        idx, pts = stereo_points(frame.left, frame.right, uv, self.camera, self.cfg, offset_px)
-        if len(idx) >= self.cfg.min_stereo_points:
-            self._ref[k] = FrameFeatures(np.ascontiguousarray(uv[idx]), pts, np.ascontiguousarray(desc[idx]))
+        if self._pool is None:
+            self._keep(k, self._compute(frame.left, frame.right, offset_px))
+        else:
+            self._pending[k] = self._pool.submit(self._compute, frame.left, frame.right, offset_px)
+
+    def _compute(self, left: np.ndarray, right: np.ndarray, offset_px: float) -> FrameFeatures | None:
+        t0 = time.perf_counter()
+        uv, desc, _ = detect_loop_keypoints(left, self.cfg)
+        idx, pts = stereo_points(left, right, uv, self.camera, self.cfg, offset_px)
+        self.t_reference_ms += (time.perf_counter() - t0) * 1000.0
+        if len(idx) < self.cfg.min_stereo_points:
+            return None
+        return FrameFeatures(np.ascontiguousarray(uv[idx]), pts, np.ascontiguousarray(desc[idx]))
+
+    def _keep(self, k: int, features: FrameFeatures | None) -> None:
+        if features is not None:
+            self._ref[k] = features
+
+    def _collect(self) -> None:
+        """Wait for the pending references and keep them (in stream order)."""
+        for k in sorted(self._pending):
+            self._keep(k, self._pending.pop(k).result())
+
+    def close(self) -> None:
+        self._collect()
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
 
     def put(self, k: int, features: FrameFeatures) -> None:
         """Store precomputed reference features (replays)."""
         self._ref[k] = features
 
     def reference(self, k: int) -> FrameFeatures | None:
+        self._collect()
         return self._ref.get(k)
 
     def nearest(self, k: int) -> int | None:
         """The stored reference nearest to stream position ``k`` (ties: the older), or None."""
+        self._collect()
         e = self.cfg.loop_reference_every
         base = k - k % e
         for c in (base, base + e, base - e, base + 2 * e) if k - base <= e // 2 else (base + e, base, base + 2 * e, base - e):

@@ -464,8 +464,11 @@ class StereoOdometry:
             fdesc = desc[pick]
         else:
             pick = near_idx if m <= cfg.loop_features else near_idx[np.linspace(0, m - 1, cfg.loop_features).astype(np.int64)]
-            keep, fdesc = feat.orb_at(frame.left, uv[pick])
-            pick = pick[keep]
+            if cfg.loop_verify_features == "tracker":
+                keep, fdesc = feat.orb_at(frame.left, uv[pick])
+                pick = pick[keep]
+            else:  # loops verify with their own features (loop_features.py): no descriptors needed here
+                fdesc = np.zeros((len(pick), 32), np.uint8)
         features = FrameFeatures(np.ascontiguousarray(uv[pick]), np.ascontiguousarray(pts3d[pick]), np.ascontiguousarray(fdesc))
         timings["features"] = timings.get("features", 0.0) + (time.perf_counter() - t0) * 1000.0
         return _Keyframe(
