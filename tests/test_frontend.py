@@ -233,7 +233,7 @@ def test_first_frame_is_identity_even_when_black(kitti06_dir):
 def test_verify_loop_recovers_relative_pose(kitti06_dir, mode):
     seq = _kitti(kitti06_dir, "0:4")
     gt = seq.gt_poses
-    cfg = FrontendConfig(mode=mode)
+    cfg = FrontendConfig(mode=mode, loop_verify_features="tracker")  # the front end's own loop features
     feats = {}
     for i in (0, 3):
         with StereoOdometry(seq.camera, cfg) as vo:
