@@ -103,7 +103,7 @@ def test_fused_wall_lies_at_its_depth_and_follows_the_poses():
 
 
 def test_stored_depth_is_compressed_and_exact_to_a_millimetre():
-    m = FusedMap(CAM, MapConfig())
+    m = FusedMap(CAM, MapConfig(max_range_m=20.0))
     z = np.random.default_rng(0).uniform(2, 19, (160, 320)).astype(np.float32)
     z[:20] = 0
     m.add_keyframe(0, z)
@@ -120,7 +120,7 @@ def test_min_weight_drops_surfaces_seen_once():
 
 
 def test_chunked_fusion_bounds_the_grid():
-    cfg = MapConfig(tsdf_voxel_m=0.1, tsdf_trunc_voxels=4.0, tsdf_max_blocks=1000)
+    cfg = MapConfig(tsdf_voxel_m=0.1, tsdf_trunc_voxels=4.0, tsdf_max_blocks=1000, max_range_m=20.0)
     m = FusedMap(CAM, cfg)
     poses = np.array([_pose((40.0 * k, 0.0, 0.0)) for k in range(4)])
     for k in range(4):
@@ -128,6 +128,13 @@ def test_chunked_fusion_bounds_the_grid():
     s = m.fuse(poses)
     assert s.stats["chunks"] == 4 and s.stats["max_blocks"] <= 1000
     assert np.abs(s.vertices[:, 2] - 15.0).max() < 0.03
+    # a keyframe whose depth lies wholly beyond the range is skipped (open3d would refuse it)
+    far = FusedMap(CAM, MapConfig(max_range_m=20.0))
+    far.add_keyframe(0, np.full((160, 320), 15.0, np.float32))
+    far.add_keyframe(5, np.full((160, 320), 9.0, np.float32))
+    far.cfg = MapConfig(max_range_m=10.0)
+    near = far.fuse(np.repeat(np.eye(4)[None], 6, axis=0))
+    assert len(near.vertices) and np.abs(near.vertices[:, 2] - 9.0).max() < 0.05
 
 
 def test_fused_map_bad_input():

@@ -170,7 +170,7 @@ class FusedMap:
         for k in self.keyframes:
             d_png, g_png, (w, h) = self._kf[k]
             mm = cv2.imdecode(np.frombuffer(d_png, np.uint8), cv2.IMREAD_UNCHANGED)
-            if not mm.any():  # no valid depth: nothing to integrate (open3d refuses an empty frame)
+            if not np.any((mm > 0) & (mm <= cfg.max_range_m * _MM)):  # nothing in range: open3d refuses such a frame
                 continue
             if g_png is not None:
                 grey = cv2.imdecode(np.frombuffer(g_png, np.uint8), cv2.IMREAD_UNCHANGED)
