@@ -124,14 +124,14 @@ class FrontendConfig(_Section):
     # most klt_anchor_max_px from its frame-to-frame position.
     klt_anchor_gap: int = 0
     klt_anchor_max_px: float = 1.0
-    lba_solver: Literal["numpy", "gtsam"] = "numpy"
+    lba_solver: Literal["numpy", "gtsam"] = "numpy"  # "numpy" (vectorised Schur Gauss-Newton) or "gtsam" (GenericStereoFactor3D + LM)
     # Which landmarks the window keeps when more than lba_max_landmarks are shared: "longest"
     # tracks first, or "near" (largest disparity in the newest keyframe) first.
     lba_select: Literal["longest", "near"] = "longest"
     # klt + stereo_ba: tracked points beyond max_depth_m with a disparity of at least
     # far_min_disparity_px are kept for the stereo BA (they constrain rotation), never for PnP.
     sba_far_points: bool = False
-    far_min_disparity_px: float = 1.0  # "numpy" (vectorised Schur Gauss-Newton) or "gtsam" (GenericStereoFactor3D + LM)
+    far_min_disparity_px: float = 1.0
     # klt: when PnP on the KLT tracks fails or has fewer than min_inliers inliers (large motion:
     # a fast drive, or frames skipped), retry once by matching ORB keypoints detected afresh in
     # the reference and the current frame ("orb"), or flag at once ("none").

@@ -24,11 +24,10 @@ import numpy as np
 
 from ..camera import StereoCamera
 from ..config import FrontendConfig
-from ..geometry import inv, rotation_angle_deg
 from ..types import FrameFeatures, StereoFrame
 from .depth import sparse_disparity
-from .features import match_descriptors
-from .odometry import pnp_ransac, true_disparity
+from .odometry import true_disparity
+from .verify import match_and_pnp, plausible
 
 
 @dataclass
@@ -154,19 +153,10 @@ def verify_features(
     and at least ``loop_depth_min_ratio`` of the inliers that have a current disparity. Plausibility
     as :func:`verify.verify_loop`. None if anything fails.
     """
-    if ref is None or cur is None or len(ref.desc) < cfg.min_inliers or len(cur.desc) < 2:
+    found = match_and_pnp(ref, cur, camera, cfg, cfg.loop_ratio_test)
+    if found is None:
         return None
-    if ref.desc.dtype != cur.desc.dtype or ref.desc.shape[1] != cur.desc.shape[1]:
-        return None
-    ia, ib = match_descriptors(ref.desc, cur.desc, cfg.loop_ratio_test)
-    if len(ia) < cfg.min_inliers:
-        return None
-    res = pnp_ransac(ref.pts3d[ia], cur.uv[ib], camera, cfg)
-    if res is None:
-        return None
-    T_cur_ref, inl = res
-    if len(inl) < cfg.min_inliers or not np.all(np.isfinite(T_cur_ref)):
-        return None
+    T_cur_ref, ia, ib, inl = found
     pts, uv = ref.pts3d[ia[inl]], cur.uv[ib[inl]]
     if cur_frame is not None and cfg.loop_depth_check_px > 0:
         Xc = pts.astype(np.float64) @ T_cur_ref[:3, :3].T + T_cur_ref[:3, 3]
@@ -187,10 +177,8 @@ def verify_features(
         T[:3, 3] = tvec.reshape(3)
         if np.all(np.isfinite(T)):
             T_cur_ref = T
-    T_ref_cur = inv(T_cur_ref)
-    if np.linalg.norm(T_ref_cur[:3, 3]) > cfg.verify_max_translation_m:
-        return None
-    if rotation_angle_deg(T_ref_cur[:3, :3]) > cfg.verify_max_rotation_deg:
+    T_ref_cur = plausible(T_cur_ref, cfg)
+    if T_ref_cur is None:
         return None
     cov, rms = pose_covariance(T_cur_ref, pts, uv, camera, cfg.loop_min_sigma_px)
     if not np.all(np.isfinite(cov)):
