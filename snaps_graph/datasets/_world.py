@@ -716,68 +716,49 @@ class World:
             win_w = win_h = win_fx = win_fy = 0.0
             brick_w = brick_h = brick_amp = 0.0
             noise_amp = 0.05
-        tris, faces, rows = [], [], []
-        for k in range(4):
-            k1 = (k + 1) % 4
-            # two triangles of the side quad (bottom k, bottom k1, top k1, top k)
-            tris += [[k, k1, 4 + k1], [k, 4 + k1, 4 + k]]
-            faces += [face0 + len(rows)] * 2
-            t3 = v[k1] - v[k]
-            t3[1] = 0.0
-            t3 /= max(np.linalg.norm(t3), 1e-9)
-            origin = np.array([v[k, 0], box.ground_y, v[k, 2]])
-            rows.append(
-                self._face_row(
-                    FACADE,
-                    origin,
-                    t3,
-                    albedo=albedo * rng.uniform(0.9, 1.1),
-                    noise_amp=noise_amp,
-                    win_w=win_w,
-                    win_h=win_h,
-                    win_fx=win_fx,
-                    win_fy=win_fy,
-                    top=box.height,
-                    brick_w=brick_w,
-                    brick_h=brick_h,
-                    brick_amp=brick_amp,
-                )
+
+        def wall(k: int, origin: np.ndarray, t3: np.ndarray):
+            return self._face_row(
+                FACADE,
+                origin,
+                t3,
+                albedo=albedo * rng.uniform(0.9, 1.1),
+                noise_amp=noise_amp,
+                win_w=win_w,
+                win_h=win_h,
+                win_fx=win_fx,
+                win_fy=win_fy,
+                top=box.height,
+                brick_w=brick_w,
+                brick_h=brick_h,
+                brick_amp=brick_amp,
             )
-        tris += [[4, 5, 6], [4, 6, 7]]
-        faces += [face0 + len(rows)] * 2
-        rows.append(self._face_row(ROOF, np.zeros(3), np.array([1.0, 0.0, 0.0]), albedo=albedo * 0.8, noise_amp=noise_amp))
-        return v, np.array(tris), np.array(faces, np.int32), rows
+
+        def roof():
+            return self._face_row(ROOF, np.zeros(3), np.array([1.0, 0.0, 0.0]), albedo=albedo * 0.8, noise_amp=noise_amp)
+
+        return self._walls_and_roof(box, v, face0, wall, roof)
 
     def _module_mesh(self, box: Box, v: np.ndarray, face0: int):
         """A box in one of the aliasing modules: every face as the module's, no random draw."""
         mod = self.modules[box.module]
         look = {k: mod[k] for k in ("win_w", "win_h", "win_fx", "win_fy", "brick_w", "brick_h", "brick_amp")}
-        tris, faces, rows = [], [], []
-        for k in range(4):
-            k1 = (k + 1) % 4
-            tris += [[k, k1, 4 + k1], [k, 4 + k1, 4 + k]]
-            faces += [face0 + len(rows)] * 2
-            t3 = v[k1] - v[k]
-            t3[1] = 0.0
-            t3 /= max(np.linalg.norm(t3), 1e-9)
-            origin = np.array([v[k, 0], box.ground_y, v[k, 2]])
-            rows.append(
-                self._face_row(
-                    FACADE,
-                    origin,
-                    t3,
-                    albedo=mod["albedo"],
-                    noise_amp=mod["noise_amp"],
-                    top=box.height,
-                    offset=mod["offsets"][k],
-                    ident=int(mod["idents"][k]),
-                    **look,
-                )
+
+        def wall(k: int, origin: np.ndarray, t3: np.ndarray):
+            return self._face_row(
+                FACADE,
+                origin,
+                t3,
+                albedo=mod["albedo"],
+                noise_amp=mod["noise_amp"],
+                top=box.height,
+                offset=mod["offsets"][k],
+                ident=int(mod["idents"][k]),
+                **look,
             )
-        tris += [[4, 5, 6], [4, 6, 7]]
-        faces += [face0 + len(rows)] * 2
-        rows.append(
-            self._face_row(
+
+        def roof():
+            return self._face_row(
                 ROOF,
                 np.zeros(3),
                 np.array([1.0, 0.0, 0.0]),
@@ -786,7 +767,26 @@ class World:
                 offset=mod["offsets"][4],
                 ident=int(mod["idents"][4]),
             )
-        )
+
+        return self._walls_and_roof(box, v, face0, wall, roof)
+
+    @staticmethod
+    def _walls_and_roof(box: Box, v: np.ndarray, face0: int, wall, roof):
+        """(vertices, triangles, face ids, face rows) of a box: its four side quads (bottom k,
+        bottom k+1, top k+1, top k), then its roof. ``wall(k, origin, tangent)`` and ``roof()``
+        make the face rows, called in that order, so a caller's random draws keep their order."""
+        tris, faces, rows = [], [], []
+        for k in range(4):
+            k1 = (k + 1) % 4
+            tris += [[k, k1, 4 + k1], [k, 4 + k1, 4 + k]]
+            faces += [face0 + len(rows)] * 2
+            t3 = v[k1] - v[k]
+            t3[1] = 0.0
+            t3 /= max(np.linalg.norm(t3), 1e-9)
+            rows.append(wall(k, np.array([v[k, 0], box.ground_y, v[k, 2]]), t3))
+        tris += [[4, 5, 6], [4, 6, 7]]
+        faces += [face0 + len(rows)] * 2
+        rows.append(roof())
         return v, np.array(tris), np.array(faces, np.int32), rows
 
     def _backdrop_mesh(self, face0: int):
