@@ -15,6 +15,15 @@ class FrameSelection:
     def __len__(self) -> int:
         return self.stop - self.start
 
+    def _position(self, i: int) -> int:
+        """The position among all frames of selected frame ``i`` (negative counts from the end);
+        IndexError outside the selection."""
+        if i < 0:
+            i += len(self)
+        if not 0 <= i < len(self):
+            raise IndexError(i)
+        return self.start + i
+
     @property
     def indices(self) -> np.ndarray:
         """The selected frames' numbers (positions, unless a reader numbers its frames itself)."""

@@ -215,12 +215,8 @@ class EurocSequence(FrameSelection):
         return left, right
 
     def __getitem__(self, i: int) -> StereoFrame:
-        if i < 0:
-            i += len(self)
-        if not 0 <= i < len(self):
-            raise IndexError(i)
-        left, right = self.rectifier.rectify(*self.raw_pair(i))
-        k = self.start + i
+        k = self._position(i)
+        left, right = self.rectifier.rectify(*self.raw_pair(k - self.start))
         return StereoFrame(k, float(self._times_all[k]), left, right)
 
     def __iter__(self) -> Iterator[StereoFrame]:

@@ -149,11 +149,7 @@ class KittiSequence(FrameSelection):
         return str(self._left[int(hits[0])]) if len(hits) else None
 
     def __getitem__(self, i: int) -> StereoFrame:
-        if i < 0:
-            i += len(self)
-        if not 0 <= i < len(self):
-            raise IndexError(i)
-        k = self.start + i
+        k = self._position(i)
         left = read_grey(self._left[k])
         right = read_grey(self._right[k])
         if left.shape != right.shape:

@@ -334,11 +334,7 @@ class RosbagSequence(FrameSelection):
 
     # ---- dataset protocol ----
     def __getitem__(self, i: int) -> StereoFrame:
-        if i < 0:
-            i += len(self)
-        if not 0 <= i < len(self):
-            raise IndexError(i)
-        k = self.start + i
+        k = self._position(i)
         return next(self._stream(k, k + 1))
 
     def __iter__(self) -> Iterator[StereoFrame]:
