@@ -157,7 +157,8 @@ class SlamPipeline:
         self._k_of_frame[int(frame.index)] = k
         self._timestamps.append(float(frame.timestamp))
         self._vo_poses.append(vo.pose)
-        self._features.append(vo.features)
+        # per-frame features are kept only for the tracker-feature verifier (no feature bank)
+        self._features.append(vo.features if self.loop_features is None else None)
 
         loop: LoopEvent | None = None
         candidates = 0
