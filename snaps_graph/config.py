@@ -124,9 +124,8 @@ class FrontendConfig(_Section):
     # most klt_anchor_max_px from its frame-to-frame position.
     klt_anchor_gap: int = 0
     klt_anchor_max_px: float = 1.0
-    lba_solver: Literal["numpy", "gtsam"] = (
-        "numpy"  # "numpy" (vectorised Schur Gauss-Newton) or "gtsam" (GenericStereoFactor3D + LM)
-    )
+    # "numpy" (vectorised Schur Gauss-Newton) or "gtsam" (GenericStereoFactor3D + LM)
+    lba_solver: Literal["numpy", "gtsam"] = "numpy"
     # Which landmarks the window keeps when more than lba_max_landmarks are shared: "longest"
     # tracks first, or "near" (largest disparity in the newest keyframe) first.
     lba_select: Literal["longest", "near"] = "longest"
