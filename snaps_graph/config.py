@@ -144,13 +144,16 @@ class FrontendConfig(_Section):
     # klt + local BA: estimate the offset online (one more unknown in each local-BA solve, Gaussian
     # prior of disparity_offset_prior_px around the running estimate); the information-weighted
     # mean of the solves, clamped to +-disparity_offset_max_px, replaces disparity_offset_px once
-    # disparity_offset_min_solves solves contributed and it differs by disparity_offset_min_px or
+    # disparity_offset_min_solves solves contributed, its standard error is at most
+    # disparity_offset_max_sd_px (a drive with too little depth change -- a MAV hovering, a car
+    # standing -- leaves the offset unobservable) and it differs by disparity_offset_min_px or
     # more (the numpy lba_solver only; otherwise disparity_offset_px is applied unchanged).
     estimate_disparity_offset: bool = True
     disparity_offset_prior_px: float = 0.5
     disparity_offset_max_px: float = 2.0
     disparity_offset_min_solves: int = 10
     disparity_offset_min_px: float = 0.05
+    disparity_offset_max_sd_px: float = 0.05
     # Loop verification (issue 12): "separate" = multi-scale keypoints with stereo 3D points kept
     # for every loop_reference_every-th frame and computed for the current frame only when a
     # candidate is verified (frontend/loop_features.py); "tracker" = the front end's own per-frame
@@ -640,6 +643,7 @@ RULES: dict[str, Range] = {
     "frontend.disparity_offset_max_px": Range(0, 10),
     "frontend.disparity_offset_min_solves": AT_LEAST_1,
     "frontend.disparity_offset_min_px": NON_NEGATIVE,
+    "frontend.disparity_offset_max_sd_px": POSITIVE,
     "frontend.loop_orb_features": AT_LEAST_1,
     "frontend.loop_query_features": AT_LEAST_1,
     "frontend.loop_orb_levels": Range(1, 16),

@@ -137,3 +137,19 @@ def test_vo_estimates_and_removes_a_rendered_disparity_offset():
     off1, bias1, ate1 = _vo(seq, frames, **ONLINE)
     assert abs(off1) < 0.1, off1
     assert ate1 <= 1.1 * ate0 + 0.005, (ate0, ate1)
+
+
+def test_an_unobservable_offset_is_never_applied():
+    """Solves that carry almost no information about the offset (a MAV hovering, a car standing:
+    no depth change along the tracks) leave the configured offset in place, however far their
+    mean lies; informative solves are then applied."""
+    from snaps_graph.frontend import StereoOdometry
+
+    with StereoOdometry(CAM, FrontendConfig()) as vo:
+        assert vo._lba is not None
+        vo._lba.stats.offsets = [(25.0, 1e-4)] * 30  # sd 100 px each, mean far beyond the clamp
+        vo._update_offset(0)
+        assert vo.disparity_offset_px == 0.0
+        vo._lba.stats.offsets += [(-0.3, 400.0)] * 10  # sd 0.05 px each
+        vo._update_offset(30)
+        assert vo.disparity_offset_px == pytest.approx(-0.3, abs=0.01)

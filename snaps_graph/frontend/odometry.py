@@ -33,7 +33,8 @@ the stereo BA, the local BA) is corrected as true = measured - offset, with the 
 local BA, the running estimate: each local-BA solve estimates the offset jointly (``local_ba.py``)
 and reports what its data alone say; their information-weighted mean, clamped to
 ±``disparity_offset_max_px``, replaces the configured offset once
-``disparity_offset_min_solves`` solves contributed and it differs from it by at least
+``disparity_offset_min_solves`` solves contributed, its standard error is at most
+``disparity_offset_max_sd_px`` and it differs from it by at least
 ``disparity_offset_min_px``. Until then the local BA holds the offset in its pose solve, so a
 rig without an offset runs exactly as with the estimate off; once applied, the offset is solved
 jointly with the window's poses. ``VOResult.disparity_offset_px`` is the
@@ -259,7 +260,8 @@ class StereoOdometry:
                 acc[0] += info * off
                 acc[1] += info
                 acc[2] += 1
-        if acc[2] >= self.cfg.disparity_offset_min_solves and acc[1] > 0:
+        observed = acc[1] > 0 and acc[1] ** -0.5 <= self.cfg.disparity_offset_max_sd_px
+        if acc[2] >= self.cfg.disparity_offset_min_solves and observed:
             lim = self.cfg.disparity_offset_max_px
             est = float(np.clip(acc[0] / acc[1], -lim, lim))
             if self._lba.offset_joint or abs(est - self.cfg.disparity_offset_px) >= self.cfg.disparity_offset_min_px:
