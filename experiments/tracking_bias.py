@@ -10,10 +10,13 @@ Renders pairs of consecutive frames along a KITTI ground-truth path (default: KI
   size given, and for each frame gap given (``--gaps 1 3 5``: tracking from a keyframe g frames
   back, as ``klt_reference = "keyframe"`` does; the per-frame bias is then the row bias / g).
 
+``--bias-windows 0 7`` repeats the tracking rows with ``klt_bias_window_px`` at each value (0 = the
+plain LK fit; the default 7 re-fits with a 7 px window and extrapolates the window bias away).
+
 With ``--run RUN`` it also prints the mean per-step rotation error (pitch, yaw, roll) and vertical
 translation error of a results folder's VO against its ground truth, with standard errors.
 
-    python experiments/tracking_bias.py [--trajectory ../shared/data/kitti_gt/00.txt] [--windows 7 11 21] [--gaps 1 3 5] [--run results/bench/run00]
+    python experiments/tracking_bias.py [--trajectory ../shared/data/kitti_gt/00.txt] [--windows 7 11 21] [--gaps 1 3 5] [--bias-windows 0 7] [--run results/bench/run00]
 """
 
 from __future__ import annotations
@@ -70,6 +73,7 @@ def main() -> None:
     ap.add_argument("--every", type=int, default=30)
     ap.add_argument("--windows", type=int, nargs="*", default=[7, 11, 21])
     ap.add_argument("--gaps", type=int, nargs="*", default=[1], help="frames between the tracked pair")
+    ap.add_argument("--bias-windows", type=int, nargs="*", default=None, help="klt_bias_window_px values (default: the config's)")
     ap.add_argument("--run", type=Path, default=None)
     args = ap.parse_args()
     if args.run:
@@ -78,7 +82,9 @@ def main() -> None:
     seq = SyntheticSequence(poses, width=1241, height=376, seed=0, times=times)
     cam, cfg = seq.camera, Config().frontend
     stereo_v, stereo_err = [], []
-    track: dict[tuple[int, int], list[np.ndarray]] = {(w, g): [] for w in args.windows for g in args.gaps}
+    bias_windows = args.bias_windows if args.bias_windows is not None else [cfg.klt_bias_window_px]
+    keys = [(w, g, b) for w in args.windows for g in args.gaps for b in bias_windows]
+    track: dict[tuple[int, int, int], list[np.ndarray]] = {k: [] for k in keys}
     for i in range(0, len(seq) - max(args.gaps), args.every):
         f0 = seq.render(i)
         uv = feat.detect_corners(f0.left, cfg.klt_features, cfg, avoid=np.zeros((0, 2), np.float32))
@@ -97,14 +103,18 @@ def main() -> None:
             true = np.c_[cam.fx * Q[:, 0] / Q[:, 2] + cam.cx, cam.fy * Q[:, 1] / Q[:, 2] + cam.cy]
             # The front end starts LK at the constant-velocity prediction; the exact one here.
             for w in args.windows:
-                cfg.klt_window_px = w
-                p1, okt = feat.track_klt(f0.left, f1.left, uv, cfg, true if g > 1 else None)
-                track[(w, g)].append(np.c_[uv[okt, 1], p1[okt, 1] - true[okt, 1]])
+                for b in bias_windows:
+                    cfg.klt_window_px, cfg.klt_bias_window_px = w, b
+                    p1, okt = feat.track_klt(f0.left, f1.left, uv, cfg, true if g > 1 else None)
+                    track[(w, g, b)].append(np.c_[uv[okt, 1], p1[okt, 1] - true[okt, 1]])
     band_table("stereo: sparse LK disparity - exact disparity", np.concatenate(stereo_v), np.concatenate(stereo_err))
-    for (w, g), parts in track.items():
+    for (w, g, b), parts in track.items():
         a = np.concatenate(parts)
+        fix = f", bias window {b} px" if 0 < b < w else ""
         band_table(
-            f"tracking over {g} frame(s), {w} px window: KLT row - exact row (positive = too low in the image)", a[:, 0], a[:, 1]
+            f"tracking over {g} frame(s), {w} px window{fix}: KLT row - exact row (positive = too low in the image)",
+            a[:, 0],
+            a[:, 1],
         )
 
 

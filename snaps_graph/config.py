@@ -179,8 +179,19 @@ class FrontendConfig(_Section):
     # 539 verified pairs > 10 m apart). Measured distances near 10 m err by up to ~0.3 m, so 8 m
     # keeps a margin below the evaluation's 10 m "false" line.
     loop_max_distance_m: float = 8.0
+    # KLT window bias (issue 11, pitch bias at its source): where the flow curves within the LK
+    # window (the road under forward motion) the translation-only fit is biased by the window's
+    # second moment, (w^2 - 1) / 12. Each track is re-fitted at the finest level with a
+    # klt_bias_window_px window and extrapolated to a zero-size window (0 disables); a re-fit that
+    # fails or moves more than klt_bias_max_px keeps the plain position.
+    klt_bias_window_px: int = 7
+    klt_bias_max_px: float = 0.5
 
     def _cross_checks(self, source: str) -> None:
+        if self.klt_bias_window_px and not 3 <= self.klt_bias_window_px < self.klt_window_px:
+            raise SnapsGraphError(
+                f"{source}: frontend.klt_bias_window_px must be 0 or in [3, klt_window_px), got {self.klt_bias_window_px}"
+            )
         if not self.min_depth_m < self.max_depth_m:
             raise SnapsGraphError(
                 f"{source}: frontend.min_depth_m must be < frontend.max_depth_m, got {self.min_depth_m} and {self.max_depth_m}"
@@ -644,6 +655,8 @@ RULES: dict[str, Range] = {
     "frontend.disparity_offset_min_solves": AT_LEAST_1,
     "frontend.disparity_offset_min_px": NON_NEGATIVE,
     "frontend.disparity_offset_max_sd_px": POSITIVE,
+    "frontend.klt_bias_window_px": NON_NEGATIVE,
+    "frontend.klt_bias_max_px": POSITIVE,
     "frontend.loop_orb_features": AT_LEAST_1,
     "frontend.loop_query_features": AT_LEAST_1,
     "frontend.loop_orb_levels": Range(1, 16),

@@ -185,4 +185,38 @@ def track_klt(
     h, w = cur_img.shape
     ok = (st.reshape(-1) == 1) & np.all(np.isfinite(p1), axis=1)
     ok &= (p1[:, 0] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] <= h - 1)
+    if 0 < cfg.klt_bias_window_px < cfg.klt_window_px and np.any(ok):
+        p1 = _window_extrapolated(prev_img, cur_img, uv, p1, ok, cfg)
     return p1.astype(np.float32), ok
+
+
+def _window_extrapolated(
+    prev_img: np.ndarray, cur_img: np.ndarray, uv: np.ndarray, p1: np.ndarray, ok: np.ndarray, cfg: FrontendConfig
+) -> np.ndarray:
+    """LK positions with the window bias removed (``klt_bias_window_px``).
+
+    A translation-only LK fit over a window where the flow is not linear (the road plane under
+    forward motion: its image flow grows with the square of the row's distance from the horizon)
+    lands off the point by the flow's curvature times the window's second moment, (w^2 - 1) / 12
+    for a w-pixel window. Re-fitting at the finest level with a smaller window w2 and extrapolating
+    the two positions linearly in that moment to zero removes the bias to first order.
+    """
+    w1, w2 = cfg.klt_window_px, cfg.klt_bias_window_px
+    sel = np.flatnonzero(ok)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.001)
+    p2, st, _ = cv2.calcOpticalFlowPyrLK(
+        prev_img,
+        cur_img,
+        np.ascontiguousarray(uv[sel]).reshape(-1, 1, 2),
+        np.ascontiguousarray(p1[sel], np.float32).reshape(-1, 1, 2),
+        winSize=(w2, w2),
+        maxLevel=0,
+        criteria=crit,
+        flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+    )
+    diff = p1[sel] - p2.reshape(-1, 2)
+    good = (st.reshape(-1) == 1) & np.all(np.abs(diff) <= cfg.klt_bias_max_px, axis=1)
+    m1, m2 = (w1 * w1 - 1) / 12.0, (w2 * w2 - 1) / 12.0
+    out = p1.copy()
+    out[sel[good]] -= m1 / (m1 - m2) * diff[good]
+    return out
