@@ -186,6 +186,13 @@ class FrontendConfig(_Section):
     # fails or moves more than klt_bias_max_px keeps the plain position.
     klt_bias_window_px: int = 7
     klt_bias_max_px: float = 0.5
+    # The chain's step between consecutive local-BA keyframes (the composed stereo-BA steps, their
+    # covariance carried along and multiplied by lba_chain_scale) as a relative-pose factor in
+    # the window (numpy lba_solver): "yaw" = its heading change only (the window's far landmarks
+    # leave yaw and the sideways step ambiguous; the chain's pitch carries the tracking bias the
+    # window removes), "rotation", "full", or "off".
+    lba_chain: Literal["off", "yaw", "rotation", "full"] = "yaw"
+    lba_chain_scale: float = 1.0
 
     def _cross_checks(self, source: str) -> None:
         if self.klt_bias_window_px and not 3 <= self.klt_bias_window_px < self.klt_window_px:
@@ -657,6 +664,7 @@ RULES: dict[str, Range] = {
     "frontend.disparity_offset_max_sd_px": POSITIVE,
     "frontend.klt_bias_window_px": NON_NEGATIVE,
     "frontend.klt_bias_max_px": POSITIVE,
+    "frontend.lba_chain_scale": POSITIVE,
     "frontend.loop_orb_features": AT_LEAST_1,
     "frontend.loop_query_features": AT_LEAST_1,
     "frontend.loop_orb_levels": Range(1, 16),

@@ -53,6 +53,9 @@ class _KF:
     pose: np.ndarray  # T_world_cam, current estimate
     ids: np.ndarray  # (N,) int64 landmark ids (>= 0)
     uvd: np.ndarray  # (N,3) float64: u_left, v, disparity
+    # The VO chain's step from the previous keyframe: (T_cur_prev, its information 6x6, left
+    # perturbation [rotation, translation]); None = no chain factor (numpy solver only).
+    chain: tuple[np.ndarray, np.ndarray] | None = None
 
 
 @dataclass
@@ -62,6 +65,38 @@ class LocalBAStats:
     times_ms: list = field(default_factory=list)  # per keyframe
     landmarks: list = field(default_factory=list)  # landmarks per solve
     offsets: list = field(default_factory=list)  # (data-only offset px, its information 1/px^2) per solve
+
+
+def _add_chain_factor(
+    S: np.ndarray, g: np.ndarray, j: int, Rcw: np.ndarray, tcw: np.ndarray, N: np.ndarray, info: np.ndarray
+) -> None:
+    """Add a relative-pose factor between keyframes j-1 and j to the normal equations (S dx = g,
+    left perturbations [rotation, translation] of T_cam_world): the measured T_cur_prev = N holds
+    up to exp(xi), xi ~ N(0, info^-1); xi = log(T_j T_{j-1}^-1 N^-1), d xi = d_j - Ad_N d_{j-1}."""
+    RP = Rcw[j] @ Rcw[j - 1].T
+    tP = tcw[j] - RP @ tcw[j - 1]
+    RN, tN = N[:3, :3], N[:3, 3]
+    RE = RP @ RN.T
+    tE = tP - RE @ tN
+    xi = np.r_[_log_so3(RE), tE]
+    tx = np.array([[0, -tN[2], tN[1]], [tN[2], 0, -tN[0]], [-tN[1], tN[0], 0]])
+    Ad = np.zeros((6, 6))
+    Ad[:3, :3], Ad[3:, 3:], Ad[3:, :3] = RN, RN, tx @ RN
+    Ji = -Ad
+    a, b = slice(6 * (j - 1), 6 * j), slice(6 * j, 6 * j + 6)
+    S[a, a] += Ji.T @ info @ Ji
+    S[a, b] += Ji.T @ info
+    S[b, a] += info @ Ji
+    S[b, b] += info
+    g[a] -= Ji.T @ info @ xi
+    g[b] -= info @ xi
+
+
+def _log_so3(R: np.ndarray) -> np.ndarray:
+    c = np.clip((np.trace(R) - 1) / 2, -1, 1)
+    th = float(np.arccos(c))
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2
+    return w if th < 1e-9 else w * th / np.sin(th)
 
 
 class LocalBundleAdjuster:
@@ -104,13 +139,24 @@ class LocalBundleAdjuster:
         self.offset_joint = True  # False: hold the offset in the pose solve, only estimate it
         self.stats = LocalBAStats()
 
-    def add_keyframe(self, key: int, pose: np.ndarray, ids: np.ndarray, uv: np.ndarray, disp: np.ndarray) -> np.ndarray:
-        """Add keyframe ``key`` and solve the window; returns its refined T_world_cam (or ``pose``)."""
+    def add_keyframe(
+        self,
+        key: int,
+        pose: np.ndarray,
+        ids: np.ndarray,
+        uv: np.ndarray,
+        disp: np.ndarray,
+        chain: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> np.ndarray:
+        """Add keyframe ``key`` and solve the window; returns its refined T_world_cam (or ``pose``).
+
+        ``chain`` = (T_cur_prev, information): the VO chain's measured step from the previous
+        keyframe, added as a relative-pose factor between the two."""
         ids = np.asarray(ids, np.int64).reshape(-1)
         uv = np.asarray(uv, np.float64).reshape(-1, 2)
         disp = np.asarray(disp, np.float64).reshape(-1)
         good = (ids >= 0) & (disp > 0) & np.all(np.isfinite(uv), 1) & np.isfinite(disp)
-        kf = _KF(int(key), np.asarray(pose, np.float64).copy(), ids[good], np.c_[uv[good], disp[good]])
+        kf = _KF(int(key), np.asarray(pose, np.float64).copy(), ids[good], np.c_[uv[good], disp[good]], chain)
         self.kfs.append(kf)
         if len(self.kfs) < 2:
             return kf.pose.copy()
@@ -292,6 +338,10 @@ class LocalBundleAdjuster:
                     S[6 * a : 6 * a + 6, 6 * b : 6 * b + 6] = blk
                     S[6 * b : 6 * b + 6, 6 * a : 6 * a + 6] = blk.T
             g = bc.reshape(-1) - np.einsum("wil,l->wi", Fm.reshape(W, 6, -1), bl.reshape(-1)).reshape(-1)
+            for j in range(1, W):  # the chain's steps between consecutive keyframes
+                chain = kfs[j].chain
+                if chain is not None:
+                    _add_chain_factor(S, g, j, Rcw, tcw, chain[0], chain[1])
             S = S[6:, 6:] + 1e-6 * np.eye(6 * (W - 1))  # the oldest pose is the gauge
             g = g[6:]
             if est:  # the offset: one more column, d(u_r residual)/d(offset) = -1

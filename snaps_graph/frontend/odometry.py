@@ -89,6 +89,29 @@ def true_disparity(d: np.ndarray, offset_px: float) -> np.ndarray:
     return np.where(d > 0, d - np.asarray(offset_px, d.dtype), d).astype(d.dtype)
 
 
+def chain_information(cov: np.ndarray, axes: str) -> np.ndarray:
+    """Information (6x6, [rotation, translation]) of the chain's step between keyframes for
+    ``lba_chain``: "yaw" = the marginal of the rotation about the camera's y axis only, "rotation"
+    = the marginal of the rotation, "full" = all six."""
+    info = np.zeros((6, 6))
+    if axes == "yaw":
+        info[1, 1] = 1.0 / max(float(cov[1, 1]), 1e-18)
+    elif axes == "rotation":
+        info[:3, :3] = np.linalg.inv(cov[:3, :3])
+    elif axes == "full":
+        info = np.linalg.inv(cov)
+    return info
+
+
+def _adjoint(T: np.ndarray) -> np.ndarray:
+    """SE(3) adjoint for [rotation, translation] twists: Ad_T xi, with T = [R, t]."""
+    R, t = T[:3, :3], T[:3, 3]
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    Ad = np.zeros((6, 6))
+    Ad[:3, :3], Ad[3:, 3:], Ad[3:, :3] = R, R, tx @ R
+    return Ad
+
+
 def pose_from_rvec(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3] = cv2.Rodrigues(np.asarray(rvec, np.float64).reshape(3, 1))[0]
@@ -227,6 +250,8 @@ class StereoOdometry:
         self._sba_cov: np.ndarray | None = None  # the last stereo BA's pose covariance (VOResult.cov)
         self._lba = None
         self._lba_last = -(10**9)  # frame index of the last local BA keyframe
+        self._chain_cov: np.ndarray | None = None  # the chain's covariance since that keyframe (T_cur_kf)
+        self._lba_prev_pose: np.ndarray | None = None  # its pose as handed out
         self._offset = float(self.cfg.disparity_offset_px)  # disparity offset applied (measured - true, px)
         self._offset_sum = [0.0, 0.0, 0]  # running estimate: sum of info * offset, sum of info, solves
         if self.cfg.local_ba and self.cfg.mode == "klt":  # needs persistent tracks (landmark ids)
@@ -329,12 +354,29 @@ class StereoOdometry:
             else:
                 pose = self._ref.pose @ T_ref_cur
             kf = kf_or_none
+            if not first and self._chain_cov is not None:
+                if (
+                    self._sba_cov is None
+                    or not np.all(np.isfinite(self._sba_cov))
+                    or ref is None
+                    or ref.index != self._last_index
+                ):
+                    self._chain_cov = None  # a step without a covariance: no chain factor up to the next keyframe
+                else:
+                    Ad = _adjoint(inv(T_ref_cur))
+                    self._chain_cov = self._sba_cov + Ad @ self._chain_cov @ Ad.T
             if self._lba is not None and kf.promote and (first or frame.index - self._lba_last >= self.cfg.lba_every):
                 self._lba_last = frame.index
                 t_ba = time.perf_counter()
                 n_off = len(self._lba.stats.offsets)
                 chained = pose
-                pose = self._lba.add_keyframe(frame.index, pose, kf.ids[kf.near], kf.uv[kf.near], kf.disp[kf.near])
+                chain = None
+                if self._chain_cov is not None and self._lba_prev_pose is not None and self.cfg.lba_chain != "off":
+                    N = np.linalg.solve(pose, self._lba_prev_pose)  # T_cur_prevkf along the chain
+                    chain = (N, chain_information(self._chain_cov * self.cfg.lba_chain_scale, self.cfg.lba_chain))
+                pose = self._lba.add_keyframe(frame.index, pose, kf.ids[kf.near], kf.uv[kf.near], kf.disp[kf.near], chain)
+                self._lba_prev_pose = pose.copy()
+                self._chain_cov = np.zeros((6, 6))
                 if self.cfg.estimate_disparity_offset:
                     self._update_offset(n_off)
                 timings["lba"] = (time.perf_counter() - t_ba) * 1000.0
@@ -386,6 +428,7 @@ class StereoOdometry:
         pose = prev_pose @ T_rel
         if self._lba is not None:
             self._lba.reset()
+        self._chain_cov, self._lba_prev_pose = None, None
         if not np.all(np.isfinite(pose)):  # cannot happen with finite inputs; belt and braces
             T_rel, pose = np.eye(4), prev_pose.copy()
         self._pose = pose
