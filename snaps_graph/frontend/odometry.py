@@ -52,10 +52,11 @@ the last good reference stays, and the next frame is tracked against it directly
 does not enter the chain: T_world_cur = T_world_ref · T_ref_cur for the reference's pose.
 
 Parallelism. OpenCV releases the GIL, so independent stages of the same frame run in two
-threads (``threads``): in "klt" mode stereo depth of the tracked points (and re-detection)
-runs beside PnP; in "sift"/"orb" dense depth runs beside keypoint detection, and sparse depth
-beside matching + PnP. Each stage's inputs are fixed before it starts and RANSAC is seeded
-(``ransac_seed``) in the thread that runs it, so the output is bit-identical run to run.
+threads (``threads``): in "klt" mode stereo depth of the tracked points runs beside PnP, and
+re-detection with its stereo beside the stereo BA; in "sift"/"orb" dense depth runs beside
+keypoint detection, and sparse depth beside matching + PnP. Each stage's inputs are fixed
+before it starts and RANSAC is seeded (``ransac_seed``) in the thread that runs it, so the
+output is bit-identical run to run.
 """
 
 from __future__ import annotations
@@ -592,9 +593,20 @@ class StereoOdometry:
         self, frame: StereoFrame, uv: np.ndarray, guess: np.ndarray | None, timings: dict[str, float], detect: bool = True
     ):
         """Stereo depth at tracked points; if too few (and ``detect``), detect new corners and add theirs."""
-        cfg = self.cfg
+        z, d = self._stereo_tracked(frame, uv, guess, timings)
+        return (z, d, *self._detect_new(frame, uv, z, timings, detect))
+
+    def _stereo_tracked(self, frame: StereoFrame, uv: np.ndarray, guess: np.ndarray | None, timings: dict[str, float]):
+        """Stereo (depth, disparity) at the tracked points."""
         t0 = time.perf_counter()
         z, d = self._sparse_depth(frame.left, frame.right, uv, guess)
+        timings["depth"] = (time.perf_counter() - t0) * 1000.0
+        return z, d
+
+    def _detect_new(self, frame: StereoFrame, uv: np.ndarray, z: np.ndarray, timings: dict[str, float], detect: bool = True):
+        """If fewer tracked points ``uv`` than ``klt_min_tracks`` have depth ``z`` (and ``detect``):
+        new corners away from them, with their stereo (new uv, depth, disparity)."""
+        cfg = self.cfg
         t1 = time.perf_counter()
         n_valid = int(np.count_nonzero(z > 0))
         new_uv = np.zeros((0, 2), np.float32)
@@ -606,9 +618,9 @@ class StereoOdometry:
         else:
             z2, d2 = np.zeros(0, np.float32), np.zeros(0, np.float32)
         t3 = time.perf_counter()
-        timings["depth"] = (t1 - t0 + t3 - t2) * 1000.0
+        timings["depth"] = timings.get("depth", 0.0) + (t3 - t2) * 1000.0
         timings["features"] = (t2 - t1) * 1000.0
-        return z, d, new_uv, z2, d2
+        return new_uv, z2, d2
 
     def _estimate_klt(self, frame: StereoFrame, first: bool, sharp: float, timings: dict[str, float]):
         """KLT from the reference into this frame, PnP (+ stereo BA); the reference is the last
@@ -642,13 +654,14 @@ class StereoOdometry:
         if cfg.klt_anchor_gap > 0 and not anchored and self._anchor is not None:
             uv_cur = self._anchor_refine(frame, uv_cur, ref.ids, idx)
         timings["match"] = (time.perf_counter() - t0) * 1000.0
-        # Stereo (and re-detection) of the current frame runs beside PnP.
-        stereo = self._submit(self._stereo_klt, frame, uv_cur[idx], dguess[idx], timings, not anchored)
+        # Stereo of the tracked points runs beside PnP, re-detection (and its stereo) beside the stereo BA.
+        stereo = self._submit(self._stereo_tracked, frame, uv_cur[idx], dguess[idx], timings)
         t1 = time.perf_counter()
         near_pos = np.flatnonzero(ref.near[idx])  # PnP takes the points with trusted depth only
         pnp = pnp_ransac(ref.pts3d[idx[near_pos]], uv_cur[idx[near_pos]], self.camera, cfg)
         timings["pnp"] = (time.perf_counter() - t1) * 1000.0
-        z, d, new_uv, z2, d2 = stereo.result()
+        z, d = stereo.result()
+        detection = self._submit(self._detect_new, frame, uv_cur[idx], z, timings, not anchored)
         if pnp is None:
             keep = np.ones(len(idx), bool)
             T_cur_ref, n_inl = None, 0
@@ -673,6 +686,7 @@ class StereoOdometry:
                 keep = np.zeros(len(idx), bool)  # keep the KLT tracks among the inliers
                 keep[near_pos[retry[1][retry[1] < len(near_pos)]]] = True
                 timings["retry_ok"] = 1.0
+        new_uv, z2, d2 = detection.result()
         promote = True
         if anchored:
             promote = pnp is None or gap >= cfg.kf_max_gap or n_inl < cfg.kf_min_ratio * len(ref.uv)
