@@ -449,6 +449,7 @@ def _print_summary(metrics: dict, out: Path) -> None:
     typer.echo(
         f"{metrics['frames']} frames ({metrics.get('flagged_frames', 0)} flagged), {metrics['loops']} loops, "
         f"median {_fmt(lat.get('total', {}).get('median'), 1)} ms/frame" + (f" ({fps:.1f} frames/s)" if fps else "")
+        + (f", wall {metrics['frames'] / metrics['wall_s']:.1f} frames/s" if metrics.get("wall_s") else "")
     )
     if "trajectories" in metrics:
         typer.echo(_metrics_table(metrics["trajectories"]))

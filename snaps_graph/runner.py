@@ -22,6 +22,7 @@ folder; ``overwrite`` replaces an old folder whole). One writer per file, metric
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import io
@@ -33,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from .config import Config
+from .datasets.prefetch import PREFETCH_FRAMES, prefetch
 from .errors import SnapsGraphError
 from .evaluation.loops import write_candidates_csv
 from .evaluation.metrics import evaluate
@@ -60,9 +62,11 @@ def run_sequence(
     overwrite: bool = False,
     on_frame: Callable[[FrameOutput], None] | None = None,
     observer=None,
+    prefetch_frames: int = PREFETCH_FRAMES,
 ) -> tuple[RunResult, dict]:
     """Run a whole dataset (any reader of ``datasets.open.open_dataset``) and write the results
-    folder. ``observer``: see ``SlamPipeline.observer`` (the rerun logger).
+    folder. ``observer``: see ``SlamPipeline.observer`` (the rerun logger). ``prefetch_frames``:
+    frames read ahead on a background thread (0: none; ``datasets.prefetch``).
 
     Everything that can be checked before the first frame is: the configuration (with the
     overrides) and the output folder."""
@@ -70,16 +74,17 @@ def run_sequence(
     check_output_folder(out_dir, overwrite)
     pipe = SlamPipeline(dataset.camera, cfg, loops=loops, refine=refine, build_map=build_map)
     pipe.observer = observer
-    for frame in dataset:
-        try:
-            out = pipe.process(frame)
-        except SnapsGraphError as exc:  # name the frame's file where the dataset knows it
-            where = dataset.frame_source(frame.index) if hasattr(dataset, "frame_source") else None
-            if where is None:
-                raise
-            raise SnapsGraphError(f"{where}: {exc}") from None
-        if on_frame is not None:
-            on_frame(out)
+    with contextlib.closing(prefetch(dataset, prefetch_frames)) as frames:  # the next frames are read meanwhile
+        for frame in frames:
+            try:
+                out = pipe.process(frame)
+            except SnapsGraphError as exc:  # name the frame's file where the dataset knows it
+                where = dataset.frame_source(frame.index) if hasattr(dataset, "frame_source") else None
+                if where is None:
+                    raise
+                raise SnapsGraphError(f"{where}: {exc}") from None
+            if on_frame is not None:
+                on_frame(out)
     result = pipe.finish()
     metrics = write_results(out_dir, pipe, result, dataset.gt_poses, overwrite=overwrite)
     return result, metrics

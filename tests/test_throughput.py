@@ -1,0 +1,79 @@
+"""Speed work that must not change results: reading ahead, the front end's thread overlap."""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from snaps_graph.config import FrontendConfig
+from snaps_graph.datasets.kitti import KittiSequence
+from snaps_graph.datasets.prefetch import prefetch
+from snaps_graph.errors import SnapsGraphError
+from snaps_graph.frontend import StereoOdometry
+
+
+def _prefetch_threads() -> list[threading.Thread]:
+    return [t for t in threading.enumerate() if t.name == "prefetch"]
+
+
+@pytest.mark.parametrize("depth", [0, 1, 3])
+def test_prefetch_yields_every_item_in_order(depth):
+    assert list(prefetch(iter(range(50)), depth)) == list(range(50))
+    assert list(prefetch([], depth)) == []
+
+
+def test_prefetch_raises_the_source_error_at_its_place():
+    def source():
+        yield from range(5)
+        raise SnapsGraphError("000005.png: unreadable image")
+
+    got = []
+    with pytest.raises(SnapsGraphError, match="000005.png: unreadable image"):
+        for x in prefetch(source(), 2):
+            got.append(x)
+    assert got == [0, 1, 2, 3, 4]
+
+
+def test_prefetch_stops_reading_when_the_consumer_stops():
+    read = []
+
+    def source():
+        for i in range(1000):
+            read.append(i)
+            yield i
+
+    with contextlib.closing(prefetch(source(), 2)) as items:
+        for x in items:
+            if x == 3:
+                break
+    time.sleep(0.3)
+    assert not _prefetch_threads()
+    assert len(read) <= 4 + 2 + 1  # what was consumed, the queue, the item in hand
+
+
+def test_prefetched_frames_equal_the_reader_frames(tiny_seq):
+    seq = KittiSequence(tiny_seq)
+    for a, b in zip(seq, prefetch(seq, 2), strict=True):
+        assert a.index == b.index and a.timestamp == b.timestamp
+        assert np.array_equal(a.left, b.left) and np.array_equal(a.right, b.right)
+
+
+def test_front_end_threads_do_not_change_the_result(kitti06_dir):
+    """threads = 2 overlaps stereo with PnP and re-detection with the stereo BA; threads = 1
+    runs the same stages in order: the poses must be the same bits."""
+    frames = list(KittiSequence(kitti06_dir, frames="0:8"))
+    runs = []
+    for threads in (1, 2):
+        with StereoOdometry(KittiSequence(kitti06_dir, frames="0:1").camera, FrontendConfig(threads=threads)) as vo:
+            runs.append([vo.process(frames[0])])
+            n_first = vo._next_id  # landmark ids handed out to the first frame's corners
+            runs[-1] += [vo.process(f) for f in frames[1:]]
+            assert vo._next_id > n_first  # re-detection ran after the first frame
+    for a, b in zip(*runs):
+        assert a.ok and b.ok
+        assert np.array_equal(a.pose, b.pose)
+        assert np.array_equal(a.features.uv, b.features.uv)
