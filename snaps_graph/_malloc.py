@@ -1,0 +1,48 @@
+"""glibc malloc thresholds for image-sized temporaries, set once when the package is imported.
+
+OpenCV and numpy allocate image-sized temporaries (LK pyramids, eigenvalue maps, disparity
+maps) many times a frame. glibc serves allocations above its mmap threshold with a fresh
+``mmap`` and gives the top of the heap back to the system above its trim threshold, so such a
+temporary can cost one page fault per 4 KB page on every call; in a process that has imported
+gtsam this happened on every ``goodFeaturesToTrack`` call (README, speed section). Fixed
+thresholds keep these blocks in the heap, where they are reused. Where memory comes from does
+not change any result.
+
+Not applied off glibc, when ``MALLOC_MMAP_THRESHOLD_`` or ``MALLOC_TRIM_THRESHOLD_`` is set
+(the user's setting wins), or with ``SNAPS_GRAPH_MALLOC=default``.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+
+M_TRIM_THRESHOLD = -1  # mallopt parameter numbers (glibc malloc.h)
+M_MMAP_THRESHOLD = -3
+MMAP_THRESHOLD_BYTES = 32 * 2**20  # glibc's largest allowed value on 64-bit
+TRIM_THRESHOLD_BYTES = 256 * 2**20
+
+
+def _glibc() -> bool:
+    try:
+        return os.confstr("CS_GNU_LIBC_VERSION").startswith("glibc")  # type: ignore[union-attr]
+    except (AttributeError, ValueError, OSError):
+        return False
+
+
+def set_malloc_thresholds() -> bool:
+    """Set glibc's mmap and trim thresholds (see the module docstring); True when applied."""
+    if os.environ.get("SNAPS_GRAPH_MALLOC") == "default":
+        return False
+    if "MALLOC_MMAP_THRESHOLD_" in os.environ or "MALLOC_TRIM_THRESHOLD_" in os.environ or not _glibc():
+        return False
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        return bool(libc.mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)) and bool(
+            libc.mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES)
+        )
+    except (OSError, AttributeError):
+        return False
+
+
+APPLIED = set_malloc_thresholds()
