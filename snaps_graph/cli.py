@@ -448,7 +448,8 @@ def _print_summary(metrics: dict, out: Path) -> None:
     fps = lat.get("frames_per_s")
     typer.echo(
         f"{metrics['frames']} frames ({metrics.get('flagged_frames', 0)} flagged), {metrics['loops']} loops, "
-        f"median {_fmt(lat.get('total', {}).get('median'), 1)} ms/frame" + (f" ({fps:.1f} frames/s)" if fps else "")
+        f"median {_fmt(lat.get('total', {}).get('median'), 1)} ms/frame"
+        + (f" ({fps:.1f} frames/s)" if fps else "")
         + (f", wall {metrics['frames'] / metrics['wall_s']:.1f} frames/s" if metrics.get("wall_s") else "")
     )
     if "trajectories" in metrics:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import queue
 import threading
-from collections.abc import Iterable, Iterator
+from collections.abc import Generator, Iterable
 from typing import TypeVar
 
 T = TypeVar("T")
@@ -19,7 +19,7 @@ PREFETCH_FRAMES = 2  # frames read ahead by default (a few MB at most)
 _END = object()
 
 
-def prefetch(items: Iterable[T], depth: int = PREFETCH_FRAMES) -> Iterator[T]:
+def prefetch(items: Iterable[T], depth: int = PREFETCH_FRAMES) -> Generator[T, None, None]:
     """Yield ``items`` in order, read up to ``depth`` ahead on a daemon thread; ``depth`` <= 0:
     plain iteration. An exception of the source is raised here at its place in the order.
     Closing the generator (the caller stopped: an error, Ctrl-C) stops the thread after the
