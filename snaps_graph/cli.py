@@ -20,6 +20,7 @@ import typer
 from tqdm import tqdm
 
 from .config import Config, FrontendMode, LoopMode, RefineMode, choices
+from .datasets.prefetch import PREFETCH_FRAMES
 from .errors import SnapsGraphError
 from .io_utils import check_output_folder, output_folder
 
@@ -155,6 +156,9 @@ def run(
     refine: Optional[str] = typer.Option(None, "--refine", help="none | isam2 | batch | both (default from config: none)."),
     map_: Optional[bool] = typer.Option(None, "--map/--no-map", help="Build the point-cloud map (default from config: off)."),
     mode: Optional[str] = typer.Option(None, "--mode", help="Front-end mode override: klt | orb | sift."),
+    prefetch: int = typer.Option(
+        PREFETCH_FRAMES, "--prefetch", help="Frames read ahead on a background thread (0: read inline)."
+    ),
     map_all: bool = typer.Option(False, "--map-all", help="With --map: also map_<trajectory>.ply for every trajectory."),
     world_mesh: Optional[Path] = typer.Option(
         None, "--world-mesh", help="With --map: the true world mesh (PLY); map accuracy per trajectory."
@@ -221,6 +225,7 @@ def run(
                 overwrite=overwrite,
                 on_frame=on_frame,
                 observer=observer,
+                prefetch_frames=prefetch,
             )
         except BaseException:
             if observer is not None:

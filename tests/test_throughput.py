@@ -102,3 +102,21 @@ def test_image_temporaries_do_not_page_fault_on_every_call():
     if out[0] != "True":
         pytest.skip("malloc thresholds not applied here (not glibc, or MALLOC_*_ set)")
     assert float(out[1]) < 500  # 11 MB afresh would be ~2700 faults
+
+
+def test_cli_prefetch_option_gives_the_same_results(tiny_seq, tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, PYTHONWARNINGS="ignore")
+    outs = []
+    for n in ("0", "3"):
+        out = tmp_path / f"run{n}"
+        cmd = [sys.executable, "-m", "snaps_graph.cli", "run", str(tiny_seq), "--out", str(out), "--prefetch", n]
+        proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
+        assert proc.returncode == 0, proc.stdout + proc.stderr
+        assert "wall" in proc.stdout and "frames/s" in proc.stdout
+        outs.append(out)
+    assert (outs[0] / "poses_vo.txt").read_text() == (outs[1] / "poses_vo.txt").read_text()
+    assert (outs[0] / "poses_snaps.txt").read_text() == (outs[1] / "poses_snaps.txt").read_text()
