@@ -25,9 +25,9 @@ sys.path.insert(0, str(ROOT))
 
 from snaps_graph.config import Config  # noqa: E402
 from snaps_graph.datasets.kitti import KittiSequence  # noqa: E402
-from snaps_graph.datasets.prefetch import PREFETCH_FRAMES, prefetch  # noqa: E402
 from snaps_graph.evaluation.metrics import evaluate  # noqa: E402
 from snaps_graph.evaluation.oracle import loop_oracle, true_revisit_pairs  # noqa: E402
+from snaps_graph.io_utils import PREFETCH_FRAMES, prefetch  # noqa: E402
 from snaps_graph.pipeline import SlamPipeline  # noqa: E402
 from snaps_graph.runner import latency_summary, write_results  # noqa: E402
 

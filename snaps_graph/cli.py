@@ -20,9 +20,8 @@ import typer
 from tqdm import tqdm
 
 from .config import Config, FrontendMode, LoopMode, RefineMode, choices
-from .datasets.prefetch import PREFETCH_FRAMES
 from .errors import SnapsGraphError
-from .io_utils import check_output_folder, output_folder
+from .io_utils import PREFETCH_FRAMES, check_output_folder, output_folder
 
 # Heavy modules (OpenCV, gtsam, open3d, matplotlib) are imported inside the commands that use
 # them, after the cheap checks, so `config`, `--help` and a bad option answer at once.

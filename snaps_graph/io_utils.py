@@ -1,15 +1,19 @@
 """Small file helpers: atomic writes and whole-or-absent output folders, so an interrupted run
-never leaves a half-written file or a folder that looks complete."""
+never leaves a half-written file or a folder that looks complete; reading frames ahead on a
+background thread (``prefetch``)."""
 
 from __future__ import annotations
 
 import os
+import queue
 import shutil
 import tempfile
+import threading
 import tomllib
-from collections.abc import Iterator
+from collections.abc import Generator, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import TypeVar
 
 from .errors import SnapsGraphError
 
@@ -174,3 +178,56 @@ def parse_frame_range(text: str | None, n_total: int | None = None) -> tuple[int
         if stop is not None:
             stop = min(stop, n_total)
     return start, stop
+
+
+T = TypeVar("T")
+
+PREFETCH_FRAMES = 2  # frames read ahead by default (a few MB at most)
+
+_END = object()
+
+
+def prefetch(items: Iterable[T], depth: int = PREFETCH_FRAMES) -> Generator[T, None, None]:
+    """Yield ``items`` in order, read up to ``depth`` ahead on a daemon thread; ``depth`` <= 0:
+    plain iteration. For a dataset, the next frames' images are read and decoded while the
+    caller works (OpenCV's ``imread`` releases the GIL); the frames are unchanged. An exception of the source is raised here at its place in the order.
+    Closing the generator (the caller stopped: an error, Ctrl-C) stops the thread after the
+    item it is reading; use it as ``with contextlib.closing(prefetch(...)) as frames``."""
+    if depth <= 0:
+        yield from items
+        return
+    q: queue.Queue = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+
+    def put(entry: tuple) -> bool:
+        while not stop.is_set():
+            try:
+                q.put(entry, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def work() -> None:
+        try:
+            for item in items:
+                if not put((item, None)):
+                    return
+        except BaseException as exc:  # handed to the consumer, raised there
+            put((_END, exc))
+            return
+        put((_END, None))
+
+    thread = threading.Thread(target=work, name="prefetch", daemon=True)
+    thread.start()
+    try:
+        while True:
+            item, exc = q.get()
+            if item is _END:
+                if exc is not None:
+                    raise exc
+                return
+            yield item
+    finally:
+        stop.set()
+        thread.join(timeout=5.0)

@@ -34,13 +34,12 @@ from pathlib import Path
 import numpy as np
 
 from .config import Config
-from .datasets.prefetch import PREFETCH_FRAMES, prefetch
 from .errors import SnapsGraphError
 from .evaluation.loops import write_candidates_csv
 from .evaluation.metrics import evaluate
 from .evaluation.report import latency_summary as _latency_summary
 from .evaluation.report import write_metrics_json
-from .io_utils import atomic_write_text, check_output_folder, output_folder
+from .io_utils import PREFETCH_FRAMES, atomic_write_text, check_output_folder, output_folder, prefetch
 from .mapping.outputs import write_map_outputs
 from .pipeline import FrameOutput, RunResult, SlamPipeline
 from .trajectory_io import write_kitti_poses, write_tum_poses
@@ -66,7 +65,7 @@ def run_sequence(
 ) -> tuple[RunResult, dict]:
     """Run a whole dataset (any reader of ``datasets.open.open_dataset``) and write the results
     folder. ``observer``: see ``SlamPipeline.observer`` (the rerun logger). ``prefetch_frames``:
-    frames read ahead on a background thread (0: none; ``datasets.prefetch``).
+    frames read ahead on a background thread (0: none; ``io_utils.prefetch``).
 
     Everything that can be checked before the first frame is: the configuration (with the
     overrides) and the output folder."""

@@ -11,9 +11,9 @@ import pytest
 
 from snaps_graph.config import FrontendConfig
 from snaps_graph.datasets.kitti import KittiSequence
-from snaps_graph.datasets.prefetch import prefetch
 from snaps_graph.errors import SnapsGraphError
 from snaps_graph.frontend import StereoOdometry
+from snaps_graph.io_utils import prefetch
 
 
 def _prefetch_threads() -> list[threading.Thread]:
