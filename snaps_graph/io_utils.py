@@ -190,9 +190,10 @@ _END = object()
 def prefetch(items: Iterable[T], depth: int = PREFETCH_FRAMES) -> Generator[T, None, None]:
     """Yield ``items`` in order, read up to ``depth`` ahead on a daemon thread; ``depth`` <= 0:
     plain iteration. For a dataset, the next frames' images are read and decoded while the
-    caller works (OpenCV's ``imread`` releases the GIL); the frames are unchanged. An exception of the source is raised here at its place in the order.
-    Closing the generator (the caller stopped: an error, Ctrl-C) stops the thread after the
-    item it is reading; use it as ``with contextlib.closing(prefetch(...)) as frames``."""
+    caller works (OpenCV's ``imread`` releases the GIL); the frames are unchanged. An exception
+    of the source is raised here at its place in the order. Closing the generator (the caller
+    stopped: an error, Ctrl-C) stops the thread after the item it is reading; use it as
+    ``with contextlib.closing(prefetch(...)) as frames``."""
     if depth <= 0:
         yield from items
         return
