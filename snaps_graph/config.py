@@ -287,6 +287,11 @@ class LoopConfig(_Section):
     # K = 100 was worse in ATE on the demo loop (1.06x) and hard 07 (1.08x), K = 300 in mean
     # deviation on the demo loop (1.47x). discount_window = "fixed" + "paper" is eq. 6 exactly.
     discount_shape: Literal["paper", "window", "linear"] = "linear"
+    # How a verified loop's heading correction moves the window: "shift" = orientations turn by
+    # w*gamma_s, positions only by the ramp of delta; "bend" = the window's headings turn
+    # progressively (0 at its oldest frame, the full turn at N), its positions are re-composed
+    # from the VO steps turned with them, and the ramp then spreads what remains of delta.
+    correction_model: Literal["shift", "bend"] = "shift"
 
 
 @dataclass

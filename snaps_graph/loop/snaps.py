@@ -518,6 +518,22 @@ class SnapsLoopCloser:
         K = self.window_length(n - first + 1)
         lo = max(0, n - K, first)
         gamma = discount(self.cfg, alpha, n - np.arange(lo, n + 1, dtype=float), n - lo)
+        if rotvec is not None and self.cfg.correction_model == "bend" and lo > 0:
+            # Turn the window's headings progressively from its anchor (frame lo - 1, fixed) to N
+            # and re-compose its positions from the VO steps turned with them; the ramp below
+            # then spreads only what remains of delta.
+            frac = np.arange(1, n - lo + 2, dtype=float) / (n - lo + 1)
+            Rs = _exp_so3(rotvec, q * frac)
+            steps = np.diff(self._p[lo - 1 : n + 1], axis=0)
+            turned = np.einsum("kij,kj->ki", np.concatenate([np.eye(3)[None], Rs[:-1]]), steps)
+            old_n = self._p[n].copy()
+            self._p[lo : n + 1] = self._p[lo - 1] + np.cumsum(turned, axis=0)
+            delta = delta - (self._p[n] - old_n)
+            if self.cfg.correction_axes == "ground":
+                delta[1] = 0.0
+            self._R[lo : n + 1] = Rs @ self._R[lo : n + 1]
+            self._yaw[lo : n + 1] = yaw_deg(self._R[lo : n + 1])
+            rotvec = None
         self._p[lo : n + 1] += (q * gamma)[:, None] * delta
         if rotvec is not None:
             self._R[lo : n + 1] = _exp_so3(rotvec, q * gamma) @ self._R[lo : n + 1]
