@@ -292,6 +292,16 @@ class LoopConfig(_Section):
     # progressively (0 at its oldest frame, the full turn at N), its positions are re-composed
     # from the VO steps turned with them, and the ramp then spreads what remains of delta.
     correction_model: Literal["shift", "bend"] = "shift"
+    # During the inter-frame pause, keep searching candidates estimated closer than this fraction
+    # of the pinning loop's distance (verified |t_ref_cur|, else the estimated distance); one that
+    # verifies at a measured distance below the same limit is a loop and pins again. 0 = the
+    # paper's pause (no search at all).
+    pause_closer_ratio: float = 0.0
+    # Prior variance of the heading a verified loop corrects: "span" = the drift since the
+    # reference, (N - j) * heading_drift_deg^2; "tracked" = at most what is left after the last
+    # heading correction plus the drift since, so loops in quick succession do not re-apply the
+    # share of the turn an earlier loop already weighed and left out.
+    heading_prior: Literal["span", "tracked"] = "span"
 
 
 @dataclass
@@ -700,6 +710,7 @@ RULES: dict[str, Range] = {
     "loop.verified_heading_sigma_deg": NON_NEGATIVE,
     "loop.discount_span_factor": POSITIVE,
     "loop.discount_length_max": NON_NEGATIVE,
+    "loop.pause_closer_ratio": Range(0, 1, hi_open=True),
     "graph.prior_sigma_rot_rad": POSITIVE,
     "graph.prior_sigma_trans_m": POSITIVE,
     "graph.odom_sigma_rot_rad": POSITIVE,

@@ -496,3 +496,126 @@ def test_eq6_never_moves_the_reference_or_older_frames():
     assert steps[6].loop is not None and steps[6].loop.reference == 2 and steps[6].loop.n_corrected == 4
     np.testing.assert_array_equal(closer.positions[:3], [[0, 0, 0], [0, 0, 1.0], [0, 0, 2.0]])
     assert closer.positions[3, 2] != 3.0
+
+
+# ---------------------------------------------------------------- bend, pause, heading prior
+def _circle_case(model: str):
+    """A 36-frame circle (10 deg and 1 m per frame) that the VO turns 0.2 deg too far per frame;
+    frame 36 revisits frame 0 and verification measures the exact relative pose. Returns the
+    position errors (true vs corrected) of frames 0..36 and the closer."""
+    r = 0.5 / math.sin(math.radians(5.0))  # chord of 1 m per 10 deg
+
+    def on_circle(k: int, extra: float = 0.0) -> np.ndarray:
+        a = math.radians(10.0 * k)
+        T = pose(x=r * (1.0 - math.cos(a)), z=r * math.sin(a), yaw=10.0 * k + extra)
+        return T
+
+    true = [on_circle(k) for k in range(37)]
+    images = [tex(k) for k in range(36)] + [tex(0) // 2]
+    closer = SnapsLoopCloser(
+        cfg(
+            radius_m=5.5,
+            frame_distance=30,
+            correction_weight="verified",
+            correction_axes="ground",
+            correction_rotation="yaw",
+            verified_heading_sigma_deg=0.0,  # exact measurement: the full turn
+            discount_window="span",
+            discount_shape="linear",
+            correction_model=model,
+        )
+    )
+    turn = pose(yaw=0.2)  # the VO's extra 0.2 deg per frame
+    for k in range(37):
+        T_rel = np.eye(4) if k == 0 else inv(true[k - 1]) @ true[k] @ turn
+        step = closer.step(k, T_rel, images[k], verify=lambda ref: (inv(true[ref]) @ true[36], 50))
+    assert step.loop is not None and step.loop.reference == 0 and step.loop.verified
+    err = np.linalg.norm(closer.positions - np.array([T[:3, 3] for T in true]), axis=1)
+    return err, closer
+
+
+def test_bend_undoes_a_constant_heading_drift():
+    """A heading error growing evenly along the loop is what "bend" models: turning the window's
+    headings progressively and re-composing its positions puts every frame back on the circle
+    (the ramp has nothing left to spread); "shift" only slides positions along a ramp, so the
+    middle of the loop keeps most of its error."""
+    err_bend, closer = _circle_case("bend")
+    err_shift, _ = _circle_case("shift")
+    assert np.max(err_bend) < 1e-6
+    assert yaw_deg(closer.poses[36]) == pytest.approx(0.0, abs=1e-6)
+    assert np.max(err_shift[10:27]) > 0.1  # mid-loop frames stay off with the ramp alone
+
+
+def _pause_case(ratio: float, second_z: float, measured_z: float | None = None):
+    """Frames 0..4 lie 20 m apart; frame 5 (z = 4) revisits frame 0 and verifies at 4 m, which
+    starts the pause (10 frames); frame 6 (z = second_z) looks like frame 0 as well and verifies
+    at measured_z (default: its true distance)."""
+    closer = SnapsLoopCloser(cfg(inter_frame_pause=10, pause_closer_ratio=ratio, correction_weight="verified"))
+    poses = [pose(z=20.0 * k) for k in range(5)] + [pose(z=4.0), pose(z=second_z)]
+    images = [tex(k) for k in range(5)] + [tex(0) // 2, tex(0) // 2]
+    meas = {5: pose(z=4.0), 6: pose(z=second_z if measured_z is None else measured_z)}
+    steps = []
+    for k in range(7):
+        T_rel = np.eye(4) if k == 0 else inv(poses[k - 1]) @ poses[k]
+        steps.append(closer.step(k, T_rel, images[k], verify=lambda ref, k=k: (meas[k], 50)))
+    assert steps[5].loop is not None and steps[5].loop.reference == 0
+    return steps, closer
+
+
+def test_pause_closer_ratio():
+    steps, closer = _pause_case(0.0, 1.0)  # the paper's pause: no search at all
+    assert steps[6].candidates == 0 and steps[6].loop is None
+    steps, closer = _pause_case(0.5, 1.0)  # 1 m < 0.5 * 4 m: searched, verified, a loop
+    assert steps[6].loop is not None and steps[6].loop.reference == 0 and closer.last_pinned == 6
+    np.testing.assert_allclose(closer.positions[6], [0, 0, 1.0], atol=0.1)
+    steps, _ = _pause_case(0.5, 3.0)  # estimated 3 m: not clearly closer, nothing compared
+    assert steps[6].candidates == 0
+    steps, closer = _pause_case(0.5, 1.0, measured_z=2.5)  # verification measures 2.5 m: no loop
+    assert steps[6].candidates == 1 and steps[6].loop is None and closer.last_pinned == 5
+
+
+def test_closer_loop_keeps_the_pause_of_the_loop_that_started_it():
+    """A closer loop inside the pause does not restart it: frame 16 (11 frames after the loop at
+    5, pause 10) searches normally although frame 6 closed a closer loop."""
+    closer = SnapsLoopCloser(cfg(inter_frame_pause=10, pause_closer_ratio=0.5, correction_weight="verified"))
+    poses = [pose(z=20.0 * k) for k in range(5)] + [pose(z=4.0), pose(z=1.0)] + [pose(z=200.0 + 20 * k) for k in range(9)]
+    poses.append(pose(z=20.5))  # frame 16 revisits frame 1
+    images = [tex(k) for k in range(5)] + [tex(0) // 2, tex(0) // 2] + [tex(10 + k) for k in range(9)] + [tex(1) // 2]
+    for k in range(17):
+        T_rel = np.eye(4) if k == 0 else inv(poses[k - 1]) @ poses[k]
+        meas = inv(poses[1 if k == 16 else 0]) @ poses[k]
+        step = closer.step(k, T_rel, images[k], verify=lambda ref, m=meas: (m, 50))
+    assert step.loop is not None and step.loop.reference == 1 and closer.last_pinned == 16
+
+
+@pytest.mark.parametrize("prior, second_gain", [("span", 0.5), ("tracked", 0.2)])
+def test_heading_prior_tracked_after_a_loop(prior, second_gain):
+    """Two verified loops 1 frame apart (frames 5 and 6, each 5 frames after its reference; VO
+    heading 3 deg off; heading_drift 1 deg/sqrt(frame), sigma^2 5 deg^2): the first applies gain
+    5 / (5 + 5) = 0.5. "span" applies 0.5 again to what is left; "tracked" starts from the
+    2.5 deg^2 the first left plus 1 frame of drift: 3.5 / (3.5 + 5)."""
+    closer = SnapsLoopCloser(
+        cfg(
+            inter_frame_pause=0,
+            correction_weight="verified",
+            correction_rotation="yaw",
+            heading_drift_deg=1.0,
+            verified_heading_sigma_deg=math.sqrt(5.0),
+            heading_prior=prior,
+        )
+    )
+    true = [pose(z=float(k)) for k in range(7)]
+    est = [true[0]] + [pose(z=float(k), yaw=3.0) for k in range(1, 7)]
+    images = [tex(k) for k in range(5)] + [tex(0) // 2, tex(1) // 2]
+    yaws = []
+    for k in range(7):
+        T_rel = np.eye(4) if k == 0 else inv(est[k - 1]) @ est[k]
+        step = closer.step(k, T_rel, images[k], verify=lambda ref, k=k: (inv(true[ref]) @ true[k], 50))
+        yaws.append(yaw_deg(step.pose))
+    assert step.loop is not None and step.loop.reference == 1
+    g1 = 0.5
+    assert yaws[5] == pytest.approx(3.0 * (1 - g1 * gamma(1, 0)), abs=1e-9)
+    # Frame 6 arrives on frame 5's corrected heading; its target is frame 1's (never moved by it).
+    g2 = 0.5 if prior == "span" else 3.5 / 8.5
+    yaw_ref = yaw_deg(closer.poses[1])
+    assert yaws[6] == pytest.approx(yaws[5] - g2 * gamma(2, 0) * (yaws[5] - yaw_ref), abs=1e-9)

@@ -175,6 +175,10 @@ class SnapsLoopCloser:
         self._thumbs: list[np.ndarray] = []
         self._stats: OrderedDict[int, WindowStats] = OrderedDict()
         self._last_pinned: int | None = None
+        self._pause_from = 0  # the loop that started the current pause
+        self._pinned_distance = 0.0  # distance of the last loop (m)
+        self._heading_pin: int | None = None  # last frame whose heading a verified loop corrected
+        self._heading_var = 0.0  # its heading variance left after that correction (deg^2)
         self._loops: list[LoopEvent] = []
         self.similarities_computed = 0
         self.rejected_unverified = 0  # loops refused because no candidate verified
@@ -268,11 +272,18 @@ class SnapsLoopCloser:
         if n - self.cfg.frame_distance >= 0:
             self._insert(n - self.cfg.frame_distance)
         loop, computed = None, 0
-        if self._last_pinned is None or n - self._last_pinned > self.cfg.inter_frame_pause:
+        a = self.cfg.attempts
+        if self._last_pinned is None or n - self._pause_from > self.cfg.inter_frame_pause:
             ids, dists = self.search(n)
             if ids.size:
-                a = self.cfg.attempts
                 loop, computed = self._try_close(n, ids[:a], dists[:a], verify)
+        elif self.cfg.pause_closer_ratio > 0.0:  # in the pause: only a clearly closer revisit
+            ids, dists = self.search(n)
+            if ids.size:
+                limit = self.cfg.pause_closer_ratio * self._pinned_distance
+                keep = dists < limit
+                if keep.any():
+                    loop, computed = self._try_close(n, ids[keep][:a], dists[keep][:a], verify, limit)
         # Verification (tried or successful) is the graph's work, timed on its own.
         t_verify_ms, self._t_verify_ms = self._t_verify_ms, 0.0
         t_ms = (perf_counter() - t0) * 1e3 - t_verify_ms
@@ -336,9 +347,11 @@ class SnapsLoopCloser:
         return np.array([j for _, j in hits], dtype=np.int64), np.array([d for d, _ in hits])
 
     def _try_close(
-        self, n: int, ids: np.ndarray, dists: np.ndarray, verify: Verifier | None = None
+        self, n: int, ids: np.ndarray, dists: np.ndarray, verify: Verifier | None = None, max_distance: float | None = None
     ) -> tuple[LoopEvent | None, int]:
-        """Compare candidates, pick the loop, correct (eq. 6).
+        """Compare candidates, pick the loop, correct (eq. 6). With ``max_distance`` (a search
+        inside the pause) a verification measuring the reference that far away or farther does
+        not make a loop.
 
         δ aims at the reference position p_ref (the paper's same-place assumption). With
         ``use_verified_offset`` and a verifier that succeeds, δ aims instead at where the current
@@ -372,7 +385,7 @@ class SnapsLoopCloser:
             tv = perf_counter()
             for i in passing[: max(1, self.cfg.verify_attempts)]:
                 outcome[i] = result = verify(int(self._index[int(ids[i])]))
-                if result is not None:
+                if result is not None and (max_distance is None or np.linalg.norm(result[0][:3, 3]) < max_distance):
                     best, (T_ref_cur, inliers), verified = i, result, True
                     break
             if self.cfg.verify_all_candidates:
@@ -399,9 +412,16 @@ class SnapsLoopCloser:
             delta[1] = 0.0
         rotvec = None
         if verified and self.cfg.correction_rotation != "none":
-            rotvec = _rotation_correction(
-                self._R[ref] @ np.asarray(T_ref_cur, float)[:3, :3] @ self._R[n].T, self.cfg.correction_rotation
-            ) * self.heading_gain(n - ref)
+            prior = (n - ref) * self.cfg.heading_drift_deg**2
+            if self.cfg.heading_prior == "tracked" and self._heading_pin is not None:
+                prior = min(prior, self._heading_var + (n - self._heading_pin) * self.cfg.heading_drift_deg**2)
+            var = prior + self.cfg.verified_heading_sigma_deg**2
+            gain = prior / var if var > 0 else 1.0
+            self._heading_pin, self._heading_var = n, (1.0 - gain) * prior
+            rotvec = (
+                _rotation_correction(self._R[ref] @ np.asarray(T_ref_cur, float)[:3, :3] @ self._R[n].T, self.cfg.correction_rotation)
+                * gain
+            )
         alpha = len(self._loops) + 1
         # Eq. 6 weighs the move by Q: the confidence that N stands where the reference stood. A
         # verified loop measured where N stands, so with correction_weight = "verified" it moves
@@ -409,6 +429,9 @@ class SnapsLoopCloser:
         weight = 1.0 if (verified and self.cfg.correction_weight == "verified") else sim.q
         n_corrected = self._correct(n, weight, delta, alpha, rotvec, first=ref + 1)
         self._last_pinned = n
+        if max_distance is None:  # a closer loop inside the pause does not restart it
+            self._pause_from = n
+        self._pinned_distance = float(np.linalg.norm(np.asarray(T_ref_cur, float)[:3, 3])) if verified else float(dists[best])
         event = LoopEvent(
             frame=int(self._index[n]),
             reference=int(self._index[ref]),
