@@ -12,6 +12,10 @@ the loop oracle beside the batch.
     python experiments/loop_verification.py --seq /work/data/seq07_street \\
         --variant base "k300:loop.discount_length=300" [--batch] [--verify-all] [--pause 0]
 
+The VO cache is keyed by the front-end settings and source files, so a replay reproduces a
+user's run with the same config; ``--compare-run RUN_DIR`` (a ``snaps-graph run`` of the same
+sequence) prints the largest difference between the replay's poses and the run's.
+
 ``--verify-all`` verifies every compared candidate and ``--pause 0`` sets the inter-frame pause
 to 0, so every revisit frame is searched: the precision-recall figures of the verifier, not of a
 deployable run (every verified loop then corrects the trajectory).
@@ -30,6 +34,7 @@ from pathlib import Path
 import numpy as np
 from _common import RESULTS, CachedOdometry, md_table
 
+import snaps_graph
 from snaps_graph.config import Config
 from snaps_graph.datasets.kitti import KittiSequence
 from snaps_graph.evaluation.loops import LoopEvalSettings, evaluate_loops
@@ -38,12 +43,23 @@ from snaps_graph.evaluation.oracle import loop_oracle
 from snaps_graph.frontend.odometry import StereoOdometry
 from snaps_graph.pipeline import SlamPipeline
 from snaps_graph.runner import write_results
+from snaps_graph.trajectory_io import read_kitti_poses
+
+# The VO depends on these sources as much as on the settings: a cache made by an older front end
+# would replay a VO no user's run produces (how an earlier table disagreed with the CLI).
+VO_SOURCES = ("frontend/*.py", "camera.py", "geometry.py", "datasets/kitti.py")
 
 
 def frontend_key(cfg: Config) -> str:
-    """Hash of the front-end settings the VO depends on (the loop_* keys are not among them)."""
+    """Hash of the front-end settings the VO depends on (the loop_* keys are not among them) and
+    of the front end's source files."""
     d = {k: v for k, v in dataclasses.asdict(cfg.frontend).items() if not k.startswith("loop_")}
-    return hashlib.md5(repr(sorted(d.items())).encode()).hexdigest()[:10]
+    h = hashlib.md5(repr(sorted(d.items())).encode())
+    root = Path(snaps_graph.__file__).parent
+    for pattern in VO_SOURCES:
+        for f in sorted(root.glob(pattern)):
+            h.update(f.read_bytes())
+    return h.hexdigest()[:10]
 
 
 def cached_vo(seq: KittiSequence, seq_dir: Path, cfg: Config, cache_dir: Path, frames: str | None) -> dict:
@@ -87,6 +103,13 @@ def main() -> None:
     ap.add_argument("--frames", default=None)
     ap.add_argument("--cache", default=str(RESULTS / "vo_cache_lv"))
     ap.add_argument("--write-runs", default=None)
+    ap.add_argument(
+        "--compare-run",
+        nargs="+",
+        default=[],
+        help="CLI run folders (snaps-graph run SEQ --out DIR, same config), one per --seq: "
+        "prints how far the replay's VO and SNAPS poses lie from the run's",
+    )
     ap.add_argument("--out", default=str(RESULTS / "loop_verification.md"))
     args = ap.parse_args()
     base = Config.load(args.config) if args.config else Config()
@@ -95,7 +118,7 @@ def main() -> None:
     if args.pause is not None:
         base.loop.inter_frame_pause = args.pause
     rows = []
-    for seq_arg in args.seq:
+    for i_seq, seq_arg in enumerate(args.seq):
         seq_dir = Path(seq_arg)
         seq = KittiSequence(seq_dir, frames=args.frames)
         t0 = time.perf_counter()
@@ -145,6 +168,12 @@ def main() -> None:
                 pipe.process(f)
             result = pipe.finish()
             wall = time.perf_counter() - t0
+            if i_seq < len(args.compare_run) and name == args.variant[0].partition(":")[0]:
+                run_dir = Path(args.compare_run[i_seq])
+                for traj in ("vo", "snaps"):
+                    cli = read_kitti_poses(run_dir / f"poses_{traj}.txt")
+                    d = np.linalg.norm(cli[:, :3, 3] - result.trajectories[traj][:, :3, 3], axis=1)
+                    print(f"  {name} vs {run_dir}: {traj} poses differ by at most {d.max():.2e} m", flush=True)
             if args.write_runs:
                 write_results(Path(args.write_runs) / f"{seq_dir.name}_{name}", pipe, result, gt, overwrite=True)
             ev = evaluate_loops(

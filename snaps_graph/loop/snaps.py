@@ -11,7 +11,10 @@
    most ``attempts`` of them are compared by UIQI (eq. 4) on thumbnails; candidates with
    Q ≥ minimum similarity are, highest Q first, the loop. With a verifier (the pipeline always has
    one), they are tried in that order and the first that passes geometric verification is the
-   loop; with ``require_verification`` none passing means no loop (see :meth:`_try_close`);
+   loop; with ``require_verification`` none passing means no loop (see :meth:`_try_close`).
+   With ``pause_closer_ratio`` r > 0 the pause still searches candidates estimated closer than r
+   times the last loop's distance, and one verified closer than that closes a loop (the pause
+   keeps running from the loop that started it);
 4. on a loop corrects positions with our reading of eq. 6 (SPEC "SNAPS loop closure"): with
    δ = p_ref − p_N and α the number of loops closed so far (this one included), for
    s ∈ [N − K, N] (clipped at 0), s' = N − s::
@@ -39,6 +42,16 @@
    γ above; or K following the loop's span N − j ("span": min(``discount_length_max``,
    ``discount_span_factor``·(N − j))) with γ stretched over the window ("window") or a linear ramp
    ("linear"), so the correction ends at 0 instead of stepping there (γ is 0.86 at s' = 100).
+
+   The heading turn (``correction_model``): "shift" turns each window frame's orientation by
+   w·γ_s of the verified turn and moves positions by the ramp only; "bend" turns the headings
+   progressively from the window's anchor (frame N − K − 1, fixed) to N, re-composes the window's
+   positions from the VO steps turned with them (a heading error that grew along the loop bent
+   the path, and turning it back straightens the middle of the loop, which δ at N cannot see),
+   then spreads what remains of δ by the ramp. The share of the turn applied is the gain
+   g = P / (P + s²) (``heading_drift_deg``, ``verified_heading_sigma_deg``) with P the heading
+   variance since the reference ("span") or, with ``heading_prior = "tracked"``, at most what the
+   last verified loop left plus the drift since.
 
 Frame numbering. Internally frames are numbered by their position in the processed stream
 (0, 1, ...): M, K and the pause count processed frames. The caller's ``index`` (the dataset's
@@ -419,7 +432,9 @@ class SnapsLoopCloser:
             gain = prior / var if var > 0 else 1.0
             self._heading_pin, self._heading_var = n, (1.0 - gain) * prior
             rotvec = (
-                _rotation_correction(self._R[ref] @ np.asarray(T_ref_cur, float)[:3, :3] @ self._R[n].T, self.cfg.correction_rotation)
+                _rotation_correction(
+                    self._R[ref] @ np.asarray(T_ref_cur, float)[:3, :3] @ self._R[n].T, self.cfg.correction_rotation
+                )
                 * gain
             )
         alpha = len(self._loops) + 1
