@@ -466,6 +466,7 @@ def test_eq6_rotation_correction_turns_window_to_verified_heading(rotation, sigm
             correction_rotation=rotation,
             heading_drift_deg=1.0,
             verified_heading_sigma_deg=sigma,
+            correction_model="shift",  # orientations by w*gamma_s ("bend": test_bend_*)
         )
     )
     for k in range(6):
@@ -602,6 +603,7 @@ def test_heading_prior_tracked_after_a_loop(prior, second_gain):
             heading_drift_deg=1.0,
             verified_heading_sigma_deg=math.sqrt(5.0),
             heading_prior=prior,
+            correction_model="shift",
         )
     )
     true = [pose(z=float(k)) for k in range(7)]
