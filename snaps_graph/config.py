@@ -295,9 +295,10 @@ class LoopConfig(_Section):
     # bend): demo loop 0.75 -> 0.60, KITTI 07 0.87 -> 0.50, 07 hard 0.69 -> 0.14, 00 0.34 -> 0.30.
     correction_model: Literal["shift", "bend"] = "bend"
     # During the inter-frame pause, keep searching candidates estimated closer than this fraction
-    # of the pinning loop's distance (verified |t_ref_cur|, else the estimated distance); one that
-    # verifies at a measured distance below the same limit is a loop and pins again. 0 = the
-    # paper's pause (no search at all).
+    # of the last loop's distance (verified |t_ref_cur|, else the estimated distance); one that
+    # verifies at a measured distance below the same limit is a loop for the factor graph only
+    # (the heuristic is not corrected again, the pause keeps running). 0 = the paper's pause (no
+    # search at all).
     pause_closer_ratio: float = 0.0
     # Prior variance of the heading a verified loop corrects: "span" = the drift since the
     # reference, (N - j) * heading_drift_deg^2; "tracked" = at most what is left after the last

@@ -566,9 +566,12 @@ def _pause_case(ratio: float, second_z: float, measured_z: float | None = None):
 def test_pause_closer_ratio():
     steps, closer = _pause_case(0.0, 1.0)  # the paper's pause: no search at all
     assert steps[6].candidates == 0 and steps[6].loop is None
-    steps, closer = _pause_case(0.5, 1.0)  # 1 m < 0.5 * 4 m: searched, verified, a loop
-    assert steps[6].loop is not None and steps[6].loop.reference == 0 and closer.last_pinned == 6
-    np.testing.assert_allclose(closer.positions[6], [0, 0, 1.0], atol=0.1)
+    p6 = closer.positions[6].copy()
+    steps, closer = _pause_case(0.5, 1.0)  # 1 m < 0.5 * 4 m: searched, verified, a graph-only loop
+    ev = steps[6].loop
+    assert ev is not None and ev.reference == 0 and ev.verified and ev.weight == 0.0 and ev.n_corrected == 0
+    assert closer.last_pinned == 5 and ev.alpha == 1  # not pinned, not counted by eq. 6
+    np.testing.assert_array_equal(closer.positions[6], p6)  # the trajectory is the paper pause's
     steps, _ = _pause_case(0.5, 3.0)  # estimated 3 m: not clearly closer, nothing compared
     assert steps[6].candidates == 0
     steps, closer = _pause_case(0.5, 1.0, measured_z=2.5)  # verification measures 2.5 m: no loop
@@ -576,8 +579,8 @@ def test_pause_closer_ratio():
 
 
 def test_closer_loop_keeps_the_pause_of_the_loop_that_started_it():
-    """A closer loop inside the pause does not restart it: frame 16 (11 frames after the loop at
-    5, pause 10) searches normally although frame 6 closed a closer loop."""
+    """A closer (graph-only) loop inside the pause does not restart it: frame 16 (11 frames after
+    the loop at 5, pause 10) searches normally although frame 6 closed a closer loop."""
     closer = SnapsLoopCloser(cfg(inter_frame_pause=10, pause_closer_ratio=0.5, correction_weight="verified"))
     poses = [pose(z=20.0 * k) for k in range(5)] + [pose(z=4.0), pose(z=1.0)] + [pose(z=200.0 + 20 * k) for k in range(9)]
     poses.append(pose(z=20.5))  # frame 16 revisits frame 1

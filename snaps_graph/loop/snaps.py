@@ -13,8 +13,8 @@
    one), they are tried in that order and the first that passes geometric verification is the
    loop; with ``require_verification`` none passing means no loop (see :meth:`_try_close`).
    With ``pause_closer_ratio`` r > 0 the pause still searches candidates estimated closer than r
-   times the last loop's distance, and one verified closer than that closes a loop (the pause
-   keeps running from the loop that started it);
+   times the last loop's distance; one verified closer than that is a loop for the factor graph
+   only (weight 0, nothing corrected, the pause keeps running from the loop that started it);
 4. on a loop corrects positions with our reading of eq. 6 (SPEC "SNAPS loop closure"): with
    δ = p_ref − p_N and α the number of loops closed so far (this one included), for
    s ∈ [N − K, N] (clipped at 0), s' = N − s::
@@ -189,6 +189,7 @@ class SnapsLoopCloser:
         self._stats: OrderedDict[int, WindowStats] = OrderedDict()
         self._last_pinned: int | None = None
         self._pause_from = 0  # the loop that started the current pause
+        self._alpha = 0  # loops that corrected the trajectory (eq. 6's alpha)
         self._pinned_distance = 0.0  # distance of the last loop (m)
         self._heading_pin: int | None = None  # last frame whose heading a verified loop corrected
         self._heading_var = 0.0  # its heading variance left after that correction (deg^2)
@@ -423,8 +424,9 @@ class SnapsLoopCloser:
         delta = target - self._p[n]
         if self.cfg.correction_axes == "ground":  # the reference's height error stays out
             delta[1] = 0.0
+        in_pause = max_distance is not None  # a closer revisit inside the pause: for the graph only
         rotvec = None
-        if verified and self.cfg.correction_rotation != "none":
+        if verified and self.cfg.correction_rotation != "none" and not in_pause:
             prior = (n - ref) * self.cfg.heading_drift_deg**2
             if self.cfg.heading_prior == "tracked" and self._heading_pin is not None:
                 prior = min(prior, self._heading_var + (n - self._heading_pin) * self.cfg.heading_drift_deg**2)
@@ -437,15 +439,18 @@ class SnapsLoopCloser:
                 )
                 * gain
             )
-        alpha = len(self._loops) + 1
         # Eq. 6 weighs the move by Q: the confidence that N stands where the reference stood. A
         # verified loop measured where N stands, so with correction_weight = "verified" it moves
         # with weight 1 (gamma still discounts older poses); "q" is the paper's rule everywhere.
         weight = 1.0 if (verified and self.cfg.correction_weight == "verified") else sim.q
-        n_corrected = self._correct(n, weight, delta, alpha, rotvec, first=ref + 1)
-        self._last_pinned = n
-        if max_distance is None:  # a closer loop inside the pause does not restart it
-            self._pause_from = n
+        if in_pause:
+            # Correcting again right after a loop made the heuristic worse (README, issue 12): the
+            # loop goes to the factor graph only and the pause keeps running.
+            weight, n_corrected, alpha = 0.0, 0, self._alpha
+        else:
+            self._alpha = alpha = self._alpha + 1
+            n_corrected = self._correct(n, weight, delta, alpha, rotvec, first=ref + 1)
+            self._last_pinned = self._pause_from = n
         self._pinned_distance = float(np.linalg.norm(np.asarray(T_ref_cur, float)[:3, 3])) if verified else float(dists[best])
         event = LoopEvent(
             frame=int(self._index[n]),
