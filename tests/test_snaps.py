@@ -485,6 +485,12 @@ def test_eq6_options_validated():
         SnapsLoopCloser(cfg(correction_axes="z"))
     with pytest.raises(SnapsGraphError, match="correction_rotation"):
         SnapsLoopCloser(cfg(correction_rotation="pitch"))
+    with pytest.raises(SnapsGraphError, match="correction_model"):
+        SnapsLoopCloser(cfg(correction_model="warp"))
+    with pytest.raises(SnapsGraphError, match="heading_prior"):
+        SnapsLoopCloser(cfg(heading_prior="kalman"))
+    with pytest.raises(SnapsGraphError, match="pause_closer_ratio"):
+        SnapsLoopCloser(cfg(pause_closer_ratio=1.0))
 
 
 def test_eq6_never_moves_the_reference_or_older_frames():
