@@ -286,10 +286,10 @@ class SnapsLoopCloser:
         if n - self.cfg.frame_distance >= 0:
             self._insert(n - self.cfg.frame_distance)
         loop, computed = None, 0
-        a = self.cfg.attempts
         if self._last_pinned is None or n - self._pause_from > self.cfg.inter_frame_pause:
             ids, dists = self.search(n)
             if ids.size:
+                a = self.cfg.attempts
                 loop, computed = self._try_close(n, ids[:a], dists[:a], verify)
         elif self.cfg.pause_closer_ratio > 0.0:  # in the pause: only a clearly closer revisit
             ids, dists = self.search(n)
@@ -297,6 +297,7 @@ class SnapsLoopCloser:
                 limit = self.cfg.pause_closer_ratio * self._pinned_distance
                 keep = dists < limit
                 if keep.any():
+                    a = self.cfg.attempts
                     loop, computed = self._try_close(n, ids[keep][:a], dists[keep][:a], verify, limit)
         # Verification (tried or successful) is the graph's work, timed on its own.
         t_verify_ms, self._t_verify_ms = self._t_verify_ms, 0.0
