@@ -431,8 +431,7 @@ class SnapsLoopCloser:
             prior = (n - ref) * self.cfg.heading_drift_deg**2
             if self.cfg.heading_prior == "tracked" and self._heading_pin is not None:
                 prior = min(prior, self._heading_var + (n - self._heading_pin) * self.cfg.heading_drift_deg**2)
-            var = prior + self.cfg.verified_heading_sigma_deg**2
-            gain = prior / var if var > 0 else 1.0
+            gain = self._gain(prior)
             self._heading_pin, self._heading_var = n, (1.0 - gain) * prior
             rotvec = (
                 _rotation_correction(
@@ -480,9 +479,12 @@ class SnapsLoopCloser:
     def heading_gain(self, frames: int) -> float:
         """Share of a verified rotation applied by a loop ``frames`` after its reference: the VO's
         heading variance over that stretch against the measurement's (config comment)."""
-        drift = frames * self.cfg.heading_drift_deg**2
-        var = drift + self.cfg.verified_heading_sigma_deg**2
-        return drift / var if var > 0 else 1.0
+        return self._gain(frames * self.cfg.heading_drift_deg**2)
+
+    def _gain(self, prior: float) -> float:
+        """Share of a verified turn applied when the heading's prior variance is ``prior`` deg²."""
+        var = prior + self.cfg.verified_heading_sigma_deg**2
+        return prior / var if var > 0 else 1.0
 
     # ---- records ----
     def _record(self, n, ids, dists, qs, shifts, outcome, accepted: int) -> None:
@@ -556,7 +558,8 @@ class SnapsLoopCloser:
     def _correct(self, n: int, q: float, delta: np.ndarray, alpha: int, rotvec: np.ndarray | None = None, first: int = 0) -> int:
         """Eq. 6 (our reading): p_s += w·γ_s·δ for s in [max(N−K, first), N], w = Q (or 1 for a
         verified loop under correction_weight = "verified"); with ``rotvec`` (world-frame
-        axis-angle toward the verified orientation) also R_s ← Exp(w·γ_s·rotvec)·R_s. ``first``
+        axis-angle toward the verified orientation) also R_s ← Exp(w·γ_s·rotvec)·R_s ("shift"),
+        or first the bend of ``correction_model = "bend"`` (module docstring). ``first``
         is the frame after the reference: the reference and older frames are the loop's anchor
         and never move (only possible when K > M). Returns how many moved."""
         K = self.window_length(n - first + 1)
