@@ -193,6 +193,13 @@ class FrontendConfig(_Section):
     # window removes), "rotation", "full", or "off".
     lba_chain: Literal["off", "yaw", "rotation", "full"] = "yaw"
     lba_chain_scale: float = 1.0
+    # klt, weak texture: goodFeaturesToTrack's quality is relative to the image's strongest corner,
+    # so a high-contrast far field (a tree line against the sky, beyond max_depth_m) can suppress
+    # every corner of the weakly textured ground that stereo can range. When tracked plus newly
+    # detected points with depth are fewer than klt_weak_points and most new corners lie beyond
+    # max_depth_m, corners are detected once more at klt_weak_quality (klt_weak_points = 0: off).
+    klt_weak_points: int = 300
+    klt_weak_quality: float = 0.001
 
     def _cross_checks(self, source: str) -> None:
         if self.klt_bias_window_px and not 3 <= self.klt_bias_window_px < self.klt_window_px:
@@ -686,6 +693,8 @@ RULES: dict[str, Range] = {
     "frontend.klt_bias_window_px": NON_NEGATIVE,
     "frontend.klt_bias_max_px": POSITIVE,
     "frontend.lba_chain_scale": POSITIVE,
+    "frontend.klt_weak_points": NON_NEGATIVE,
+    "frontend.klt_weak_quality": FRACTION,
     "frontend.loop_orb_features": AT_LEAST_1,
     "frontend.loop_query_features": AT_LEAST_1,
     "frontend.loop_orb_levels": Range(1, 16),

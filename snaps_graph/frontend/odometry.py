@@ -23,6 +23,13 @@ At speed (large motion, or frames skipped: index gaps) KLT starts from the const
 prediction scaled to the gap, also after flagged frames; when PnP on the tracks still fails,
 ``klt_retry = "orb"`` retries once on ORB matches detected afresh plus the tracks.
 
+Weak texture. goodFeaturesToTrack's quality threshold is relative to the image's strongest
+corner; on an open road that is a far tree line against the sky (beyond ``max_depth_m``), which
+can suppress every corner of the weakly textured ground that stereo can range. So when tracked
+plus newly detected points with depth are fewer than ``klt_weak_points`` and most of the new
+corners are out of range (beyond ``max_depth_m``), corners are detected once more at
+``klt_weak_quality``.
+
 KLT tracks from the last frame (``klt_reference = "frame"``) or from the last keyframe
 ("keyframe": a frame becomes the reference only when the tracks thin out or after
 ``kf_max_gap`` frames, so one step's tracking error is not chained into every frame).
@@ -605,21 +612,39 @@ class StereoOdometry:
 
     def _detect_new(self, frame: StereoFrame, uv: np.ndarray, z: np.ndarray, timings: dict[str, float], detect: bool = True):
         """If fewer tracked points ``uv`` than ``klt_min_tracks`` have depth ``z`` (and ``detect``):
-        new corners away from them, with their stereo (new uv, depth, disparity)."""
+        new corners away from them, with their stereo (new uv, depth, disparity). In weak texture
+        under a far field (fewer than ``klt_weak_points`` points with depth after that, the new
+        corners mostly beyond ``max_depth_m``) corners are detected once more at
+        ``klt_weak_quality``."""
         cfg = self.cfg
-        t1 = time.perf_counter()
         n_valid = int(np.count_nonzero(z > 0))
         new_uv = np.zeros((0, 2), np.float32)
+        z2, d2 = np.zeros(0, np.float32), np.zeros(0, np.float32)
+        ms = {"depth": 0.0, "features": 0.0}
+
+        def add_corners(quality: float) -> None:
+            nonlocal new_uv, z2, d2
+            t = time.perf_counter()
+            n = cfg.klt_features - n_valid - int(np.count_nonzero(z2 > 0))
+            qcfg = cfg if quality == cfg.klt_quality else dataclasses.replace(cfg, klt_quality=quality)
+            extra = feat.detect_corners(frame.left, n, qcfg, avoid=np.concatenate([uv[z > 0], new_uv]))
+            t_det = time.perf_counter()
+            if len(extra):
+                z3, d3 = self._sparse_depth(frame.left, frame.right, extra)
+                new_uv, z2, d2 = np.concatenate([new_uv, extra]), np.concatenate([z2, z3]), np.concatenate([d2, d3])
+            ms["features"] += (t_det - t) * 1000.0
+            ms["depth"] += (time.perf_counter() - t_det) * 1000.0
+
         if detect and n_valid < cfg.klt_min_tracks:
-            new_uv = feat.detect_corners(frame.left, cfg.klt_features - n_valid, cfg, avoid=uv[z > 0])
-        t2 = time.perf_counter()
-        if len(new_uv):
-            z2, d2 = self._sparse_depth(frame.left, frame.right, new_uv)
-        else:
-            z2, d2 = np.zeros(0, np.float32), np.zeros(0, np.float32)
-        t3 = time.perf_counter()
-        timings["depth"] = timings.get("depth", 0.0) + (t3 - t2) * 1000.0
-        timings["features"] = (t2 - t1) * 1000.0
+            add_corners(cfg.klt_quality)
+            # Only where the far field took the ranking: most new corners lie beyond max_depth_m
+            # (a valid disparity); where stereo failed on them, more corners would not help.
+            far = int(np.count_nonzero((d2 > 0) & (z2 <= 0)))
+            weak = n_valid + int(np.count_nonzero(z2 > 0)) < cfg.klt_weak_points and 2 * far > len(new_uv)
+            if weak and cfg.klt_weak_quality < cfg.klt_quality:
+                add_corners(cfg.klt_weak_quality)
+        timings["depth"] = timings.get("depth", 0.0) + ms["depth"]
+        timings["features"] = ms["features"]
         return new_uv, z2, d2
 
     def _estimate_klt(self, frame: StereoFrame, first: bool, sharp: float, timings: dict[str, float]):
