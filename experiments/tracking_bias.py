@@ -30,6 +30,7 @@ from snaps_graph.config import Config
 from snaps_graph.datasets.synthetic import SyntheticSequence, load_trajectory
 from snaps_graph.frontend import depth as depth_mod
 from snaps_graph.frontend import features as feat
+from snaps_graph.geometry import log_so3
 from snaps_graph.trajectory_io import read_poses
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -47,17 +48,10 @@ def band_table(title: str, v: np.ndarray, err: np.ndarray) -> None:
             )
 
 
-def rotvec(R: np.ndarray) -> np.ndarray:
-    angle = np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))
-    if angle < 1e-12:
-        return np.zeros(3)
-    return np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / (2 * np.sin(angle)) * angle
-
-
 def run_bias(run: Path) -> None:
     gt, vo = read_poses(run / "poses_gt.txt"), read_poses(run / "poses_vo.txt")
     E = [np.linalg.solve(np.linalg.solve(gt[k - 1], gt[k]), np.linalg.solve(vo[k - 1], vo[k])) for k in range(1, len(vo))]
-    rot = np.degrees([rotvec(e[:3, :3]) for e in E]) * 1e3  # millidegrees
+    rot = np.degrees([log_so3(e[:3, :3]) for e in E]) * 1e3  # millidegrees
     ty = np.array([e[1, 3] for e in E]) * 1e3  # mm
     n = len(E)
     print(f"{run}: per-step VO error over {n} steps (mean +- standard error)")

@@ -46,6 +46,22 @@ def _hat(w: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
 
 
+def log_so3(R: np.ndarray) -> np.ndarray:
+    """Rotation vector (axis times angle, radians) of a rotation matrix; not unique near 180°."""
+    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    th = float(np.arccos(c))
+    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return v * (0.5 if th < 1e-8 else th / (2.0 * np.sin(th)))
+
+
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """SE(3) adjoint of T = [R, t] for [rotation, translation] twists: exp(Ad xi) T = T exp(xi)."""
+    R, t = T[:3, :3], T[:3, 3]
+    Ad = np.zeros((6, 6))
+    Ad[:3, :3], Ad[3:, 3:], Ad[3:, :3] = R, R, _hat(t) @ R
+    return Ad
+
+
 def _left_jacobian(w: np.ndarray) -> np.ndarray:
     """V(w) of SE(3)'s exponential: t = V(w) u for the twist (w, u)."""
     th = float(np.linalg.norm(w))

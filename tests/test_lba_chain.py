@@ -2,9 +2,10 @@
 
 import numpy as np
 
-from snaps_graph.frontend.local_ba import _add_chain_factor, _log_so3
+from snaps_graph.frontend.local_ba import _add_chain_factor
 from snaps_graph.frontend.odometry import chain_information
 from snaps_graph.frontend.stereo_ba import _exp_so3
+from snaps_graph.geometry import log_so3
 
 
 def _pose(w, t):
@@ -17,7 +18,7 @@ def _residual(Rcw, tcw, N):
     RP = Rcw[1] @ Rcw[0].T
     tP = tcw[1] - RP @ tcw[0]
     RE = RP @ N[:3, :3].T
-    return np.r_[_log_so3(RE), tP - RE @ N[:3, 3]]
+    return np.r_[log_so3(RE), tP - RE @ N[:3, 3]]
 
 
 def _one_step(free: int):

@@ -41,6 +41,7 @@ import gtsam
 import numpy as np
 
 from ..camera import StereoCamera
+from ..geometry import adjoint, log_so3
 from .stereo_ba import _exp_so3, _inv3
 
 X = gtsam.symbol_shorthand.X
@@ -78,11 +79,8 @@ def _add_chain_factor(
     RN, tN = N[:3, :3], N[:3, 3]
     RE = RP @ RN.T
     tE = tP - RE @ tN
-    xi = np.r_[_log_so3(RE), tE]
-    tx = np.array([[0, -tN[2], tN[1]], [tN[2], 0, -tN[0]], [-tN[1], tN[0], 0]])
-    Ad = np.zeros((6, 6))
-    Ad[:3, :3], Ad[3:, 3:], Ad[3:, :3] = RN, RN, tx @ RN
-    Ji = -Ad
+    xi = np.r_[log_so3(RE), tE]
+    Ji = -adjoint(N)
     a, b = slice(6 * (j - 1), 6 * j), slice(6 * j, 6 * j + 6)
     S[a, a] += Ji.T @ info @ Ji
     S[a, b] += Ji.T @ info
@@ -90,13 +88,6 @@ def _add_chain_factor(
     S[b, b] += info
     g[a] -= Ji.T @ info @ xi
     g[b] -= info @ xi
-
-
-def _log_so3(R: np.ndarray) -> np.ndarray:
-    c = np.clip((np.trace(R) - 1) / 2, -1, 1)
-    th = float(np.arccos(c))
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2
-    return w if th < 1e-9 else w * th / np.sin(th)
 
 
 class LocalBundleAdjuster:

@@ -81,7 +81,7 @@ import numpy as np
 from ..camera import StereoCamera
 from ..config import FrontendConfig
 from ..errors import SnapsGraphError
-from ..geometry import inv, rotation_angle_deg, scale_motion
+from ..geometry import adjoint, inv, rotation_angle_deg, scale_motion
 from ..types import FrameFeatures, StereoFrame, VOResult
 from . import depth as depth_mod
 from . import features as feat
@@ -109,15 +109,6 @@ def chain_information(cov: np.ndarray, axes: str) -> np.ndarray:
     elif axes == "full":
         info = np.linalg.inv(cov)
     return info
-
-
-def _adjoint(T: np.ndarray) -> np.ndarray:
-    """SE(3) adjoint for [rotation, translation] twists: Ad_T xi, with T = [R, t]."""
-    R, t = T[:3, :3], T[:3, 3]
-    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-    Ad = np.zeros((6, 6))
-    Ad[:3, :3], Ad[3:, 3:], Ad[3:, :3] = R, R, tx @ R
-    return Ad
 
 
 def pose_from_rvec(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
@@ -371,7 +362,7 @@ class StereoOdometry:
                 ):
                     self._chain_cov = None  # a step without a covariance: no chain factor up to the next keyframe
                 else:
-                    Ad = _adjoint(inv(T_ref_cur))
+                    Ad = adjoint(inv(T_ref_cur))
                     self._chain_cov = self._sba_cov + Ad @ self._chain_cov @ Ad.T
             if self._lba is not None and kf.promote and (first or frame.index - self._lba_last >= self.cfg.lba_every):
                 self._lba_last = frame.index
