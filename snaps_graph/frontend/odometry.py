@@ -234,6 +234,8 @@ class StereoOdometry:
         self.cfg.validate()
         self.camera = camera
         self._pool = ThreadPoolExecutor(max_workers=self.cfg.threads - 1) if self.cfg.threads > 1 else None
+        # runs the second half of a split LK call (``lk_split_min``); its tasks never wait on others
+        self._split_pool = ThreadPoolExecutor(max_workers=1) if self.cfg.threads > 1 and self.cfg.lk_split_min > 0 else None
         self._ref: _Keyframe | None = None
         self._pose = np.eye(4)  # pose of the last processed frame
         self._velocity = np.eye(4)  # T_rel of the last good frame (constant-velocity guess) ...
@@ -295,16 +297,32 @@ class StereoOdometry:
 
     def _sparse_depth(self, left: np.ndarray, right: np.ndarray, uv: np.ndarray, guess: np.ndarray | None = None):
         """(depth from the corrected disparity, measured disparity) at ``uv``."""
-        z, d = depth_mod.sparse_depth(left, right, uv, self.camera, self.cfg, guess)
+        z, d = self._split(lambda u, g: depth_mod.sparse_depth(left, right, u, self.camera, self.cfg, g), uv, guess)
         if self._offset != 0.0:
             z = depth_mod.depth_from_disparity(true_disparity(d, self._offset), self.camera, self.cfg)
         return z, d
+
+    def _split(self, fn: Callable, uv: np.ndarray, guess: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """``fn(uv, guess)`` -> two per-point arrays, run on the two halves of the points in two
+        threads (``lk_split_min``) and joined: LK tracks each point alone, so the result is the
+        same as one call on all points."""
+        n = len(uv)
+        if self._split_pool is None or n < max(2, self.cfg.lk_split_min):
+            return fn(uv, guess)
+        k = n // 2
+        second = self._split_pool.submit(fn, uv[k:], None if guess is None else guess[k:])
+        a0, a1 = fn(uv[:k], None if guess is None else guess[:k])
+        b0, b1 = second.result()
+        return np.concatenate([a0, b0]), np.concatenate([a1, b1])
 
     # ---- lifecycle ----
     def close(self) -> None:
         if self._pool is not None:
             self._pool.shutdown(wait=True)
             self._pool = None
+        if self._split_pool is not None:
+            self._split_pool.shutdown(wait=True)
+            self._split_pool = None
 
     def __enter__(self) -> "StereoOdometry":
         return self
@@ -665,7 +683,7 @@ class StereoOdometry:
             guess = np.where((zp > 0)[:, None], guess, ref.uv)
             if anchored:  # the disparity changes over several frames: predict it too
                 dguess = np.where(zp > 0, self.camera.fx * self.camera.baseline_m / np.maximum(zp, 1e-6) + self._offset, ref.disp)
-        uv_cur, ok = feat.track_klt(ref.left, frame.left, ref.uv, cfg, guess)
+        uv_cur, ok = self._split(lambda u, g: feat.track_klt(ref.left, frame.left, u, cfg, g), ref.uv, guess)
         idx = np.flatnonzero(ok)
         if cfg.klt_anchor_gap > 0 and not anchored and self._anchor is not None:
             uv_cur = self._anchor_refine(frame, uv_cur, ref.ids, idx)
