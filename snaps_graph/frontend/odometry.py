@@ -61,9 +61,11 @@ does not enter the chain: T_world_cur = T_world_ref · T_ref_cur for the referen
 Parallelism. OpenCV releases the GIL, so independent stages of the same frame run in two
 threads (``threads``): in "klt" mode stereo depth of the tracked points runs beside PnP, and
 re-detection with its stereo beside the stereo BA; in "sift"/"orb" dense depth runs beside
-keypoint detection, and sparse depth beside matching + PnP. Each stage's inputs are fixed
-before it starts and RANSAC is seeded (``ransac_seed``) in the thread that runs it, so the
-output is bit-identical run to run.
+keypoint detection, and sparse depth beside matching + PnP. An LK call on many points (KLT
+tracking, sparse stereo; ``lk_split_min``) is split in two halves run in two threads: LK
+tracks each point alone, so the halves give the same numbers as one call. Each stage's inputs
+are fixed before it starts and RANSAC is seeded (``ransac_seed``) in the thread that runs it,
+so the output is bit-identical run to run.
 """
 
 from __future__ import annotations
