@@ -87,3 +87,24 @@ def test_split_lk_calls_give_bit_identical_poses(small_rendering):
         out.append((np.array([r.pose for r in res]), [r.features.uv for r in res]))
     assert np.array_equal(out[0][0], out[1][0])
     assert all(np.array_equal(a, b) for a, b in zip(out[0][1], out[1][1]))
+
+
+@pytest.mark.parametrize("b", [0, 1, 16, 40])
+@pytest.mark.parametrize("r", [1, 4, 10])
+def test_exclusion_mask_equals_the_eroded_mask(b, r):
+    """``detect_corners``' mask built directly equals cv2.erode of the border-and-points mask
+    by the elliptical kernel, for points inside, on and beyond the image border."""
+    import cv2
+
+    from snaps_graph.frontend.features import _exclusion_mask
+
+    rng = np.random.default_rng(b * 100 + r)
+    for h, w in ((188, 620), (41, 57)):
+        avoid = np.c_[rng.uniform(-6, w + 6, 200), rng.uniform(-6, h + 6, 200)].astype(np.float32)
+        mask = np.zeros((h, w), np.uint8)
+        mask[b : h - b, b : w - b] = 255
+        u = np.clip(np.rint(avoid[:, 0]).astype(np.int64), 0, w - 1)
+        v = np.clip(np.rint(avoid[:, 1]).astype(np.int64), 0, h - 1)
+        mask[v, u] = 0
+        expected = cv2.erode(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+        assert np.array_equal(_exclusion_mask(h, w, b, r, avoid), expected)
