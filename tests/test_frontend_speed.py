@@ -108,3 +108,15 @@ def test_exclusion_mask_equals_the_eroded_mask(b, r):
         mask[v, u] = 0
         expected = cv2.erode(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
         assert np.array_equal(_exclusion_mask(h, w, b, r, avoid), expected)
+
+
+def test_sharpness_is_the_mean_absolute_laplacian():
+    """``sharpness`` (an L1 norm in OpenCV) gives exactly numpy's mean |Laplacian|."""
+    import cv2
+
+    from snaps_graph.frontend.odometry import sharpness
+
+    rng = np.random.default_rng(5)
+    for img in (rng.integers(0, 256, (188, 620), dtype=np.uint8), np.full((40, 50), 7, np.uint8)):
+        img = cv2.GaussianBlur(img, (5, 5), 1.0) if img.std() > 0 else img
+        assert sharpness(img) == float(np.mean(np.abs(cv2.Laplacian(img, cv2.CV_16S, ksize=1))))

@@ -176,7 +176,8 @@ def project(T_cur_ref: np.ndarray, pts3d: np.ndarray, camera: StereoCamera) -> t
 
 def sharpness(img: np.ndarray) -> float:
     """Mean absolute Laplacian (3x3): drops sharply when an image is blurred."""
-    return float(np.mean(np.abs(cv2.Laplacian(img, cv2.CV_16S, ksize=1))))
+    lap = cv2.Laplacian(img, cv2.CV_16S, ksize=1)
+    return cv2.norm(lap, cv2.NORM_L1) / lap.size  # an exact integer sum: the same value as np.abs(lap).mean(), 5x faster
 
 
 def empty_features(mode: str) -> FrameFeatures:
