@@ -175,9 +175,10 @@ def project(T_cur_ref: np.ndarray, pts3d: np.ndarray, camera: StereoCamera) -> t
 
 
 def sharpness(img: np.ndarray) -> float:
-    """Mean absolute Laplacian (3x3): drops sharply when an image is blurred."""
+    """Mean absolute Laplacian (3x3): drops sharply when an image is blurred. (OpenCV's L1 norm
+    is an exact integer sum: the same value as ``np.abs(lap).mean()``, several times faster.)"""
     lap = cv2.Laplacian(img, cv2.CV_16S, ksize=1)
-    return cv2.norm(lap, cv2.NORM_L1) / lap.size  # an exact integer sum: the same value as np.abs(lap).mean(), 5x faster
+    return cv2.norm(lap, cv2.NORM_L1) / lap.size
 
 
 def empty_features(mode: str) -> FrameFeatures:
