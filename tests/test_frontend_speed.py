@@ -120,3 +120,25 @@ def test_sharpness_is_the_mean_absolute_laplacian():
     for img in (rng.integers(0, 256, (188, 620), dtype=np.uint8), np.full((40, 50), 7, np.uint8)):
         img = cv2.GaussianBlur(img, (5, 5), 1.0) if img.std() > 0 else img
         assert sharpness(img) == float(np.mean(np.abs(cv2.Laplacian(img, cv2.CV_16S, ksize=1))))
+
+
+@pytest.mark.parametrize("border, radius, quality", [(16, 10, 0.01), (16, 10, 0.001), (4, 3, 0.01), (0, 10, 0.01)])
+def test_detect_corners_on_the_cropped_image_finds_the_same_corners(border, radius, quality):
+    """``detect_corners`` runs goodFeaturesToTrack on the mask's open frame plus a margin: the
+    corners (positions and order) are those of the whole image with the same mask."""
+    import cv2
+
+    from snaps_graph.frontend.features import _exclusion_mask, detect_corners
+
+    rng = np.random.default_rng(border + radius)
+    img = cv2.GaussianBlur(rng.integers(0, 256, (188, 620), dtype=np.uint8), (0, 0), 2.0)
+    cfg = dataclasses.replace(FrontendConfig(), klt_border_px=border, klt_min_distance_px=radius, klt_quality=quality)
+    for avoid in (None, np.c_[rng.uniform(0, 620, 300), rng.uniform(0, 188, 300)].astype(np.float32)):
+        if avoid is None:
+            mask = np.zeros(img.shape, np.uint8)
+            mask[border : 188 - border, border : 620 - border] = 255
+        else:
+            mask = _exclusion_mask(188, 620, border, radius, avoid)
+        expected = cv2.goodFeaturesToTrack(img, 800, quality, radius, mask=mask).reshape(-1, 2)
+        got = detect_corners(img, 800, cfg, avoid)
+        assert len(got) > 50 and np.array_equal(got, expected)

@@ -132,7 +132,10 @@ def detect_corners(img: np.ndarray, n: int, cfg: FrontendConfig, avoid: np.ndarr
     points ``avoid`` (the tracks that survived, so new corners fill the gaps).
 
     The mask is the border frame and the surviving points eroded by an elliptical kernel of radius
-    ``klt_min_distance_px``, built directly (``_exclusion_mask``).
+    ``klt_min_distance_px``, built directly (``_exclusion_mask``). goodFeaturesToTrack computes
+    corner eigenvalues over the whole image it is given, so it gets the mask's open frame plus a
+    3-pixel margin (the 3x3 derivative, the 3x3 block and the 3x3 local-maximum test reach 3
+    pixels): the same corners, the image's border band not computed.
     """
     if n <= 0:
         return np.zeros((0, 2), np.float32)
@@ -140,10 +143,19 @@ def detect_corners(img: np.ndarray, n: int, cfg: FrontendConfig, avoid: np.ndarr
     b = cfg.klt_border_px
     if avoid is not None and len(avoid):
         mask = _exclusion_mask(h, w, b, cfg.klt_min_distance_px, avoid)
+        m = b + cfg.klt_min_distance_px if b > 0 else 0
     else:
         mask = np.zeros((h, w), np.uint8)
         mask[b : h - b, b : w - b] = 255
-    pts = cv2.goodFeaturesToTrack(img, n, cfg.klt_quality, cfg.klt_min_distance_px, mask=mask)
+        m = b
+    c = max(0, m - 3)
+    if c > 0 and h - 2 * c > 8 and w - 2 * c > 8:
+        roi = np.ascontiguousarray(img[c : h - c, c : w - c])
+        pts = cv2.goodFeaturesToTrack(roi, n, cfg.klt_quality, cfg.klt_min_distance_px, mask=mask[c : h - c, c : w - c].copy())
+        if pts is not None:
+            pts = pts + np.float32(c)
+    else:
+        pts = cv2.goodFeaturesToTrack(img, n, cfg.klt_quality, cfg.klt_min_distance_px, mask=mask)
     if pts is None:
         return np.zeros((0, 2), np.float32)
     return pts.reshape(-1, 2).astype(np.float32)
