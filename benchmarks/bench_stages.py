@@ -5,7 +5,9 @@ Runs the pipeline (default config, ``--loops``, ``--refine``) over the frames, r
 (``read_grey``, two images), KLT tracking, PnP, the stereo of the tracked points and the
 re-detection with its stereo (worker thread), the stereo BA, the local BA, SNAPS (with its
 thumbnail), the graph. CPU is ``time.thread_time`` of the calling thread (OpenCV's own pool
-threads are not in it); it is the robust figure on a loaded machine, the wall time is not.
+threads are not in it); it is the robust figure on a loaded machine, the wall time is not. An LK
+call split in two halves (``lk_split_min``) runs its second half on another thread: the
+stereo stages then count only their own thread's half, "sparse stereo, all calls" both.
 Also prints minor page faults and process CPU per frame, and the load average.
 
     python benchmarks/bench_stages.py [--seq /work/data/frontend_street1000] [--frames 0:500]
@@ -31,7 +33,7 @@ from snaps_graph.backend import pose_graph  # noqa: E402
 from snaps_graph.config import Config  # noqa: E402
 from snaps_graph.datasets import kitti  # noqa: E402
 from snaps_graph.datasets.open import open_dataset  # noqa: E402
-from snaps_graph.frontend import features, local_ba, odometry  # noqa: E402
+from snaps_graph.frontend import depth, features, local_ba, odometry  # noqa: E402
 from snaps_graph.loop import snaps as snaps_mod  # noqa: E402
 from snaps_graph.pipeline import SlamPipeline  # noqa: E402
 
@@ -65,7 +67,8 @@ def main() -> None:
 
     SO = odometry.StereoOdometry
     _wrap(kitti, "read_grey", "read (2 images)")
-    _wrap(features, "track_klt", "KLT tracking")
+    _wrap(features, "track_klt", "KLT tracking")  # both halves of a split call, each in its thread
+    _wrap(depth, "sparse_depth", "sparse stereo, all calls")  # inside the two stereo stages below, both halves
     _wrap(odometry, "pnp_ransac", "PnP RANSAC")
     _wrap(SO, "_stereo_klt", "stereo + re-detection")  # before the split (main at 351a433)
     _wrap(SO, "_stereo_tracked", "stereo of tracked points")

@@ -200,6 +200,10 @@ class FrontendConfig(_Section):
     # max_depth_m, corners are detected once more at klt_weak_quality (klt_weak_points = 0: off).
     klt_weak_points: int = 300
     klt_weak_quality: float = 0.001
+    # threads > 1: an LK call (KLT tracking, sparse stereo) on at least this many points is split
+    # in two halves run in two threads; LK tracks each point alone, so the result is the same
+    # (0: never split).
+    lk_split_min: int = 200
 
     def _cross_checks(self, source: str) -> None:
         if self.klt_bias_window_px and not 3 <= self.klt_bias_window_px < self.klt_window_px:
@@ -695,6 +699,7 @@ RULES: dict[str, Range] = {
     "frontend.lba_chain_scale": POSITIVE,
     "frontend.klt_weak_points": NON_NEGATIVE,
     "frontend.klt_weak_quality": FRACTION,
+    "frontend.lk_split_min": NON_NEGATIVE,
     "frontend.loop_orb_features": AT_LEAST_1,
     "frontend.loop_query_features": AT_LEAST_1,
     "frontend.loop_orb_levels": Range(1, 16),

@@ -131,25 +131,50 @@ def detect_corners(img: np.ndarray, n: int, cfg: FrontendConfig, avoid: np.ndarr
     none within ``klt_border_px`` of the border, none within ``klt_min_distance_px`` of the
     points ``avoid`` (the tracks that survived, so new corners fill the gaps).
 
-    The exclusion mask is built without a per-point loop: mark the surviving points, then erode.
+    The mask is the border frame and the surviving points eroded by an elliptical kernel of radius
+    ``klt_min_distance_px``, built directly (``_exclusion_mask``). goodFeaturesToTrack computes
+    corner eigenvalues over the whole image it is given, so it gets the mask's open frame plus a
+    3-pixel margin (the 3x3 derivative, the 3x3 block and the 3x3 local-maximum test reach 3
+    pixels): the same corners, the image's border band not computed.
     """
     if n <= 0:
         return np.zeros((0, 2), np.float32)
     h, w = img.shape
     b = cfg.klt_border_px
-    mask = np.zeros((h, w), np.uint8)
-    mask[b : h - b, b : w - b] = 255
     if avoid is not None and len(avoid):
-        u = np.clip(np.rint(avoid[:, 0]).astype(np.int64), 0, w - 1)
-        v = np.clip(np.rint(avoid[:, 1]).astype(np.int64), 0, h - 1)
-        mask[v, u] = 0
-        r = cfg.klt_min_distance_px
-        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-        mask = cv2.erode(mask, kernel)
-    pts = cv2.goodFeaturesToTrack(img, n, cfg.klt_quality, cfg.klt_min_distance_px, mask=mask)
+        mask = _exclusion_mask(h, w, b, cfg.klt_min_distance_px, avoid)
+        m = b + cfg.klt_min_distance_px if b > 0 else 0
+    else:
+        mask = np.zeros((h, w), np.uint8)
+        mask[b : h - b, b : w - b] = 255
+        m = b
+    c = max(0, m - 3)
+    if c > 0 and h - 2 * c > 8 and w - 2 * c > 8:
+        roi = np.ascontiguousarray(img[c : h - c, c : w - c])
+        pts = cv2.goodFeaturesToTrack(roi, n, cfg.klt_quality, cfg.klt_min_distance_px, mask=mask[c : h - c, c : w - c].copy())
+        if pts is not None:
+            pts = pts + np.float32(c)
+    else:
+        pts = cv2.goodFeaturesToTrack(img, n, cfg.klt_quality, cfg.klt_min_distance_px, mask=mask)
     if pts is None:
         return np.zeros((0, 2), np.float32)
     return pts.reshape(-1, 2).astype(np.float32)
+
+
+def _exclusion_mask(h: int, w: int, b: int, r: int, avoid: np.ndarray) -> np.ndarray:
+    """255 where a corner may be detected: ``cv2.erode`` by the (2r+1)² ellipse of the mask that
+    is 255 inside a ``b``-pixel border except at the (rounded, clipped) points ``avoid``, built
+    without the full-image erode (3-4x faster, the same mask). Erosion is a union of the zero
+    set dilated by the kernel; OpenCV treats pixels outside the image as 255. The frame dilates
+    to a frame of b + r pixels (b > 0); each point stamps the kernel (its zero pixels)."""
+    m = b + r if b > 0 else 0
+    pad = np.zeros((h + 2 * r, w + 2 * r), np.uint8)  # r pixels of padding: stamps never wrap
+    pad[r + m : r + h - m, r + m : r + w - m] = 255
+    u = np.clip(np.rint(avoid[:, 0]).astype(np.int64), 0, w - 1)
+    v = np.clip(np.rint(avoid[:, 1]).astype(np.int64), 0, h - 1)
+    ky, kx = np.nonzero(cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+    pad.ravel()[((v * (w + 2 * r) + u)[:, None] + (ky * (w + 2 * r) + kx)[None, :]).ravel()] = 0
+    return pad[r : r + h, r : r + w].copy()
 
 
 def track_klt(

@@ -116,88 +116,104 @@ def stereo_two_view_ba(
 
     fx, fy, cx, cy, B = camera.fx, camera.fy, camera.cx, camera.cy, camera.baseline_m
     idx = np.flatnonzero(use)
-    zr = np.c_[ref_uv[idx], ref_uv[idx, 0] - ref_disp[idx]]  # reference (u, v, u_r)
-    zc = np.c_[cur_uv[idx], cur_uv[idx, 0] - np.where(np.isfinite(cd[idx]) & (cd[idx] > 0), cd[idx], 0.0)]
+    # Component-major layout: every per-point quantity is a (k, N) array, so each product of the
+    # small per-point matrices is a few whole-row numpy operations, not N tiny matrix products.
     has_r = np.isfinite(cd[idx]) & (cd[idx] > 0)
-    p = np.c_[(zr[:, 0] - cx) / fx, (zr[:, 1] - cy) / fy, ref_disp[idx] / (fx * B)]  # (a, b, rho)
+    hr = has_r.astype(np.float64)
+    zr = np.stack([ref_uv[idx, 0], ref_uv[idx, 1], ref_uv[idx, 0] - ref_disp[idx]])  # reference (u, v, u_r)
+    zc = np.stack([cur_uv[idx, 0], cur_uv[idx, 1], cur_uv[idx, 0] - np.where(has_r, cd[idx], 0.0)])
+    p = np.stack([(zr[0] - cx) / fx, (zr[1] - cy) / fy, ref_disp[idx] / (fx * B)])  # (a, b, rho)
     R, t = T_init[:3, :3].copy(), T_init[:3, 3].copy()
     # Reference rows are linear in (a, b, rho): one constant Jacobian.
     Jr = np.array([[fx, 0.0, 0.0], [0.0, fy, 0.0], [fx, 0.0, -fx * B]])
     JrTJr = Jr.T @ Jr
-    active = np.ones(len(idx), bool)
+    m_pts = len(idx)
+    active = np.ones(m_pts, bool)
     info = 1.0 / sigma_px**2
     S = None
     it_total = 0
 
     def residuals(R, t, p):
-        pred_r = np.c_[fx * p[:, 0] + cx, fy * p[:, 1] + cy, fx * (p[:, 0] - B * p[:, 2]) + cx]
-        m = np.c_[p[:, 0], p[:, 1], np.ones(len(p))]
-        h = m @ R.T + p[:, 2:3] * t
-        hz = h[:, 2]
-        front = hz > 1e-6
-        hzs = np.where(front, hz, 1.0)
-        pred_c = np.c_[fx * h[:, 0] / hzs + cx, fy * h[:, 1] / hzs + cy, fx * (h[:, 0] - B * p[:, 2]) / hzs + cx]
-        rr = pred_r - zr
-        rc = pred_c - zc
-        rc[~has_r, 2] = 0.0
-        return rr, rc, h, hzs, front
+        a, b, rho = p
+        rr = np.stack([fx * a + cx, fy * b + cy, fx * (a - B * rho) + cx]) - zr
+        h = R[:, :2] @ p[:2] + R[:, 2:3] + t[:, None] * rho
+        front = h[2] > 1e-6
+        iz = 1.0 / np.where(front, h[2], 1.0)
+        rc = np.stack([fx * h[0] * iz + cx, fy * h[1] * iz + cy, fx * (h[0] - B * rho) * iz + cx]) - zc
+        rc[2] *= hr
+        return rr, rc, h, iz, front
+
+    def norm3(r):
+        return np.sqrt(r[0] * r[0] + r[1] * r[1] + r[2] * r[2])
 
     for rnd in range(2):
         for _ in range(iterations):
             it_total += 1
-            rr, rc, h, hz, front = residuals(R, t, p)
+            rr, rc, h, iz, front = residuals(R, t, p)
             act = active & front
             if act.sum() < min_points:
                 return fail(f"too few stereo BA inliers ({int(act.sum())} < {min_points})")
-            er, ec = np.linalg.norm(rr, axis=1), np.linalg.norm(rc, axis=1)
-            wr = info * _huber(er, huber_px) * act
-            wc = info * _huber(ec, huber_px) * act
-            # Current-view Jacobians.
-            iz = 1.0 / hz
-            P = np.zeros((len(p), 3, 3))
-            P[:, 0, 0] = fx * iz
-            P[:, 0, 2] = -fx * h[:, 0] * iz**2
-            P[:, 1, 1] = fy * iz
-            P[:, 1, 2] = -fy * h[:, 1] * iz**2
-            P[:, 2, 0] = fx * iz
-            P[:, 2, 2] = -fx * (h[:, 0] - B * p[:, 2]) * iz**2
-            P[~has_r, 2, :] = 0.0
-            dh_pose = np.concatenate([-_skew(h), p[:, 2, None, None] * np.eye(3)[None]], axis=2)  # (N,3,6)
-            Jc = P @ dh_pose  # (N,3,6)
-            dh_pt = np.stack([R[:, 0], R[:, 1], t], axis=1)  # (3,3): columns d h / d(a, b, rho)
-            Jp = P @ dh_pt  # (N,3,3)
-            Jp[:, 2, 2] += np.where(has_r, -fx * B * iz, 0.0)
-            # Normal equations: per-point 3x3 blocks, pose 6x6, eliminated by a Schur complement.
-            JpT = Jp.transpose(0, 2, 1)
-            Hpp = wr[:, None, None] * JrTJr[None] + wc[:, None, None] * (JpT @ Jp)
-            Hpp[:, [0, 1, 2], [0, 1, 2]] += 1e-9
-            Hcp = wc[:, None, None] * (Jc.transpose(0, 2, 1) @ Jp)  # (N,6,3)
+            wr = info * _huber(norm3(rr), huber_px) * act
+            wc = info * _huber(norm3(rc), huber_px) * act
             sw = np.sqrt(wc)
-            A = (Jc * sw[:, None, None]).reshape(-1, 6)
+            rho = p[2]
+            # d(pred_cur)/dh (3x3 per point, rows u, v, u_r); the u_r row is zero without a current disparity.
+            iz2 = iz * iz
+            P00, P02 = fx * iz, -fx * h[0] * iz2
+            P11, P12 = fy * iz, -fy * h[1] * iz2
+            P20, P22 = P00 * hr, -fx * (h[0] - B * rho) * iz2 * hr
+            # Current-view Jacobians, whitened by sqrt(wc): Jc (3, 6, N) for the pose (left
+            # perturbation: dh = -[h]x dw + rho dt), Jp (3, 3, N) for (a, b, rho).
+            zero = np.zeros(m_pts)
+            hx, hy, hz = h
+            Jc = np.stack(
+                [
+                    [P02 * hy, P00 * hz - P02 * hx, -P00 * hy, rho * P00, zero, rho * P02],
+                    [P12 * hy - P11 * hz, -P12 * hx, P11 * hx, zero, rho * P11, rho * P12],
+                    [P22 * hy, P20 * hz - P22 * hx, -P20 * hy, rho * P20, zero, rho * P22],
+                ]
+            )
+            M = np.c_[R[:, :2], t]  # d h / d(a, b, rho), rows x, y, z
+            Jp = np.stack(
+                [
+                    np.outer(M[0], P00) + np.outer(M[2], P02),
+                    np.outer(M[1], P11) + np.outer(M[2], P12),
+                    np.outer(M[0], P20) + np.outer(M[2], P22),
+                ]
+            )
+            Jp[2, 2] -= fx * B * iz * hr
+            Jc *= sw
+            Jp *= sw
+            rcw = rc * sw
+            # Normal equations: per-point 3x3 blocks, pose 6x6, eliminated by a Schur complement.
+            Hpp = (Jp[:, :, None, :] * Jp[:, None, :, :]).sum(0) + wr * JrTJr[:, :, None]
+            Hpp[[0, 1, 2], [0, 1, 2]] += 1e-9
+            Hcp = (Jc[:, :, None, :] * Jp[:, None, :, :]).sum(0)  # (6, 3, N)
+            A = Jc.transpose(0, 2, 1).reshape(-1, 6)
             Hcc = A.T @ A
-            bc = -(A.T @ (rc * sw[:, None]).reshape(-1))
-            bp = -(wr[:, None] * (rr @ Jr)) - wc[:, None] * (JpT @ rc[:, :, None])[:, :, 0]
-            Hpp_inv = _inv3(Hpp)
-            HcpHi = Hcp @ Hpp_inv  # (N,6,3)
-            F = HcpHi.transpose(1, 0, 2).reshape(6, -1)
-            S = Hcc - F @ Hcp.transpose(1, 0, 2).reshape(6, -1).T
+            bc = -(Jc * rcw[:, None, :]).sum((0, 2))
+            bp = -(wr * (Jr.T @ rr)) - (Jp * rcw[:, None, :]).sum(0)  # (3, N)
+            Hpp_inv = _inv3(Hpp.transpose(2, 0, 1)).transpose(1, 2, 0)  # (3, 3, N)
+            HcpHi = (Hcp[:, :, None, :] * Hpp_inv[None]).sum(1)  # (6, 3, N)
+            F = HcpHi.reshape(6, -1)
+            S = Hcc - F @ Hcp.reshape(6, -1).T
             g = bc - F @ bp.reshape(-1)
             try:
                 dx = np.linalg.solve(S, g)
             except np.linalg.LinAlgError:
                 return fail("degenerate stereo BA (singular system)")
-            rhs = bp - (Hcp * dx[None, :, None]).sum(1)
-            dp = (Hpp_inv @ rhs[:, :, None])[:, :, 0]
+            rhs = bp - (dx @ Hcp.reshape(6, -1)).reshape(3, -1)
+            dp = (Hpp_inv * rhs[None, :, :]).sum(1)
             dR = _exp_so3(dx[:3])
             R, t = dR @ R, dR @ t + dx[3:]
-            p = p + np.where(act[:, None], dp, 0.0)
+            p = p + np.where(act, dp, 0.0)
             if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t)) and np.all(np.isfinite(p))):
                 return fail("non-finite stereo BA update")
             if np.linalg.norm(dx) < 1e-7:
                 break
         if rnd == 0:
             rr, rc, _, _, front = residuals(R, t, p)
-            active = front & (np.linalg.norm(rr, axis=1) <= outlier_px) & (np.linalg.norm(rc, axis=1) <= outlier_px)
+            active = front & (norm3(rr) <= outlier_px) & (norm3(rc) <= outlier_px)
     rr, rc, _, _, front = residuals(R, t, p)
     active &= front
     T = np.eye(4)
@@ -208,7 +224,7 @@ def stereo_two_view_ba(
     inl = np.zeros(n, bool)
     inl[idx[active]] = True
     ncoord = 2 * active.sum() + has_r[active].sum() + 3 * active.sum()
-    rmse = float(np.sqrt((np.sum(rr[active] ** 2) + np.sum(rc[active] ** 2)) / max(ncoord, 1)))
+    rmse = float(np.sqrt((np.sum(rr[:, active] ** 2) + np.sum(rc[:, active] ** 2)) / max(ncoord, 1)))
     if S is None or not np.all(np.isfinite(S)):
         return fail("degenerate stereo BA (no system)")
     ev = np.linalg.eigvalsh(S)
@@ -218,5 +234,5 @@ def stereo_two_view_ba(
     if not np.all(np.isfinite(T)):
         return fail("non-finite stereo BA pose")
     rho = np.full(n, np.nan)
-    rho[idx] = p[:, 2]
+    rho[idx] = p[2]
     return StereoBAResult(T, inl, cov, True, "", it_total, rmse, rho)
