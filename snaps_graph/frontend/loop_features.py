@@ -16,6 +16,7 @@ inliers' reprojection Jacobian, so the graph weighs a loop by what verification 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -24,9 +25,11 @@ import numpy as np
 
 from ..camera import StereoCamera
 from ..config import FrontendConfig
+from ..geometry import log_so3
 from ..types import FrameFeatures, StereoFrame
 from .depth import sparse_disparity
 from .odometry import true_disparity
+from .stereo_ba import stereo_two_view_ba
 from .verify import match_and_pnp, plausible
 
 
@@ -137,6 +140,22 @@ def pose_covariance(
     return cov, float(np.sqrt(s2))
 
 
+def _refine_stereo_ba(
+    T_cur_ref: np.ndarray, pts: np.ndarray, uv: np.ndarray, d_cur: np.ndarray, camera: StereoCamera, cfg: FrontendConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The two-view stereo BA from the PnP pose over the depth-checked inliers: (T_cur_ref, the
+    BA's inlier points and pixels). The reference's pixels and disparities are recovered from its
+    3D points (they were back-projected from them); the BA's seed and points are kept when it
+    fails or keeps fewer than ``min_inliers``."""
+    z = np.maximum(pts[:, 2].astype(np.float64), 1e-6)
+    ref_uv = np.c_[camera.fx * pts[:, 0] / z + camera.cx, camera.fy * pts[:, 1] / z + camera.cy]
+    ref_disp = camera.fx * camera.baseline_m / z
+    r = stereo_two_view_ba(T_cur_ref, ref_uv, ref_disp, uv, d_cur, camera)
+    if not r.ok or int(r.inliers.sum()) < cfg.min_inliers:
+        return T_cur_ref, pts, uv
+    return r.T_cur_ref, pts[r.inliers], uv[r.inliers]
+
+
 def verify_features(
     ref: FrameFeatures | None,
     cur: FrameFeatures,
@@ -166,7 +185,7 @@ def verify_features(
         agree = has & (np.abs(d_meas - d_pred) <= cfg.loop_depth_check_px)
         if int(agree.sum()) < cfg.min_inliers or agree.sum() < cfg.loop_depth_min_ratio * max(int(has.sum()), 1):
             return None
-        pts, uv = pts[agree], uv[agree]
+        pts, uv, d_cur = pts[agree], uv[agree], d_meas[agree]
         # Re-estimate on the points that passed both tests (LM from the RANSAC pose).
         rvec = cv2.Rodrigues(T_cur_ref[:3, :3])[0]
         rvec, tvec = cv2.solvePnPRefineLM(
@@ -177,6 +196,8 @@ def verify_features(
         T[:3, 3] = tvec.reshape(3)
         if np.all(np.isfinite(T)):
             T_cur_ref = T
+        if cfg.loop_pose_refine == "stereo_ba":
+            T_cur_ref, pts, uv = _refine_stereo_ba(T_cur_ref, pts, uv, d_cur, camera, cfg)
     T_ref_cur = plausible(T_cur_ref, cfg)
     if T_ref_cur is None:
         return None
@@ -184,6 +205,70 @@ def verify_features(
     if not np.all(np.isfinite(cov)):
         return None
     return LoopMatch(T_ref_cur, int(len(pts)), cov, rms)
+
+
+def fuse_loop_matches(matches: list[LoopMatch], huber: float = 3.0, iterations: int = 3) -> LoopMatch:
+    """One relative pose from several measurements of it (each ``T_ref_cur`` in the same
+    reference frame, covariance on the right): the information-weighted mean in the tangent space
+    of the first, Huber-weighted on each one's Mahalanobis distance from the mean (a measurement
+    that disagrees counts less). The covariance is the fused information's inverse; inliers are
+    the first measurement's."""
+    m0 = matches[0]
+    if len(matches) == 1:
+        return m0
+    R0, t0 = m0.T_ref_cur[:3, :3], m0.T_ref_cur[:3, 3]
+    xi = np.array([np.r_[log_so3(R0.T @ m.T_ref_cur[:3, :3]), R0.T @ (m.T_ref_cur[:3, 3] - t0)] for m in matches])
+    info = np.array([np.linalg.inv(m.cov) for m in matches])
+    w = np.ones(len(matches))
+    mean = np.zeros(6)
+    H = info[0]
+    for _ in range(iterations):
+        H = np.einsum("i,ijk->jk", w, info)
+        mean = np.linalg.solve(H, np.einsum("i,ijk,ik->j", w, info, xi))
+        r = xi - mean
+        d = np.sqrt(np.maximum(np.einsum("ij,ijk,ik->i", r, info, r), 0.0))
+        w = np.where(d <= huber, 1.0, huber / np.maximum(d, 1e-12))
+    T = np.eye(4)
+    w_, v = mean[:3], mean[3:]
+    th = float(np.linalg.norm(w_))
+    K = np.array([[0, -w_[2], w_[1]], [w_[2], 0, -w_[0]], [-w_[1], w_[0], 0]])
+    dR = np.eye(3) + K if th < 1e-12 else np.eye(3) + np.sin(th) / th * K + (1 - np.cos(th)) / th**2 * (K @ K)
+    T[:3, :3] = R0 @ dR
+    T[:3, 3] = t0 + R0 @ v
+    cov = np.linalg.inv(H)
+    return LoopMatch(T, m0.inliers, 0.5 * (cov + cov.T), m0.rms_px)
+
+
+def verify_nearby(
+    bank: LoopFeatureBank,
+    k_feat: int,
+    k_max: int,
+    transport: Callable[[int], np.ndarray],
+    cur: FrameFeatures,
+    cur_frame: StereoFrame | None,
+    camera: StereoCamera,
+    cfg: FrontendConfig,
+    offset_px: float = 0.0,
+) -> LoopMatch | None:
+    """Verify against the stored reference ``k_feat`` and, with ``loop_verify_neighbours`` n > 0,
+    against the stored references up to n steps either side of it (positions <= ``k_max``),
+    each carried into ``k_feat``'s frame by ``transport(k)`` (T_feat_k, e.g. from the VO poses);
+    the measurements that verify are fused (:func:`fuse_loop_matches`). None unless ``k_feat``
+    itself verifies."""
+    m0 = verify_features(bank.reference(k_feat), cur, cur_frame, camera, cfg, offset_px)
+    if m0 is None or cfg.loop_verify_neighbours <= 0:
+        return m0
+    found = [m0]
+    e = cfg.loop_reference_every
+    for i in range(1, cfg.loop_verify_neighbours + 1):
+        for kn in (k_feat - i * e, k_feat + i * e):
+            if kn < 0 or kn > k_max:
+                continue
+            ref = bank.reference(kn)
+            m = None if ref is None else verify_features(ref, cur, cur_frame, camera, cfg, offset_px)
+            if m is not None:
+                found.append(LoopMatch(transport(kn) @ m.T_ref_cur, m.inliers, m.cov, m.rms_px))
+    return fuse_loop_matches(found)
 
 
 class LoopFeatureBank:
