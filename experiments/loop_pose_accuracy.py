@@ -74,24 +74,25 @@ def main() -> None:
         vo = cached_vo(seq, seq_dir, base, Path(args.cache), None)
         gt = seq.gt_poses
         pairs = pairs_of(gt, base, args.stride, args.max_dist)
-        bank = LoopFeatureBank(seq.camera, base.frontend, background=False)
+        banks = {name: LoopFeatureBank(seq.camera, cfg.frontend, background=False) for name, cfg in variants}
         errs: dict[str, list] = {name: [] for name, _ in variants}
         V = np.array([vo[int(i)].pose for i in seq.indices])
         e = base.frontend.loop_reference_every
         n_nb = max(cfg.frontend.loop_verify_neighbours for _, cfg in variants)
-        added: set[int] = set()
+        added: dict[str, set[int]] = {name: set() for name, _ in variants}
         t0 = time.perf_counter()
         for k, j in pairs:
             k_max = k - base.loop.frame_distance
-            for jj in range(j - n_nb * e, j + n_nb * e + 1, e):
-                if 0 <= jj <= k_max and jj not in added:
-                    bank.add(jj, seq[jj], float(vo[int(seq.indices[jj])].disparity_offset_px))
-                    added.add(jj)
             frame = seq[k]
-            cur = bank.query(k, frame)
             G = np.linalg.solve(gt[j], gt[k])
             off = float(vo[int(seq.indices[k])].disparity_offset_px)
             for name, cfg in variants:
+                bank = banks[name]
+                for jj in range(j - n_nb * e, j + n_nb * e + 1, e):
+                    if 0 <= jj <= k_max and jj not in added[name]:
+                        bank.add(jj, seq[jj], float(vo[int(seq.indices[jj])].disparity_offset_px))
+                        added[name].add(jj)
+                cur = bank.query(k, frame)
                 m = verify_nearby(
                     bank, j, k_max, lambda kn, j=j: np.linalg.solve(V[j], V[kn]), cur, frame, seq.camera, cfg.frontend, off
                 )

@@ -41,6 +41,7 @@ from snaps_graph.evaluation.loops import LoopEvalSettings, evaluate_loops
 from snaps_graph.evaluation.metrics import evaluate
 from snaps_graph.evaluation.oracle import loop_oracle
 from snaps_graph.frontend.odometry import StereoOdometry
+from snaps_graph.geometry import rotation_angle_deg, wrap_deg, yaw_deg
 from snaps_graph.pipeline import SlamPipeline
 from snaps_graph.runner import write_results
 from snaps_graph.trajectory_io import read_kitti_poses
@@ -204,10 +205,16 @@ def main() -> None:
             # Verified loops against ground truth: translation / rotation error of the measurement.
             k_of = {int(i): k for k, i in enumerate(seq.indices)}
             errs = []
+            per_loop = []
             for lp in result.loops:
                 if lp.verified and lp.T_ref_cur is not None:
                     G = np.linalg.solve(gt[k_of[lp.reference]], gt[k_of[lp.frame]])
                     errs.append(float(np.linalg.norm(lp.T_ref_cur[:3, 3] - G[:3, 3])))
+                    dyaw = float(wrap_deg(yaw_deg(lp.T_ref_cur[:3, :3]) - yaw_deg(G[:3, :3])))
+                    drot = rotation_angle_deg(lp.T_ref_cur[:3, :3].T @ G[:3, :3])
+                    per_loop.append(f"{lp.frame}-{lp.reference}: t {errs[-1]:.3f} m, rot {drot:.3f}, yaw {dyaw:+.3f} deg")
+            if per_loop:
+                print(f"  {name} loop errors: " + "; ".join(per_loop), flush=True)
             rows.append(
                 [
                     seq_dir.name,

@@ -213,6 +213,9 @@ class FrontendConfig(_Section):
     # loop.frame_distance), each carried to it by the VO poses, and the measurements fused by
     # their covariances (robustly); 0 = the nearest reference alone. The nearest one must verify.
     loop_verify_neighbours: int = 0
+    # ORB loop keypoints refined at full resolution (cv2.cornerSubPix, half-window this many
+    # pixels x the pyramid scale of the keypoint's level; 0 = the level's pixel grid).
+    loop_subpixel_px: float = 0.0
 
     def _cross_checks(self, source: str) -> None:
         if self.klt_bias_window_px and not 3 <= self.klt_bias_window_px < self.klt_window_px:
@@ -721,6 +724,7 @@ RULES: dict[str, Range] = {
     "frontend.loop_min_sigma_px": POSITIVE,
     "frontend.loop_max_distance_m": POSITIVE,
     "frontend.loop_verify_neighbours": NON_NEGATIVE,
+    "frontend.loop_subpixel_px": NON_NEGATIVE,
     "loop.radius_m": POSITIVE,
     "loop.frame_distance": AT_LEAST_1,
     "loop.discount_length": NON_NEGATIVE,

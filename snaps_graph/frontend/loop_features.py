@@ -80,10 +80,29 @@ def detect_loop_keypoints(
     if desc is None or not kps:
         return np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8), np.zeros(0, np.float32)
     uv = np.array([k.pt for k in kps], np.float32)
+    if cfg.loop_subpixel_px > 0:
+        uv = _subpixel(img, uv, np.array([k.octave for k in kps]), cfg)
     size = np.array([k.size for k in kps], np.float32)
     resp = np.array([k.response for k in kps], np.float32)
     order = np.lexsort((uv[:, 1], uv[:, 0], -resp))
     return uv[order], np.ascontiguousarray(desc[order], np.uint8), size[order]
+
+
+def _subpixel(img: np.ndarray, uv: np.ndarray, octave: np.ndarray, cfg: FrontendConfig) -> np.ndarray:
+    """FAST corners found on a pyramid level sit on that level's pixel grid (up to
+    ``loop_orb_scale``^octave px off at full resolution): refine each at full resolution by
+    ``cv2.cornerSubPix`` with a half-window of ``loop_subpixel_px`` x scale^octave, and keep the
+    original where the refinement moved farther than that half-window."""
+    out = uv.copy()
+    for o in np.unique(octave):
+        sel = np.flatnonzero(octave == o)
+        half = max(2, int(round(cfg.loop_subpixel_px * cfg.loop_orb_scale ** int(o))))
+        pts = uv[sel].reshape(-1, 1, 2).copy()
+        crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 20, 0.01)
+        ref = cv2.cornerSubPix(img, pts, (half, half), (-1, -1), crit).reshape(-1, 2)
+        ok = np.all(np.isfinite(ref), 1) & (np.abs(ref - uv[sel]).max(1) <= half)
+        out[sel[ok]] = ref[ok]
+    return out
 
 
 def stereo_points(
