@@ -96,7 +96,7 @@ def main() -> None:
                         added[name].add(jj)
                 cur = bank.query(k, frame)
                 m = verify_nearby(
-                    bank, j, k_max, lambda kn, j=j: np.linalg.solve(V[j], V[kn]), cur, frame, seq.camera, cfg.frontend, off
+                    bank, j, k_max, lambda kn, j=j, V=V: np.linalg.solve(V[j], V[kn]), cur, frame, seq.camera, cfg.frontend, off
                 )
                 if m is None:
                     errs[name].append(None)
@@ -107,14 +107,19 @@ def main() -> None:
                 sig_t = float(np.sqrt(np.trace(m.cov[3:, 3:])))
                 errs[name].append((te, re, ye, float(np.linalg.norm(G[:3, 3])), m.inliers, sig_t))
         both = [i for i in range(len(pairs)) if all(errs[n][i] is not None for n, _ in variants)]
-        print(f"{seq_dir.name}: {len(pairs)} pairs within {args.max_dist} m, {len(both)} verified by every variant [{time.perf_counter() - t0:.0f} s]")
+        print(
+            f"{seq_dir.name}: {len(pairs)} pairs within {args.max_dist} m, {len(both)} verified by every variant [{time.perf_counter() - t0:.0f} s]"
+        )
         for name, _ in variants:
-            e = np.array([errs[name][i][:6] for i in both]) if both else np.zeros((0, 6))
+            err = np.array([errs[name][i][:6] for i in both]) if both else np.zeros((0, 6))
             n_ver = sum(x is not None for x in errs[name])
-            if len(e) == 0:
+            if len(err) == 0:
                 rows.append([seq_dir.name, name, f"{n_ver}/{len(pairs)}", "", "", "", "", ""])
                 continue
-            q = lambda c: f"{np.median(e[:, c]):.3f} / {np.percentile(e[:, c], 90):.3f} / {e[:, c].max():.3f}"  # noqa: E731
+
+            def q(c: int, err: np.ndarray = err) -> str:
+                return f"{np.median(err[:, c]):.3f} / {np.percentile(err[:, c], 90):.3f} / {err[:, c].max():.3f}"
+
             rows.append(
                 [
                     seq_dir.name,
@@ -123,8 +128,8 @@ def main() -> None:
                     q(0),
                     q(1),
                     q(2),
-                    f"{np.median(e[:, 3]):.1f}",
-                    f"{np.median(e[:, 4]):.0f}, sd_t {np.median(e[:, 5]):.3f}",
+                    f"{np.median(err[:, 3]):.1f}",
+                    f"{np.median(err[:, 4]):.0f}, sd_t {np.median(err[:, 5]):.3f}",
                 ]
             )
             print("  " + " | ".join(rows[-1][1:]), flush=True)
