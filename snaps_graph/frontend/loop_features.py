@@ -11,6 +11,8 @@ RANSAC (the odometry's estimator), keeps the pose only if enough inliers *also* 
 with the current frame's own stereo (a place that merely looks alike, e.g. a repeated facade
 module at another distance, fails that), and returns the pose with its covariance from the
 inliers' reprojection Jacobian, so the graph weighs a loop by what verification measured.
+ORB keypoints are refined to sub-pixel at full resolution (``loop_subpixel_px``);
+:func:`verify_nearby` can fuse the verifications of neighbouring references.
 """
 
 from __future__ import annotations
@@ -248,12 +250,8 @@ def fuse_loop_matches(matches: list[LoopMatch], huber: float = 3.0, iterations: 
         d = np.sqrt(np.maximum(np.einsum("ij,ijk,ik->i", r, info, r), 0.0))
         w = np.where(d <= huber, 1.0, huber / np.maximum(d, 1e-12))
     T = np.eye(4)
-    w_, v = mean[:3], mean[3:]
-    th = float(np.linalg.norm(w_))
-    K = np.array([[0, -w_[2], w_[1]], [w_[2], 0, -w_[0]], [-w_[1], w_[0], 0]])
-    dR = np.eye(3) + K if th < 1e-12 else np.eye(3) + np.sin(th) / th * K + (1 - np.cos(th)) / th**2 * (K @ K)
-    T[:3, :3] = R0 @ dR
-    T[:3, 3] = t0 + R0 @ v
+    T[:3, :3] = R0 @ cv2.Rodrigues(mean[:3].reshape(3, 1))[0]
+    T[:3, 3] = t0 + R0 @ mean[3:]
     cov = np.linalg.inv(H)
     return LoopMatch(T, m0.inliers, 0.5 * (cov + cov.T), m0.rms_px)
 
@@ -287,7 +285,10 @@ def verify_nearby(
             m = None if ref is None else verify_features(ref, cur, cur_frame, camera, cfg, offset_px)
             if m is not None:
                 found.append(LoopMatch(transport(kn) @ m.T_ref_cur, m.inliers, m.cov, m.rms_px))
-    return fuse_loop_matches(found)
+    try:
+        return fuse_loop_matches(found)
+    except np.linalg.LinAlgError:  # a singular covariance: the nearest reference's measurement
+        return m0
 
 
 class LoopFeatureBank:
