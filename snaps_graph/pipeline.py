@@ -31,7 +31,7 @@ from .camera import StereoCamera
 from .config import Config
 from .errors import SnapsGraphError
 from .frontend.depth import check_stereo_pair, map_depth
-from .frontend.loop_features import LoopFeatureBank, verify_features
+from .frontend.loop_features import LoopFeatureBank, verify_nearby
 from .frontend.odometry import StereoOdometry
 from .frontend.verify import verify_loop
 from .loop.snaps import SnapsLoopCloser
@@ -234,7 +234,17 @@ class SlamPipeline:
             try:
                 cur = self.loop_features.query(k, frame)
                 offset = float(getattr(vo, "disparity_offset_px", 0.0))
-                m = verify_features(self.loop_features.reference(k_feat), cur, frame, self.camera, self.cfg.frontend, offset)
+                m = verify_nearby(
+                    self.loop_features,
+                    k_feat,
+                    k - self.cfg.loop.frame_distance,
+                    lambda kn: np.linalg.solve(self._vo_poses[k_feat], self._vo_poses[kn]),
+                    cur,
+                    frame,
+                    self.camera,
+                    self.cfg.frontend,
+                    offset,
+                )
             except Exception as exc:  # best effort: an unverifiable candidate is not a loop
                 self.graph.failures.append((k, f"loop verification raised {type(exc).__name__}: {exc}"))
                 return None

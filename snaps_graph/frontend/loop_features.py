@@ -11,11 +11,14 @@ RANSAC (the odometry's estimator), keeps the pose only if enough inliers *also* 
 with the current frame's own stereo (a place that merely looks alike, e.g. a repeated facade
 module at another distance, fails that), and returns the pose with its covariance from the
 inliers' reprojection Jacobian, so the graph weighs a loop by what verification measured.
+ORB keypoints are refined to sub-pixel at full resolution (``loop_subpixel_px``);
+:func:`verify_nearby` can fuse the verifications of neighbouring references.
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -24,9 +27,11 @@ import numpy as np
 
 from ..camera import StereoCamera
 from ..config import FrontendConfig
+from ..geometry import log_so3
 from ..types import FrameFeatures, StereoFrame
 from .depth import sparse_disparity
 from .odometry import true_disparity
+from .stereo_ba import stereo_two_view_ba
 from .verify import match_and_pnp, plausible
 
 
@@ -77,10 +82,29 @@ def detect_loop_keypoints(
     if desc is None or not kps:
         return np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8), np.zeros(0, np.float32)
     uv = np.array([k.pt for k in kps], np.float32)
+    if cfg.loop_subpixel_px > 0:
+        uv = _subpixel(img, uv, np.array([k.octave for k in kps]), cfg)
     size = np.array([k.size for k in kps], np.float32)
     resp = np.array([k.response for k in kps], np.float32)
     order = np.lexsort((uv[:, 1], uv[:, 0], -resp))
     return uv[order], np.ascontiguousarray(desc[order], np.uint8), size[order]
+
+
+def _subpixel(img: np.ndarray, uv: np.ndarray, octave: np.ndarray, cfg: FrontendConfig) -> np.ndarray:
+    """FAST corners found on a pyramid level sit on that level's pixel grid (up to
+    ``loop_orb_scale``^octave px off at full resolution): refine each at full resolution by
+    ``cv2.cornerSubPix`` with a half-window of ``loop_subpixel_px`` x scale^octave, and keep the
+    original where the refinement moved farther than that half-window."""
+    out = uv.copy()
+    for o in np.unique(octave):
+        sel = np.flatnonzero(octave == o)
+        half = max(2, int(round(cfg.loop_subpixel_px * cfg.loop_orb_scale ** int(o))))
+        pts = uv[sel].reshape(-1, 1, 2).copy()
+        crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 20, 0.01)
+        ref = cv2.cornerSubPix(img, pts, (half, half), (-1, -1), crit).reshape(-1, 2)
+        ok = np.all(np.isfinite(ref), 1) & (np.abs(ref - uv[sel]).max(1) <= half)
+        out[sel[ok]] = ref[ok]
+    return out
 
 
 def stereo_points(
@@ -137,6 +161,22 @@ def pose_covariance(
     return cov, float(np.sqrt(s2))
 
 
+def _refine_stereo_ba(
+    T_cur_ref: np.ndarray, pts: np.ndarray, uv: np.ndarray, d_cur: np.ndarray, camera: StereoCamera, cfg: FrontendConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The two-view stereo BA from the PnP pose over the depth-checked inliers: (T_cur_ref, the
+    BA's inlier points and pixels). The reference's pixels and disparities are recovered from its
+    3D points (they were back-projected from them); the BA's seed and points are kept when it
+    fails or keeps fewer than ``min_inliers``."""
+    z = np.maximum(pts[:, 2].astype(np.float64), 1e-6)
+    ref_uv = np.c_[camera.fx * pts[:, 0] / z + camera.cx, camera.fy * pts[:, 1] / z + camera.cy]
+    ref_disp = camera.fx * camera.baseline_m / z
+    r = stereo_two_view_ba(T_cur_ref, ref_uv, ref_disp, uv, d_cur, camera)
+    if not r.ok or int(r.inliers.sum()) < cfg.min_inliers:
+        return T_cur_ref, pts, uv
+    return r.T_cur_ref, pts[r.inliers], uv[r.inliers]
+
+
 def verify_features(
     ref: FrameFeatures | None,
     cur: FrameFeatures,
@@ -166,7 +206,7 @@ def verify_features(
         agree = has & (np.abs(d_meas - d_pred) <= cfg.loop_depth_check_px)
         if int(agree.sum()) < cfg.min_inliers or agree.sum() < cfg.loop_depth_min_ratio * max(int(has.sum()), 1):
             return None
-        pts, uv = pts[agree], uv[agree]
+        pts, uv, d_cur = pts[agree], uv[agree], d_meas[agree]
         # Re-estimate on the points that passed both tests (LM from the RANSAC pose).
         rvec = cv2.Rodrigues(T_cur_ref[:3, :3])[0]
         rvec, tvec = cv2.solvePnPRefineLM(
@@ -177,6 +217,8 @@ def verify_features(
         T[:3, 3] = tvec.reshape(3)
         if np.all(np.isfinite(T)):
             T_cur_ref = T
+        if cfg.loop_pose_refine == "stereo_ba":
+            T_cur_ref, pts, uv = _refine_stereo_ba(T_cur_ref, pts, uv, d_cur, camera, cfg)
     T_ref_cur = plausible(T_cur_ref, cfg)
     if T_ref_cur is None:
         return None
@@ -184,6 +226,69 @@ def verify_features(
     if not np.all(np.isfinite(cov)):
         return None
     return LoopMatch(T_ref_cur, int(len(pts)), cov, rms)
+
+
+def fuse_loop_matches(matches: list[LoopMatch], huber: float = 3.0, iterations: int = 3) -> LoopMatch:
+    """One relative pose from several measurements of it (each ``T_ref_cur`` in the same
+    reference frame, covariance on the right): the information-weighted mean in the tangent space
+    of the first, Huber-weighted on each one's Mahalanobis distance from the mean (a measurement
+    that disagrees counts less). The covariance is the fused information's inverse; inliers are
+    the first measurement's."""
+    m0 = matches[0]
+    if len(matches) == 1:
+        return m0
+    R0, t0 = m0.T_ref_cur[:3, :3], m0.T_ref_cur[:3, 3]
+    xi = np.array([np.r_[log_so3(R0.T @ m.T_ref_cur[:3, :3]), R0.T @ (m.T_ref_cur[:3, 3] - t0)] for m in matches])
+    info = np.array([np.linalg.inv(m.cov) for m in matches])
+    w = np.ones(len(matches))
+    mean = np.zeros(6)
+    H = info[0]
+    for _ in range(iterations):
+        H = np.einsum("i,ijk->jk", w, info)
+        mean = np.linalg.solve(H, np.einsum("i,ijk,ik->j", w, info, xi))
+        r = xi - mean
+        d = np.sqrt(np.maximum(np.einsum("ij,ijk,ik->i", r, info, r), 0.0))
+        w = np.where(d <= huber, 1.0, huber / np.maximum(d, 1e-12))
+    T = np.eye(4)
+    T[:3, :3] = R0 @ cv2.Rodrigues(mean[:3].reshape(3, 1))[0]
+    T[:3, 3] = t0 + R0 @ mean[3:]
+    cov = np.linalg.inv(H)
+    return LoopMatch(T, m0.inliers, 0.5 * (cov + cov.T), m0.rms_px)
+
+
+def verify_nearby(
+    bank: LoopFeatureBank,
+    k_feat: int,
+    k_max: int,
+    transport: Callable[[int], np.ndarray],
+    cur: FrameFeatures,
+    cur_frame: StereoFrame | None,
+    camera: StereoCamera,
+    cfg: FrontendConfig,
+    offset_px: float = 0.0,
+) -> LoopMatch | None:
+    """Verify against the stored reference ``k_feat`` and, with ``loop_verify_neighbours`` n > 0,
+    against the stored references up to n steps either side of it (positions <= ``k_max``),
+    each carried into ``k_feat``'s frame by ``transport(k)`` (T_feat_k, e.g. from the VO poses);
+    the measurements that verify are fused (:func:`fuse_loop_matches`). None unless ``k_feat``
+    itself verifies."""
+    m0 = verify_features(bank.reference(k_feat), cur, cur_frame, camera, cfg, offset_px)
+    if m0 is None or cfg.loop_verify_neighbours <= 0:
+        return m0
+    found = [m0]
+    e = cfg.loop_reference_every
+    for i in range(1, cfg.loop_verify_neighbours + 1):
+        for kn in (k_feat - i * e, k_feat + i * e):
+            if kn < 0 or kn > k_max:
+                continue
+            ref = bank.reference(kn)
+            m = None if ref is None else verify_features(ref, cur, cur_frame, camera, cfg, offset_px)
+            if m is not None:
+                found.append(LoopMatch(transport(kn) @ m.T_ref_cur, m.inliers, m.cov, m.rms_px))
+    try:
+        return fuse_loop_matches(found)
+    except np.linalg.LinAlgError:  # a singular covariance: the nearest reference's measurement
+        return m0
 
 
 class LoopFeatureBank:
