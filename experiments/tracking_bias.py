@@ -13,8 +13,9 @@ Renders pairs of consecutive frames along a KITTI ground-truth path (default: KI
 ``--bias-windows 0 7`` repeats the tracking rows with ``klt_bias_window_px`` at each value (0 = the
 plain LK fit; the default 7 re-fits with a 7 px window and extrapolates the window bias away).
 
-With ``--run RUN`` it also prints the mean per-step rotation error (pitch, yaw, roll) and vertical
-translation error of a results folder's VO against its ground truth, with standard errors.
+With ``--run RUN`` it prints only the mean per-step rotation error (pitch, yaw, roll) and vertical
+translation error of a results folder's VO against its ground truth, with standard errors and
+the per-step scatter (standard deviation), and renders nothing.
 
     python experiments/tracking_bias.py [--trajectory ../shared/data/kitti_gt/00.txt] [--windows 7 11 21] [--gaps 1 3 5] [--bias-windows 0 7] [--run results/bench/run00]
 """
@@ -56,8 +57,8 @@ def run_bias(run: Path) -> None:
     n = len(E)
     print(f"{run}: per-step VO error over {n} steps (mean +- standard error)")
     for i, name in enumerate(("pitch (x)", "yaw (y)", "roll (z)")):
-        print(f"  {name:<10} {rot[:, i].mean():+.2f} +- {rot[:, i].std() / np.sqrt(n):.2f} millideg")
-    print(f"  vertical   {ty.mean():+.3f} +- {ty.std() / np.sqrt(n):.3f} mm (camera y)")
+        print(f"  {name:<10} {rot[:, i].mean():+.2f} +- {rot[:, i].std() / np.sqrt(n):.2f} millideg, scatter {rot[:, i].std():.2f}")
+    print(f"  vertical   {ty.mean():+.3f} +- {ty.std() / np.sqrt(n):.3f} mm (camera y), scatter {ty.std():.2f}")
 
 
 def main() -> None:
@@ -72,6 +73,7 @@ def main() -> None:
     args = ap.parse_args()
     if args.run:
         run_bias(args.run)
+        return
     poses, times = load_trajectory(args.trajectory, args.frames)
     seq = SyntheticSequence(poses, width=1241, height=376, seed=0, times=times)
     cam, cfg = seq.camera, Config().frontend
