@@ -59,7 +59,9 @@ def run_bias(run: Path) -> None:
     n = len(E)
     print(f"{run}: per-step VO error over {n} steps (mean +- standard error)")
     for i, name in enumerate(("pitch (x)", "yaw (y)", "roll (z)")):
-        print(f"  {name:<10} {rot[:, i].mean():+.2f} +- {rot[:, i].std() / np.sqrt(n):.2f} millideg, scatter {rot[:, i].std():.2f}")
+        print(
+            f"  {name:<10} {rot[:, i].mean():+.2f} +- {rot[:, i].std() / np.sqrt(n):.2f} millideg, scatter {rot[:, i].std():.2f}"
+        )
     print(f"  vertical   {ty.mean():+.3f} +- {ty.std() / np.sqrt(n):.3f} mm (camera y), scatter {ty.std():.2f}")
     # The vertical (world y) error each rotation component builds up: its per-step errors taken
     # into the world frame and summed (small angles), then crossed with the true steps.
