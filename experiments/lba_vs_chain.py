@@ -45,8 +45,8 @@ def main() -> None:
     rec: list[tuple[int, np.ndarray, np.ndarray]] = []
     orig = local_ba.LocalBundleAdjuster.add_keyframe
 
-    def hook(self, key, pose, ids, uv, disp):
-        out = orig(self, key, pose, ids, uv, disp)
+    def hook(self, key, pose, ids, uv, disp, chain=None):
+        out = orig(self, key, pose, ids, uv, disp, chain)
         rec.append((key, pose.copy(), out.copy()))
         return out
 

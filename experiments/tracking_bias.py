@@ -13,8 +13,11 @@ Renders pairs of consecutive frames along a KITTI ground-truth path (default: KI
 ``--bias-windows 0 7`` repeats the tracking rows with ``klt_bias_window_px`` at each value (0 = the
 plain LK fit; the default 7 re-fits with a 7 px window and extrapolates the window bias away).
 
-With ``--run RUN`` it also prints the mean per-step rotation error (pitch, yaw, roll) and vertical
-translation error of a results folder's VO against its ground truth, with standard errors.
+With ``--run RUN`` it prints only the mean per-step rotation error (pitch, yaw, roll) and vertical
+translation error of a results folder's VO against its ground truth, with standard errors and
+the per-step scatter (standard deviation), and the vertical error each rotation component's
+per-step errors build up (the world tilt they add, crossed with the true steps); it renders
+nothing.
 
     python experiments/tracking_bias.py [--trajectory ../shared/data/kitti_gt/00.txt] [--windows 7 11 21] [--gaps 1 3 5] [--bias-windows 0 7] [--run results/bench/run00]
 """
@@ -56,8 +59,24 @@ def run_bias(run: Path) -> None:
     n = len(E)
     print(f"{run}: per-step VO error over {n} steps (mean +- standard error)")
     for i, name in enumerate(("pitch (x)", "yaw (y)", "roll (z)")):
-        print(f"  {name:<10} {rot[:, i].mean():+.2f} +- {rot[:, i].std() / np.sqrt(n):.2f} millideg")
-    print(f"  vertical   {ty.mean():+.3f} +- {ty.std() / np.sqrt(n):.3f} mm (camera y)")
+        print(
+            f"  {name:<10} {rot[:, i].mean():+.2f} +- {rot[:, i].std() / np.sqrt(n):.2f} millideg, scatter {rot[:, i].std():.2f}"
+        )
+    print(f"  vertical   {ty.mean():+.3f} +- {ty.std() / np.sqrt(n):.3f} mm (camera y), scatter {ty.std():.2f}")
+    # The vertical (world y) error each rotation component builds up: its per-step errors taken
+    # into the world frame and summed (small angles), then crossed with the true steps.
+    rad = np.radians(rot / 1e3)
+    step = np.diff(gt[:, :3, 3], axis=0)
+    dv = vo[:, 1, 3] - gt[:, 1, 3]
+    built = []
+    for i in range(3):
+        tilt = np.cumsum(gt[1:, :3, i] * rad[:, i : i + 1], axis=0)  # R_world_cam[k] e_k, summed
+        built.append(np.r_[0.0, np.cumsum(np.cross(tilt, step)[:, 1])])
+    print(
+        f"  vertical error: mean |dv| {np.abs(dv).mean():.3f} m; built by the per-step pitch errors {np.abs(built[0]).mean():.3f}, "
+        f"roll {np.abs(built[2]).mean():.3f}, yaw {np.abs(built[1]).mean():.3f} (mean |.|); at the end {dv[-1]:+.2f} m: "
+        f"pitch {built[0][-1]:+.2f}, roll {built[2][-1]:+.2f}, yaw {built[1][-1]:+.2f}"
+    )
 
 
 def main() -> None:
@@ -72,6 +91,7 @@ def main() -> None:
     args = ap.parse_args()
     if args.run:
         run_bias(args.run)
+        return
     poses, times = load_trajectory(args.trajectory, args.frames)
     seq = SyntheticSequence(poses, width=1241, height=376, seed=0, times=times)
     cam, cfg = seq.camera, Config().frontend

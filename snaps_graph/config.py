@@ -188,10 +188,11 @@ class FrontendConfig(_Section):
     klt_bias_max_px: float = 0.5
     # The chain's step between consecutive local-BA keyframes (the composed stereo-BA steps, their
     # covariance carried along and multiplied by lba_chain_scale) as a relative-pose factor in
-    # the window (numpy lba_solver): "yaw" = its heading change only (the window's far landmarks
-    # leave yaw and the sideways step ambiguous; the chain's pitch carries the tracking bias the
-    # window removes), "rotation", "full", or "off".
-    lba_chain: Literal["off", "yaw", "rotation", "full"] = "yaw"
+    # the window (numpy lba_solver): "yaw_roll" = its rotation about the camera's y and z axes
+    # (the window's far landmarks leave yaw and the sideways step ambiguous, and a yaw held alone
+    # is paid for in the window's roll, which they couple; the chain's pitch carries the tracking
+    # bias the window removes), "yaw", "rotation", "full", or "off".
+    lba_chain: Literal["off", "yaw", "yaw_roll", "rotation", "full"] = "yaw_roll"
     lba_chain_scale: float = 1.0
     # klt, weak texture: goodFeaturesToTrack's quality is relative to the image's strongest corner,
     # so a high-contrast far field (a tree line against the sky, beyond max_depth_m) can suppress

@@ -49,6 +49,8 @@ def test_chain_information_keeps_only_the_axes_asked_for():
     cov = A @ A.T + 0.1 * np.eye(6)
     yaw = chain_information(cov, "yaw")
     assert yaw[1, 1] == 1 / cov[1, 1] and np.count_nonzero(yaw) == 1
+    yr = chain_information(cov, "yaw_roll")
+    assert np.allclose(yr[1:3, 1:3], np.linalg.inv(cov[1:3, 1:3])) and np.count_nonzero(yr) == 4
     rot = chain_information(cov, "rotation")
     assert np.allclose(rot[:3, :3], np.linalg.inv(cov[:3, :3])) and not rot[3:].any()
     assert np.allclose(chain_information(cov, "full"), np.linalg.inv(cov))

@@ -101,11 +101,14 @@ def true_disparity(d: np.ndarray, offset_px: float) -> np.ndarray:
 
 def chain_information(cov: np.ndarray, axes: str) -> np.ndarray:
     """Information (6x6, [rotation, translation]) of the chain's step between keyframes for
-    ``lba_chain``: "yaw" = the marginal of the rotation about the camera's y axis only, "rotation"
-    = the marginal of the rotation, "full" = all six."""
+    ``lba_chain``: "yaw" = the marginal of the rotation about the camera's y axis only, "yaw_roll"
+    = the marginal of the rotation about its y and z axes, "rotation" = the marginal of the
+    rotation, "full" = all six."""
     info = np.zeros((6, 6))
     if axes == "yaw":
         info[1, 1] = 1.0 / max(float(cov[1, 1]), 1e-18)
+    elif axes == "yaw_roll":
+        info[1:3, 1:3] = np.linalg.inv(cov[1:3, 1:3])
     elif axes == "rotation":
         info[:3, :3] = np.linalg.inv(cov[:3, :3])
     elif axes == "full":
