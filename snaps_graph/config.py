@@ -293,12 +293,12 @@ class LoopConfig(_Section):
     correction_rotation: Literal["none", "yaw", "full"] = "yaw"
     # The rotation correction is weighted by its uncertainty against the drift it corrects: gain
     # g = n*d^2 / (n*d^2 + s^2) for a loop n frames after its reference, d the VO's heading
-    # random walk per sqrt(frame), s the verified heading's standard deviation. Measured on the
-    # KITTI 00/07 renderings: the VO heading error over n frames grows like 0.004-0.005 deg*sqrt(n)
-    # (0.04-0.05 deg over 100 frames, 0.13-0.16 over 1000); verification's heading error 0.02-0.14
-    # deg rms. A loop 100 frames after its reference turns by 20 % of the measured rotation, one
-    # 1000 frames after it by 71 %.
-    heading_drift_deg: float = 0.005
+    # random walk per sqrt(frame), s the verified heading's standard deviation. d re-measured on
+    # today's front end (README): 0.0027-0.0032 deg*sqrt(n) on the KITTI 00 street rendering
+    # (0.005 on the front end before issue 11's chain factor); verification's heading error
+    # 0.02-0.14 deg rms. A loop 100 frames after its reference turns by 8 % of the measured
+    # rotation, one 1000 frames after it by 47 %.
+    heading_drift_deg: float = 0.003
     verified_heading_sigma_deg: float = 0.1
     # Eq. 6's window for a loop from frame N to its reference j: "fixed" = discount_length frames
     # (the paper); "span" = min(discount_length_max, round(discount_span_factor * (N - j))), so a
