@@ -43,6 +43,13 @@ def m(w):
     return (w * w - 1) / 12.0
 
 
+def quadratic(ws, ps):
+    """Lagrange extrapolation of three fits (windows ``ws``) to a zero second moment."""
+    ms = np.array([m(w) for w in ws])
+    L = [np.prod([(0 - ms[k]) / (ms[i] - ms[k]) for k in range(3) if k != i]) for i in range(3)]
+    return L[0] * ps[0] + L[1] * ps[1] + L[2] * ps[2]
+
+
 def variants(a, b, uv, guess):
     out = {}
     p11, ok = lk(a, b, uv, guess, 11, 3, 0.01)
@@ -61,17 +68,13 @@ def variants(a, b, uv, guess):
     out["lin 11c/7"] = (c2, ok & s11)
     p5, s5 = lk(a, b, uv, p7c, 5, 0, 0.001)
     okq = okc & s5 & np.all(np.abs(p11c - p5) <= 0.5, 1)
-    ms = np.array([m(11), m(7), m(5)])
-    L = [np.prod([(0 - ms[k]) / (ms[i] - ms[k]) for k in range(3) if k != i]) for i in range(3)]
     c3 = p11c.copy()
-    c3[okq] = (L[0] * p11c + L[1] * p7c + L[2] * p5)[okq]
+    c3[okq] = quadratic((11, 7, 5), (p11c, p7c, p5))[okq]
     out["quad 11c/7/5"] = (c3, ok & s11)
     p9, s9 = lk(a, b, uv, p11c, 9, 0, 0.001)
     ok9 = okc & s9 & np.all(np.abs(p11c - p9) <= 0.5, 1)
-    ms = np.array([m(11), m(9), m(7)])
-    L = [np.prod([(0 - ms[k]) / (ms[i] - ms[k]) for k in range(3) if k != i]) for i in range(3)]
     c4 = p11c.copy()
-    c4[ok9] = (L[0] * p11c + L[1] * p9 + L[2] * p7c)[ok9]
+    c4[ok9] = quadratic((11, 9, 7), (p11c, p9, p7c))[ok9]
     out["quad 11c/9/7"] = (c4, ok & s11)
     p5b, s5b = lk(a, b, uv, p11, 5, 0, 0.001)
     ok5 = ok & s5b & np.all(np.abs(p11 - p5b) <= 0.5, 1)
