@@ -41,6 +41,24 @@ SHARED = ROOT.parent / "shared" / "data"
 PATHS = {"00": SHARED / "kitti_gt" / "00.txt", "07": SHARED / "kitti_gt" / "07.txt", "loop": "loop"}
 
 
+def frontend_from_args(description: str):
+    """``SEQ [--frames A:B] [--set key=python-literal ...]`` of the front-end experiments: the
+    sequence (with ground truth) and the default FrontendConfig with the overrides."""
+    import argparse
+    import ast
+    import dataclasses
+
+    from snaps_graph.config import FrontendConfig
+
+    ap = argparse.ArgumentParser(description=description)
+    ap.add_argument("seq")
+    ap.add_argument("--frames", default=None)
+    ap.add_argument("--set", nargs="*", default=[], help="FrontendConfig overrides key=python-literal")
+    args = ap.parse_args()
+    kw = {k: ast.literal_eval(v) for k, v in (s.split("=", 1) for s in args.set)}
+    return KittiSequence(args.seq, frames=args.frames), dataclasses.replace(FrontendConfig(), **kw)
+
+
 def synthetic_dir(path: str, width: int = 1241, height: int = 376, seed: int = 0, frames: str | None = None) -> Path:
     """Render a synthetic sequence along a KITTI path (or the built-in loop) once; reuse it after."""
     from tqdm import tqdm

@@ -14,27 +14,17 @@ translation in mm. It also prints how the factor's yaw change moves the other co
 
 from __future__ import annotations
 
-import argparse
-import ast
 import copy
-import dataclasses
 
 import numpy as np
+from _common import frontend_from_args
 
-from snaps_graph.config import FrontendConfig
-from snaps_graph.datasets.kitti import KittiSequence
 from snaps_graph.frontend import StereoOdometry, local_ba
 from snaps_graph.geometry import inv, log_so3
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("seq")
-    ap.add_argument("--frames", default=None)
-    ap.add_argument("--set", nargs="*", default=[], help="FrontendConfig overrides key=python-literal")
-    args = ap.parse_args()
-    kw = {k: ast.literal_eval(v) for k, v in (s.split("=", 1) for s in args.set)}
-    seq = KittiSequence(args.seq, frames=args.frames)
+    seq, fcfg = frontend_from_args(__doc__.split("\n")[0])
     gt = seq.gt_poses
     rec: list[np.ndarray] = []
     orig = local_ba.LocalBundleAdjuster.add_keyframe
@@ -59,7 +49,7 @@ def main() -> None:
         return out
 
     local_ba.LocalBundleAdjuster.add_keyframe = hook  # type: ignore[method-assign]
-    with StereoOdometry(seq.camera, dataclasses.replace(FrontendConfig(), **kw)) as vo:
+    with StereoOdometry(seq.camera, fcfg) as vo:
         for f in seq:
             vo.process(f)
     R = np.array(rec)

@@ -39,8 +39,7 @@ def lk(a, b, p0, p1, w, lev, eps, use_init=True):
     return q.reshape(-1, 2).astype(np.float64), st.reshape(-1) == 1
 
 
-def m(w):
-    return (w * w - 1) / 12.0
+m = feat.window_moment
 
 
 def quadratic(ws, ps):

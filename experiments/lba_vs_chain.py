@@ -12,35 +12,19 @@ translation in mm), and the RMS yaw and sideways (x) error by the ground-truth y
 
 from __future__ import annotations
 
-import argparse
-import dataclasses
-
 import numpy as np
+from _common import frontend_from_args
 
-from snaps_graph.config import FrontendConfig
-from snaps_graph.datasets.kitti import KittiSequence
 from snaps_graph.frontend import StereoOdometry, local_ba
-from snaps_graph.geometry import inv
+from snaps_graph.geometry import inv, log_so3
 
 
 def _rotvec_mdeg(R: np.ndarray) -> np.ndarray:
-    c = np.clip((np.trace(R) - 1) / 2, -1, 1)
-    th = float(np.arccos(c))
-    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    w = v * (0.5 if th < 1e-8 else th / (2 * np.sin(th)))
-    return np.degrees(w) * 1e3
+    return np.degrees(log_so3(R)) * 1e3
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("seq")
-    ap.add_argument("--frames", default=None)
-    ap.add_argument("--set", nargs="*", default=[], help="FrontendConfig overrides key=python-literal")
-    args = ap.parse_args()
-    import ast
-
-    kw = {k: ast.literal_eval(v) for k, v in (s.split("=", 1) for s in args.set)}
-    seq = KittiSequence(args.seq, frames=args.frames)
+    seq, fcfg = frontend_from_args(__doc__.split("\n")[0])
     gt = seq.gt_poses
     rec: list[tuple[int, np.ndarray, np.ndarray]] = []
     orig = local_ba.LocalBundleAdjuster.add_keyframe
@@ -51,7 +35,7 @@ def main() -> None:
         return out
 
     local_ba.LocalBundleAdjuster.add_keyframe = hook  # type: ignore[method-assign]
-    with StereoOdometry(seq.camera, dataclasses.replace(FrontendConfig(), **kw)) as vo:
+    with StereoOdometry(seq.camera, fcfg) as vo:
         for f in seq:
             vo.process(f)
 

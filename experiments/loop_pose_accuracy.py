@@ -26,25 +26,20 @@ from loop_verification import apply, cached_vo
 from snaps_graph.config import Config
 from snaps_graph.datasets.kitti import KittiSequence
 from snaps_graph.frontend.loop_features import LoopFeatureBank, verify_nearby
-from snaps_graph.geometry import rotation_angle_deg
-
-
-def yaw_deg(T: np.ndarray) -> float:
-    """Heading of a camera pose about the world vertical (KITTI: camera y down, z forward)."""
-    return float(np.degrees(np.arctan2(T[0, 2], T[2, 2])))
+from snaps_graph.geometry import rotation_angle_deg, wrap_deg, yaw_deg
 
 
 def pairs_of(gt: np.ndarray, cfg: Config, stride: int, max_dist: float) -> list[tuple[int, int]]:
     e, M = cfg.frontend.loop_reference_every, cfg.loop.frame_distance
     pos = gt[:, :3, 3]
-    yaws = np.array([yaw_deg(T) for T in gt])
+    yaws = yaw_deg(gt)
     out = []
     for k in range(M, len(gt), stride):
         js = np.arange(0, k - M + 1, e)
         if len(js) == 0:
             continue
         d = np.linalg.norm(pos[js] - pos[k], axis=1)
-        dy = np.abs((yaws[js] - yaws[k] + 180.0) % 360.0 - 180.0)
+        dy = np.abs(wrap_deg(yaws[js] - yaws[k]))
         ok = (d <= max_dist) & (dy <= cfg.loop.max_yaw_deg)
         if ok.any():
             out.append((k, int(js[ok][np.argmin(d[ok])])))
@@ -103,7 +98,7 @@ def main() -> None:
                     continue
                 te = float(np.linalg.norm(m.T_ref_cur[:3, 3] - G[:3, 3]))
                 re = rotation_angle_deg(m.T_ref_cur[:3, :3].T @ G[:3, :3])
-                ye = abs(yaw_deg(m.T_ref_cur) - yaw_deg(G))
+                ye = abs(wrap_deg(yaw_deg(m.T_ref_cur) - yaw_deg(G)))
                 sig_t = float(np.sqrt(np.trace(m.cov[3:, 3:])))
                 errs[name].append((te, re, ye, float(np.linalg.norm(G[:3, 3])), m.inliers, sig_t))
         both = [i for i in range(len(pairs)) if all(errs[n][i] is not None for n, _ in variants)]

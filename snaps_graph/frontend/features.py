@@ -215,6 +215,11 @@ def track_klt(
     return p1.astype(np.float32), ok
 
 
+def window_moment(w: int) -> float:
+    """Second moment of a w-pixel window's offsets, (w^2 - 1) / 12: the LK window bias's scale."""
+    return (w * w - 1) / 12.0
+
+
 def _window_extrapolated(
     prev_img: np.ndarray, cur_img: np.ndarray, uv: np.ndarray, p1: np.ndarray, ok: np.ndarray, cfg: FrontendConfig
 ) -> np.ndarray:
@@ -241,7 +246,7 @@ def _window_extrapolated(
     )
     diff = p1[sel] - p2.reshape(-1, 2)
     good = (st.reshape(-1) == 1) & np.all(np.abs(diff) <= cfg.klt_bias_max_px, axis=1)
-    m1, m2 = (w1 * w1 - 1) / 12.0, (w2 * w2 - 1) / 12.0
+    m1, m2 = window_moment(w1), window_moment(w2)
     out = p1.copy()
     out[sel[good]] -= m1 / (m1 - m2) * diff[good]
     return out

@@ -96,11 +96,11 @@ def _subpixel(img: np.ndarray, uv: np.ndarray, octave: np.ndarray, cfg: Frontend
     ``cv2.cornerSubPix`` with a half-window of ``loop_subpixel_px`` x scale^octave, and keep the
     original where the refinement moved farther than that half-window."""
     out = uv.copy()
+    crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 20, 0.01)
     for o in np.unique(octave):
         sel = np.flatnonzero(octave == o)
         half = max(2, int(round(cfg.loop_subpixel_px * cfg.loop_orb_scale ** int(o))))
         pts = uv[sel].reshape(-1, 1, 2).copy()
-        crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 20, 0.01)
         ref = cv2.cornerSubPix(img, pts, (half, half), (-1, -1), crit).reshape(-1, 2)
         ok = np.all(np.isfinite(ref), 1) & (np.abs(ref - uv[sel]).max(1) <= half)
         out[sel[ok]] = ref[ok]
