@@ -44,14 +44,6 @@ class StereoBAResult:
     rho: np.ndarray | None = None  # (N,) refined inverse depths in the reference camera (1/m)
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    """(N,3) -> (N,3,3) cross-product matrices."""
-    z = np.zeros(len(v))
-    return np.stack(
-        [np.stack([z, -v[:, 2], v[:, 1]], 1), np.stack([v[:, 2], z, -v[:, 0]], 1), np.stack([-v[:, 1], v[:, 0], z], 1)], 1
-    )
-
-
 def _exp_so3(w: np.ndarray) -> np.ndarray:
     th = float(np.linalg.norm(w))
     K = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
