@@ -60,6 +60,7 @@ MODES = {
     "no_weak": dict(klt_weak_points=0),  # the default without the weak-texture corner detection
     "no_chain": dict(lba_chain="off"),  # the default without the chain's heading factor in the local BA
     "chain_yaw": dict(lba_chain="yaw"),  # the chain's heading alone in the local BA (the default before yaw_roll)
+    "prewarp": dict(klt_road_prewarp=True),  # road points tracked from the reference warped by the road plane's homography
     "no_bias_fix": dict(klt_bias_window_px=0),  # the default with the plain 11 px LK fit
 }
 

@@ -186,6 +186,18 @@ class FrontendConfig(_Section):
     # fails or moves more than klt_bias_max_px keeps the plain position.
     klt_bias_window_px: int = 7
     klt_bias_max_px: float = 0.5
+    # Road prewarp (issue 11; off: measured worse on real KITTI 06, README "Road prewarp"): the
+    # reference's road plane is fitted to its points below the optical axis with trusted depth
+    # nearer than klt_road_max_depth_m (features.road_plane); those within klt_road_tol_m of it
+    # are tracked from the reference image warped by the plane's homography under the
+    # constant-velocity prediction, so the flow left within the LK window is a translation (no
+    # window bias to remove). A plane with fewer than klt_road_min_points inliers, tilted more
+    # than klt_road_max_tilt_deg, or no prediction: every point is tracked plainly.
+    klt_road_prewarp: bool = False
+    klt_road_max_depth_m: float = 15.0
+    klt_road_tol_m: float = 0.1
+    klt_road_min_points: int = 30
+    klt_road_max_tilt_deg: float = 30.0
     # The chain's step between consecutive local-BA keyframes (the composed stereo-BA steps, their
     # covariance carried along and multiplied by lba_chain_scale) as a relative-pose factor in
     # the window (numpy lba_solver): "yaw_roll" = its rotation about the camera's y and z axes
@@ -712,6 +724,10 @@ RULES: dict[str, Range] = {
     "frontend.disparity_offset_max_sd_px": POSITIVE,
     "frontend.klt_bias_window_px": NON_NEGATIVE,
     "frontend.klt_bias_max_px": POSITIVE,
+    "frontend.klt_road_tol_m": POSITIVE,
+    "frontend.klt_road_max_depth_m": POSITIVE,
+    "frontend.klt_road_min_points": _ge(3),
+    "frontend.klt_road_max_tilt_deg": Range(0, 90),
     "frontend.lba_chain_scale": POSITIVE,
     "frontend.klt_weak_points": NON_NEGATIVE,
     "frontend.klt_weak_quality": FRACTION,

@@ -207,6 +207,7 @@ class _Keyframe:
     # (N,) bool: depth within max_depth_m (PnP's points); the rest are far points (stereo BA only)
     near: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     right: np.ndarray | None = None  # right image (klt_retry matches ORB keypoints with depth from it)
+    road: tuple | None = None  # (n, d) of its road plane, () when it has none, None until fitted
 
 
 class _Flag(Exception):
@@ -690,7 +691,18 @@ class StereoOdometry:
             guess = np.where((zp > 0)[:, None], guess, ref.uv)
             if anchored:  # the disparity changes over several frames: predict it too
                 dguess = np.where(zp > 0, self.camera.fx * self.camera.baseline_m / np.maximum(zp, 1e-6) + self._offset, ref.disp)
-        uv_cur, ok = self._split(lambda u, g: feat.track_klt(ref.left, frame.left, u, cfg, g), ref.uv, guess)
+        road = self._road(ref, pred) if cfg.klt_road_prewarp and pred is not None and not anchored else None
+        if road is None:
+            uv_cur, ok = self._split(lambda u, g: feat.track_klt(ref.left, frame.left, u, cfg, g), ref.uv, guess)
+        else:  # road points from the prewarped reference (a thread), the rest plainly
+            sel, H = road
+            rest = np.flatnonzero(~sel)
+            on_road = self._submit(feat.track_klt_prewarped, ref.left, frame.left, ref.uv[sel], H, cfg)
+            uv_cur, ok = np.empty_like(ref.uv), np.zeros(len(ref.uv), bool)
+            uv_cur[rest], ok[rest] = feat.track_klt(
+                ref.left, frame.left, ref.uv[rest], cfg, None if guess is None else guess[rest]
+            )
+            uv_cur[sel], ok[sel] = on_road.result()
         idx = np.flatnonzero(ok)
         if cfg.klt_anchor_gap > 0 and not anchored and self._anchor is not None:
             uv_cur = self._anchor_refine(frame, uv_cur, ref.ids, idx)
@@ -747,6 +759,18 @@ class StereoOdometry:
         kf.promote = promote
         T_ref_cur = self._conclude(kf, T_cur_ref, n_inl, gap, f"PnP failed ({len(idx)} tracks)")
         return kf, T_ref_cur, n_inl, len(idx)
+
+    def _road(self, ref: _Keyframe, pred: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """(mask of ``ref``'s points on its road plane, the plane's homography into the frame
+        predicted by ``pred`` = T_cur_ref), or None without a plane (``klt_road_prewarp``)."""
+        below = ref.near & (ref.uv[:, 1] > self.camera.cy) & (ref.pts3d[:, 2] <= self.cfg.klt_road_max_depth_m)
+        if ref.road is None:
+            ref.road = feat.road_plane(ref.pts3d[below], self.cfg) or ()
+        if not ref.road:
+            return None
+        n, d = ref.road
+        sel = below & (np.abs(ref.pts3d @ n - d) < self.cfg.klt_road_tol_m)
+        return sel, feat.plane_homography(self.camera.K, pred, n, d)
 
     def _orb_retry(self, ref: _Keyframe, frame: StereoFrame, klt: tuple, timings: dict[str, float]):
         """Motion from ``klt_retry_features`` ORB keypoints detected afresh in the reference and
