@@ -61,6 +61,7 @@ MODES = {
     "no_chain": dict(lba_chain="off"),  # the default without the chain's heading factor in the local BA
     "chain_yaw": dict(lba_chain="yaw"),  # the chain's heading alone in the local BA (the default before yaw_roll)
     "prewarp": dict(klt_road_prewarp=True),  # road points tracked from the reference warped by the road plane's homography
+    "lba_async": dict(lba_async=True),  # the keyframe local BA beside the next frame's tracking
     "no_bias_fix": dict(klt_bias_window_px=0),  # the default with the plain 11 px LK fit
 }
 

@@ -7,6 +7,7 @@ front end's stereo BA (``stereo_two_view_ba``, started at the true motion) from:
 * exact correspondences and disparities (the renderer's depth): the BA itself, no error;
 * KLT tracks (the default tracker, started at the true position) or measured sparse-stereo
   disparities in place of the exact ones, one input at a time;
+* KLT's row or column errors alone, or its errors clipped to +-0.5 px (what the tails add);
 * KLT tracks in one image-row band or depth band only, exact elsewhere: where the error enters;
 * the road prewarp (``klt_road_prewarp``: road points tracked from the reference warped by the
   road plane's homography, the plane fitted to measured depth, the motion predicted by constant
@@ -82,6 +83,9 @@ def main() -> None:
             "KLT tracks": (klt, de0, de1, seen & ok),
             "measured disparities": (true, dm0, depth_mod.sparse_disparity(f1.left, f1.right, true, cfg), seen),
             "KLT tracks, measured disparities": (klt, dm0, depth_mod.sparse_disparity(f1.left, f1.right, klt, cfg), seen & ok),
+            "KLT row errors only": (np.c_[true[:, 0], klt[:, 1]], de0, de1, seen & ok),
+            "KLT column errors only": (np.c_[klt[:, 0], true[:, 1]], de0, de1, seen & ok),
+            "KLT errors clipped to +-0.5 px": (true + np.clip(klt - true, -0.5, 0.5), de0, de1, seen & ok),
             "KLT in rows < 180 only": (klt_in(v < 180), de0, de1, seen & ok),
             "KLT in rows 180-220 only": (klt_in((v >= 180) & (v < 220)), de0, de1, seen & ok),
             "KLT in rows 220-280 only": (klt_in((v >= 220) & (v < 280)), de0, de1, seen & ok),

@@ -119,6 +119,11 @@ class FrontendConfig(_Section):
     lba_iterations: int = 5
     lba_max_landmarks: int = 300
     lba_every: int = 3
+    # threads > 1: the keyframe's local BA runs on a worker thread beside the next frame's
+    # tracking and is joined before that frame's pose is composed: the keyframe itself is handed
+    # out with its chained pose, every later frame builds on the refined one (deterministic: the
+    # join point is fixed, not timed).
+    lba_async: bool = False
     # klt_reference = "frame": every klt_anchor_gap frames the current frame becomes the anchor, and
     # tracks it also has are re-tracked from its image (0 = off); a re-track may move a point at
     # most klt_anchor_max_px from its frame-to-frame position.

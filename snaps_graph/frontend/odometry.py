@@ -210,6 +210,12 @@ class _Keyframe:
     road: tuple | None = None  # (n, d) of its road plane, () when it has none, None until fitted
 
 
+def _timed(fn: Callable, *args: Any) -> tuple[Any, float]:
+    """(fn(*args), its wall time in ms)."""
+    t0 = time.perf_counter()
+    return fn(*args), (time.perf_counter() - t0) * 1000.0
+
+
 class _Flag(Exception):
     """Internal: this frame is flagged for ``reason``; ``usable`` features may be a reference."""
 
@@ -258,6 +264,9 @@ class StereoOdometry:
         self._anchor: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None
         self._sba_cov: np.ndarray | None = None  # the last stereo BA's pose covariance (VOResult.cov)
         self._lba = None
+        self._lba_pool = ThreadPoolExecutor(max_workers=1) if self.cfg.lba_async and self.cfg.threads > 1 else None
+        # lba_async: (the solve, its keyframe, the keyframe's chained pose, offsets before it)
+        self._lba_pending: tuple[Future, _Keyframe, np.ndarray, int] | None = None
         self._lba_last = -(10**9)  # frame index of the last local BA keyframe
         self._chain_cov: np.ndarray | None = None  # the chain's covariance since that keyframe (T_cur_kf)
         self._lba_prev_pose: np.ndarray | None = None  # its pose as handed out
@@ -325,6 +334,9 @@ class StereoOdometry:
 
     # ---- lifecycle ----
     def close(self) -> None:
+        if self._lba_pool is not None:
+            self._lba_pool.shutdown(wait=True)
+            self._lba_pool = None
         if self._pool is not None:
             self._pool.shutdown(wait=True)
             self._pool = None
@@ -365,13 +377,19 @@ class StereoOdometry:
         ref = self._ref  # the frame this one is measured from
         self._sba_cov = None
         result = None
+        flagged: tuple[str, _Keyframe | None] | None = None
         try:
             kf_or_none, T_ref_cur, inliers, matches = self._estimate(frame, first, timings)
         except _Flag as flag:
-            result = self._flagged(frame, prev_pose, flag.reason, flag.keyframe, timings, gap_last)
+            flagged = (flag.reason, flag.keyframe)
         except cv2.error as exc:  # OpenCV refusing an odd image: flag, do not crash
             msg = str(exc).strip().splitlines()[-1] if str(exc).strip() else "error"
-            result = self._flagged(frame, prev_pose, f"OpenCV error: {msg}", None, timings, gap_last)
+            flagged = (f"OpenCV error: {msg}", None)
+        bump = None  # lba_async: the covariance the last keyframe's correction adds to this step
+        if self._lba_pending is not None:  # the last keyframe's local BA (lba_async), before any pose
+            bump = self._join_lba(timings)
+        if flagged is not None:
+            result = self._flagged(frame, prev_pose, flagged[0], flagged[1], timings, gap_last)
         if result is None:
             if first:
                 pose = np.eye(4)
@@ -399,16 +417,18 @@ class StereoOdometry:
                 if self._chain_cov is not None and self._lba_prev_pose is not None and self.cfg.lba_chain != "off":
                     N = np.linalg.solve(pose, self._lba_prev_pose)  # T_cur_prevkf along the chain
                     chain = (N, chain_information(self._chain_cov * self.cfg.lba_chain_scale, self.cfg.lba_chain))
-                pose = self._lba.add_keyframe(frame.index, pose, kf.ids[kf.near], kf.uv[kf.near], kf.disp[kf.near], chain)
-                self._lba_prev_pose = pose.copy()
+                args = (frame.index, pose, kf.ids[kf.near], kf.uv[kf.near], kf.disp[kf.near], chain)
                 self._chain_cov = np.zeros((6, 6))
-                if self.cfg.estimate_disparity_offset:
-                    self._update_offset(n_off)
-                timings["lba"] = (time.perf_counter() - t_ba) * 1000.0
-                if self._sba_cov is not None:  # the step now carries the local BA's correction: its size joins the noise
-                    c = inv(chained) @ pose
-                    w = 0.5 * np.array([c[2, 1] - c[1, 2], c[0, 2] - c[2, 0], c[1, 0] - c[0, 1]])  # small angles
-                    self._sba_cov = self._sba_cov + np.diag(np.r_[w, c[:3, 3]] ** 2)
+                if self._lba_pool is not None:  # joined by the next frame; this one keeps its chained pose
+                    self._lba_pending = (self._lba_pool.submit(_timed, self._lba.add_keyframe, *args), kf, chained, n_off)
+                    self._lba_prev_pose = None
+                else:
+                    pose = self._lba.add_keyframe(*args)
+                    timings["lba"] = (time.perf_counter() - t_ba) * 1000.0
+                    if self._sba_cov is not None:
+                        self._sba_cov = self._sba_cov + self._lba_done(pose, chained, n_off)
+                    else:
+                        self._lba_done(pose, chained, n_off)
             if not first:
                 T_rel = inv(prev_pose) @ pose
             kf.pose = pose
@@ -432,13 +452,36 @@ class StereoOdometry:
                 inliers=inliers,
                 matches=matches,
                 features=kf.features,
-                cov=self._sba_cov if from_prev else None,
+                cov=None if not from_prev or self._sba_cov is None else self._sba_cov if bump is None else self._sba_cov + bump,
             )
         result.disparity_offset_px = self._offset
         self._last_index = frame.index
         timings["total"] = (time.perf_counter() - t_start) * 1000.0
         result.timings_ms = timings
         return result
+
+    def _lba_done(self, pose: np.ndarray, chained: np.ndarray, n_off: int) -> np.ndarray:
+        """Book a local BA's answer ``pose`` for the keyframe whose chained pose was ``chained``;
+        returns the covariance the correction adds to the step that carries it (its size)."""
+        self._lba_prev_pose = pose.copy()
+        if self.cfg.estimate_disparity_offset:
+            self._update_offset(n_off)
+        c = inv(chained) @ pose
+        w = 0.5 * np.array([c[2, 1] - c[1, 2], c[0, 2] - c[2, 0], c[1, 0] - c[0, 1]])  # small angles
+        return np.diag(np.r_[w, c[:3, 3]] ** 2)
+
+    def _join_lba(self, timings: dict[str, float]) -> np.ndarray:
+        """Wait for the pending keyframe's local BA (``lba_async``), move the keyframe to its
+        answer; returns the covariance its correction adds to this frame's step."""
+        assert self._lba_pending is not None
+        fut, kf, chained, n_off = self._lba_pending
+        self._lba_pending = None
+        t0 = time.perf_counter()
+        pose, ms = fut.result()
+        timings["lba_wait"] = (time.perf_counter() - t0) * 1000.0
+        timings["lba"] = ms
+        kf.pose = pose
+        return self._lba_done(pose, chained, n_off)
 
     def _flagged(
         self,
