@@ -16,7 +16,9 @@ front end's stereo BA (``stereo_two_view_ba``, started at the true motion) from:
 It prints each input's mean per-step rotation error (pitch, yaw, roll, millidegrees), vertical
 translation error (camera y, mm) and step-length error (%), with standard errors over the pairs.
 
-    python experiments/pitch_source.py [--trajectory ../shared/data/kitti_gt/00.txt] [--frames 0:1000] [--every 10]
+With ``--kernel HUBER OUTLIER`` every solve uses that robust kernel; ``--noise`` adds sensor noise.
+
+    python experiments/pitch_source.py [--trajectory ../shared/data/kitti_gt/00.txt] [--frames 0:1000] [--every 10] [--noise 2] [--kernel 0.3 0.6]
 """
 
 from __future__ import annotations
@@ -41,10 +43,20 @@ def main() -> None:
     ap.add_argument("--trajectory", default=str(ROOT.parent / "shared/data/kitti_gt/00.txt"))
     ap.add_argument("--frames", default="0:1000")
     ap.add_argument("--every", type=int, default=10)
+    ap.add_argument("--noise", type=float, default=0.0, help="sensor noise of the rendering, grey levels")
+    ap.add_argument(
+        "--kernel",
+        type=float,
+        nargs=2,
+        metavar=("HUBER", "OUTLIER"),
+        default=None,
+        help="the stereo BA's Huber and outlier thresholds, px (default: the config's)",
+    )
     args = ap.parse_args()
     poses, times = load_trajectory(args.trajectory, args.frames)
-    seq = SyntheticSequence(poses, width=1241, height=376, seed=0, times=times)
+    seq = SyntheticSequence(poses, width=1241, height=376, seed=0, times=times, noise_std=args.noise)
     cam, cfg = seq.camera, Config().frontend
+    huber, outlier = args.kernel if args.kernel else (cfg.sba_huber_px, cfg.sba_outlier_px)
     fb = cam.fx * cam.baseline_m
     out: dict[str, list[np.ndarray]] = {}
     for i in range(1, len(seq) - 1, args.every):
@@ -105,8 +117,8 @@ def main() -> None:
                 c[s],
                 d1[s],
                 cam,
-                huber_px=cfg.sba_huber_px,
-                outlier_px=cfg.sba_outlier_px,
+                huber_px=huber,
+                outlier_px=outlier,
                 iterations=cfg.sba_iterations,
             )
             E = np.linalg.solve(T, r.T_cur_ref)
