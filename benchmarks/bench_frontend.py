@@ -62,6 +62,8 @@ MODES = {
     "chain_yaw": dict(lba_chain="yaw"),  # the chain's heading alone in the local BA (the default before yaw_roll)
     "prewarp": dict(klt_road_prewarp=True),  # road points tracked from the reference warped by the road plane's homography
     "lba_async": dict(lba_async=True),  # the keyframe local BA beside the next frame's tracking
+    "sgl1": dict(stereo_guess_levels=1),  # tracked points' stereo from the predicted disparity, 2 pyramid levels
+    "sgl2": dict(stereo_guess_levels=2),  # ... 3 pyramid levels
     "no_bias_fix": dict(klt_bias_window_px=0),  # the default with the plain 11 px LK fit
 }
 

@@ -85,6 +85,9 @@ class FrontendConfig(_Section):
     # Sparse stereo (disparity = "sparse"): LK from left to right along the row.
     stereo_window_px: int = 11  # LK window, pixels
     stereo_levels: int = 4  # LK pyramid levels (disparities up to ~100 px near the car)
+    # LK pyramid levels for points with a disparity guess (klt: tracked points, the guess
+    # predicted from the point's 3D position and the constant-velocity motion)
+    stereo_guess_levels: int = 4
     stereo_max_dy_px: float = 1.0  # a match may leave its row by at most this (rectified pair)
     stereo_lr_check_px: float = 0.5  # right-to-left re-track must land this close; 0 disables
     # KLT mode: frame-to-frame tracking of corners.
@@ -695,6 +698,7 @@ RULES: dict[str, Range] = {
     "frontend.sgbm_block_size": Range(1, 255, odd=True),
     "frontend.stereo_window_px": _ge(3),
     "frontend.stereo_levels": NON_NEGATIVE,
+    "frontend.stereo_guess_levels": NON_NEGATIVE,
     "frontend.stereo_max_dy_px": NON_NEGATIVE,
     "frontend.stereo_lr_check_px": NON_NEGATIVE,
     "frontend.klt_window_px": _ge(3),

@@ -211,7 +211,7 @@ def sparse_disparity(
     Each point is tracked into the right image with pyramidal LK (window ``stereo_window_px``,
     ``stereo_levels`` pyramid levels), starting from ``u - guess_px`` when a disparity guess is
     given (the previous frame's disparity of a tracked point: it changes little between frames,
-    so LK starts next to the answer). A match is kept when LK converged, it stays within
+    so LK starts next to the answer), then with ``stereo_guess_levels`` pyramid levels. A match is kept when LK converged, it stays within
     ``stereo_max_dy_px`` of the same row (rectified pair), the disparity is positive, and, if
     ``stereo_lr_check_px`` > 0, tracking the right point back lands within that many pixels of
     the left point.
@@ -235,7 +235,7 @@ def sparse_disparity(
         uv.reshape(-1, 1, 2),
         None if init is None else init.reshape(-1, 1, 2),
         winSize=win,
-        maxLevel=cfg.stereo_levels,
+        maxLevel=cfg.stereo_levels if init is None else min(cfg.stereo_levels, cfg.stereo_guess_levels),
         criteria=crit,
         flags=flags,
     )

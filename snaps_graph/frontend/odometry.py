@@ -732,7 +732,7 @@ class StereoOdometry:
         if pred is not None:
             guess, zp = project(pred, ref.pts3d, self.camera)
             guess = np.where((zp > 0)[:, None], guess, ref.uv)
-            if anchored:  # the disparity changes over several frames: predict it too
+            if anchored or cfg.stereo_guess_levels < cfg.stereo_levels:  # predict the disparity too
                 dguess = np.where(zp > 0, self.camera.fx * self.camera.baseline_m / np.maximum(zp, 1e-6) + self._offset, ref.disp)
         road = self._road(ref, pred) if cfg.klt_road_prewarp and pred is not None and not anchored else None
         if road is None:
