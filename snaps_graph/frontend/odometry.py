@@ -425,10 +425,9 @@ class StereoOdometry:
                 else:
                     pose = self._lba.add_keyframe(*args)
                     timings["lba"] = (time.perf_counter() - t_ba) * 1000.0
-                    if self._sba_cov is not None:
-                        self._sba_cov = self._sba_cov + self._lba_done(pose, chained, n_off)
-                    else:
-                        self._lba_done(pose, chained, n_off)
+                    correction = self._lba_done(pose, chained, n_off)
+                    if self._sba_cov is not None:  # this step carries the correction: its size joins the noise
+                        self._sba_cov = self._sba_cov + correction
             if not first:
                 T_rel = inv(prev_pose) @ pose
             kf.pose = pose
