@@ -106,8 +106,11 @@ class FrontendConfig(_Section):
     # it by a two-view stereo bundle adjustment over (u_left, v, u_right) in both frames
     # (frontend/stereo_ba.py); "pnp" keeps PnP + LM on the inliers (before issue 11).
     motion: Literal["pnp", "stereo_ba"] = "stereo_ba"
-    sba_huber_px: float = 1.0  # Huber kernel width on a (point, view) residual, pixels
-    sba_outlier_px: float = 2.0  # after the first round, points beyond this in either view are dropped
+    # Huber kernel width on a (point, view) residual, pixels (stereo BA and local BA); after the
+    # stereo BA's first round, points beyond sba_outlier_px in either view are dropped. Stop 13:
+    # 1.0 / 2.0 -> 0.3 / 0.6 (README "The robust kernel"): the KLT errors' tails carry the pitch bias.
+    sba_huber_px: float = 0.3
+    sba_outlier_px: float = 0.6
     sba_iterations: int = 3  # Gauss-Newton iterations per round (two rounds)
     # KLT: track from the last frame ("frame", before issue 11) or from the last keyframe
     # ("keyframe"): a frame becomes the keyframe when fewer than kf_min_ratio of the keyframe's
