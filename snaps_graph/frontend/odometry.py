@@ -630,6 +630,7 @@ class StereoOdometry:
             self.camera,
             huber_px=cfg.sba_huber_px,
             outlier_px=cfg.sba_outlier_px,
+            keep_px=cfg.sba_keep_px,
             iterations=cfg.sba_iterations,
         )
         timings["sba"] = (time.perf_counter() - t0) * 1000.0

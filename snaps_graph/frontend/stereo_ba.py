@@ -82,12 +82,16 @@ def stereo_two_view_ba(
     outlier_px: float = 2.0,
     iterations: int = 6,
     min_points: int = 8,
+    keep_px: float | None = None,
 ) -> StereoBAResult:
     """Refine T_cur_ref (seed ``T_init``, e.g. PnP) from stereo measurements in both frames.
 
     ``ref_disp`` (N,) reference disparities in pixels (> 0 where known; a point without one is
     not used); ``cur_disp`` (N,) current disparities (<= 0 or NaN: that point's current right
-    image coordinate is missing, its left one still counts). Never raises for degenerate data:
+    image coordinate is missing, its left one still counts). ``keep_px``, when given, decides
+    the returned ``inliers`` instead of the estimation's own set: every point within ``keep_px``
+    in both views at the final pose (a tight ``outlier_px`` for the estimate need not cut the
+    tracks kept). Never raises for degenerate data:
     ``ok=False`` with the seed, a reason and an infinite covariance.
     """
     T_init = np.asarray(T_init, np.float64)
@@ -214,7 +218,10 @@ def stereo_two_view_ba(
     U, _, Vt = np.linalg.svd(T[:3, :3])
     T[:3, :3] = U @ Vt
     inl = np.zeros(n, bool)
-    inl[idx[active]] = True
+    if keep_px is None:
+        inl[idx[active]] = True
+    else:
+        inl[idx[front & (norm3(rr) <= keep_px) & (norm3(rc) <= keep_px)]] = True
     ncoord = 2 * active.sum() + has_r[active].sum() + 3 * active.sum()
     rmse = float(np.sqrt((np.sum(rr[:, active] ** 2) + np.sum(rc[:, active] ** 2)) / max(ncoord, 1)))
     if S is None or not np.all(np.isfinite(S)):
