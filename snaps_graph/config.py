@@ -111,10 +111,12 @@ class FrontendConfig(_Section):
     # 1.0 / 2.0 -> 0.3 / 0.6 (README "The robust kernel"): the KLT errors' tails carry the pitch bias.
     sba_huber_px: float = 0.3
     sba_outlier_px: float = 0.6
-    # Tracks within sba_keep_px of the stereo BA's pose in both views are kept (and count as its
-    # inliers) even when the estimate left them out: a tight kernel must not thin the tracks
-    # (320x96 images: 21 of 90 frames flagged for too few points with depth without it).
+    # When the stereo BA's estimate keeps fewer than sba_keep_below tracks, the tracks within
+    # sba_keep_px of its pose in both views are kept too (and count as its inliers): a tight
+    # kernel must not thin out a small image's tracks (320x96: 21 of 90 frames flagged for too
+    # few points with depth without it). Full-size KITTI frames keep 200 or more.
     sba_keep_px: float = 2.0
+    sba_keep_below: int = 100
     sba_iterations: int = 3  # Gauss-Newton iterations per round (two rounds)
     # KLT: track from the last frame ("frame", before issue 11) or from the last keyframe
     # ("keyframe"): a frame becomes the keyframe when fewer than kf_min_ratio of the keyframe's
@@ -722,6 +724,7 @@ RULES: dict[str, Range] = {
     "frontend.sba_huber_px": POSITIVE,
     "frontend.sba_outlier_px": POSITIVE,
     "frontend.sba_keep_px": POSITIVE,
+    "frontend.sba_keep_below": NON_NEGATIVE,
     "frontend.sba_iterations": AT_LEAST_1,
     "frontend.kf_max_gap": AT_LEAST_1,
     "frontend.kf_min_ratio": Range(0, 1),

@@ -83,6 +83,24 @@ def test_stereo_ba_rejects_outliers_and_recovers_exact_motion():
     assert r.inliers.sum() >= 0.9 * (~bad).sum()
 
 
+def test_keep_px_keeps_tracks_a_tight_estimate_left_out():
+    """0.5 px noise against a 0.3 / 0.6 px kernel: the estimate leaves out many good points; the
+    points ``kept`` with ``keep_px`` = 2 are 94 % of them, and still no gross outlier."""
+    rng = np.random.default_rng(3)
+    T = _motion()
+    X = _points(rng, 300, 3.0, 40.0)
+    uv_r, d_r, uv_c, d_c = _observe(X, T, rng, 0.5, outliers=0.1)
+    clean = _observe(X, T, np.random.default_rng(9), 0.0)[2]
+    bad = np.linalg.norm(uv_c - clean, axis=1) > 3
+    tight = stereo_two_view_ba(T, uv_r, d_r, uv_c, d_c, CAM, huber_px=0.3, outlier_px=0.6)
+    kept = stereo_two_view_ba(T, uv_r, d_r, uv_c, d_c, CAM, huber_px=0.3, outlier_px=0.6, keep_px=2.0)
+    assert tight.ok and kept.ok
+    assert np.array_equal(tight.T_cur_ref, kept.T_cur_ref) and np.array_equal(tight.inliers, kept.inliers)
+    assert np.array_equal(tight.kept, tight.inliers)  # without keep_px
+    assert tight.inliers.sum() < 0.8 * (~bad).sum()
+    assert kept.kept.sum() >= 0.9 * (~bad).sum() and not np.any(kept.kept & bad)  # measured 94 %
+
+
 def test_stereo_ba_degenerate_inputs_fall_back():
     rng = np.random.default_rng(2)
     T = _motion()

@@ -639,6 +639,8 @@ class StereoOdometry:
             self._sba_cov = None
             return T_cur_ref, inl
         self._sba_cov = r.cov
+        if r.kept is not None and np.count_nonzero(r.inliers) < cfg.sba_keep_below:  # a small image: keep its tracks
+            return r.T_cur_ref, inl[r.kept]
         return r.T_cur_ref, inl[r.inliers]
 
     def _scaled_velocity(self, gap: int) -> np.ndarray:

@@ -42,6 +42,7 @@ class StereoBAResult:
     iterations: int = 0
     rmse_px: float = 0.0  # inliers' RMS residual per coordinate, pixels
     rho: np.ndarray | None = None  # (N,) refined inverse depths in the reference camera (1/m)
+    kept: np.ndarray | None = None  # bool (N,): within keep_px at the final pose (the inliers without keep_px)
 
 
 def _exp_so3(w: np.ndarray) -> np.ndarray:
@@ -88,10 +89,10 @@ def stereo_two_view_ba(
 
     ``ref_disp`` (N,) reference disparities in pixels (> 0 where known; a point without one is
     not used); ``cur_disp`` (N,) current disparities (<= 0 or NaN: that point's current right
-    image coordinate is missing, its left one still counts). ``keep_px``, when given, decides
-    the returned ``inliers`` instead of the estimation's own set: every point within ``keep_px``
-    in both views at the final pose (a tight ``outlier_px`` for the estimate need not cut the
-    tracks kept). Never raises for degenerate data:
+    image coordinate is missing, its left one still counts). ``keep_px``, when given, also
+    returns as ``kept`` every point within ``keep_px`` in both views at the final pose (a tight
+    ``outlier_px`` for the estimate need not cut the tracks a caller keeps). Never raises for
+    degenerate data:
     ``ok=False`` with the seed, a reason and an infinite covariance.
     """
     T_init = np.asarray(T_init, np.float64)
@@ -218,10 +219,11 @@ def stereo_two_view_ba(
     U, _, Vt = np.linalg.svd(T[:3, :3])
     T[:3, :3] = U @ Vt
     inl = np.zeros(n, bool)
-    if keep_px is None:
-        inl[idx[active]] = True
-    else:
-        inl[idx[front & (norm3(rr) <= keep_px) & (norm3(rc) <= keep_px)]] = True
+    inl[idx[active]] = True
+    kept = inl
+    if keep_px is not None:
+        kept = np.zeros(n, bool)
+        kept[idx[front & (norm3(rr) <= keep_px) & (norm3(rc) <= keep_px)]] = True
     ncoord = 2 * active.sum() + has_r[active].sum() + 3 * active.sum()
     rmse = float(np.sqrt((np.sum(rr[:, active] ** 2) + np.sum(rc[:, active] ** 2)) / max(ncoord, 1)))
     if S is None or not np.all(np.isfinite(S)):
@@ -234,4 +236,4 @@ def stereo_two_view_ba(
         return fail("non-finite stereo BA pose")
     rho = np.full(n, np.nan)
     rho[idx] = p[2]
-    return StereoBAResult(T, inl, cov, True, "", it_total, rmse, rho)
+    return StereoBAResult(T, inl, cov, True, "", it_total, rmse, rho, kept)
