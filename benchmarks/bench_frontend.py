@@ -143,6 +143,12 @@ def step_bias_percent(poses: np.ndarray, gt: np.ndarray) -> float:
     return 100.0 * (s_vo / max(s_gt, 1e-12) - 1.0)
 
 
+def accuracy(poses: np.ndarray, gt: np.ndarray) -> tuple[float, float, float]:
+    """(ATE m, end drift % of the path, step-length bias %) of ``poses`` against ``gt``."""
+    drift = 100.0 * np.linalg.norm(poses[-1, :3, 3] - gt[-1, :3, 3]) / max(path_length(gt), 1e-9)
+    return ate_rmse(poses, gt), drift, step_bias_percent(poses, gt)
+
+
 def frontend_config(name: str, base: FrontendConfig | None = None) -> FrontendConfig:
     import dataclasses
 
@@ -212,9 +218,7 @@ def main() -> None:
         medians[name] = med["total"]
         ratio = med["total"] / medians["naive"] if "naive" in medians else float("nan")
         if gt is not None and len(gt) >= 3:
-            ate = ate_rmse(poses, gt)
-            drift = 100.0 * np.linalg.norm(poses[-1, :3, 3] - gt[-1, :3, 3]) / max(path_length(gt), 1e-9)
-            sbias = step_bias_percent(poses, gt)
+            ate, drift, sbias = accuracy(poses, gt)
         else:
             ate = drift = sbias = float("nan")
         print(
@@ -224,13 +228,8 @@ def main() -> None:
         )
         if gt is not None and 0 < args.eval_from < len(gt) - 2:
             k = args.eval_from
-            p_k = np.linalg.solve(poses[k], poses[k:].transpose(1, 0, 2).reshape(4, -1)).reshape(4, -1, 4).transpose(1, 0, 2)
-            g_k = np.linalg.solve(gt[k], gt[k:].transpose(1, 0, 2).reshape(4, -1)).reshape(4, -1, 4).transpose(1, 0, 2)
-            drift_k = 100.0 * np.linalg.norm(p_k[-1, :3, 3] - g_k[-1, :3, 3]) / max(path_length(g_k), 1e-9)
-            print(
-                f"{'':12s} from frame {k}: ATE {ate_rmse(p_k, g_k):.3f} m, end drift {drift_k:.2f} %, "
-                f"step bias {step_bias_percent(p_k, g_k):+.2f} %"
-            )
+            ate_k, drift_k, sbias_k = accuracy(np.linalg.inv(poses[k]) @ poses[k:], np.linalg.inv(gt[k]) @ gt[k:])
+            print(f"{'':12s} from frame {k}: ATE {ate_k:.3f} m, end drift {drift_k:.2f} %, step bias {sbias_k:+.2f} %")
         if gt is not None and len(gt) >= 200:  # long enough for KITTI's t_rel (100 m segments)
             m = evaluate(poses, gt)
             print(

@@ -443,6 +443,9 @@ class StereoOdometry:
             self._last_ok = True
             # The stereo BA measured T_ref_cur: it is T_rel when ref is the previous frame.
             from_prev = not first and ref is not None and ref.index == self._last_index
+            cov = self._sba_cov if from_prev else None
+            if cov is not None and bump is not None:  # this step carries the joined keyframe's correction
+                cov = cov + bump
             result = VOResult(
                 index=frame.index,
                 T_rel=T_rel,
@@ -451,7 +454,7 @@ class StereoOdometry:
                 inliers=inliers,
                 matches=matches,
                 features=kf.features,
-                cov=None if not from_prev or self._sba_cov is None else self._sba_cov if bump is None else self._sba_cov + bump,
+                cov=cov,
             )
         result.disparity_offset_px = self._offset
         self._last_index = frame.index
