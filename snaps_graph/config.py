@@ -163,14 +163,17 @@ class FrontendConfig(_Section):
     # mean of the solves, clamped to +-disparity_offset_max_px, replaces disparity_offset_px once
     # disparity_offset_min_solves solves contributed, its standard error is at most
     # disparity_offset_max_sd_px (a drive with too little depth change -- a MAV hovering, a car
-    # standing -- leaves the offset unobservable) and it differs by disparity_offset_min_px or
-    # more (the numpy lba_solver only; otherwise disparity_offset_px is applied unchanged).
+    # standing -- leaves the offset unobservable) and it differs by disparity_offset_min_px and by
+    # disparity_offset_min_z standard errors or more (the numpy lba_solver only; otherwise
+    # disparity_offset_px is applied unchanged). Stop 14: the significance test, not the count
+    # (10 before), is what keeps an offset-free rig's early noise out (README, "disparity offset").
     estimate_disparity_offset: bool = True
     disparity_offset_prior_px: float = 0.5
     disparity_offset_max_px: float = 2.0
-    disparity_offset_min_solves: int = 10
+    disparity_offset_min_solves: int = 3
     disparity_offset_min_px: float = 0.05
     disparity_offset_max_sd_px: float = 0.05
+    disparity_offset_min_z: float = 3.0
     # Loop verification (issue 12): "separate" = multi-scale keypoints with stereo 3D points kept
     # for every loop_reference_every-th frame and computed for the current frame only when a
     # candidate is verified (frontend/loop_features.py); "tracker" = the front end's own per-frame
@@ -742,6 +745,7 @@ RULES: dict[str, Range] = {
     "frontend.disparity_offset_min_solves": AT_LEAST_1,
     "frontend.disparity_offset_min_px": NON_NEGATIVE,
     "frontend.disparity_offset_max_sd_px": POSITIVE,
+    "frontend.disparity_offset_min_z": NON_NEGATIVE,
     "frontend.klt_bias_window_px": NON_NEGATIVE,
     "frontend.klt_bias_max_px": POSITIVE,
     "frontend.klt_road_tol_m": POSITIVE,

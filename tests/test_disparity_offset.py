@@ -153,3 +153,24 @@ def test_an_unobservable_offset_is_never_applied():
         vo._lba.stats.offsets += [(-0.3, 400.0)] * 10  # sd 0.05 px each
         vo._update_offset(30)
         assert vo.disparity_offset_px == pytest.approx(-0.3, abs=0.01)
+
+
+def test_an_offset_within_three_standard_errors_of_the_configured_one_waits():
+    """An early estimate past disparity_offset_min_px but within disparity_offset_min_z standard
+    errors (an offset-free rig's first solves) is not applied; the same offset, once measured
+    well enough to be significant, is."""
+    from snaps_graph.frontend import StereoOdometry
+
+    with StereoOdometry(CAM, FrontendConfig()) as vo:
+        assert vo._lba is not None
+        vo._lba.stats.offsets = [(0.06, 100.0)] * 5  # mean 0.06 px, sd 0.045 px: 1.3 sd
+        vo._update_offset(0)
+        assert vo.disparity_offset_px == 0.0
+        vo._lba.stats.offsets += [(0.06, 10000.0)] * 3  # sd 0.006 px: 10 sd
+        vo._update_offset(5)
+        assert vo.disparity_offset_px == pytest.approx(0.06, abs=0.001)
+    with StereoOdometry(CAM, FrontendConfig(disparity_offset_min_z=0.0)) as vo:
+        assert vo._lba is not None
+        vo._lba.stats.offsets = [(0.06, 100.0)] * 5  # without the test: applied at once
+        vo._update_offset(0)
+        assert vo.disparity_offset_px == pytest.approx(0.06, abs=0.001)

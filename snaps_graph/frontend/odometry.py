@@ -42,7 +42,7 @@ and reports what its data alone say; their information-weighted mean, clamped to
 ±``disparity_offset_max_px``, replaces the configured offset once
 ``disparity_offset_min_solves`` solves contributed, its standard error is at most
 ``disparity_offset_max_sd_px`` and it differs from it by at least
-``disparity_offset_min_px``. Until then the local BA holds the offset in its pose solve, so a
+``disparity_offset_min_px`` and by ``disparity_offset_min_z`` standard errors. Until then the local BA holds the offset in its pose solve, so a
 rig without an offset runs exactly as with the estimate off; once applied, the offset is solved
 jointly with the window's poses. ``VOResult.disparity_offset_px`` is the
 offset each frame was measured with.
@@ -307,7 +307,8 @@ class StereoOdometry:
         if acc[2] >= self.cfg.disparity_offset_min_solves and observed:
             lim = self.cfg.disparity_offset_max_px
             est = float(np.clip(acc[0] / acc[1], -lim, lim))
-            if self._lba.offset_joint or abs(est - self.cfg.disparity_offset_px) >= self.cfg.disparity_offset_min_px:
+            need = max(self.cfg.disparity_offset_min_px, self.cfg.disparity_offset_min_z * acc[1] ** -0.5)
+            if self._lba.offset_joint or abs(est - self.cfg.disparity_offset_px) >= need:
                 self._offset = est
                 self._lba.offset_px = est
                 self._lba.offset_joint = True
