@@ -8,10 +8,12 @@ invisible to every loop, however good the detector. The unaligned mean deviation
 figure) counts that error in full.
 
 :func:`loop_oracle` bounds what our loops could reach. It builds the same pose graph as a run
-(the VO steps with their inlier-based noise, from :class:`~snaps_graph.backend.pose_graph.PoseGraph`)
-and adds a loop factor at *every* true revisit (ground truth: within ``radius_m``, at least
+(the VO steps with the run's odometry noise: the stereo BA's covariances where the caller has
+them, else the inlier-based sigmas; :class:`~snaps_graph.backend.pose_graph.PoseGraph`) and adds
+a loop factor at *every* true revisit (ground truth: within ``radius_m``, at least
 ``frame_distance`` frames back, heading within ``max_yaw_deg``, one every ``step`` frames) whose
-measurement is the exact ground-truth relative pose at full weight, then optimises it in batch.
+measurement is the exact ground-truth relative pose with the tightest noise a verified loop gets,
+then optimises it in batch.
 No detector can give more or better loops than that, so its mean deviation is (up to the
 odometry noise model) the floor for SNAPS and for the refinement on this VO.
 
@@ -20,6 +22,7 @@ It is an evaluation tool only: it reads ground truth, and nothing in a run uses 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -66,10 +69,12 @@ def odometry_graph(
     inliers: np.ndarray | None = None,
     ok: np.ndarray | None = None,
     initial: np.ndarray | None = None,
+    covs: Sequence[np.ndarray | None] | None = None,
 ) -> PoseGraph:
     """A batch-mode graph of a run's VO steps, as the pipeline builds it: frame k gets the step
     from ``vo`` with the noise of its ``inliers`` / ``ok`` (frames.csv; default: reference
-    sigmas, all good) and the initial estimate ``initial[k]`` (default: the VO pose)."""
+    sigmas, all good), or with ``covs[k]`` (``VOResult.cov``) where ``odom_noise = "ba"``, and
+    the initial estimate ``initial[k]`` (default: the VO pose)."""
     n = len(vo)
     inliers = np.zeros(n, int) if inliers is None else np.asarray(inliers, int)
     ok = np.ones(n, bool) if ok is None else np.asarray(ok, bool)
@@ -77,7 +82,8 @@ def odometry_graph(
     graph = PoseGraph(cfg.graph, mode="batch")
     for k in range(n):
         T_rel = None if k == 0 else np.linalg.solve(vo[k - 1], vo[k])
-        graph.add_frame(k, initial[k], T_rel, inliers=int(inliers[k]), ok=bool(ok[k]))
+        cov = None if covs is None else covs[k]
+        graph.add_frame(k, initial[k], T_rel, inliers=int(inliers[k]), ok=bool(ok[k]), cov=cov)
     return graph
 
 
@@ -88,22 +94,26 @@ def loop_oracle(
     inliers: np.ndarray | None = None,
     ok: np.ndarray | None = None,
     step: int = 5,
+    covs: Sequence[np.ndarray | None] | None = None,
 ) -> OracleResult:
     """Batch-optimise the VO chain with an exact loop factor at every true revisit.
 
     ``vo`` and ``gt`` are (N, 4, 4) T_world_cam for the same frames; ``inliers`` and ``ok`` are the
     per-frame VO inlier counts and flags (as in ``frames.csv``) for the odometry noise model
-    (default: the reference sigmas, all frames good). The candidate geometry (radius, frame
+    (default: the reference sigmas, all frames good); ``covs`` the steps' ``VOResult.cov``, used
+    as the pipeline uses them (``odom_noise = "ba"``; a run folder does not keep them). The candidate geometry (radius, frame
     distance, yaw) is ``cfg.loop``'s, so the oracle sees exactly the revisits SNAPS may close.
+    Each loop carries the tightest noise a verified loop gets (a zero verification covariance:
+    the ``loop_sigma_floor_*``), so no real loop is weighted more.
     """
     vo = np.asarray(vo, dtype=float)
     gt = np.asarray(gt, dtype=float)
     if vo.shape != gt.shape or vo.ndim != 3 or vo.shape[1:] != (4, 4):
         raise ValueError(f"vo {vo.shape} and gt {gt.shape} must both be (N, 4, 4)")
     cfg = cfg or Config()
-    graph = odometry_graph(vo, cfg, inliers, ok)
+    graph = odometry_graph(vo, cfg, inliers, ok, covs=covs)
     pairs = true_revisit_pairs(gt, cfg.loop.radius_m, cfg.loop.frame_distance, cfg.loop.max_yaw_deg, step)
     for j, k in pairs:
-        graph.add_loop(j, k, 1.0, np.linalg.solve(gt[j], gt[k]))
+        graph.add_loop(j, k, 1.0, np.linalg.solve(gt[j], gt[k]), covariance=np.zeros((6, 6)))
     poses = graph.optimize_batch()
     return OracleResult(poses, pairs, mean_deviation(poses, gt), ate_rmse(poses, gt))
