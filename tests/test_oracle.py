@@ -94,3 +94,21 @@ def test_oracle_keeps_error_that_no_loop_observes():
         vo2.append(vo2[-1] @ step @ (yaw_pose(0.0, 0.0, 2.0) if k == 40 else np.eye(4)))
     vo2 = np.array(vo2)
     assert loop_oracle(vo2, gt, cfg()).mean_deviation < 0.5 * mean_deviation(vo2, gt)
+
+
+def test_oracle_weighs_the_steps_by_the_covariances_it_is_given():
+    """With the steps' covariances (``odom_noise = "ba"``, as the pipeline weighs them) the exact
+    loops put a heading error on the one step whose covariance allows it; with the inlier
+    sigmas (all steps alike) the same correction is spread over the lap."""
+    gt = square_laps()
+    vo = [gt[0]]
+    for k in range(1, len(gt)):
+        vo.append(vo[-1] @ np.linalg.solve(gt[k - 1], gt[k]) @ (yaw_pose(0.0, 0.0, 2.0) if k == 40 else np.eye(4)))
+    vo = np.array(vo)
+    tight, loose = np.diag([1e-8] * 3 + [1e-6] * 3), np.diag([1e-2] * 3 + [1e-6] * 3)
+    covs = [None] + [loose if k == 40 else tight for k in range(1, len(gt))]
+    c = cfg()
+    assert c.graph.odom_noise == "ba"
+    spread = loop_oracle(vo, gt, c).mean_deviation
+    placed = loop_oracle(vo, gt, c, covs=covs).mean_deviation
+    assert placed < 0.02 and placed < 0.25 * spread, (placed, spread)
