@@ -149,7 +149,9 @@ def main() -> None:
                 print(f"{name} mean deviation / SNAPS mean deviation = {ratio:.3f} (target <= 0.5)")
         # What any loop closure could reach on this VO: exact ground-truth loops at every revisit.
         rows = result.records
-        o = loop_oracle(result.trajectories["vo"], gt, cfg, [r.vo_inliers for r in rows], [r.vo_ok for r in rows])
+        o = loop_oracle(
+            result.trajectories["vo"], gt, cfg, [r.vo_inliers for r in rows], [r.vo_ok for r in rows], covs=pipe.vo_covs
+        )
         ored = 1 - o.mean_deviation / tr["vo"]["mean_deviation"]
         figures["oracle"] = {"loops": len(o.pairs), "mean_deviation": o.mean_deviation, "ate_rmse": o.ate_rmse, "reduction": ored}
         print(

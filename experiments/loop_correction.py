@@ -177,8 +177,7 @@ def main() -> None:
             )
         if args.batch:
             r0 = result.records
-            covs = [cache.results[int(i)].cov for i in cache.indices]  # the pipeline's odometry noise
-            o = loop_oracle(vo, gt, base, [r.vo_inliers for r in r0], [r.vo_ok for r in r0], covs=covs)
+            o = loop_oracle(vo, gt, base, [r.vo_inliers for r in r0], [r.vo_ok for r in r0], covs=pipe.vo_covs)
             rows.append(
                 [
                     seq_dir.name,

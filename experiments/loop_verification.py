@@ -241,8 +241,7 @@ def main() -> None:
             )
         if args.batch:
             r0 = result.records
-            covs = [results[int(i)].cov for i in seq.indices]  # the pipeline's odometry noise (odom_noise = "ba")
-            o = loop_oracle(vo, gt, base, [r.vo_inliers for r in r0], [r.vo_ok for r in r0], covs=covs)
+            o = loop_oracle(vo, gt, base, [r.vo_inliers for r in r0], [r.vo_ok for r in r0], covs=pipe.vo_covs)
             mo = evaluate(o.poses, gt)
             rows.append(
                 [

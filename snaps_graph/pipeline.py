@@ -107,6 +107,7 @@ class SlamPipeline:
         self._k_of_frame: dict[int, int] = {}
         self._timestamps: list[float] = []
         self._vo_poses: list[np.ndarray] = []
+        self.vo_covs: list[np.ndarray | None] = []  # each step's VOResult.cov, as the graph got it (the oracle's noise)
         self._shape: tuple[int, int] | None = None  # (H, W) of the first frame
         self.loops: list[LoopEvent] = []
         self.records: list[FrameRecord] = []
@@ -175,6 +176,7 @@ class SlamPipeline:
 
         tg = time.perf_counter()
         self.graph.add_frame(k, heuristic, None if k == 0 else vo.T_rel, inliers=vo.inliers, ok=vo.ok, cov=vo.cov)
+        self.vo_covs.append(vo.cov)
         if loop is not None:
             self._add_loop_factor(loop, vo)
         n_fail = len(self.graph.failures)
