@@ -357,8 +357,8 @@ class LoopConfig(_Section):
     # of the last loop's distance (verified |t_ref_cur|, else the estimated distance); one that
     # verifies at a measured distance below the same limit is a loop for the factor graph only
     # (the heuristic is not corrected again, the pause keeps running). 0 = the paper's pause (no
-    # search at all). 0.5 since stop 14: the refined result improved on six of eight path x
-    # front-end measurements, held on one (README, "The pause after a loop stays");
+    # search at all). 0.5 since stop 14: over two front ends and four paths the refined result
+    # improved six times, held once and cost once (README, "The pause after a loop stays");
     # correcting the heuristic again instead made it worse on the demo loop and 07 (README).
     pause_closer_ratio: float = 0.5
     # Prior variance of the heading a verified loop corrects: "span" = the drift since the

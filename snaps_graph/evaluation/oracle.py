@@ -101,8 +101,9 @@ def loop_oracle(
     ``vo`` and ``gt`` are (N, 4, 4) T_world_cam for the same frames; ``inliers`` and ``ok`` are the
     per-frame VO inlier counts and flags (as in ``frames.csv``) for the odometry noise model
     (default: the reference sigmas, all frames good); ``covs`` the steps' ``VOResult.cov``, used
-    as the pipeline uses them (``odom_noise = "ba"``; a run folder does not keep them). The candidate geometry (radius, frame
-    distance, yaw) is ``cfg.loop``'s, so the oracle sees exactly the revisits SNAPS may close.
+    as the pipeline uses them (``odom_noise = "ba"``; ``SlamPipeline.vo_covs``). The candidate
+    geometry (radius, frame distance, yaw) is ``cfg.loop``'s, so the oracle sees exactly the
+    revisits SNAPS may close.
     Each loop carries the tightest noise a verified loop gets (a zero verification covariance:
     the ``loop_sigma_floor_*``), so no real loop is weighted more.
     """

@@ -42,8 +42,9 @@ and reports what its data alone say; their information-weighted mean, clamped to
 ±``disparity_offset_max_px``, replaces the configured offset once
 ``disparity_offset_min_solves`` solves contributed, its standard error is at most
 ``disparity_offset_max_sd_px`` and it differs from it by at least
-``disparity_offset_min_px`` and by ``disparity_offset_min_z`` standard errors. Until then the local BA holds the offset in its pose solve, so a
-rig without an offset runs exactly as with the estimate off; once applied, the offset is solved
+``disparity_offset_min_px`` and by ``disparity_offset_min_z`` standard errors. Until then the
+local BA holds the offset in its pose solve, so a rig without an offset runs exactly as with the
+estimate off; once applied, the offset is solved
 jointly with the window's poses. ``VOResult.disparity_offset_px`` is the
 offset each frame was measured with.
 
