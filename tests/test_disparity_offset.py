@@ -174,3 +174,23 @@ def test_an_offset_within_three_standard_errors_of_the_configured_one_waits():
         vo._lba.stats.offsets = [(0.06, 100.0)] * 5  # without the test: applied at once
         vo._update_offset(0)
         assert vo.disparity_offset_px == pytest.approx(0.06, abs=0.001)
+
+
+@pytest.mark.parametrize("memory", [0, 20])
+def test_an_applied_offset_follows_newer_solves_with_a_memory(memory):
+    """Once applied, the running estimate forgets older solves with disparity_offset_memory_solves
+    (they were measured with a worse offset applied): 100 later solves at -0.6 px move it to
+    -0.6 within 0.01 px; without a memory the 30 earlier solves at -0.3 px still hold it back."""
+    from snaps_graph.frontend import StereoOdometry
+
+    with StereoOdometry(CAM, FrontendConfig(disparity_offset_memory_solves=memory)) as vo:
+        assert vo._lba is not None
+        vo._lba.stats.offsets = [(-0.3, 400.0)] * 30
+        vo._update_offset(0)
+        assert vo.disparity_offset_px == pytest.approx(-0.3, abs=1e-6) and vo._lba.offset_joint
+        vo._lba.stats.offsets += [(-0.6, 400.0)] * 100
+        vo._update_offset(30)
+        if memory:
+            assert abs(vo.disparity_offset_px + 0.6) < 0.01, vo.disparity_offset_px
+        else:
+            assert vo.disparity_offset_px > -0.55, vo.disparity_offset_px

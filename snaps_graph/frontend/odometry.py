@@ -44,9 +44,9 @@ and reports what its data alone say; their information-weighted mean, clamped to
 ``disparity_offset_max_sd_px`` and it differs from it by at least
 ``disparity_offset_min_px`` and by ``disparity_offset_min_z`` standard errors. Until then the
 local BA holds the offset in its pose solve, so a rig without an offset runs exactly as with the
-estimate off; once applied, the offset is solved
-jointly with the window's poses. ``VOResult.disparity_offset_px`` is the
-offset each frame was measured with.
+estimate off; once applied, the offset is solved jointly with the window's poses and the
+running estimate forgets older solves (``disparity_offset_memory_solves``).
+``VOResult.disparity_offset_px`` is the offset each frame was measured with.
 
 Robustness. A frame is flagged (``ok=False`` with a ``reason``) when its left image is flat or
 black (grey std below ``min_frame_std``), blurred (mean |Laplacian| below
@@ -299,8 +299,12 @@ class StereoOdometry:
         """Fold the local BA's new per-solve offset estimates into the running estimate."""
         assert self._lba is not None
         acc = self._offset_sum
+        mem = self.cfg.disparity_offset_memory_solves
         for off, info in self._lba.stats.offsets[n_before:]:
             if np.isfinite(off) and np.isfinite(info) and info > 0:
+                if self._lba.offset_joint and mem > 0:  # applied: older solves fade (they saw a worse offset)
+                    acc[0] *= 1.0 - 1.0 / mem
+                    acc[1] *= 1.0 - 1.0 / mem
                 acc[0] += info * off
                 acc[1] += info
                 acc[2] += 1
