@@ -15,7 +15,8 @@
    refined from (u_left, v, u_right) in both frames under a Huber kernel, so a far point's
    uncertain, long-biased depth no longer pulls the translation.
 4. Stereo depth of frame N's keypoints, so frame N can be the next reference.
-5. With ``local_ba`` a reference frame becomes a keyframe every ``lba_every`` frames and a
+5. With ``local_ba`` a reference frame becomes a keyframe every ``lba_every`` frames (sooner
+   once the drive has gone ``lba_keyframe_m`` from the last one) and a
    sliding-window stereo BA over the last ``lba_window`` keyframes (``local_ba.py``; KLT tracks
    keep a landmark id while they live) refines it; the chain continues from the refined pose.
 
@@ -269,6 +270,7 @@ class StereoOdometry:
         # lba_async: (the solve, its keyframe, the keyframe's chained pose, offsets before it)
         self._lba_pending: tuple[Future, _Keyframe, np.ndarray, int] | None = None
         self._lba_last = -(10**9)  # frame index of the last local BA keyframe
+        self._lba_last_pos = np.zeros(3)  # and its position
         self._chain_cov: np.ndarray | None = None  # the chain's covariance since that keyframe (T_cur_kf)
         self._lba_prev_pose: np.ndarray | None = None  # its pose as handed out
         self._offset = float(self.cfg.disparity_offset_px)  # disparity offset applied (measured - true, px)
@@ -414,8 +416,8 @@ class StereoOdometry:
                 else:
                     Ad = adjoint(inv(T_ref_cur))
                     self._chain_cov = self._sba_cov + Ad @ self._chain_cov @ Ad.T
-            if self._lba is not None and kf.promote and (first or frame.index - self._lba_last >= self.cfg.lba_every):
-                self._lba_last = frame.index
+            if self._lba is not None and kf.promote and (first or self._keyframe_due(frame.index, pose)):
+                self._lba_last, self._lba_last_pos = frame.index, pose[:3, 3].copy()
                 t_ba = time.perf_counter()
                 n_off = len(self._lba.stats.offsets)
                 chained = pose
@@ -651,6 +653,14 @@ class StereoOdometry:
         if r.kept is not None and np.count_nonzero(r.inliers) < cfg.sba_keep_below:  # a small image: keep its tracks
             return r.T_cur_ref, inl[r.kept]
         return r.T_cur_ref, inl[r.inliers]
+
+    def _keyframe_due(self, index: int, pose: np.ndarray) -> bool:
+        """A local-BA keyframe is due ``lba_every`` frames after the last one, or sooner once the
+        drive has gone ``lba_keyframe_m`` from it (a fast drive keeps the keyframes' spacing)."""
+        if index - self._lba_last >= self.cfg.lba_every:
+            return True
+        m = self.cfg.lba_keyframe_m
+        return m > 0 and float(np.linalg.norm(pose[:3, 3] - self._lba_last_pos)) >= m
 
     def _scaled_velocity(self, gap: int) -> np.ndarray:
         """The last good step's motion scaled to ``gap`` frame indices (constant velocity per
