@@ -31,7 +31,7 @@ sys.path.insert(0, str(ROOT))
 
 from snaps_graph.config import FrontendConfig  # noqa: E402
 from snaps_graph.datasets.kitti import KittiSequence  # noqa: E402
-from snaps_graph.evaluation.metrics import ate_rmse, evaluate, path_length  # noqa: E402
+from snaps_graph.evaluation.metrics import ate_rmse, evaluate, path_length, step_error_axes_percent  # noqa: E402
 from snaps_graph.frontend import StereoOdometry  # noqa: E402
 from snaps_graph.geometry import inv  # noqa: E402
 
@@ -143,17 +143,6 @@ def step_bias_percent(poses: np.ndarray, gt: np.ndarray) -> float:
     return 100.0 * (s_vo / max(s_gt, 1e-12) - 1.0)
 
 
-def step_error_axes_percent(poses: np.ndarray, gt: np.ndarray) -> np.ndarray:
-    """Sum of the per-step translation errors in each true step's start camera frame (x right,
-    y down, z forward), % of the path. A constant rotation between the estimate's camera and the
-    ground truth's (a calibration between them) shows as a steady x / y share that no front end
-    can remove; z is the step-length bias."""
-    rel = lambda P: np.linalg.inv(P[:-1]) @ P[1:]  # noqa: E731
-    g, e = rel(gt), rel(poses)
-    err = np.einsum("nji,nj->ni", g[:, :3, :3], e[:, :3, 3] - g[:, :3, 3])
-    return 100.0 * err.sum(0) / max(path_length(gt), 1e-9)
-
-
 def accuracy(poses: np.ndarray, gt: np.ndarray) -> tuple[float, float, float]:
     """(ATE m, end drift % of the path, step-length bias %) of ``poses`` against ``gt``."""
     drift = 100.0 * np.linalg.norm(poses[-1, :3, 3] - gt[-1, :3, 3]) / max(path_length(gt), 1e-9)
@@ -237,15 +226,15 @@ def main() -> None:
             + " ".join(f"{med[s]:9.1f}" for s in stages)
             + f"   {1000.0 / med['total']:8.1f}  {ratio:11.3f}  {flagged:7d}  {ate:5.3f}  {drift:7.2f}  {sbias:+11.2f}"
         )
-        if gt is not None and len(gt) >= 3:
-            ex, ey, ez = step_error_axes_percent(poses, gt)
-            print(f"{'':12s} step error in the camera frame, % of the path: x {ex:+.2f} y {ey:+.2f} z {ez:+.2f}")
+        spans = [("", 0)] if gt is not None and len(gt) >= 3 else []
         if gt is not None and 0 < args.eval_from < len(gt) - 2:
             k = args.eval_from
             ate_k, drift_k, sbias_k = accuracy(np.linalg.inv(poses[k]) @ poses[k:], np.linalg.inv(gt[k]) @ gt[k:])
             print(f"{'':12s} from frame {k}: ATE {ate_k:.3f} m, end drift {drift_k:.2f} %, step bias {sbias_k:+.2f} %")
+            spans.append((f"from frame {k}: ", k))
+        for label, k in spans:
             ex, ey, ez = step_error_axes_percent(poses[k:], gt[k:])
-            print(f"{'':12s} from frame {k}: step error in the camera frame, % of the path: x {ex:+.2f} y {ey:+.2f} z {ez:+.2f}")
+            print(f"{'':12s} {label}step error in the camera frame, % of the path: x {ex:+.2f} y {ey:+.2f} z {ez:+.2f}")
         if gt is not None and len(gt) >= 200:  # long enough for KITTI's t_rel (100 m segments)
             m = evaluate(poses, gt)
             print(

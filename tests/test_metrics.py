@@ -257,3 +257,19 @@ def test_mean_deviation_splits_into_horizontal_and_vertical():
     assert m["mean_deviation"] == pytest.approx(5.0)
     assert m["mean_deviation_horizontal"] == pytest.approx(3.0)
     assert m["mean_deviation_vertical"] == pytest.approx(4.0)
+
+
+def test_step_error_axes_shows_a_turned_camera_frame_sideways():
+    """A straight drive measured in a camera frame turned 0.5 deg in yaw: every step's error lies
+    sideways (x), about 0.87 % of the path, with no forward (z) share; an exact estimate gives 0."""
+    from snaps_graph.evaluation.metrics import step_error_axes_percent
+
+    gt = np.array([np.eye(4) for _ in range(20)])
+    gt[:, 2, 3] = np.arange(20) * 1.2
+    a = np.radians(0.5)
+    Q = np.eye(4)
+    Q[:3, :3] = [[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]
+    turned = np.linalg.inv(Q) @ gt @ Q  # the same motion seen from the turned frame
+    ex, ey, ez = step_error_axes_percent(turned, gt)
+    assert abs(abs(ex) - 100 * np.sin(a)) < 1e-6 and abs(ey) < 1e-9 and abs(ez) < 0.01, (ex, ey, ez)
+    assert np.allclose(step_error_axes_percent(gt, gt), 0.0)

@@ -104,6 +104,19 @@ def _relative(poses: np.ndarray, first: np.ndarray, last: np.ndarray) -> tuple[n
     return Rab, tab
 
 
+def step_error_axes_percent(est: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """Sum of the per-step translation errors in each true step's start camera frame (x right,
+    y down, z forward), % of the true path. A constant rotation between the estimate's camera
+    and the ground truth's (a calibration between them) shows as a steady x / y share that no
+    front end can remove; z is the step-length bias."""
+    est, gt = _check_pair(est, gt)
+    i = np.arange(len(gt) - 1)
+    Rg, tg = _relative(gt, i, i + 1)
+    _, te = _relative(est, i, i + 1)
+    err = np.einsum("nji,nj->ni", Rg, te - tg)
+    return 100.0 * err.sum(0) / max(path_length(gt), 1e-9)
+
+
 def _rotation_angles(R: np.ndarray) -> np.ndarray:
     """Rotation angles (radians) of a stack of 3x3 matrices, accurate near 0 and near pi."""
     skew = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)

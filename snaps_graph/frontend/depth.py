@@ -211,8 +211,8 @@ def sparse_disparity(
     Each point is tracked into the right image with pyramidal LK (window ``stereo_window_px``,
     ``stereo_levels`` pyramid levels), starting from ``u - guess_px`` when a disparity guess is
     given (the previous frame's disparity of a tracked point: it changes little between frames,
-    so LK starts next to the answer), then with ``stereo_guess_levels`` pyramid levels. A match is kept when LK converged, it stays within
-    ``stereo_max_dy_px`` of the same row (rectified pair), the disparity is positive, and, if
+    so LK starts next to the answer), then with ``stereo_guess_levels`` pyramid levels. A match
+    is kept when LK converged, it stays within ``stereo_max_dy_px`` of the same row (rectified pair), the disparity is positive, and, if
     ``stereo_lr_check_px`` > 0, tracking the right point back lands within that many pixels of
     the left point.
     """
