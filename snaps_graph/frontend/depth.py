@@ -212,9 +212,9 @@ def sparse_disparity(
     ``stereo_levels`` pyramid levels), starting from ``u - guess_px`` when a disparity guess is
     given (the previous frame's disparity of a tracked point: it changes little between frames,
     so LK starts next to the answer), then with ``stereo_guess_levels`` pyramid levels. A match
-    is kept when LK converged, it stays within ``stereo_max_dy_px`` of the same row (rectified pair), the disparity is positive, and, if
-    ``stereo_lr_check_px`` > 0, tracking the right point back lands within that many pixels of
-    the left point.
+    is kept when LK converged, it stays within ``stereo_max_dy_px`` of the same row (rectified
+    pair), the disparity is positive, and, if ``stereo_lr_check_px`` > 0, tracking the right
+    point back lands within that many pixels of the left point.
     """
     uv = np.ascontiguousarray(uv, dtype=np.float32).reshape(-1, 2)
     n = len(uv)
