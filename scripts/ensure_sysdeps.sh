@@ -1,6 +1,11 @@
 #!/usr/bin/env bash
-# Make sure open3d's system library libusb-1.0 is present; install it with apt-get when we can.
+# System prerequisites of `make setup`: room on disk for .venv, and open3d's libusb-1.0.
 set -euo pipefail
+# .venv takes about 3 GB (open3d, ray, gtsam, opencv); pip fails mid-install without it.
+free_kb=$(df -Pk . 2>/dev/null | awk 'NR==2 {print $4}')
+if [ -n "${free_kb}" ] && [ "${free_kb}" -lt 4000000 ]; then
+  echo "warning: $((free_kb / 1024)) MB free on disk at $(pwd); setup needs about 3 GB for .venv" >&2
+fi
 if ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
   exit 0
 fi
