@@ -30,7 +30,7 @@ from .backend.pose_graph import PoseGraph
 from .camera import StereoCamera
 from .config import Config
 from .errors import SnapsGraphError
-from .frontend.depth import check_stereo_pair, map_depth
+from .frontend.depth import ORDER_MAX_FRAMES, check_stereo_pair, map_depth, stereo_order
 from .frontend.loop_features import LoopFeatureBank, verify_nearby
 from .frontend.odometry import StereoOdometry
 from .frontend.verify import verify_loop
@@ -109,6 +109,7 @@ class SlamPipeline:
         self._vo_poses: list[np.ndarray] = []
         self.vo_covs: list[np.ndarray | None] = []  # each step's VOResult.cov, as the graph got it (the oracle's noise)
         self._shape: tuple[int, int] | None = None  # (H, W) of the first frame
+        self._order_pending = True  # no stereo_order verdict yet
         self.loops: list[LoopEvent] = []
         self.records: list[FrameRecord] = []
         self._t_start = time.perf_counter()
@@ -151,6 +152,13 @@ class SlamPipeline:
         self.check_frame(frame)
         t0 = time.perf_counter()
         k = len(self._frame_ids)
+        if self._order_pending and k < ORDER_MAX_FRAMES:  # the first pairs until one gives a verdict
+            verdict, why = stereo_order(frame.left, frame.right)
+            if verdict == "swapped":
+                raise SnapsGraphError(f"frame {frame.index}: left and right look swapped ({why}); swap the two inputs")
+            if verdict == "same":
+                raise SnapsGraphError(f"frame {frame.index}: {why}; the right input must be the right camera's")
+            self._order_pending = verdict == "unknown"
         vo = self.vo.process(frame)
         t1 = time.perf_counter()
         self._shape = frame.left.shape

@@ -562,3 +562,22 @@ def test_results_that_cannot_be_written_leave_nothing(tiny_seq, tmp_path, monkey
     with pytest.raises(SnapsGraphError, match="frames.csv: cannot write the results .No space left"):
         write_results(tmp_path / "run", pipe, result)
     assert list(tmp_path.iterdir()) == []
+
+
+# ------------------------------------------------------------------ stereo order
+@pytest.mark.parametrize("fault", ["swapped", "same"])
+def test_swapped_or_repeated_cameras_are_one_line_errors_and_leave_no_folder(seq, tmp_path, fault):
+    """image_0/ and image_1/ exchanged (a classic mix-up) or the left images given twice: one line
+    naming the first frame's file and the fix, before any results folder is written."""
+    if fault == "swapped":
+        (seq / "image_0").rename(seq / "tmp")
+        (seq / "image_1").rename(seq / "image_0")
+        (seq / "tmp").rename(seq / "image_1")
+    else:
+        shutil.rmtree(seq / "image_1")
+        shutil.copytree(seq / "image_0", seq / "image_1")
+    out = tmp_path / "out"
+    line = assert_user_error(cli("run", seq, "--out", out, "--no-map"), seq / "image_0" / "000000.png")
+    assert ("swap the two inputs" in line) == (fault == "swapped"), line
+    assert ("repeats the left" in line) == (fault == "same"), line
+    assert not out.exists()

@@ -41,6 +41,38 @@ def check_stereo_pair(left: np.ndarray, right: np.ndarray) -> None:
         )
 
 
+# stereo_order: pairs looked at before giving up on a verdict, and what one needs
+ORDER_MAX_FRAMES = 10
+ORDER_MIN_MATCHES = 20  # row-consistent ORB matches with |disparity| >= 1 px
+ORDER_SWAPPED_SHARE = 0.8  # of those with negative disparity: the right camera is on the left
+
+
+def stereo_order(left: np.ndarray, right: np.ndarray) -> tuple[str, str]:
+    """Is this a left/right pair in that order? ("ok" | "swapped" | "same" | "unknown", why).
+
+    A rectified pair's matches lie on one row with disparity u_left - u_right > 0; swapped
+    cameras give the opposite sign, a right image that repeats the left gives none. ORB matches
+    (cross-checked, same row within 1.5 px) decide where ``ORDER_MIN_MATCHES`` have |d| >= 1 px;
+    textureless or far-only pairs are "unknown"."""
+    if np.abs(left.astype(np.int16) - right.astype(np.int16)).mean() < 0.5:
+        return "same", "the right image repeats the left one (no disparity)"
+    orb = cv2.ORB_create(1000)
+    kl, dl = orb.detectAndCompute(left, None)
+    kr, dr = orb.detectAndCompute(right, None)
+    if dl is None or dr is None:
+        return "unknown", "no features"
+    matches = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True).match(dl, dr)
+    ul = np.array([kl[m.queryIdx].pt for m in matches]).reshape(-1, 2)
+    ur = np.array([kr[m.trainIdx].pt for m in matches]).reshape(-1, 2)
+    d = (ul[:, 0] - ur[:, 0])[np.abs(ul[:, 1] - ur[:, 1]) <= 1.5]
+    d = d[np.abs(d) >= 1.0]
+    if len(d) < ORDER_MIN_MATCHES:
+        return "unknown", f"{len(d)} row-consistent matches"
+    neg = float(np.mean(d < 0))
+    why = f"{neg:.0%} of {len(d)} matched corners lie further right in the right image than in the left"
+    return ("swapped" if neg >= ORDER_SWAPPED_SHARE else "ok" if neg <= 0.5 else "unknown"), why
+
+
 def dense_disparity(left: np.ndarray, right: np.ndarray, cfg: FrontendConfig, method: str | None = None) -> np.ndarray:
     """Dense disparity of the left image, float32 pixels, <= 0 where unknown.
 
