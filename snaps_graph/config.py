@@ -160,9 +160,15 @@ class FrontendConfig(_Section):
     # the reference and the current frame ("orb"), or flag at once ("none").
     klt_retry: Literal["none", "orb"] = "orb"
     klt_retry_features: int = 4000  # ORB keypoints detected per image by the retry
-    # Constant disparity offset, measured - true, px (a rig's rectification residual: a rig whose
+    # Disparity offset, measured - true, px (a rig's rectification residual: a rig whose
     # disparities read 0.3 px small has -0.3); every disparity the front end uses is corrected.
     disparity_offset_px: float = 0.0
+    # How the offset varies across the image. "yaw": a small turn of the right camera about its
+    # y axis (the residual of the rig's extrinsic rotation), offset * (1 + ((u_r - cx) / fx)^2) at
+    # right-image column u_r, disparity_offset_px being its value at the centre column;
+    # "constant": the same everywhere (a principal-point residual). Stop 15's choice; the
+    # figures are in the README ("The offset's shape").
+    disparity_offset_model: Literal["yaw", "constant"] = "yaw"
     # klt + local BA: estimate the offset online (one more unknown in each local-BA solve, Gaussian
     # prior of disparity_offset_prior_px around the running estimate); the information-weighted
     # mean of the solves, clamped to +-disparity_offset_max_px, replaces disparity_offset_px once

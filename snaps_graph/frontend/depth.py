@@ -41,6 +41,28 @@ def check_stereo_pair(left: np.ndarray, right: np.ndarray) -> None:
         )
 
 
+def offset_gain(u_left: np.ndarray, d: np.ndarray, camera: StereoCamera, model: str) -> np.ndarray | float:
+    """The disparity offset's factor at each point (``FrontendConfig.disparity_offset_model``).
+
+    "yaw": a right camera turned by a small angle a about its y axis images column u_r at
+    u_r + fx·a·(1 + x²), x = (u_r - cx) / fx, so the offset at the centre column grows by 1 + x²
+    toward the sides (u_r = u_left - d; 1 where d is not finite). "constant": 1."""
+    if model == "constant":
+        return 1.0
+    x = (np.asarray(u_left, np.float64) - np.asarray(d, np.float64) - camera.cx) / camera.fx
+    return 1.0 + np.where(np.isfinite(x), x, 0.0) ** 2
+
+
+def true_disparity(d: np.ndarray, offset_px: float, gain: np.ndarray | float = 1.0) -> np.ndarray:
+    """Measured disparities corrected for the offset (measured = true + offset * gain, ``gain``
+    from ``offset_gain``); invalid ones (<= 0, NaN) stay invalid, and a corrected one that is
+    not positive becomes invalid."""
+    if offset_px == 0.0:
+        return d
+    d = np.asarray(d)
+    return np.where(d > 0, d - offset_px * np.asarray(gain), d).astype(d.dtype)
+
+
 # stereo_order: pairs looked at before giving up on a verdict, and what one needs
 ORDER_MAX_FRAMES = 10
 ORDER_MIN_MATCHES = 20  # row-consistent ORB matches with |disparity| >= 1 px

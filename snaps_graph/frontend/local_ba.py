@@ -14,10 +14,11 @@ are refined; the newest keyframe's refined pose is what the odometry chains from
 Landmarks start at the stereo point of their first observation in the window, posed by that
 keyframe's current estimate.
 
-Disparity offset. Disparities are taken as ``measured = true + offset_px`` (a rig's
-rectification residual; ``offset_px`` is set by the caller, the running estimate). With
+Disparity offset. Disparities are taken as ``measured = true + offset_px * gain`` (a rig's
+rectification residual; ``offset_px`` is set by the caller, the running estimate; ``gain`` is
+``depth.offset_gain`` for ``offset_model`` at the observation's right-image column). With
 ``estimate_offset`` the numpy solver adds the offset as one more unknown shared by every
-observation (its right-image residual is ``proj_r - offset - u_r``) under a Gaussian prior
+observation (its right-image residual is ``proj_r - offset * gain - u_r``) under a Gaussian prior
 (``offset_prior_px``) around ``offset_px``; it is observable because a landmark's disparities
 across keyframes at different ranges must follow f·B/Z_k with Z_k tied by the shared motion.
 Each solve records in ``LocalBAStats.offsets`` the offset the data alone say (the prior taken
@@ -42,6 +43,7 @@ import numpy as np
 
 from ..camera import StereoCamera
 from ..geometry import adjoint, log_so3
+from .depth import offset_gain, true_disparity
 from .stereo_ba import _exp_so3, _inv3
 
 X = gtsam.symbol_shorthand.X
@@ -107,6 +109,7 @@ class LocalBundleAdjuster:
         max_turn_deg: float = 1.0,
         select: str = "longest",
         offset_px: float = 0.0,
+        offset_model: str = "constant",
         estimate_offset: bool = False,
         offset_prior_px: float = 0.5,
     ):
@@ -125,6 +128,7 @@ class LocalBundleAdjuster:
         self.sigma_px, self.huber_px = float(sigma_px), float(huber_px)
         self.kfs: deque[_KF] = deque(maxlen=self.window)
         self.offset_px = float(offset_px)  # disparity offset applied (and the prior's mean)
+        self.offset_model = offset_model  # FrontendConfig.disparity_offset_model
         self.estimate_offset = bool(estimate_offset) and solver == "numpy"
         self.offset_prior_px = float(offset_prior_px)
         self.offset_joint = True  # False: hold the offset in the pose solve, only estimate it
@@ -215,15 +219,16 @@ class LocalBundleAdjuster:
                 graph.add(gtsam.PriorFactorPose3(X(k.key), pose, self.prior))
             m = np.isin(k.ids, shared)
             ids, uvd = k.ids[m], k.uvd[m]
-            z = cam.fx * cam.baseline_m / np.maximum(uvd[:, 2] - self.offset_px, 1e-3)
+            d_true = true_disparity(uvd[:, 2], self.offset_px, offset_gain(uvd[:, 0], uvd[:, 2], cam, self.offset_model))
+            z = cam.fx * cam.baseline_m / np.maximum(d_true, 1e-3)
             pw = (
                 (np.c_[(uvd[:, 0] - cam.cx) / cam.fx * z, (uvd[:, 1] - cam.cy) / cam.fy * z, z]) @ k.pose[:3, :3].T
                 + k.pose[:3, 3]
             )
             for i in range(len(ids)):
                 lid = int(ids[i])
-                u, v, d = uvd[i]
-                d -= self.offset_px
+                u, v = uvd[i, :2]
+                d = d_true[i]
                 graph.add(gtsam.GenericStereoFactor3D(gtsam.StereoPoint2(u, u - d, v), self.noise, X(k.key), L(lid), self.K))
                 if lid not in seen:
                     seen.add(lid)
@@ -262,7 +267,8 @@ class LocalBundleAdjuster:
         off0 = self.offset_px
         est = self.estimate_offset
         off = off0
-        zz = fx * B / np.maximum(z[fo, 0] - z[fo, 2] - off0, 1e-3)
+        gain = offset_gain(z[:, 0], z[:, 0] - z[:, 2], cam, self.offset_model) * np.ones(len(z))  # at each u_r
+        zz = fx * B / np.maximum(z[fo, 0] - z[fo, 2] - off0 * gain[fo], 1e-3)
         pc = np.c_[(z[fo, 0] - cx) / fx * zz, (z[fo, 1] - cy) / fy * zz, zz]
         jf = oj[fo]
         X = np.einsum("nji,nj->ni", Rcw[jf], pc - tcw[jf])  # world = R^T (pc - t)
@@ -272,7 +278,7 @@ class LocalBundleAdjuster:
         def project(Rcw, tcw, X, off):
             pc = np.einsum("nij,nj->ni", Rcw[oj], X[ol]) + tcw[oj]
             zc = np.where(pc[:, 2] > 1e-3, pc[:, 2], 1e-3)
-            pred = np.c_[fx * pc[:, 0] / zc + cx, fy * pc[:, 1] / zc + cy, fx * (pc[:, 0] - B) / zc + cx - off]
+            pred = np.c_[fx * pc[:, 0] / zc + cx, fy * pc[:, 1] / zc + cy, fx * (pc[:, 0] - B) / zc + cx - off * gain]
             return pc, zc, pred - z, pc[:, 2] > 1e-3
 
         prior_info = 1.0 / self.offset_prior_px**2
@@ -335,16 +341,16 @@ class LocalBundleAdjuster:
                     _add_chain_factor(S, g, j, Rcw, tcw, chain[0], chain[1])
             S = S[6:, 6:] + 1e-6 * np.eye(6 * (W - 1))  # the oldest pose is the gauge
             g = g[6:]
-            if est:  # the offset: one more column, d(u_r residual)/d(offset) = -1
+            if est:  # the offset: one more column, d(u_r residual)/d(offset) = -gain
                 wr = w * (active & front)
                 Hdl = np.zeros((Lm, 3))
-                np.add.at(Hdl, ol, -wr[:, None] * Jl[:, 2, :])
+                np.add.at(Hdl, ol, -(wr * gain)[:, None] * Jl[:, 2, :])
                 Hdc = np.zeros((W, 6))
-                np.add.at(Hdc, oj, -wr[:, None] * Jc[:, 2, :])
+                np.add.at(Hdc, oj, -(wr * gain)[:, None] * Jc[:, 2, :])
                 FdHll = (Hll_inv @ Hdl[:, :, None])[:, :, 0]  # (L,3) Hll^-1 Hld
                 s_dc = Hdc - np.einsum("lwij,lj->wi", Hcl, FdHll)
-                s_dd = wr.sum() - np.einsum("li,li->", Hdl, FdHll) + prior_info
-                g_d = (wr * r[:, 2]).sum() - prior_info * (off - off0) - np.einsum("li,li->", FdHll, bl)
+                s_dd = (wr * gain**2).sum() - np.einsum("li,li->", Hdl, FdHll) + prior_info
+                g_d = (wr * gain * r[:, 2]).sum() - prior_info * (off - off0) - np.einsum("li,li->", FdHll, bl)
                 n = 6 * (W - 1)
                 if self.offset_joint:
                     S2 = np.empty((n + 1, n + 1))

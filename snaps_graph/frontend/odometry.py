@@ -36,7 +36,9 @@ KLT tracks from the last frame (``klt_reference = "frame"``) or from the last ke
 ``kf_max_gap`` frames, so one step's tracking error is not chained into every frame).
 
 Disparity offset. Every disparity the front end uses (depth for PnP and the next reference,
-the stereo BA, the local BA) is corrected as true = measured - offset, with the offset
+the stereo BA, the local BA, loop verification) is corrected as true = measured - offset * gain
+(``depth.offset_gain``: by default a turn of the right camera, whose offset grows toward the
+image's sides as 1 + ((u_r - cx) / fx)^2; ``disparity_offset_model``), with the offset
 ``disparity_offset_px`` (a known rig residual) or, with ``estimate_disparity_offset`` in klt +
 local BA, the running estimate: each local-BA solve estimates the offset jointly (``local_ba.py``)
 and reports what its data alone say; their information-weighted mean, clamped to
@@ -89,16 +91,8 @@ from ..geometry import adjoint, inv, rotation_angle_deg, scale_motion
 from ..types import FrameFeatures, StereoFrame, VOResult
 from . import depth as depth_mod
 from . import features as feat
+from .depth import offset_gain, true_disparity
 from .stereo_ba import stereo_two_view_ba
-
-
-def true_disparity(d: np.ndarray, offset_px: float) -> np.ndarray:
-    """Measured disparities corrected for a constant offset (measured = true + offset); invalid
-    ones (<= 0, NaN) stay invalid, and a corrected one that is not positive becomes invalid."""
-    if offset_px == 0.0:
-        return d
-    d = np.asarray(d)
-    return np.where(d > 0, d - np.asarray(offset_px, d.dtype), d).astype(d.dtype)
 
 
 def chain_information(cov: np.ndarray, axes: str) -> np.ndarray:
@@ -287,6 +281,7 @@ class StereoOdometry:
                 solver=self.cfg.lba_solver,
                 select=self.cfg.lba_select,
                 offset_px=self._offset,
+                offset_model=self.cfg.disparity_offset_model,
                 estimate_offset=self.cfg.estimate_disparity_offset,
                 offset_prior_px=self.cfg.disparity_offset_prior_px,
             )
@@ -320,11 +315,15 @@ class StereoOdometry:
                 self._lba.offset_px = est
                 self._lba.offset_joint = True
 
+    def _gain(self, uv: np.ndarray, d: np.ndarray) -> np.ndarray | float:
+        """``offset_gain`` at left points ``uv`` with measured disparities ``d``."""
+        return offset_gain(np.asarray(uv).reshape(-1, 2)[:, 0], d, self.camera, self.cfg.disparity_offset_model)
+
     def _sparse_depth(self, left: np.ndarray, right: np.ndarray, uv: np.ndarray, guess: np.ndarray | None = None):
         """(depth from the corrected disparity, measured disparity) at ``uv``."""
         z, d = self._split(lambda u, g: depth_mod.sparse_depth(left, right, u, self.camera, self.cfg, g), uv, guess)
         if self._offset != 0.0:
-            z = depth_mod.depth_from_disparity(true_disparity(d, self._offset), self.camera, self.cfg)
+            z = depth_mod.depth_from_disparity(true_disparity(d, self._offset, self._gain(uv, d)), self.camera, self.cfg)
         return z, d
 
     def _split(self, fn: Callable, uv: np.ndarray, guess: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
@@ -567,7 +566,7 @@ class StereoOdometry:
         valid = z > 0
         fb = self.camera.fx * self.camera.baseline_m
         if self._far_points:  # beyond max_depth_m: kept for the stereo BA (rotation), never for PnP
-            dt = true_disparity(disp, self._offset)
+            dt = true_disparity(disp, self._offset, self._gain(uv, disp))
             far = ~valid & (dt >= cfg.far_min_disparity_px) & (dt * cfg.max_depth_m < fb)
             z = np.where(far, fb / np.maximum(dt, 1e-6), z).astype(np.float32)
             valid = valid | far
@@ -635,9 +634,9 @@ class StereoOdometry:
         r = stereo_two_view_ba(
             T_cur_ref,
             ref_uv[inl],
-            true_disparity(ref_disp[inl], self._offset),
+            true_disparity(ref_disp[inl], self._offset, self._gain(ref_uv[inl], ref_disp[inl])),
             cur_uv[inl],
-            true_disparity(cur_disp[inl], self._offset),
+            true_disparity(cur_disp[inl], self._offset, self._gain(cur_uv[inl], cur_disp[inl])),
             self.camera,
             huber_px=cfg.sba_huber_px,
             outlier_px=cfg.sba_outlier_px,
@@ -754,7 +753,8 @@ class StereoOdometry:
             guess, zp = project(pred, ref.pts3d, self.camera)
             guess = np.where((zp > 0)[:, None], guess, ref.uv)
             if anchored or cfg.stereo_guess_levels < cfg.stereo_levels:  # predict the disparity too
-                dguess = np.where(zp > 0, self.camera.fx * self.camera.baseline_m / np.maximum(zp, 1e-6) + self._offset, ref.disp)
+                dp = self.camera.fx * self.camera.baseline_m / np.maximum(zp, 1e-6)
+                dguess = np.where(zp > 0, dp + self._offset * self._gain(guess, dp), ref.disp)
         road = self._road(ref, pred) if cfg.klt_road_prewarp and pred is not None and not anchored else None
         if road is None:
             uv_cur, ok = self._split(lambda u, g: feat.track_klt(ref.left, frame.left, u, cfg, g), ref.uv, guess)
@@ -948,7 +948,7 @@ class StereoOdometry:
                 disp_map, ms = dense_future.result()
                 t = time.perf_counter()
                 disp = depth_mod.sample_depth(disp_map, uv)  # nearest-pixel disparity
-                z = depth_mod.depth_from_disparity(true_disparity(disp, self._offset), cam, cfg)
+                z = depth_mod.depth_from_disparity(true_disparity(disp, self._offset, self._gain(uv, disp)), cam, cfg)
                 return z, disp, ms + (time.perf_counter() - t) * 1000.0
             t = time.perf_counter()
             z, disp = self._sparse_depth(frame.left, frame.right, uv)
