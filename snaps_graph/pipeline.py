@@ -288,7 +288,8 @@ class SlamPipeline:
     def _add_map_keyframe(self, k: int, frame: StereoFrame) -> None:
         assert self.map is not None
         try:
-            depth = map_depth(frame.left, frame.right, self.camera, self.cfg.frontend, self.cfg.map)
+            offset = float(getattr(self.vo, "disparity_offset_px", 0.0))  # the front end's estimate now
+            depth = map_depth(frame.left, frame.right, self.camera, self.cfg.frontend, self.cfg.map, offset)
         except Exception as exc:  # a bad frame must not end the run: the keyframe is skipped
             self.graph.failures.append((k, f"map depth failed: {type(exc).__name__}: {exc}"))
             return

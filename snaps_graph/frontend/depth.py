@@ -165,7 +165,9 @@ def map_camera(camera: StereoCamera, scale: float, width: int, height: int) -> S
     )
 
 
-def map_depth(left: np.ndarray, right: np.ndarray, camera: StereoCamera, cfg: FrontendConfig, mcfg: MapConfig) -> np.ndarray:
+def map_depth(
+    left: np.ndarray, right: np.ndarray, camera: StereoCamera, cfg: FrontendConfig, mcfg: MapConfig, offset_px: float = 0.0
+) -> np.ndarray:
     """Depth for the map: float32 metres at the working size (``map_camera(camera,
     mcfg.depth_scale, W, H)``), 0 = invalid. Unlike ``dense_depth`` nothing is filled in: a pixel
     is kept only when all the evidence agrees --
@@ -181,7 +183,8 @@ def map_depth(left: np.ndarray, right: np.ndarray, camera: StereoCamera, cfg: Fr
       (pixels straddling an edge get a blend of both depths),
     - it is not in a speckle: a connected region of similar disparity of at least
       ``depth_speckle_px`` pixels (``cv2.filterSpeckles``),
-    - eq. 1 puts it within [``cfg.min_depth_m``, ``mcfg.max_range_m``].
+    - eq. 1, on the disparity corrected for the front end's offset ``offset_px`` (full-size
+      pixels, ``true_disparity``), puts it within [``cfg.min_depth_m``, ``mcfg.max_range_m``].
     """
     check_stereo_pair(left, right)
     h0, w0 = left.shape
@@ -235,6 +238,11 @@ def map_depth(left: np.ndarray, right: np.ndarray, camera: StereoCamera, cfg: Fr
         d16 = np.where(valid, disp_l, np.int16(-16)).astype(np.int16)
         cv2.filterSpeckles(d16, -16, int(mcfg.depth_speckle_px), int(round(16 * mcfg.depth_speckle_range_px)))
         valid &= d16 > 0
+    if offset_px != 0.0:  # the offset at the working size, each pixel's gain at its right column
+        vv, uu = np.nonzero(valid)
+        gain = offset_gain(uu, d[vv, uu], cam, cfg.disparity_offset_model)
+        d[vv, uu] = true_disparity(d[vv, uu], offset_px * cam.fx / camera.fx, gain)
+        valid &= d > 0
     z = np.zeros_like(d)
     z[valid] = (cam.fx * cam.baseline_m) / d[valid]  # eq. 1
     z[(z < cfg.min_depth_m) | (z > mcfg.max_range_m)] = 0.0
