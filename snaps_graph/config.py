@@ -177,14 +177,15 @@ class FrontendConfig(_Section):
     # standing -- leaves the offset unobservable) and it differs by disparity_offset_min_px and by
     # disparity_offset_min_z standard errors or more (the numpy lba_solver only; otherwise
     # disparity_offset_px is applied unchanged). Stop 14: the significance test, not the count
-    # (10 before), is what keeps an offset-free rig's early noise out (README, "disparity offset").
+    # (10 before), is what keeps an offset-free rig's early noise out (README, "disparity offset");
+    # stop 15: 4 standard errors with the yaw model (3 let a fast offset-free drive apply one).
     estimate_disparity_offset: bool = True
     disparity_offset_prior_px: float = 0.5
     disparity_offset_max_px: float = 2.0
     disparity_offset_min_solves: int = 3
     disparity_offset_min_px: float = 0.05
     disparity_offset_max_sd_px: float = 0.05
-    disparity_offset_min_z: float = 3.0
+    disparity_offset_min_z: float = 4.0
     # Once applied, the running estimate forgets older solves (weight 1 - 1/memory per new solve;
     # 0 = never): they were measured with a worse offset applied, whose track selection leans
     # toward it. Stop 14: 1 px open rendering, frames 0-999, ATE 3.17 -> 1.53 m (README).
