@@ -63,6 +63,14 @@ def true_disparity(d: np.ndarray, offset_px: float, gain: np.ndarray | float = 1
     return np.where(d > 0, d - offset_px * np.asarray(gain), d).astype(d.dtype)
 
 
+def correct_disparity(d: np.ndarray, u_left: np.ndarray, offset_px: float, camera: StereoCamera, model: str) -> np.ndarray:
+    """``true_disparity`` with ``offset_gain`` at each point (left column ``u_left``, measured
+    disparity ``d``); ``d`` itself, and no gain computed, when there is no offset."""
+    if offset_px == 0.0:
+        return d
+    return true_disparity(d, offset_px, offset_gain(u_left, d, camera, model))
+
+
 # stereo_order: pairs looked at before giving up on a verdict, and what one needs
 ORDER_MAX_FRAMES = 10
 ORDER_MIN_MATCHES = 20  # row-consistent ORB matches with |disparity| >= 1 px
@@ -240,8 +248,7 @@ def map_depth(
         valid &= d16 > 0
     if offset_px != 0.0:  # the offset at the working size, each pixel's gain at its right column
         vv, uu = np.nonzero(valid)
-        gain = offset_gain(uu, d[vv, uu], cam, cfg.disparity_offset_model)
-        d[vv, uu] = true_disparity(d[vv, uu], offset_px * cam.fx / camera.fx, gain)
+        d[vv, uu] = correct_disparity(d[vv, uu], uu, offset_px * cam.fx / camera.fx, cam, cfg.disparity_offset_model)
         valid &= d > 0
     z = np.zeros_like(d)
     z[valid] = (cam.fx * cam.baseline_m) / d[valid]  # eq. 1

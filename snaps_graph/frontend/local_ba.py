@@ -43,7 +43,7 @@ import numpy as np
 
 from ..camera import StereoCamera
 from ..geometry import adjoint, log_so3
-from .depth import offset_gain, true_disparity
+from .depth import correct_disparity, offset_gain
 from .stereo_ba import _exp_so3, _inv3
 
 X = gtsam.symbol_shorthand.X
@@ -219,7 +219,7 @@ class LocalBundleAdjuster:
                 graph.add(gtsam.PriorFactorPose3(X(k.key), pose, self.prior))
             m = np.isin(k.ids, shared)
             ids, uvd = k.ids[m], k.uvd[m]
-            d_true = true_disparity(uvd[:, 2], self.offset_px, offset_gain(uvd[:, 0], uvd[:, 2], cam, self.offset_model))
+            d_true = correct_disparity(uvd[:, 2], uvd[:, 0], self.offset_px, cam, self.offset_model)
             z = cam.fx * cam.baseline_m / np.maximum(d_true, 1e-3)
             pw = (
                 (np.c_[(uvd[:, 0] - cam.cx) / cam.fx * z, (uvd[:, 1] - cam.cy) / cam.fy * z, z]) @ k.pose[:3, :3].T

@@ -29,7 +29,7 @@ from ..camera import StereoCamera
 from ..config import FrontendConfig
 from ..geometry import log_so3
 from ..types import FrameFeatures, StereoFrame
-from .depth import offset_gain, sparse_disparity, true_disparity
+from .depth import correct_disparity, sparse_disparity
 from .stereo_ba import stereo_two_view_ba
 from .verify import match_and_pnp, plausible
 
@@ -113,8 +113,7 @@ def stereo_points(
     disparities corrected by the front end's disparity offset ``offset_px`` (measured - true)."""
     if len(uv) == 0:
         return np.zeros(0, np.int64), np.zeros((0, 3), np.float32)
-    d = sparse_disparity(left, right, uv, cfg)
-    disp = true_disparity(d, offset_px, offset_gain(uv[:, 0], d, camera, cfg.disparity_offset_model))
+    disp = correct_disparity(sparse_disparity(left, right, uv, cfg), uv[:, 0], offset_px, camera, cfg.disparity_offset_model)
     fb = camera.fx * camera.baseline_m
     with np.errstate(divide="ignore"):
         z = np.where(disp > 0, fb / np.maximum(disp, 1e-9), 0.0)
@@ -202,7 +201,7 @@ def verify_features(
         Xc = pts.astype(np.float64) @ T_cur_ref[:3, :3].T + T_cur_ref[:3, 3]
         d_pred = camera.fx * camera.baseline_m / np.maximum(Xc[:, 2], 1e-6)
         d_raw = sparse_disparity(cur_frame.left, cur_frame.right, uv, cfg)
-        d_meas = true_disparity(d_raw, offset_px, offset_gain(uv[:, 0], d_raw, camera, cfg.disparity_offset_model))
+        d_meas = correct_disparity(d_raw, uv[:, 0], offset_px, camera, cfg.disparity_offset_model)
         has = d_meas > 0
         agree = has & (np.abs(d_meas - d_pred) <= cfg.loop_depth_check_px)
         if int(agree.sum()) < cfg.min_inliers or agree.sum() < cfg.loop_depth_min_ratio * max(int(has.sum()), 1):

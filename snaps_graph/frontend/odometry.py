@@ -91,7 +91,7 @@ from ..geometry import adjoint, inv, rotation_angle_deg, scale_motion
 from ..types import FrameFeatures, StereoFrame, VOResult
 from . import depth as depth_mod
 from . import features as feat
-from .depth import offset_gain, true_disparity
+from .depth import correct_disparity, offset_gain
 from .stereo_ba import stereo_two_view_ba
 
 
@@ -315,15 +315,16 @@ class StereoOdometry:
                 self._lba.offset_px = est
                 self._lba.offset_joint = True
 
-    def _gain(self, uv: np.ndarray, d: np.ndarray) -> np.ndarray | float:
-        """``offset_gain`` at left points ``uv`` with measured disparities ``d``."""
-        return offset_gain(np.asarray(uv).reshape(-1, 2)[:, 0], d, self.camera, self.cfg.disparity_offset_model)
+    def _true(self, uv: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """Measured disparities ``d`` at left points ``uv`` corrected for the offset applied now."""
+        u = np.asarray(uv).reshape(-1, 2)[:, 0]
+        return correct_disparity(d, u, self._offset, self.camera, self.cfg.disparity_offset_model)
 
     def _sparse_depth(self, left: np.ndarray, right: np.ndarray, uv: np.ndarray, guess: np.ndarray | None = None):
         """(depth from the corrected disparity, measured disparity) at ``uv``."""
         z, d = self._split(lambda u, g: depth_mod.sparse_depth(left, right, u, self.camera, self.cfg, g), uv, guess)
         if self._offset != 0.0:
-            z = depth_mod.depth_from_disparity(true_disparity(d, self._offset, self._gain(uv, d)), self.camera, self.cfg)
+            z = depth_mod.depth_from_disparity(self._true(uv, d), self.camera, self.cfg)
         return z, d
 
     def _split(self, fn: Callable, uv: np.ndarray, guess: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
@@ -566,7 +567,7 @@ class StereoOdometry:
         valid = z > 0
         fb = self.camera.fx * self.camera.baseline_m
         if self._far_points:  # beyond max_depth_m: kept for the stereo BA (rotation), never for PnP
-            dt = true_disparity(disp, self._offset, self._gain(uv, disp))
+            dt = self._true(uv, disp)
             far = ~valid & (dt >= cfg.far_min_disparity_px) & (dt * cfg.max_depth_m < fb)
             z = np.where(far, fb / np.maximum(dt, 1e-6), z).astype(np.float32)
             valid = valid | far
@@ -634,9 +635,9 @@ class StereoOdometry:
         r = stereo_two_view_ba(
             T_cur_ref,
             ref_uv[inl],
-            true_disparity(ref_disp[inl], self._offset, self._gain(ref_uv[inl], ref_disp[inl])),
+            self._true(ref_uv[inl], ref_disp[inl]),
             cur_uv[inl],
-            true_disparity(cur_disp[inl], self._offset, self._gain(cur_uv[inl], cur_disp[inl])),
+            self._true(cur_uv[inl], cur_disp[inl]),
             self.camera,
             huber_px=cfg.sba_huber_px,
             outlier_px=cfg.sba_outlier_px,
@@ -754,7 +755,8 @@ class StereoOdometry:
             guess = np.where((zp > 0)[:, None], guess, ref.uv)
             if anchored or cfg.stereo_guess_levels < cfg.stereo_levels:  # predict the disparity too
                 dp = self.camera.fx * self.camera.baseline_m / np.maximum(zp, 1e-6)
-                dguess = np.where(zp > 0, dp + self._offset * self._gain(guess, dp), ref.disp)
+                gain = offset_gain(guess[:, 0], dp, self.camera, cfg.disparity_offset_model)
+                dguess = np.where(zp > 0, dp + self._offset * gain, ref.disp)
         road = self._road(ref, pred) if cfg.klt_road_prewarp and pred is not None and not anchored else None
         if road is None:
             uv_cur, ok = self._split(lambda u, g: feat.track_klt(ref.left, frame.left, u, cfg, g), ref.uv, guess)
@@ -948,7 +950,7 @@ class StereoOdometry:
                 disp_map, ms = dense_future.result()
                 t = time.perf_counter()
                 disp = depth_mod.sample_depth(disp_map, uv)  # nearest-pixel disparity
-                z = depth_mod.depth_from_disparity(true_disparity(disp, self._offset, self._gain(uv, disp)), cam, cfg)
+                z = depth_mod.depth_from_disparity(self._true(uv, disp), cam, cfg)
                 return z, disp, ms + (time.perf_counter() - t) * 1000.0
             t = time.perf_counter()
             z, disp = self._sparse_depth(frame.left, frame.right, uv)
