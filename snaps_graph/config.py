@@ -506,11 +506,25 @@ class MapConfig(_Section):
 
 
 @dataclass
+class OdometryConfig(_Section):
+    """Odometry drift model: how fast a trajectory's error grows with the distance driven (1 sigma).
+
+    A pose file (``run --odometry``) carries no covariance, so its factors take their noise from
+    here; the drift-aware loop search and the ``drift`` tool use the same model."""
+
+    _name = "odometry"
+
+    trans_drift_pct: float = 1.0  # translation error per distance driven, percent
+    rot_drift_deg_per_100m: float = 1.0  # heading (and attitude) error per 100 m driven, degrees
+
+
+@dataclass
 class Config:
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)
     graph: GraphConfig = field(default_factory=GraphConfig)
     map: MapConfig = field(default_factory=MapConfig)
+    odometry: OdometryConfig = field(default_factory=OdometryConfig)
     loops: LoopMode = "snaps"
 
     def __post_init__(self) -> None:
@@ -522,7 +536,7 @@ class Config:
         SnapsGraphError naming the config file and the key. ``snaps-graph config FILE`` and
         ``run`` (before the first frame) both call this on the configuration that would run."""
         source = source or self.source
-        for section in (self.frontend, self.loop, self.graph, self.map):
+        for section in (self.frontend, self.loop, self.graph, self.map, self.odometry):
             section.validate(source)
         hints = _hints(type(self))
         _check_value(self.loops, hints["loops"], None, f"{source}: loops")
@@ -788,6 +802,8 @@ RULES: dict[str, Range] = {
     "frontend.loop_verify_neighbours": NON_NEGATIVE,
     "frontend.loop_subpixel_px": NON_NEGATIVE,
     "loop.radius_m": POSITIVE,
+    "odometry.trans_drift_pct": Range(0, 50, lo_open=True),
+    "odometry.rot_drift_deg_per_100m": Range(0, 90, lo_open=True),
     "loop.frame_distance": AT_LEAST_1,
     "loop.discount_length": NON_NEGATIVE,
     "loop.min_similarity": FRACTION,
