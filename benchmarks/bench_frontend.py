@@ -39,16 +39,10 @@ MODES = {
     "default": dict(),  # the default configuration
     "klt_pnp": dict(mode="klt", motion="pnp", local_ba=False),  # klt + sparse stereo + PnP only (the default before issue 11)
     "klt_sba": dict(mode="klt", motion="stereo_ba", local_ba=False),
-    "klt_kf": dict(mode="klt", motion="stereo_ba", klt_reference="keyframe", local_ba=False),  # tracked from the last keyframe
-    "klt_kf_pnp": dict(mode="klt", motion="pnp", klt_reference="keyframe", local_ba=False),
-    "klt_kf_lba": dict(mode="klt", motion="stereo_ba", klt_reference="keyframe", local_ba=True, lba_every=1),
     "klt_lba": dict(mode="klt", motion="stereo_ba", local_ba=True, lba_every=1),  # every frame a keyframe
-    "klt_lba_gtsam": dict(mode="klt", motion="stereo_ba", local_ba=True, lba_every=1, lba_solver="gtsam"),
     "klt_lba2": dict(mode="klt", motion="stereo_ba", local_ba=True, lba_every=2, lba_window=8),
     "klt_lba3": dict(mode="klt", motion="stereo_ba", local_ba=True, lba_every=3, lba_window=8),
     "klt_lba3w6": dict(mode="klt", motion="stereo_ba", local_ba=True, lba_every=3, lba_window=6),
-    "klt_lba2_anchor": dict(mode="klt", motion="stereo_ba", local_ba=True, lba_every=2, lba_window=8, klt_anchor_gap=4),
-    "klt_kf_lba2": dict(mode="klt", motion="stereo_ba", klt_reference="keyframe", local_ba=True, lba_every=2, lba_window=8),
     "sift": dict(
         mode="sift", disparity="bm_wls", sift_first_octave=-1, motion="pnp", local_ba=False
     ),  # the paper's front end, faithfully
@@ -60,8 +54,6 @@ MODES = {
     "no_weak": dict(klt_weak_points=0),  # the default without the weak-texture corner detection
     "no_chain": dict(lba_chain="off"),  # the default without the chain's heading factor in the local BA
     "chain_yaw": dict(lba_chain="yaw"),  # the chain's heading alone in the local BA (the default before yaw_roll)
-    "prewarp": dict(klt_road_prewarp=True),  # road points tracked from the reference warped by the road plane's homography
-    "lba_async": dict(lba_async=True),  # the keyframe local BA beside the next frame's tracking
     "sgl1": dict(stereo_guess_levels=1),  # tracked points' stereo from the predicted disparity, 2 pyramid levels
     "sgl2": dict(stereo_guess_levels=2),  # ... 3 pyramid levels
     "no_bias_fix": dict(klt_bias_window_px=0),  # the default with the plain 11 px LK fit

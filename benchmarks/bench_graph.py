@@ -128,7 +128,6 @@ def main(argv: list[str] | None = None) -> int:
         help="false loops as a fraction of the true ones (one batch run each)",
     )
     ap.add_argument("--skip-isam2", action="store_true")
-    ap.add_argument("--gnc", action="store_true", help="also run the GNC batch solver")
     args = ap.parse_args(argv)
 
     if not args.gt.is_file():
@@ -176,15 +175,11 @@ def main(argv: list[str] | None = None) -> int:
     batch = gb.optimize_batch()
     rows.append(("batch LM", batch))
     print(
-        f"batch ({cfg.batch_solver}, {len(gt)} poses, {len(loops)} loops): {gb.stats.batch_ms / 1e3:.2f} s "
+        f"batch (LM, {len(gt)} poses, {len(loops)} loops): {gb.stats.batch_ms / 1e3:.2f} s "
         f"optimise, {gb.stats.batch_iterations} iterations (graph build {t_build:.2f} s)"
     )
     if gb.failures:
         print(f"batch failures: {gb.failures}")
-    if args.gnc:
-        gg, _, _ = build("batch", GraphConfig(batch_solver="gnc"), rel, chain, loops, online=False)
-        rows.append(("batch GNC", gg.optimize_batch()))
-        print(f"batch (gnc): {gg.stats.batch_ms / 1e3:.2f} s optimise")
 
     print(f"{'trajectory':22s} {'mean dev (m)':>12s} {'ATE RMSE (m)':>12s}")
     for name, poses in rows:

@@ -41,8 +41,6 @@ MODES = {
     "orb": dict(mode="orb"),
     "paper": dict(mode="sift", disparity="bm_wls", sift_first_octave=-1, motion="pnp", local_ba=False),
     "no_offset": dict(estimate_disparity_offset=False),  # the default without the online disparity offset estimate
-    # the offset the same across the image (stop 14's model, today's 4 sd gate)
-    "constant_offset": dict(disparity_offset_model="constant"),
     "no_weak": dict(klt_weak_points=0),  # the default without the weak-texture corner detection
 }
 

@@ -8,10 +8,7 @@ front end's stereo BA (``stereo_two_view_ba``, started at the true motion) from:
 * KLT tracks (the default tracker, started at the true position) or measured sparse-stereo
   disparities in place of the exact ones, one input at a time;
 * KLT's row or column errors alone, or its errors clipped to +-0.5 px (what the tails add);
-* KLT tracks in one image-row band or depth band only, exact elsewhere: where the error enters;
-* the road prewarp (``klt_road_prewarp``: road points tracked from the reference warped by the
-  road plane's homography, the plane fitted to measured depth, the motion predicted by constant
-  velocity) in place of plain KLT on the road.
+* KLT tracks in one image-row band or depth band only, exact elsewhere: where the error enters.
 
 It prints each input's mean per-step rotation error (pitch, yaw, roll, millidegrees), vertical
 translation error (camera y, mm) and step-length error (%), with standard errors over the pairs.
@@ -73,17 +70,6 @@ def main() -> None:
         de0, de1 = fb / z, fb / Q[:, 2]
         klt, ok = feat.track_klt(f0.left, f1.left, uv, cfg, true.copy())
         seen = np.abs(depth_mod.sample_depth(f1.depth, true) - Q[:, 2]) < 0.05 * Q[:, 2]  # not occluded
-        # the road prewarp, as the front end would run it
-        pw, okp = klt.copy(), ok.copy()
-        Ps = cam.backproject(uv[:, 0], uv[:, 1], fb / dm0)
-        below = (uv[:, 1] > cam.cy) & (Ps[:, 2] <= cfg.klt_road_max_depth_m)
-        plane = feat.road_plane(Ps[below], cfg)
-        if plane is not None:
-            T_pred = np.linalg.solve(seq.gt_poses[i], seq.gt_poses[i - 1])  # constant velocity
-            road = below & (np.abs(Ps @ plane[0] - plane[1]) < cfg.klt_road_tol_m)
-            pw[road], okp[road] = feat.track_klt_prewarped(
-                f0.left, f1.left, uv[road], feat.plane_homography(cam.K, T_pred, *plane), cfg
-            )
 
         def klt_in(sel: np.ndarray, true: np.ndarray = true, klt: np.ndarray = klt) -> np.ndarray:
             """Exact positions, KLT's where ``sel``."""
@@ -106,7 +92,6 @@ def main() -> None:
             "KLT at depth 10-20 m only": (klt_in((z >= 10) & (z < 20)), de0, de1, seen & ok),
             "KLT at depth 20-40 m only": (klt_in((z >= 20) & (z < 40)), de0, de1, seen & ok),
             "KLT at depth >= 40 m only": (klt_in(z >= 40), de0, de1, seen & ok),
-            "KLT, road prewarped": (pw, de0, de1, seen & okp),
         }
         for name, (c, d0, d1, use) in inputs.items():
             s = use & (d1 > 0)

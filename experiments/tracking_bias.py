@@ -8,7 +8,7 @@ Renders pairs of consecutive frames along a KITTI ground-truth path (default: KI
 * **tracking**: the KLT position of each corner in the next frame against its exact position
   (its exact 3D point moved by the ground-truth relative pose and projected), for each LK window
   size given, and for each frame gap given (``--gaps 1 3 5``: tracking from a keyframe g frames
-  back, as ``klt_reference = "keyframe"`` does; the per-frame bias is then the row bias / g).
+  back; the per-frame bias is then the row bias / g).
 
 ``--bias-windows 0 7`` repeats the tracking rows with ``klt_bias_window_px`` at each value (0 = the
 plain LK fit; the default 7 re-fits with a 7 px window and extrapolates the window bias away).

@@ -96,7 +96,7 @@ class FrontendConfig(_Section):
     klt_quality: float = 0.01  # goodFeaturesToTrack quality level (relative to the best corner)
     klt_min_distance_px: int = 10  # minimum spacing between corners, pixels
     klt_border_px: int = 16  # corners are not detected this close to the image border
-    loop_features: int = 500  # keypoints (with depth; ORB descriptors only when loop_verify_features = "tracker") kept per frame
+    loop_features: int = 500  # keypoints with depth kept per frame (VOResult.features)
     min_stereo_points: int = 40  # a frame with fewer keypoints with depth cannot be a reference
     min_sharpness_ratio: float = 0.35  # mean |Laplacian| below this x the reference's: blurred
     ransac_seed: int = 0  # cv2.setRNGSeed before every RANSAC (same input -> same output)
@@ -118,12 +118,6 @@ class FrontendConfig(_Section):
     sba_keep_px: float = 2.0
     sba_keep_below: int = 100
     sba_iterations: int = 3  # Gauss-Newton iterations per round (two rounds)
-    # KLT: track from the last frame ("frame", before issue 11) or from the last keyframe
-    # ("keyframe"): a frame becomes the keyframe when fewer than kf_min_ratio of the keyframe's
-    # points are still inliers, or kf_max_gap frames after it.
-    klt_reference: Literal["frame", "keyframe"] = "frame"
-    kf_max_gap: int = 5
-    kf_min_ratio: float = 0.5
     # klt mode: sliding-window stereo BA over the last lba_window keyframes (frontend/local_ba.py);
     # a reference frame becomes a keyframe lba_every frames after the last one.
     local_ba: bool = True
@@ -136,47 +130,23 @@ class FrontendConfig(_Section):
     # which 2.5 m leaves as they are). Stop 14: KITTI 06 at every 3rd frame ATE 0.154 -> 0.072 m
     # (README, "Fast drives").
     lba_keyframe_m: float = 2.5
-    # threads > 1: the keyframe's local BA runs on a worker thread beside the next frame's
-    # tracking and is joined before that frame's pose is composed: the keyframe itself is handed
-    # out with its chained pose, every later frame builds on the refined one (deterministic: the
-    # join point is fixed, not timed).
-    lba_async: bool = False
-    # klt_reference = "frame": every klt_anchor_gap frames the current frame becomes the anchor, and
-    # tracks it also has are re-tracked from its image (0 = off); a re-track may move a point at
-    # most klt_anchor_max_px from its frame-to-frame position.
-    klt_anchor_gap: int = 0
-    klt_anchor_max_px: float = 1.0
-    # "numpy" (vectorised Schur Gauss-Newton) or "gtsam" (GenericStereoFactor3D + LM)
-    lba_solver: Literal["numpy", "gtsam"] = "numpy"
-    # Which landmarks the window keeps when more than lba_max_landmarks are shared: "longest"
-    # tracks first, or "near" (largest disparity in the newest keyframe) first.
-    lba_select: Literal["longest", "near"] = "longest"
-    # klt + stereo_ba: tracked points beyond max_depth_m with a disparity of at least
-    # far_min_disparity_px are kept for the stereo BA (they constrain rotation), never for PnP.
-    sba_far_points: bool = False
-    far_min_disparity_px: float = 1.0
     # klt: when PnP on the KLT tracks fails or has fewer than min_inliers inliers (large motion:
     # a fast drive, or frames skipped), retry once by matching ORB keypoints detected afresh in
     # the reference and the current frame ("orb"), or flag at once ("none").
     klt_retry: Literal["none", "orb"] = "orb"
     klt_retry_features: int = 4000  # ORB keypoints detected per image by the retry
-    # Disparity offset, measured - true, px (a rig's rectification residual: a rig whose
-    # disparities read 0.3 px small has -0.3); every disparity the front end uses is corrected.
+    # Disparity offset, measured - true, px, at the centre column (a rig's rectification residual:
+    # a rig whose disparities read 0.3 px small has -0.3). It is modelled as a small turn of the
+    # right camera about its y axis, offset * (1 + ((u_r - cx) / fx)^2) at right-image column u_r;
+    # every disparity the front end uses is corrected.
     disparity_offset_px: float = 0.0
-    # How the offset varies across the image. "yaw": a small turn of the right camera about its
-    # y axis (the residual of the rig's extrinsic rotation), offset * (1 + ((u_r - cx) / fx)^2) at
-    # right-image column u_r, disparity_offset_px being its value at the centre column;
-    # "constant": the same everywhere (a principal-point residual). Stop 15's choice; the
-    # figures are in the README ("The offset's shape").
-    disparity_offset_model: Literal["yaw", "constant"] = "yaw"
     # klt + local BA: estimate the offset online (one more unknown in each local-BA solve, Gaussian
     # prior of disparity_offset_prior_px around the running estimate); the information-weighted
     # mean of the solves, clamped to +-disparity_offset_max_px, replaces disparity_offset_px once
     # disparity_offset_min_solves solves contributed, its standard error is at most
     # disparity_offset_max_sd_px (a drive with too little depth change -- a MAV hovering, a car
     # standing -- leaves the offset unobservable) and it differs by disparity_offset_min_px and by
-    # disparity_offset_min_z standard errors or more (the numpy lba_solver only; otherwise
-    # disparity_offset_px is applied unchanged). Stop 14: the significance test, not the count
+    # disparity_offset_min_z standard errors or more. Stop 14: the significance test, not the count
     # (10 before), is what keeps an offset-free rig's early noise out (README, "disparity offset");
     # stop 15: 4 standard errors with the yaw model (3 let a fast offset-free drive apply one).
     estimate_disparity_offset: bool = True
@@ -190,11 +160,6 @@ class FrontendConfig(_Section):
     # 0 = never): they were measured with a worse offset applied, whose track selection leans
     # toward it. Stop 14: 1 px open rendering, frames 0-999, ATE 3.17 -> 1.53 m (README).
     disparity_offset_memory_solves: int = 20
-    # Loop verification (issue 12): "separate" = multi-scale keypoints with stereo 3D points kept
-    # for every loop_reference_every-th frame and computed for the current frame only when a
-    # candidate is verified (frontend/loop_features.py); "tracker" = the front end's own per-frame
-    # features (KLT: single-scale ORB at the tracked corners; before issue 12's verification work).
-    loop_verify_features: Literal["separate", "tracker"] = "separate"
     loop_detector: Literal["orb", "sift"] = "orb"  # "orb": ORB pyramid; "sift": SIFT from octave 0
     loop_orb_features: int = 1000  # keypoints per reference frame (before the stereo check)
     loop_query_features: int = 1500  # keypoints of the current frame when verifying
@@ -222,21 +187,9 @@ class FrontendConfig(_Section):
     # fails or moves more than klt_bias_max_px keeps the plain position.
     klt_bias_window_px: int = 7
     klt_bias_max_px: float = 0.5
-    # Road prewarp (issue 11; off: measured worse on real KITTI 06, README "Road prewarp"): the
-    # reference's road plane is fitted to its points below the optical axis with trusted depth
-    # nearer than klt_road_max_depth_m (features.road_plane); those within klt_road_tol_m of it
-    # are tracked from the reference image warped by the plane's homography under the
-    # constant-velocity prediction, so the flow left within the LK window is a translation (no
-    # window bias to remove). A plane with fewer than klt_road_min_points inliers, tilted more
-    # than klt_road_max_tilt_deg, or no prediction: every point is tracked plainly.
-    klt_road_prewarp: bool = False
-    klt_road_max_depth_m: float = 15.0
-    klt_road_tol_m: float = 0.1
-    klt_road_min_points: int = 30
-    klt_road_max_tilt_deg: float = 30.0
     # The chain's step between consecutive local-BA keyframes (the composed stereo-BA steps, their
     # covariance carried along and multiplied by lba_chain_scale) as a relative-pose factor in
-    # the window (numpy lba_solver): "yaw_roll" = its rotation about the camera's y and z axes
+    # the window: "yaw_roll" = its rotation about the camera's y and z axes
     # (the window's far landmarks leave yaw and the sideways step ambiguous, and a yaw held alone
     # is paid for in the window's roll, which they couple; the chain's pitch carries the tracking
     # bias the window removes), "yaw", "rotation", "full", or "off".
@@ -253,15 +206,6 @@ class FrontendConfig(_Section):
     # in two halves run in two threads; LK tracks each point alone, so the result is the same
     # (0: never split).
     lk_split_min: int = 200
-    # A verified loop's relative pose: "pnp" = PnP RANSAC + LM on the inliers that pass the depth
-    # check (the reference's stereo depths taken as exact); "stereo_ba" = then the two-view stereo
-    # BA (frontend/stereo_ba.py) over the same inliers, their (u_left, v, u_right) in both frames.
-    loop_pose_refine: Literal["pnp", "stereo_ba"] = "pnp"
-    # A verified loop is also verified against up to this many stored references on each side of
-    # the one nearest to the candidate (every loop_reference_every-th frame, all older than
-    # loop.frame_distance), each carried to it by the VO poses, and the measurements fused by
-    # their covariances (robustly); 0 = the nearest reference alone. The nearest one must verify.
-    loop_verify_neighbours: int = 0
     # ORB loop keypoints refined at full resolution (cv2.cornerSubPix, half-window this many
     # pixels x the pyramid scale of the keypoint's level; 0 = the level's pixel grid, as before).
     # A FAST corner from pyramid level o sits on that level's grid, up to 1.2^o px off; the
@@ -411,7 +355,6 @@ class GraphConfig(_Section):
     loop_sigma_scale_max: float = 10.0  # clip of (1 - loop_q_floor) / (Q - loop_q_floor)
     robust_kernel: Literal["huber", "cauchy", "none"] = "cauchy"  # loop factors only
     robust_param: float = 3.0  # kernel width on the whitened 6-vector norm (an inlier's is ~2.4)
-    isam2_factorization: Literal["QR", "CHOLESKY"] = "QR"  # SPEC: Cholesky threw on long chains
     isam2_relinearize_threshold: float = 0.01
     isam2_relinearize_skip: int = 1
     # Extra iSAM2 steps right after an update that carried a loop (the robust weight converges
@@ -419,36 +362,19 @@ class GraphConfig(_Section):
     # converge it anyway, so 0 online; PoseGraph.converge() finishes the job at the end.
     isam2_loop_iterations: int = 0
     isam2_final_iterations: int = 10  # PoseGraph.converge(): at most this many extra steps
-    batch_solver: Literal["lm", "gnc"] = "lm"
     batch_max_iterations: int = 100
-    gnc_inlier_probability: float = 0.99  # GNC: chi-square inlier threshold at this probability
-    # Level-vehicle (gravity) prior, experimental, batch only, off by default. On KITTI 00 it cut the
-    # batch ATE about 4x but made t_rel / r_rel 2-4x worse (README "gravity prior"). Each
-    # frame's camera down axis, through a camera-frame gravity direction shared by all frames
-    # (the mounting), points along a world gravity direction shared by all frames, within
-    # gravity_sigma_deg (the spread of road grade and camber). Both directions are re-estimated
-    # from the poses before each of gravity_rounds Levenberg-Marquardt solves.
-    gravity_prior: bool = False
-    gravity_sigma_deg: float = 2.0
-    gravity_rounds: int = 3
-    # Odometry noise model: "inliers" (odom_sigma_* scaled by the inlier count, above) or "ba": the
-    # front end's stereo-BA covariance of the step (VOResult.cov) times odom_cov_scale^2, plus
-    # odom_cov_floor_* squared on the diagonal so it is never over-confident; steps without a
-    # covariance keep "inliers". "ba" with the 0.002 rad loop floor below is the default: measured
-    # better or equal on the demo, 07, hard 07 and 00 together (README, loop closure).
-    odom_noise: Literal["inliers", "ba"] = "ba"
+    # A step that carries the front end's stereo-BA covariance (VOResult.cov) takes it times
+    # odom_cov_scale^2, plus odom_cov_floor_* squared on the diagonal so it is never
+    # over-confident; a step without one takes odom_sigma_* scaled by its inlier count.
     odom_cov_scale: float = 1.0
     odom_cov_floor_rot_rad: float = 1e-4
     odom_cov_floor_trans_m: float = 1e-3
-    # Noise of a verified loop factor: "verification" = the PnP covariance of the loop's own
-    # inliers (frontend/loop_features.py) times loop_cov_scale, plus the floors below, in
-    # quadrature; "q" = loop_sigma_* scaled by Q (before issue 12). Unverified loops and loops
-    # without a covariance (loop_verify_features = "tracker") always use "q".
-    loop_sigma_source: Literal["verification", "q"] = "verification"
+    # A verified loop with a covariance (the PnP covariance of its own inliers,
+    # frontend/loop_features.py) takes it times loop_cov_scale plus the floors below in
+    # quadrature; other loops take loop_sigma_* scaled by Q.
     loop_cov_scale: float = 4.0  # covariance multiplier (sigma x2): unmodelled errors of the points
-    # Rotation floor, added in quadrature to the verification's rotation sigma. With the hand-set
-    # odometry sigmas ("inliers": 0.005 rad per frame) the graph takes any loop rotation as exact
-    # and 0.05 rad measured best; with odom_noise = "ba" (a realistic VO rotation noise) 0.002.
+    # Rotation floor, added in quadrature to the verification's rotation sigma: without it the
+    # graph would take a loop's rotation as exact against the realistic VO rotation noise.
     loop_sigma_floor_rot_rad: float = 0.002
     loop_sigma_floor_trans_m: float = 0.02
 
@@ -468,11 +394,7 @@ class MapConfig(_Section):
 
     enabled: bool = False
     keyframe_every: int = 5  # one keyframe cloud every this many frames
-    max_range_m: float = (
-        15.0  # depth beyond this is dropped (stereo depth error grows with z^2: p90 0.12 m at 0-10 m, 0.29 m at 10-20 m; README)
-    )
-    topdown_colour_by: Literal["height", "intensity"] = "height"  # top-down PNG: "height" (-y, metres) or "intensity"
-    topdown_dpi: int = 150  # top-down PNG resolution (a 8x8 inch figure)
+    max_range_m: float = 15.0  # depth beyond this is dropped (stereo depth error grows with z^2)
     trajectory: Literal["vo", "snaps", "isam2", "batch", "best"] = "best"  # best: the most refined available
     per_trajectory: bool = False  # also write map_<trajectory>.ply for every trajectory of the run
     # Map depth (frontend.depth.map_depth): stereo on images scaled by depth_scale, then every
@@ -712,10 +634,53 @@ ANGLE = Range(0, 180, lo_open=True)  # (0, 180] degrees
 # The range of every numeric field, keyed "section.field" (booleans and Literal fields are checked
 # by their type). A new numeric field needs a line here (tests/test_config.py checks it).
 # Keys older versions had (and wrote into every run's config.toml): read back with a note.
-RETIRED = {
-    k: "the map is a TSDF fusion now, not a union of point clouds"
-    for k in ("map.pixel_step", "map.voxel_size_m", "map.keyframe_voxel_size_m", "map.build_chunk_points", "map.build_tile_m")
+_RETIRED_GROUPS = {
+    "the map is a TSDF fusion now, not a union of point clouds": (
+        "map.pixel_step",
+        "map.voxel_size_m",
+        "map.keyframe_voxel_size_m",
+        "map.build_chunk_points",
+        "map.build_tile_m",
+    ),
+    "KLT tracks from the last frame": (
+        "frontend.klt_reference",
+        "frontend.kf_max_gap",
+        "frontend.kf_min_ratio",
+        "frontend.klt_anchor_gap",
+        "frontend.klt_anchor_max_px",
+    ),
+    "the road prewarp is gone; the KLT window bias is removed per track": (
+        "frontend.klt_road_prewarp",
+        "frontend.klt_road_max_depth_m",
+        "frontend.klt_road_tol_m",
+        "frontend.klt_road_min_points",
+        "frontend.klt_road_max_tilt_deg",
+    ),
+    "the local BA runs inline, numpy solver, longest tracks first": (
+        "frontend.lba_async",
+        "frontend.lba_solver",
+        "frontend.lba_select",
+    ),
+    "far points are not used": ("frontend.sba_far_points", "frontend.far_min_disparity_px"),
+    "the disparity offset is modelled as a turned right camera": ("frontend.disparity_offset_model",),
+    "loops verify with their own features against the nearest stored reference, PnP pose": (
+        "frontend.loop_verify_features",
+        "frontend.loop_verify_neighbours",
+        "frontend.loop_pose_refine",
+    ),
+    "the batch solve is Levenberg-Marquardt without a gravity prior": (
+        "graph.batch_solver",
+        "graph.gnc_inlier_probability",
+        "graph.gravity_prior",
+        "graph.gravity_sigma_deg",
+        "graph.gravity_rounds",
+    ),
+    "iSAM2 factorises by QR": ("graph.isam2_factorization",),
+    "a step with a stereo-BA covariance uses it, others their inlier count": ("graph.odom_noise",),
+    "a verified loop with a covariance uses it, others their Q": ("graph.loop_sigma_source",),
+    "the top-down PNG is coloured by height at a fixed resolution": ("map.topdown_colour_by", "map.topdown_dpi"),
 }
+RETIRED = {key: why for why, keys in _RETIRED_GROUPS.items() for key in keys}
 
 RULES: dict[str, Range] = {
     "frontend.num_disparities": Range(16, 1024, multiple=16),
@@ -759,16 +724,11 @@ RULES: dict[str, Range] = {
     "frontend.sba_keep_px": POSITIVE,
     "frontend.sba_keep_below": NON_NEGATIVE,
     "frontend.sba_iterations": AT_LEAST_1,
-    "frontend.kf_max_gap": AT_LEAST_1,
-    "frontend.kf_min_ratio": Range(0, 1),
     "frontend.lba_window": _ge(2),
     "frontend.lba_iterations": AT_LEAST_1,
     "frontend.lba_max_landmarks": _ge(10),
     "frontend.lba_every": AT_LEAST_1,
     "frontend.lba_keyframe_m": NON_NEGATIVE,
-    "frontend.klt_anchor_gap": NON_NEGATIVE,
-    "frontend.klt_anchor_max_px": POSITIVE,
-    "frontend.far_min_disparity_px": POSITIVE,
     "frontend.klt_retry_features": AT_LEAST_1,
     "frontend.disparity_offset_px": Range(-10, 10),
     "frontend.disparity_offset_prior_px": POSITIVE,
@@ -780,10 +740,6 @@ RULES: dict[str, Range] = {
     "frontend.disparity_offset_memory_solves": NON_NEGATIVE,
     "frontend.klt_bias_window_px": NON_NEGATIVE,
     "frontend.klt_bias_max_px": POSITIVE,
-    "frontend.klt_road_tol_m": POSITIVE,
-    "frontend.klt_road_max_depth_m": POSITIVE,
-    "frontend.klt_road_min_points": _ge(3),
-    "frontend.klt_road_max_tilt_deg": Range(0, 90),
     "frontend.lba_chain_scale": POSITIVE,
     "frontend.klt_weak_points": NON_NEGATIVE,
     "frontend.klt_weak_quality": FRACTION,
@@ -799,7 +755,6 @@ RULES: dict[str, Range] = {
     "frontend.loop_depth_min_ratio": Range(0, 1),
     "frontend.loop_min_sigma_px": POSITIVE,
     "frontend.loop_max_distance_m": POSITIVE,
-    "frontend.loop_verify_neighbours": NON_NEGATIVE,
     "frontend.loop_subpixel_px": NON_NEGATIVE,
     "loop.radius_m": POSITIVE,
     "odometry.trans_drift_pct": Range(0, 50, lo_open=True),
@@ -844,9 +799,6 @@ RULES: dict[str, Range] = {
     "graph.isam2_loop_iterations": NON_NEGATIVE,
     "graph.isam2_final_iterations": NON_NEGATIVE,
     "graph.batch_max_iterations": AT_LEAST_1,
-    "graph.gnc_inlier_probability": PROBABILITY,
-    "graph.gravity_sigma_deg": Range(0, 90, lo_open=True),
-    "graph.gravity_rounds": AT_LEAST_1,
     "graph.odom_cov_scale": POSITIVE,
     "graph.odom_cov_floor_rot_rad": POSITIVE,
     "graph.odom_cov_floor_trans_m": POSITIVE,
@@ -855,7 +807,6 @@ RULES: dict[str, Range] = {
     "graph.loop_sigma_floor_trans_m": NON_NEGATIVE,
     "map.keyframe_every": AT_LEAST_1,
     "map.max_range_m": POSITIVE,
-    "map.topdown_dpi": Range(10, 1200),
     "map.depth_scale": Range(0.1, 1),
     "map.depth_block_size": Range(1, 255, odd=True),
     "map.depth_texture_threshold": NON_NEGATIVE,

@@ -31,13 +31,12 @@ from .camera import StereoCamera
 from .config import Config
 from .errors import SnapsGraphError
 from .frontend.depth import ORDER_MAX_FRAMES, check_stereo_pair, map_depth, stereo_order
-from .frontend.loop_features import LoopFeatureBank, verify_nearby
+from .frontend.loop_features import LoopFeatureBank, verify_features
 from .frontend.odometry import StereoOdometry
-from .frontend.verify import verify_loop
 from .loop.snaps import SnapsLoopCloser
 from .loop.uiqi import make_thumbnail
 from .mapping.tsdf import FusedMap
-from .types import FrameFeatures, FrameRecord, LoopEvent, StereoFrame, VOResult
+from .types import FrameRecord, LoopEvent, StereoFrame, VOResult
 
 
 @dataclass
@@ -87,7 +86,7 @@ class SlamPipeline:
         and ``close()`` (the paper: "it is possible to substitute the visual odometry part with
         any desired model"); default: ``StereoOdometry`` configured by ``cfg.frontend``.
         ``loop_features``: the loop-verification feature store (default: a new
-        ``LoopFeatureBank`` when ``frontend.loop_verify_features = "separate"`` and SNAPS runs)."""
+        ``LoopFeatureBank`` when SNAPS runs)."""
         self.cfg = (cfg or Config()).resolved(loops=loops, refine=refine, build_map=build_map)
         self.loops_mode = self.cfg.loops
         self.refine = self.cfg.graph.refine
@@ -97,12 +96,11 @@ class SlamPipeline:
         self.snaps = SnapsLoopCloser(self.cfg.loop) if self.loops_mode == "snaps" else None
         self.graph = PoseGraph(self.cfg.graph, mode="isam2" if self.refine == "both" else self.refine)
         self.map = FusedMap(camera, self.cfg.map) if self.cfg.map.enabled else None
-        if loop_features is None and self.snaps is not None and self.cfg.frontend.loop_verify_features == "separate":
+        if loop_features is None and self.snaps is not None:
             loop_features = LoopFeatureBank(camera, self.cfg.frontend)
         self.loop_features = loop_features
         self._loop_cov: dict[int, np.ndarray] = {}  # reference index -> covariance of this frame's verified loop
 
-        self._features: list[FrameFeatures | None] = []
         self._frame_ids: list[int] = []
         self._k_of_frame: dict[int, int] = {}
         self._timestamps: list[float] = []
@@ -166,8 +164,6 @@ class SlamPipeline:
         self._k_of_frame[int(frame.index)] = k
         self._timestamps.append(float(frame.timestamp))
         self._vo_poses.append(vo.pose)
-        # per-frame features are kept only for the tracker-feature verifier (no feature bank)
-        self._features.append(vo.features if self.loop_features is None else None)
 
         loop: LoopEvent | None = None
         candidates = 0
@@ -228,12 +224,10 @@ class SlamPipeline:
         return output
 
     def _verify(self, ref_index: int, vo: VOResult, frame: StereoFrame | None = None, k: int | None = None):
-        """Geometric verification of a SNAPS loop: PnP from the reference frame's 3D points to
-        this frame's keypoints. Returns (T_ref_cur, inliers) or None; never raises.
-
-        With a loop-feature bank, the stored reference nearest to the candidate is verified and
-        the result carried to the candidate by the VO poses between the two (at most a few
-        frames); the covariance is kept for the loop factor."""
+        """Geometric verification of a SNAPS loop: the stored reference nearest to the candidate
+        is verified and the result carried to the candidate by the VO poses between the two (at
+        most a few frames); the covariance is kept for the loop factor. Returns (T_ref_cur,
+        inliers) or None; never raises."""
         k_ref = self._k_of_frame.get(ref_index)
         if self.loop_features is not None and frame is not None and k is not None:
             if k_ref is None:
@@ -244,17 +238,7 @@ class SlamPipeline:
             try:
                 cur = self.loop_features.query(k, frame)
                 offset = float(getattr(vo, "disparity_offset_px", 0.0))
-                m = verify_nearby(
-                    self.loop_features,
-                    k_feat,
-                    k - self.cfg.loop.frame_distance,
-                    lambda kn: np.linalg.solve(self._vo_poses[k_feat], self._vo_poses[kn]),
-                    cur,
-                    frame,
-                    self.camera,
-                    self.cfg.frontend,
-                    offset,
-                )
+                m = verify_features(self.loop_features.reference(k_feat), cur, frame, self.camera, self.cfg.frontend, offset)
             except Exception as exc:  # best effort: an unverifiable candidate is not a loop
                 self.graph.failures.append((k, f"loop verification raised {type(exc).__name__}: {exc}"))
                 return None
@@ -267,14 +251,7 @@ class SlamPipeline:
                 return None
             self._loop_cov[int(ref_index)] = m.cov
             return T, m.inliers
-        ref_feat = None if k_ref is None else self._features[k_ref]
-        if ref_feat is None or vo.features is None:
-            return None
-        try:
-            return verify_loop(ref_feat, vo.features, self.camera, self.cfg.frontend)
-        except Exception as exc:  # best effort: an unverifiable candidate is not a loop
-            self.graph.failures.append((len(self._frame_ids) - 1, f"loop verification raised {type(exc).__name__}: {exc}"))
-            return None
+        return None
 
     def _add_loop_factor(self, loop: LoopEvent, vo: VOResult) -> None:
         """A loop-closure factor for a SNAPS loop: measured by verification when it succeeded

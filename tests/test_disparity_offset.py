@@ -1,4 +1,4 @@
-"""The constant disparity offset: estimated online in the local BA, applied to every disparity."""
+"""The disparity offset (a turned right camera): estimated online in the local BA, applied to every disparity."""
 
 from __future__ import annotations
 
@@ -16,16 +16,13 @@ from snaps_graph.frontend.local_ba import LocalBundleAdjuster
 CAM = StereoCamera(fx=718.0, fy=718.0, cx=607.0, cy=185.0, baseline_m=0.54, width=1241, height=376)
 
 
-def _window_offsets(
-    offset_px: float, seed: int = 3, estimate: bool = True, joint: bool = True, rig: str = "constant", model: str = "constant"
-):
+def _window_offsets(offset_px: float, seed: int = 3, estimate: bool = True, joint: bool = True):
     """Local BA over 12 keyframes 2 m apart (straight ahead) whose disparities read ``offset_px``
-    too large (``rig`` "yaw": times 1 + ((u_r - cx) / fx)^2, a turned right camera), with noise
-    (0.2 px in u, v; 0.3 px in disparity), solved with ``model``; returns the BA's stats and the
-    refined poses."""
+    too large times 1 + ((u_r - cx) / fx)^2 (a turned right camera), with noise (0.2 px in u, v;
+    0.3 px in disparity); returns the BA's stats and the refined poses."""
     rng = np.random.default_rng(seed)
     X = np.c_[rng.uniform(-20, 20, 1500), rng.uniform(-3, 2, 1500), rng.uniform(4, 60, 1500)]
-    lba = LocalBundleAdjuster(CAM, window=6, iterations=8, estimate_offset=estimate, offset_model=model)
+    lba = LocalBundleAdjuster(CAM, window=6, iterations=8, estimate_offset=estimate)
     lba.offset_joint = joint
     poses, gts = [], []
     for k in range(12):
@@ -34,7 +31,7 @@ def _window_offsets(
         Pc = X - gt[:3, 3]
         uv = np.c_[CAM.fx * Pc[:, 0] / Pc[:, 2] + CAM.cx, CAM.fy * Pc[:, 1] / Pc[:, 2] + CAM.cy]
         d_true = CAM.fx * CAM.baseline_m / np.maximum(Pc[:, 2], 1e-3)
-        d = d_true + offset_px * (1.0 + ((uv[:, 0] - d_true - CAM.cx) / CAM.fx) ** 2 if rig == "yaw" else 1.0)
+        d = d_true + offset_px * (1.0 + ((uv[:, 0] - d_true - CAM.cx) / CAM.fx) ** 2)
         vis = (Pc[:, 2] > 2) & (uv[:, 0] > 0) & (uv[:, 0] < CAM.width) & (uv[:, 1] > 0) & (uv[:, 1] < CAM.height) & (d > 0.5)
         n = int(vis.sum())
         seed_pose = gt.copy()
@@ -50,7 +47,7 @@ def _window_offsets(
 
 
 @pytest.mark.parametrize("offset", [0.0, -1.0, 0.5])
-def test_local_ba_recovers_a_constant_disparity_offset(offset):
+def test_local_ba_recovers_a_disparity_offset(offset):
     """Every window's data-only estimate is within 0.1 px of the true offset (the info-weighted
     mean within 0.05 px), and the refined keyframes' step length is within 1 % of the truth."""
     stats, poses, gts = _window_offsets(offset)
@@ -63,24 +60,11 @@ def test_local_ba_recovers_a_constant_disparity_offset(offset):
     assert abs(steps[-5:].mean() / 2.0 - 1.0) < 0.01, steps
 
 
-def test_a_turned_right_camera_is_recovered_by_the_yaw_model_and_not_by_the_constant_one():
-    """A -1 px offset that grows toward the sides as a turned right camera's does: the yaw
-    model's info-weighted estimate is within 0.05 px of it, the constant model's is further off."""
-    errs = {}
-    for model in ("yaw", "constant"):
-        stats, _, _ = _window_offsets(-1.0, rig="yaw", model=model)
-        o = np.array(stats.offsets)
-        errs[model] = abs((o[:, 0] * o[:, 1]).sum() / o[:, 1].sum() + 1.0)
-    assert errs["yaw"] < 0.05, errs
-    assert errs["constant"] > 2 * errs["yaw"], errs
-
-
 def test_offset_gain_is_one_at_the_centre_and_grows_toward_the_sides():
     u = np.array([CAM.cx + 10.0, CAM.cx + 10.0 + CAM.fx * 0.5, np.nan])
     d = np.array([10.0, 10.0, 5.0])
-    g = offset_gain(u, d, CAM, "yaw")
+    g = offset_gain(u, d, CAM)
     assert g == pytest.approx([1.0, 1.25, 1.0])
-    assert offset_gain(u, d, CAM, "constant") == 1.0
     assert true_disparity(d, -1.0, g) == pytest.approx([11.0, 11.25, 6.0])
 
 

@@ -47,14 +47,13 @@ def test_map_depth_of_a_shifted_texture_and_a_flat_sky():
     assert np.count_nonzero(far) == 0  # 15.6 m is beyond the range
 
 
-@pytest.mark.parametrize("model", ["constant", "yaw"])
-def test_map_depth_corrects_the_front_ends_disparity_offset(model):
+def test_map_depth_corrects_the_front_ends_disparity_offset():
     """Told that disparities read 1 px small, the map adds 1 px (0.5 at its half size) to every
-    pixel's disparity, times 1 + x^2 at the right-image column with the yaw model."""
+    pixel's disparity, times 1 + x^2 at the right-image column (a turned right camera)."""
     d = 16
     big = _texture(320, 640 + d - 1)
     left, right = big[:, :640].copy(), big[:, d - 1 :].copy()  # measured disparity 15 px
-    fcfg = FrontendConfig(disparity_offset_model=model)
+    fcfg = FrontendConfig()
     plain = map_depth(left, right, CAM, fcfg, MapConfig(max_range_m=40.0))
     fixed = map_depth(left, right, CAM, fcfg, MapConfig(max_range_m=40.0), offset_px=-1.0)
     cam = map_camera(CAM, 0.5, 640, 320)
@@ -63,9 +62,9 @@ def test_map_depth_corrects_the_front_ends_disparity_offset(model):
     fb = cam.fx * cam.baseline_m
     d0, d1 = fb / plain[vv, uu], fb / fixed[vv, uu]
     x = (uu - d0 - cam.cx) / cam.fx
-    gain = 1.0 + x**2 if model == "yaw" else np.ones_like(x)
+    gain = 1.0 + x**2
     assert np.allclose(d1 - d0, 0.5 * gain, atol=1e-3)
-    assert (gain.max() > 1.3) == (model == "yaw")  # the sides get a third more
+    assert gain.max() > 1.3  # the sides get a third more
 
 
 def test_map_depth_leaves_a_depth_edge_empty():

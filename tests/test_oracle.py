@@ -97,7 +97,7 @@ def test_oracle_keeps_error_that_no_loop_observes():
 
 
 def test_oracle_weighs_the_steps_by_the_covariances_it_is_given():
-    """With the steps' covariances (``odom_noise = "ba"``, as the pipeline weighs them) the exact
+    """With the steps' covariances (as the pipeline weighs them) the exact
     loops put a heading error on the one step whose covariance allows it; with the inlier
     sigmas (all steps alike) the same correction is spread over the lap."""
     gt = square_laps()
@@ -108,7 +108,6 @@ def test_oracle_weighs_the_steps_by_the_covariances_it_is_given():
     tight, loose = np.diag([1e-8] * 3 + [1e-6] * 3), np.diag([1e-2] * 3 + [1e-6] * 3)
     covs = [None] + [loose if k == 40 else tight for k in range(1, len(gt))]
     c = cfg()
-    assert c.graph.odom_noise == "ba"
     spread = loop_oracle(vo, gt, c).mean_deviation
     placed = loop_oracle(vo, gt, c, covs=covs).mean_deviation
     assert placed < 0.02 and placed < 0.25 * spread, (placed, spread)

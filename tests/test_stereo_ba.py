@@ -160,7 +160,7 @@ def test_local_ba_keeps_poses_finite_and_reduces_error():
 
 @pytest.mark.parametrize(
     "bad",
-    [dict(motion="bundle"), dict(klt_reference="key"), dict(lba_solver="ceres"), dict(lba_window=1), dict(sba_huber_px=0.0)],
+    [dict(motion="bundle"), dict(lba_chain="ceres"), dict(lba_window=1), dict(sba_huber_px=0.0)],
 )
 def test_bad_new_frontend_settings_are_one_line_errors(bad):
     from snaps_graph.errors import SnapsGraphError
@@ -193,8 +193,8 @@ def _run_vo(seq, frames, cfg):
 
 @pytest.mark.parametrize(
     "extra",
-    [dict(local_ba=True, lba_every=2), dict(klt_reference="keyframe", local_ba=True), dict(klt_anchor_gap=3)],
-    ids=["frame+lba", "keyframe+lba", "anchor"],
+    [dict(local_ba=True, lba_every=2)],
+    ids=["frame+lba"],
 )
 def test_vo_variants_track_a_small_rendering(small_rendering, extra):
     """Each new front-end variant tracks every frame of a small rendering with finite poses and

@@ -1,7 +1,7 @@
 """GTSAM pose graph: odometry factors, UIQI-weighted loop factors, iSAM2 or batch refinement.
 
-The backend package is the only one that imports gtsam (SPEC "Factor graph"); everything else
-passes 4x4 numpy poses (T_world_cam, KITTI camera axes) through :class:`PoseGraph`.
+The rest of the package passes 4x4 numpy poses (T_world_cam, KITTI camera axes) through
+:class:`PoseGraph`; the pose graph's gtsam types stay in this package.
 
 Decisions, and why:
 
@@ -18,7 +18,7 @@ Decisions, and why:
   odom_sigma_scale_min, odom_sigma_scale_max)``. ``inliers <= 0`` means "not reported" and gives
   the reference sigmas. A flagged step (``ok=False``: the front end fell back on a
   constant-velocity guess) is multiplied by ``flagged_sigma_scale`` so loops can bend it freely.
-  With ``odom_noise = "ba"`` a step that carries the front end's stereo-BA covariance
+  A step that carries the front end's stereo-BA covariance
   (``VOResult.cov``) uses it instead, scaled by ``odom_cov_scale`` and floored by
   ``odom_cov_floor_*`` (:func:`odometry_covariance`).
 * **Loop noise from the UIQI Q** (paper eq. 4; SPEC: a higher Q gives a tighter model). Q is a
@@ -46,9 +46,8 @@ Decisions, and why:
   residuals, whereas Huber's stays constant (measured on the square test: a false loop moved the
   result 0.006 m under Cauchy, 0.5 m under Huber, 9.9 m without a kernel).
   ``robust_kernel = "none"`` exists for comparisons.
-* **iSAM2.** QR factorisation by default: SPEC records ISAM2 with Cholesky throwing
-  IndeterminantLinearSystemException after ~1080 chained Pose3 factors at 0.01 rad sigmas. (A
-  curved 1500-step chain ran clean with either here; QR costs the same, so it stays.) Each
+* **iSAM2.** QR factorisation: SPEC records ISAM2 with Cholesky throwing
+  IndeterminantLinearSystemException after ~1080 chained Pose3 factors. Each
   :meth:`PoseGraph.update` passes only the factors and values added since the previous call.
   iSAM2 takes one Gauss-Newton step per update, and a robust loop is an IRLS problem, so a fresh
   loop is only partly applied; later frames' updates finish it (on KITTI 00, extra iterations at
@@ -84,8 +83,6 @@ from ..io_utils import atomic_output
 from ._values import array_to_values as _array_to_values
 from ._values import to_pose3 as _to_pose3
 from ._values import values_to_array as _values_to_array
-from .gnc import solve_gnc
-from .gravity import gravity_rounds
 
 MODES = ("none", "isam2", "batch")  # graph.refine's values but "both" (= isam2 here + optimize_batch)
 
@@ -124,9 +121,6 @@ class GraphStats:
     loop_update_ms: list[float] = field(default_factory=list)  # updates that carried a loop
     batch_ms: float = 0.0
     batch_iterations: int = 0
-    # Gravity prior (batch): the shared directions of the last round, None when off.
-    gravity_world: list[float] | None = None  # gravity ("down") in the world (first camera) frame
-    gravity_camera: list[float] | None = None  # gravity in the camera frame (the mounting)
 
     @property
     def n_factors(self) -> int:
@@ -155,8 +149,6 @@ class GraphStats:
             "loop_update_ms_max": max(self.loop_update_ms, default=0.0),
             "batch_ms": self.batch_ms,
             "batch_iterations": self.batch_iterations,
-            "gravity_world": self.gravity_world,
-            "gravity_camera": self.gravity_camera,
         }
 
 
@@ -199,10 +191,10 @@ def odometry_sigmas(cfg: GraphConfig, inliers: int, ok: bool) -> np.ndarray:
 
 
 def odometry_covariance(cfg: GraphConfig, cov: np.ndarray | None) -> np.ndarray | None:
-    """The step covariance with ``odom_noise = "ba"``: ``odom_cov_scale^2 * cov`` plus the floor
-    sigmas squared on the diagonal; None (use :func:`odometry_sigmas`) when the mode is
-    "inliers" or ``cov`` is missing, not a finite symmetric 6x6 or not positive semi-definite."""
-    if cfg.odom_noise != "ba" or cov is None:
+    """The step covariance: ``odom_cov_scale^2 * cov`` plus the floor sigmas squared on the
+    diagonal; None (use :func:`odometry_sigmas`) when ``cov`` is missing, not a finite symmetric
+    6x6 or not positive semi-definite."""
+    if cov is None:
         return None
     C = np.asarray(cov, dtype=float)
     if C.shape != (6, 6) or not np.all(np.isfinite(C)):
@@ -253,7 +245,7 @@ class PoseGraph:
     """A thin wrapper over GTSAM so no other module touches the solver.
 
     ``mode``: "none" (build the graph, keep the initial estimates), "isam2" (incremental update
-    per :meth:`update` call) or "batch" (Levenberg-Marquardt or GNC over the whole graph on
+    per :meth:`update` call) or "batch" (Levenberg-Marquardt over the whole graph on
     :meth:`optimize_batch`). Default ``cfg.refine``. The graph is built in every mode, so
     :meth:`optimize_batch` and :meth:`save_g2o` always work.
 
@@ -281,7 +273,7 @@ class PoseGraph:
         # iSAM2 state: pending factors/values since the last update, the solver, cached estimate.
         self._isam: gtsam.ISAM2 | None = None
         if self.mode == "isam2":
-            self._isam = self._new_isam2(cfg.isam2_factorization)
+            self._isam = self._new_isam2()
         self.isam2_disabled = False
         self._pending_factors = gtsam.NonlinearFactorGraph()
         self._pending_values = gtsam.Values()
@@ -308,7 +300,7 @@ class PoseGraph:
         ``initial_pose`` is the heuristic (SNAPS-corrected) T_world_cam. Frame 0 gets a prior at
         it; frame k > 0 gets BetweenFactorPose3(k-1, k, T_rel) with :func:`odometry_sigmas`.
         ``T_rel`` None for k > 0 falls back on the relative pose of the two initial estimates.
-        ``cov`` (6x6, Pose3 tangent at ``T_rel``) is the step's noise with ``odom_noise = "ba"``.
+        ``cov`` (6x6, Pose3 tangent at ``T_rel``) is the step's noise (else :func:`odometry_sigmas`).
         """
         if k != len(self._initial):
             raise SnapsGraphError(f"graph: frame key {k} out of order (expected {len(self._initial)})")
@@ -348,8 +340,7 @@ class PoseGraph:
         Verified (``T_ref_cur`` given): the measured relative pose. Unverified: the same-place
         assumption (zero translation, heuristic relative rotation). Never raises: a loop that
         cannot be added comes back with ``added=False`` and a ``reason``. ``covariance`` (6x6,
-        rot then trans, of T_ref_cur) with ``loop_sigma_source = "verification"``: the factor's
-        noise is :func:`loop_covariance` of it instead of the Q-scaled sigmas.
+        rot then trans, of T_ref_cur): the factor's noise is :func:`loop_covariance` of it instead of the Q-scaled sigmas.
         """
         verified = T_ref_cur is not None
         info = LoopFactorInfo(ref=int(ref), cur=int(cur), q=float(q), added=False, verified=verified)
@@ -379,7 +370,7 @@ class PoseGraph:
             measurement = _to_pose3(T_meas)
         sig = loop_sigmas(self.cfg, float(q), verified)
         cov = None
-        if verified and covariance is not None and self.cfg.loop_sigma_source == "verification":
+        if verified and covariance is not None:
             cov = loop_covariance(self.cfg, covariance)
             if cov is not None:
                 sig = np.sqrt(np.diag(cov))
@@ -417,9 +408,9 @@ class PoseGraph:
         return g, self._base.size()
 
     # ------------------------------------------------------------------ solving
-    def _new_isam2(self, factorization: str) -> gtsam.ISAM2:
+    def _new_isam2(self) -> gtsam.ISAM2:
         p = gtsam.ISAM2Params()
-        p.setFactorization(factorization.upper())
+        p.setFactorization("QR")
         p.setRelinearizeThreshold(self.cfg.isam2_relinearize_threshold)
         p.relinearizeSkip = self.cfg.isam2_relinearize_skip
         return gtsam.ISAM2(p)
@@ -504,7 +495,7 @@ class PoseGraph:
 
     def _rebuild_isam2(self, k: int, seed: np.ndarray) -> None:
         """Fallback after a failed update: drop the loops of the failed update and rebuild iSAM2
-        (QR) from all remaining factors, seeded with the last good estimate. If that fails too,
+        from all remaining factors, seeded with the last good estimate. If that fails too,
         switch iSAM2 off (estimates become the initial poses)."""
         for loop in self._pending_loops:
             loop.active = False
@@ -513,7 +504,7 @@ class PoseGraph:
         values = _array_to_values(seed)
         graph, _ = self._graph(robust=True)
         try:
-            isam = self._new_isam2("QR")
+            isam = self._new_isam2()
             isam.update(graph, values)
             newest = isam.calculateEstimatePose3(k).matrix()
             if not np.all(np.isfinite(newest)):
@@ -527,13 +518,8 @@ class PoseGraph:
     def optimize_batch(self) -> np.ndarray:
         """Optimise the whole graph from the initial (heuristic) estimates; returns (N, 4, 4).
 
-        ``batch_solver`` "lm": Levenberg-Marquardt on the graph with robust loop factors.
-        "gnc": GncLMOptimizer on the Gaussian graph, prior and odometry as known inliers and the
-        loop factors as the outlier candidates (GNC supplies its own robust loss, so the loop
-        factors are not wrapped twice). With ``gravity_prior``, :func:`gravity.gravity_rounds` then
-        re-solves with a level-vehicle attitude factor per frame. On a solver failure: the initial
-        estimates, and the reason in ``failures`` (a failure of the gravity rounds alone keeps the
-        plain batch result).
+        Levenberg-Marquardt on the graph with robust loop factors. On a solver failure: the
+        initial estimates, and the reason in ``failures``.
         """
         if not self._initial:
             raise SnapsGraphError("graph: optimize_batch on an empty graph")
@@ -542,27 +528,13 @@ class PoseGraph:
         try:
             lm = gtsam.LevenbergMarquardtParams()
             lm.setMaxIterations(self.cfg.batch_max_iterations)
-            if self.cfg.batch_solver == "gnc" and any(loop.active for loop in self._loops):
-                graph, n_base = self._graph(robust=False)
-                result = solve_gnc(graph, self._initial_values, n_base, lm, self.cfg.gnc_inlier_probability)
-                iterations = 0
-            else:
-                graph, _ = self._graph(robust=True)
-                opt = gtsam.LevenbergMarquardtOptimizer(graph, self._initial_values, lm)
-                result = opt.optimize()
-                iterations = opt.iterations()
+            graph, _ = self._graph(robust=True)
+            opt = gtsam.LevenbergMarquardtOptimizer(graph, self._initial_values, lm)
+            result = opt.optimize()
+            iterations = opt.iterations()
             poses = _values_to_array(result, len(self._initial))
             if not np.all(np.isfinite(poses)):
                 raise RuntimeError("non-finite result")
-            if self.cfg.gravity_prior:
-                try:
-                    base, _ = self._graph(robust=True)
-                    poses, more, c, g = gravity_rounds(base, poses, lm, self.cfg.gravity_sigma_deg, self.cfg.gravity_rounds)
-                    iterations += more
-                    self.stats.gravity_world = [float(v) for v in g]
-                    self.stats.gravity_camera = [float(v) for v in c]
-                except RuntimeError as exc:  # keep the plain batch result
-                    self.failures.append((k, f"gravity prior failed, batch result without it: {_one_line(exc)}"))
         except RuntimeError as exc:
             self.failures.append((k, f"batch optimisation failed: {_one_line(exc)}"))
             poses = self._initial_array()

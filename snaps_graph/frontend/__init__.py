@@ -2,6 +2,5 @@
 
 from .depth import dense_depth, dense_disparity, sparse_depth
 from .odometry import StereoOdometry, pnp_ransac
-from .verify import verify_loop
 
-__all__ = ["StereoOdometry", "dense_depth", "dense_disparity", "sparse_depth", "pnp_ransac", "verify_loop"]
+__all__ = ["StereoOdometry", "dense_depth", "dense_disparity", "sparse_depth", "pnp_ransac"]

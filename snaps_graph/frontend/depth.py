@@ -41,14 +41,10 @@ def check_stereo_pair(left: np.ndarray, right: np.ndarray) -> None:
         )
 
 
-def offset_gain(u_left: np.ndarray, d: np.ndarray, camera: StereoCamera, model: str) -> np.ndarray | float:
-    """The disparity offset's factor at each point (``FrontendConfig.disparity_offset_model``).
-
-    "yaw": a right camera turned by a small angle a about its y axis images column u_r at
-    u_r + fx·a·(1 + x²), x = (u_r - cx) / fx, so the offset at the centre column grows by 1 + x²
-    toward the sides (u_r = u_left - d; 1 where d is not finite). "constant": 1."""
-    if model == "constant":
-        return 1.0
+def offset_gain(u_left: np.ndarray, d: np.ndarray, camera: StereoCamera) -> np.ndarray:
+    """The disparity offset's factor at each point: a right camera turned by a small angle a about
+    its y axis images column u_r at u_r + fx·a·(1 + x²), x = (u_r - cx) / fx, so the offset at the
+    centre column grows by 1 + x² toward the sides (u_r = u_left - d; 1 where d is not finite)."""
     x = (np.asarray(u_left, np.float64) - np.asarray(d, np.float64) - camera.cx) / camera.fx
     return 1.0 + np.where(np.isfinite(x), x, 0.0) ** 2
 
@@ -63,12 +59,12 @@ def true_disparity(d: np.ndarray, offset_px: float, gain: np.ndarray | float = 1
     return np.where(d > 0, d - offset_px * np.asarray(gain), d).astype(d.dtype)
 
 
-def correct_disparity(d: np.ndarray, u_left: np.ndarray, offset_px: float, camera: StereoCamera, model: str) -> np.ndarray:
+def correct_disparity(d: np.ndarray, u_left: np.ndarray, offset_px: float, camera: StereoCamera) -> np.ndarray:
     """``true_disparity`` with ``offset_gain`` at each point (left column ``u_left``, measured
     disparity ``d``); ``d`` itself, and no gain computed, when there is no offset."""
     if offset_px == 0.0:
         return d
-    return true_disparity(d, offset_px, offset_gain(u_left, d, camera, model))
+    return true_disparity(d, offset_px, offset_gain(u_left, d, camera))
 
 
 # stereo_order: pairs looked at before giving up on a verdict, and what one needs
@@ -248,7 +244,7 @@ def map_depth(
         valid &= d16 > 0
     if offset_px != 0.0:  # the offset at the working size, each pixel's gain at its right column
         vv, uu = np.nonzero(valid)
-        d[vv, uu] = correct_disparity(d[vv, uu], uu, offset_px * cam.fx / camera.fx, cam, cfg.disparity_offset_model)
+        d[vv, uu] = correct_disparity(d[vv, uu], uu, offset_px * cam.fx / camera.fx, cam)
         valid &= d > 0
     z = np.zeros_like(d)
     z[valid] = (cam.fx * cam.baseline_m) / d[valid]  # eq. 1

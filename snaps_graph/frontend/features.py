@@ -5,8 +5,8 @@ Three ways to get 2D correspondences between two frames, chosen by ``FrontendCon
   neighbour with Lowe's ratio test;
 - "orb": the same with ORB (``orb_features``) and Hamming distance;
 - "klt": Shi-Tomasi corners tracked frame to frame with pyramidal Lucas-Kanade, re-detected
-  where tracks ran out. No descriptors are needed for motion; for loop verification the kept
-  corners get ORB descriptors (``orb_at``).
+  where tracks ran out. No descriptors are needed for motion (loop verification detects its
+  own features: ``loop_features.py``).
 
 Every function returns plain float32/uint8 numpy arrays and is deterministic for a given input
 (keypoints are put in a fixed order, ties broken by position), so the front end is
@@ -14,8 +14,6 @@ bit-reproducible.
 """
 
 from __future__ import annotations
-
-import dataclasses
 
 import cv2
 import numpy as np
@@ -68,25 +66,6 @@ def detect_orb(img: np.ndarray, cfg: FrontendConfig) -> tuple[np.ndarray, np.nda
     if desc is None:
         desc = np.zeros((0, 32), np.uint8)
     return uv, np.ascontiguousarray(desc, np.uint8)
-
-
-def orb_at(img: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """ORB descriptors at given points: (indices into ``uv`` that got one, descriptors uint8 (M,32)).
-
-    Upright (angle 0) at full resolution: KITTI-like cameras do not roll, and skipping the
-    orientation makes the descriptors of the same place seen again more alike. Points too close
-    to the border for ORB's 31-pixel patch are dropped (hence the indices).
-    """
-    uv = np.asarray(uv, np.float32).reshape(-1, 2)
-    if len(uv) == 0:
-        return np.zeros(0, np.int64), np.zeros((0, 32), np.uint8)
-    kps = [cv2.KeyPoint(float(u), float(v), 31.0, 0.0, 0.0, 0, i) for i, (u, v) in enumerate(uv)]
-    orb = cv2.ORB.create(nfeatures=len(kps), nlevels=1)
-    kept, desc = orb.compute(img, kps)
-    if desc is None or not kept:
-        return np.zeros(0, np.int64), np.zeros((0, 32), np.uint8)
-    idx = np.array([k.class_id for k in kept], np.int64)
-    return idx, np.ascontiguousarray(desc, np.uint8)
 
 
 def match_descriptors(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float) -> tuple[np.ndarray, np.ndarray]:
@@ -252,68 +231,3 @@ def _window_extrapolated(
     out = p1.copy()
     out[sel[good]] -= m1 / (m1 - m2) * diff[good]
     return out
-
-
-def road_plane(pts3d: np.ndarray, cfg: FrontendConfig) -> tuple[np.ndarray, float] | None:
-    """The road plane n . X = d (n unit, d > 0 the camera's height) in the camera frame, fitted to
-    ``pts3d`` (points below the optical axis with trusted depth) by a deterministic RANSAC and a
-    least-squares refit on its inliers (within ``klt_road_tol_m``). None when fewer than
-    ``klt_road_min_points`` fit, or the plane is tilted more than ``klt_road_max_tilt_deg`` from
-    level in the camera frame (y down), or the camera is not 0.3-5 m above it."""
-    P = np.asarray(pts3d, np.float64).reshape(-1, 3)
-    n_min, tol = cfg.klt_road_min_points, cfg.klt_road_tol_m
-    if len(P) < max(3, n_min):
-        return None
-    rng = np.random.default_rng(len(P))  # deterministic: the same points give the same plane
-    s = rng.integers(0, len(P), size=(64, 3))
-    a, b, c = P[s[:, 0]], P[s[:, 1]], P[s[:, 2]]
-    nrm = np.cross(b - a, c - a)
-    ln = np.linalg.norm(nrm, axis=1)
-    good = ln > 1e-9
-    if not np.any(good):
-        return None
-    nrm = nrm[good] / ln[good, None]
-    dist = np.einsum("ij,ij->i", nrm, a[good])
-    counts = (np.abs(P @ nrm.T - dist) < tol).sum(axis=0)
-    best = int(np.argmax(counts))
-    inl = np.abs(P @ nrm[best] - dist[best]) < tol
-    if np.count_nonzero(inl) < n_min:
-        return None
-    Q = P[inl]
-    centre = Q.mean(axis=0)
-    n = np.linalg.svd(Q - centre, full_matrices=False)[2][-1]
-    d = float(n @ centre)
-    if d < 0:
-        n, d = -n, -d
-    if not (0.3 <= d <= 5.0) or n[1] < np.cos(np.radians(cfg.klt_road_max_tilt_deg)):
-        return None
-    return n, d
-
-
-def plane_homography(K: np.ndarray, T_cur_ref: np.ndarray, n: np.ndarray, d: float) -> np.ndarray:
-    """The homography taking reference pixels of the plane n . X = d (reference frame) into the
-    current image under the motion T_cur_ref."""
-    H = K @ (T_cur_ref[:3, :3] + np.outer(T_cur_ref[:3, 3], n) / d) @ np.linalg.inv(K)
-    return H / H[2, 2]
-
-
-def track_klt_prewarped(
-    prev_img: np.ndarray, cur_img: np.ndarray, uv: np.ndarray, H: np.ndarray, cfg: FrontendConfig
-) -> tuple[np.ndarray, np.ndarray]:
-    """Track points of a plane (the road) with LK from ``prev_img`` warped by the plane's predicted
-    homography ``H``. The flow left is nearly a translation, so the translation-only fit has no
-    window bias to remove (the road's flow curves within the window: the pitch bias, issue 11).
-    Returns (uv_cur float32 (N,2), ok bool (N,)) as ``track_klt``."""
-    uv = np.ascontiguousarray(uv, np.float64).reshape(-1, 2)
-    if len(uv) == 0:
-        return uv.astype(np.float32), np.zeros(0, bool)
-    p = np.c_[uv, np.ones(len(uv))] @ H.T
-    with np.errstate(divide="ignore", invalid="ignore"):
-        q = (p[:, :2] / p[:, 2:]).astype(np.float32)
-    h, w = cur_img.shape
-    fin = (p[:, 2] > 0) & np.all(np.isfinite(q), axis=1) & (q[:, 0] > -w) & (q[:, 0] < 2 * w) & (q[:, 1] > -h) & (q[:, 1] < 2 * h)
-    q[~fin] = 0.0
-    warped = cv2.warpPerspective(prev_img, H, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    plain = dataclasses.replace(cfg, klt_bias_window_px=0)
-    p1, ok = track_klt(warped, cur_img, q, plain, q.copy())  # a copy: LK writes its start in place
-    return p1, ok & fin

@@ -5,19 +5,16 @@ Each keyframe brings its pose (the VO's T_world_cam) and its landmarks' stereo m
 On every new keyframe the last ``window`` keyframes and every landmark seen by at least two of
 them form one problem: a stereo reprojection error (u_l, u_r, v) per observation under a Huber
 kernel on its 3-vector, the oldest keyframe of the window held fixed (the gauge: it was handed
-out long ago). Two solvers, same problem and (measured on KITTI 06) same answer: ``"numpy"``
-(vectorised Gauss-Newton, landmarks eliminated by a Schur complement; the faster one) and
-``"gtsam"`` (``GenericStereoFactor3D`` with ``Cal3_S2Stereo``, a tight prior on the oldest
-pose, Levenberg-Marquardt). At most ``max_landmarks`` landmarks take part (``select``: the
-longest tracks, or the nearest in the newest keyframe, first). All window poses and landmarks
+out long ago). Vectorised Gauss-Newton, landmarks eliminated by a Schur complement. At most
+``max_landmarks`` landmarks take part (the longest tracks first). All window poses and landmarks
 are refined; the newest keyframe's refined pose is what the odometry chains from next.
 Landmarks start at the stereo point of their first observation in the window, posed by that
 keyframe's current estimate.
 
 Disparity offset. Disparities are taken as ``measured = true + offset_px * gain`` (a rig's
 rectification residual; ``offset_px`` is set by the caller, the running estimate; ``gain`` is
-``depth.offset_gain`` for ``offset_model`` at the observation's right-image column). With
-``estimate_offset`` the numpy solver adds the offset as one more unknown shared by every
+``depth.offset_gain`` at the observation's right-image column). With
+``estimate_offset`` the solver adds the offset as one more unknown shared by every
 observation (its right-image residual is ``proj_r - offset * gain - u_r``) under a Gaussian prior
 (``offset_prior_px``) around ``offset_px``; it is observable because a landmark's disparities
 across keyframes at different ranges must follow f·B/Z_k with Z_k tied by the shared motion.
@@ -25,8 +22,7 @@ Each solve records in ``LocalBAStats.offsets`` the offset the data alone say (th
 back out) and that estimate's information (1/px^2). With ``offset_joint`` False the poses are
 solved with the offset held at ``offset_px`` (the same system as without the estimate) and the
 estimate is one Gauss-Newton step of the offset alone, the cameras marginalised, at the end;
-the caller holds it until its running estimate is applied. The ``"gtsam"`` solver applies
-``offset_px`` but does not estimate it (``GenericStereoFactor3D`` has no offset parameter).
+the caller holds it until its running estimate is applied.
 
 The adjuster does no I/O and never raises for bad data: a failed or non-finite solve leaves the
 poses as given and is reported in ``LocalBAStats``.
@@ -38,16 +34,12 @@ import time
 from collections import deque
 from dataclasses import dataclass, field
 
-import gtsam
 import numpy as np
 
 from ..camera import StereoCamera
 from ..geometry import adjoint, log_so3
-from .depth import correct_disparity, offset_gain
+from .depth import offset_gain
 from .stereo_ba import _exp_so3, _inv3
-
-X = gtsam.symbol_shorthand.X
-L = gtsam.symbol_shorthand.L
 
 
 @dataclass
@@ -57,7 +49,7 @@ class _KF:
     ids: np.ndarray  # (N,) int64 landmark ids (>= 0)
     uvd: np.ndarray  # (N,3) float64: u_left, v, disparity
     # The VO chain's step from the previous keyframe: (T_cur_prev, its information 6x6, left
-    # perturbation [rotation, translation]); None = no chain factor (numpy solver only).
+    # perturbation [rotation, translation]); None = no chain factor.
     chain: tuple[np.ndarray, np.ndarray] | None = None
 
 
@@ -103,33 +95,23 @@ class LocalBundleAdjuster:
         huber_px: float = 1.0,
         iterations: int = 5,
         max_landmarks: int = 300,
-        solver: str = "numpy",
         min_landmarks: int = 30,
         max_shift_m: float = 0.25,
         max_turn_deg: float = 1.0,
-        select: str = "longest",
         offset_px: float = 0.0,
-        offset_model: str = "constant",
         estimate_offset: bool = False,
         offset_prior_px: float = 0.5,
     ):
         self.camera = camera
         self.window = max(2, int(window))
-        self.K = gtsam.Cal3_S2Stereo(camera.fx, camera.fy, 0.0, camera.cx, camera.cy, camera.baseline_m)
-        base = gtsam.noiseModel.Isotropic.Sigma(3, sigma_px)
-        self.noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(huber_px / sigma_px), base)
-        self.prior = gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)
         self.iterations = int(iterations)
         self.max_landmarks = int(max_landmarks)
-        self.solver = solver
-        self.select = select
         self.min_landmarks = int(min_landmarks)
         self.max_shift_m, self.max_turn_deg = float(max_shift_m), float(max_turn_deg)
         self.sigma_px, self.huber_px = float(sigma_px), float(huber_px)
         self.kfs: deque[_KF] = deque(maxlen=self.window)
         self.offset_px = float(offset_px)  # disparity offset applied (and the prior's mean)
-        self.offset_model = offset_model  # FrontendConfig.disparity_offset_model
-        self.estimate_offset = bool(estimate_offset) and solver == "numpy"
+        self.estimate_offset = bool(estimate_offset)
         self.offset_prior_px = float(offset_prior_px)
         self.offset_joint = True  # False: hold the offset in the pose solve, only estimate it
         self.stats = LocalBAStats()
@@ -187,58 +169,13 @@ class LocalBundleAdjuster:
         uniq, counts = np.unique(all_ids, return_counts=True)
         shared = uniq[counts >= 2]
         if len(shared) > self.max_landmarks:
-            if self.select == "near":  # the largest disparity in the newest keyframe first (ties by id)
-                last = kfs[-1]
-                dmax = np.zeros(len(shared))
-                pos = np.searchsorted(shared, last.ids)
-                ok = (pos < len(shared)) & (shared[np.minimum(pos, len(shared) - 1)] == last.ids)
-                dmax[pos[ok]] = last.uvd[ok, 2]
-                order = np.lexsort((shared, -dmax))
-            else:  # the longest tracks first (they tie most keyframes), ties by id
-                order = np.lexsort((shared, -counts[counts >= 2]))
+            order = np.lexsort((shared, -counts[counts >= 2]))  # the longest tracks first (they tie most keyframes), ties by id
             shared = np.sort(shared[order[: self.max_landmarks]])
         if len(shared) < self.min_landmarks:
             self.stats.failures.append((kfs[-1].key, f"too few shared landmarks ({len(shared)})"))
             return None
-        if self.solver == "numpy":
-            poses = self._solve_numpy(kfs, shared)
-            if poses is None:
-                return None
-            for k, p in zip(kfs, poses):
-                k.pose = p
-            self.stats.landmarks.append(len(shared))
-            return poses[-1].copy()
-        graph = gtsam.NonlinearFactorGraph()
-        values = gtsam.Values()
-        cam = self.camera
-        seen: set[int] = set()
-        for j, k in enumerate(kfs):
-            pose = gtsam.Pose3(k.pose)
-            values.insert(X(k.key), pose)
-            if j == 0:
-                graph.add(gtsam.PriorFactorPose3(X(k.key), pose, self.prior))
-            m = np.isin(k.ids, shared)
-            ids, uvd = k.ids[m], k.uvd[m]
-            d_true = correct_disparity(uvd[:, 2], uvd[:, 0], self.offset_px, cam, self.offset_model)
-            z = cam.fx * cam.baseline_m / np.maximum(d_true, 1e-3)
-            pw = (
-                (np.c_[(uvd[:, 0] - cam.cx) / cam.fx * z, (uvd[:, 1] - cam.cy) / cam.fy * z, z]) @ k.pose[:3, :3].T
-                + k.pose[:3, 3]
-            )
-            for i in range(len(ids)):
-                lid = int(ids[i])
-                u, v = uvd[i, :2]
-                d = d_true[i]
-                graph.add(gtsam.GenericStereoFactor3D(gtsam.StereoPoint2(u, u - d, v), self.noise, X(k.key), L(lid), self.K))
-                if lid not in seen:
-                    seen.add(lid)
-                    values.insert(L(lid), gtsam.Point3(pw[i]))
-        params = gtsam.LevenbergMarquardtParams()
-        params.setMaxIterations(self.iterations)
-        result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
-        poses = [result.atPose3(X(k.key)).matrix() for k in kfs]
-        if not all(np.all(np.isfinite(p)) for p in poses):
-            self.stats.failures.append((kfs[-1].key, "non-finite local BA pose"))
+        poses = self._solve_numpy(kfs, shared)
+        if poses is None:
             return None
         for k, p in zip(kfs, poses):
             k.pose = p
@@ -246,8 +183,8 @@ class LocalBundleAdjuster:
         return poses[-1].copy()
 
     def _solve_numpy(self, kfs: list[_KF], shared: np.ndarray) -> list[np.ndarray] | None:
-        """The same problem by vectorised Gauss-Newton: per-landmark 3x3 blocks eliminated by a
-        Schur complement, the reduced (6W x 6W) camera system solved densely (oldest pose fixed)."""
+        """Vectorised Gauss-Newton: per-landmark 3x3 blocks eliminated by a Schur complement, the
+        reduced (6W x 6W) camera system solved densely (oldest pose fixed)."""
         cam = self.camera
         fx, fy, cx, cy, B = cam.fx, cam.fy, cam.cx, cam.cy, cam.baseline_m
         W, Lm = len(kfs), len(shared)
@@ -267,7 +204,7 @@ class LocalBundleAdjuster:
         off0 = self.offset_px
         est = self.estimate_offset
         off = off0
-        gain = offset_gain(z[:, 0], z[:, 0] - z[:, 2], cam, self.offset_model) * np.ones(len(z))  # at each u_r
+        gain = offset_gain(z[:, 0], z[:, 0] - z[:, 2], cam) * np.ones(len(z))  # at each u_r
         zz = fx * B / np.maximum(z[fo, 0] - z[fo, 2] - off0 * gain[fo], 1e-3)
         pc = np.c_[(z[fo, 0] - cx) / fx * zz, (z[fo, 1] - cy) / fy * zz, zz]
         jf = oj[fo]

@@ -1,7 +1,7 @@
-"""Loop-verification features independent of the tracker (issue 12).
+"""Loop-verification features independent of the tracker.
 
-The tracker's own per-frame features (KLT corners with single-scale ORB descriptors) are not
-repeatable when a place is revisited metres apart (README, issue 12). ``LoopFeatureBank`` keeps,
+The tracker's own per-frame features (KLT corners) are not repeatable when a place is revisited
+metres apart. ``LoopFeatureBank`` keeps,
 for every ``loop_reference_every``-th frame, multi-scale keypoints with descriptors and stereo
 3D points (``FrameFeatures``: no images), and computes the current frame's keypoints only when
 a loop candidate is to be verified (:meth:`LoopFeatureBank.query`, once per frame).
@@ -11,14 +11,12 @@ RANSAC (the odometry's estimator), keeps the pose only if enough inliers *also* 
 with the current frame's own stereo (a place that merely looks alike, e.g. a repeated facade
 module at another distance, fails that), and returns the pose with its covariance from the
 inliers' reprojection Jacobian, so the graph weighs a loop by what verification measured.
-ORB keypoints are refined to sub-pixel at full resolution (``loop_subpixel_px``);
-:func:`verify_nearby` can fuse the verifications of neighbouring references.
+ORB keypoints are refined to sub-pixel at full resolution (``loop_subpixel_px``).
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -27,11 +25,11 @@ import numpy as np
 
 from ..camera import StereoCamera
 from ..config import FrontendConfig
-from ..geometry import log_so3
+from ..geometry import inv, rotation_angle_deg
 from ..types import FrameFeatures, StereoFrame
 from .depth import correct_disparity, sparse_disparity
-from .stereo_ba import stereo_two_view_ba
-from .verify import match_and_pnp, plausible
+from .features import match_descriptors
+from .odometry import pnp_ransac
 
 
 @dataclass
@@ -113,7 +111,7 @@ def stereo_points(
     disparities corrected by the front end's disparity offset ``offset_px`` (measured - true)."""
     if len(uv) == 0:
         return np.zeros(0, np.int64), np.zeros((0, 3), np.float32)
-    disp = correct_disparity(sparse_disparity(left, right, uv, cfg), uv[:, 0], offset_px, camera, cfg.disparity_offset_model)
+    disp = correct_disparity(sparse_disparity(left, right, uv, cfg), uv[:, 0], offset_px, camera)
     fb = camera.fx * camera.baseline_m
     with np.errstate(divide="ignore"):
         z = np.where(disp > 0, fb / np.maximum(disp, 1e-9), 0.0)
@@ -160,20 +158,37 @@ def pose_covariance(
     return cov, float(np.sqrt(s2))
 
 
-def _refine_stereo_ba(
-    T_cur_ref: np.ndarray, pts: np.ndarray, uv: np.ndarray, d_cur: np.ndarray, camera: StereoCamera, cfg: FrontendConfig
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The two-view stereo BA from the PnP pose over the depth-checked inliers: (T_cur_ref, the
-    BA's inlier points and pixels). The reference's pixels and disparities are recovered from its
-    3D points (they were back-projected from them); the BA's seed and points are kept when it
-    fails or keeps fewer than ``min_inliers``."""
-    z = np.maximum(pts[:, 2].astype(np.float64), 1e-6)
-    ref_uv = np.c_[camera.fx * pts[:, 0] / z + camera.cx, camera.fy * pts[:, 1] / z + camera.cy]
-    ref_disp = camera.fx * camera.baseline_m / z
-    r = stereo_two_view_ba(T_cur_ref, ref_uv, ref_disp, uv, d_cur, camera)
-    if not r.ok or int(r.inliers.sum()) < cfg.min_inliers:
-        return T_cur_ref, pts, uv
-    return r.T_cur_ref, pts[r.inliers], uv[r.inliers]
+def match_and_pnp(
+    ref: FrameFeatures | None, cur: FrameFeatures | None, camera: StereoCamera, cfg: FrontendConfig, ratio: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """Ratio-test matches of ``ref``'s descriptors to ``cur``'s, then PnP RANSAC of ``ref``'s 3D
+    points on ``cur``'s pixels: (T_cur_ref, ref indices, cur indices, inlier positions among the
+    matches), or None when the descriptor kinds differ or fewer than ``min_inliers`` survive."""
+    if ref is None or cur is None or len(ref.desc) < cfg.min_inliers or len(cur.desc) < 2:
+        return None
+    if ref.desc.dtype != cur.desc.dtype or ref.desc.shape[1] != cur.desc.shape[1]:
+        return None
+    ia, ib = match_descriptors(ref.desc, cur.desc, ratio)
+    if len(ia) < cfg.min_inliers:
+        return None
+    res = pnp_ransac(ref.pts3d[ia], cur.uv[ib], camera, cfg)
+    if res is None:
+        return None
+    T_cur_ref, inliers = res
+    if len(inliers) < cfg.min_inliers or not np.all(np.isfinite(T_cur_ref)):
+        return None
+    return T_cur_ref, ia, ib, inliers
+
+
+def plausible(T_cur_ref: np.ndarray, cfg: FrontendConfig) -> np.ndarray | None:
+    """T_ref_cur, or None when more than ``verify_max_translation_m`` apart or rotated by more
+    than ``verify_max_rotation_deg``: a wrong loop is worse than a missed one."""
+    T_ref_cur = inv(T_cur_ref)
+    if np.linalg.norm(T_ref_cur[:3, 3]) > cfg.verify_max_translation_m:
+        return None
+    if rotation_angle_deg(T_ref_cur[:3, :3]) > cfg.verify_max_rotation_deg:
+        return None
+    return T_ref_cur
 
 
 def verify_features(
@@ -189,8 +204,8 @@ def verify_features(
     Ratio-test matches, PnP RANSAC (``pnp_ransac``), then, with ``cur_frame`` and
     ``loop_depth_check_px`` > 0, the inliers' stereo disparity in the current frame must agree
     with their predicted one within that many pixels; at least ``min_inliers`` must pass both
-    and at least ``loop_depth_min_ratio`` of the inliers that have a current disparity. Plausibility
-    as :func:`verify.verify_loop`. None if anything fails.
+    and at least ``loop_depth_min_ratio`` of the inliers that have a current disparity. The pose
+    must be :func:`plausible`. None if anything fails.
     """
     found = match_and_pnp(ref, cur, camera, cfg, cfg.loop_ratio_test)
     if found is None:
@@ -201,12 +216,12 @@ def verify_features(
         Xc = pts.astype(np.float64) @ T_cur_ref[:3, :3].T + T_cur_ref[:3, 3]
         d_pred = camera.fx * camera.baseline_m / np.maximum(Xc[:, 2], 1e-6)
         d_raw = sparse_disparity(cur_frame.left, cur_frame.right, uv, cfg)
-        d_meas = correct_disparity(d_raw, uv[:, 0], offset_px, camera, cfg.disparity_offset_model)
+        d_meas = correct_disparity(d_raw, uv[:, 0], offset_px, camera)
         has = d_meas > 0
         agree = has & (np.abs(d_meas - d_pred) <= cfg.loop_depth_check_px)
         if int(agree.sum()) < cfg.min_inliers or agree.sum() < cfg.loop_depth_min_ratio * max(int(has.sum()), 1):
             return None
-        pts, uv, d_cur = pts[agree], uv[agree], d_meas[agree]
+        pts, uv = pts[agree], uv[agree]
         # Re-estimate on the points that passed both tests (LM from the RANSAC pose).
         rvec = cv2.Rodrigues(T_cur_ref[:3, :3])[0]
         rvec, tvec = cv2.solvePnPRefineLM(
@@ -217,8 +232,6 @@ def verify_features(
         T[:3, 3] = tvec.reshape(3)
         if np.all(np.isfinite(T)):
             T_cur_ref = T
-        if cfg.loop_pose_refine == "stereo_ba":
-            T_cur_ref, pts, uv = _refine_stereo_ba(T_cur_ref, pts, uv, d_cur, camera, cfg)
     T_ref_cur = plausible(T_cur_ref, cfg)
     if T_ref_cur is None:
         return None
@@ -226,69 +239,6 @@ def verify_features(
     if not np.all(np.isfinite(cov)):
         return None
     return LoopMatch(T_ref_cur, int(len(pts)), cov, rms)
-
-
-def fuse_loop_matches(matches: list[LoopMatch], huber: float = 3.0, iterations: int = 3) -> LoopMatch:
-    """One relative pose from several measurements of it (each ``T_ref_cur`` in the same
-    reference frame, covariance on the right): the information-weighted mean in the tangent space
-    of the first, Huber-weighted on each one's Mahalanobis distance from the mean (a measurement
-    that disagrees counts less). The covariance is the fused information's inverse; inliers are
-    the first measurement's."""
-    m0 = matches[0]
-    if len(matches) == 1:
-        return m0
-    R0, t0 = m0.T_ref_cur[:3, :3], m0.T_ref_cur[:3, 3]
-    xi = np.array([np.r_[log_so3(R0.T @ m.T_ref_cur[:3, :3]), R0.T @ (m.T_ref_cur[:3, 3] - t0)] for m in matches])
-    info = np.array([np.linalg.inv(m.cov) for m in matches])
-    w = np.ones(len(matches))
-    mean = np.zeros(6)
-    H = info[0]
-    for _ in range(iterations):
-        H = np.einsum("i,ijk->jk", w, info)
-        mean = np.linalg.solve(H, np.einsum("i,ijk,ik->j", w, info, xi))
-        r = xi - mean
-        d = np.sqrt(np.maximum(np.einsum("ij,ijk,ik->i", r, info, r), 0.0))
-        w = np.where(d <= huber, 1.0, huber / np.maximum(d, 1e-12))
-    T = np.eye(4)
-    T[:3, :3] = R0 @ cv2.Rodrigues(mean[:3].reshape(3, 1))[0]
-    T[:3, 3] = t0 + R0 @ mean[3:]
-    cov = np.linalg.inv(H)
-    return LoopMatch(T, m0.inliers, 0.5 * (cov + cov.T), m0.rms_px)
-
-
-def verify_nearby(
-    bank: LoopFeatureBank,
-    k_feat: int,
-    k_max: int,
-    transport: Callable[[int], np.ndarray],
-    cur: FrameFeatures,
-    cur_frame: StereoFrame | None,
-    camera: StereoCamera,
-    cfg: FrontendConfig,
-    offset_px: float = 0.0,
-) -> LoopMatch | None:
-    """Verify against the stored reference ``k_feat`` and, with ``loop_verify_neighbours`` n > 0,
-    against the stored references up to n steps either side of it (positions <= ``k_max``),
-    each carried into ``k_feat``'s frame by ``transport(k)`` (T_feat_k, e.g. from the VO poses);
-    the measurements that verify are fused (:func:`fuse_loop_matches`). None unless ``k_feat``
-    itself verifies."""
-    m0 = verify_features(bank.reference(k_feat), cur, cur_frame, camera, cfg, offset_px)
-    if m0 is None or cfg.loop_verify_neighbours <= 0:
-        return m0
-    found = [m0]
-    e = cfg.loop_reference_every
-    for i in range(1, cfg.loop_verify_neighbours + 1):
-        for kn in (k_feat - i * e, k_feat + i * e):
-            if kn < 0 or kn > k_max:
-                continue
-            ref = bank.reference(kn)
-            m = None if ref is None else verify_features(ref, cur, cur_frame, camera, cfg, offset_px)
-            if m is not None:
-                found.append(LoopMatch(transport(kn) @ m.T_ref_cur, m.inliers, m.cov, m.rms_px))
-    try:
-        return fuse_loop_matches(found)
-    except np.linalg.LinAlgError:  # a singular covariance: the nearest reference's measurement
-        return m0
 
 
 class LoopFeatureBank:

@@ -31,10 +31,6 @@ plus newly detected points with depth are fewer than ``klt_weak_points`` and mos
 corners are out of range (beyond ``max_depth_m``), corners are detected once more at
 ``klt_weak_quality``.
 
-KLT tracks from the last frame (``klt_reference = "frame"``) or from the last keyframe
-("keyframe": a frame becomes the reference only when the tracks thin out or after
-``kf_max_gap`` frames, so one step's tracking error is not chained into every frame).
-
 Disparity offset. Every disparity the front end uses (depth for PnP and the next reference,
 the stereo BA, the local BA, loop verification) is corrected as true = measured - offset * gain
 (``depth.offset_gain``: by default a turn of the right camera, whose offset grows toward the
@@ -199,17 +195,9 @@ class _Keyframe:
     sharpness: float
     features: FrameFeatures  # for loop verification
     ids: np.ndarray  # (N,) int64 landmark ids (klt: persistent across frames; -1 where unknown)
-    promote: bool = True  # becomes the reference of the next frame (klt_reference = "keyframe" decides)
     # (N,) bool: depth within max_depth_m (PnP's points); the rest are far points (stereo BA only)
     near: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     right: np.ndarray | None = None  # right image (klt_retry matches ORB keypoints with depth from it)
-    road: tuple | None = None  # (n, d) of its road plane, () when it has none, None until fitted
-
-
-def _timed(fn: Callable, *args: Any) -> tuple[Any, float]:
-    """(fn(*args), its wall time in ms)."""
-    t0 = time.perf_counter()
-    return fn(*args), (time.perf_counter() - t0) * 1000.0
 
 
 class _Flag(Exception):
@@ -255,14 +243,8 @@ class StereoOdometry:
         self._last_ok = False
         self._n = 0  # frames processed
         self._next_id = 0  # next landmark id (klt)
-        self._far_points = self.cfg.mode == "klt" and self.cfg.motion == "stereo_ba" and self.cfg.sba_far_points
-        # (frame index, left image, ids, uv) that tracks are re-tracked from (klt_anchor_gap)
-        self._anchor: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None
         self._sba_cov: np.ndarray | None = None  # the last stereo BA's pose covariance (VOResult.cov)
         self._lba = None
-        self._lba_pool = ThreadPoolExecutor(max_workers=1) if self.cfg.lba_async and self.cfg.threads > 1 else None
-        # lba_async: (the solve, its keyframe, the keyframe's chained pose, offsets before it)
-        self._lba_pending: tuple[Future, _Keyframe, np.ndarray, int] | None = None
         self._lba_last = -(10**9)  # frame index of the last local BA keyframe
         self._lba_last_pos = np.zeros(3)  # and its position
         self._chain_cov: np.ndarray | None = None  # the chain's covariance since that keyframe (T_cur_kf)
@@ -278,10 +260,7 @@ class StereoOdometry:
                 huber_px=self.cfg.sba_huber_px,
                 iterations=self.cfg.lba_iterations,
                 max_landmarks=self.cfg.lba_max_landmarks,
-                solver=self.cfg.lba_solver,
-                select=self.cfg.lba_select,
                 offset_px=self._offset,
-                offset_model=self.cfg.disparity_offset_model,
                 estimate_offset=self.cfg.estimate_disparity_offset,
                 offset_prior_px=self.cfg.disparity_offset_prior_px,
             )
@@ -318,7 +297,7 @@ class StereoOdometry:
     def _true(self, uv: np.ndarray, d: np.ndarray) -> np.ndarray:
         """Measured disparities ``d`` at left points ``uv`` corrected for the offset applied now."""
         u = np.asarray(uv).reshape(-1, 2)[:, 0]
-        return correct_disparity(d, u, self._offset, self.camera, self.cfg.disparity_offset_model)
+        return correct_disparity(d, u, self._offset, self.camera)
 
     def _sparse_depth(self, left: np.ndarray, right: np.ndarray, uv: np.ndarray, guess: np.ndarray | None = None):
         """(depth from the corrected disparity, measured disparity) at ``uv``."""
@@ -342,9 +321,6 @@ class StereoOdometry:
 
     # ---- lifecycle ----
     def close(self) -> None:
-        if self._lba_pool is not None:
-            self._lba_pool.shutdown(wait=True)
-            self._lba_pool = None
         if self._pool is not None:
             self._pool.shutdown(wait=True)
             self._pool = None
@@ -393,9 +369,6 @@ class StereoOdometry:
         except cv2.error as exc:  # OpenCV refusing an odd image: flag, do not crash
             msg = str(exc).strip().splitlines()[-1] if str(exc).strip() else "error"
             flagged = (f"OpenCV error: {msg}", None)
-        bump = None  # lba_async: the covariance the last keyframe's correction adds to this step
-        if self._lba_pending is not None:  # the last keyframe's local BA (lba_async), before any pose
-            bump = self._join_lba(timings)
         if flagged is not None:
             result = self._flagged(frame, prev_pose, flagged[0], flagged[1], timings, gap_last)
         if result is None:
@@ -416,7 +389,7 @@ class StereoOdometry:
                 else:
                     Ad = adjoint(inv(T_ref_cur))
                     self._chain_cov = self._sba_cov + Ad @ self._chain_cov @ Ad.T
-            if self._lba is not None and kf.promote and (first or self._keyframe_due(frame.index, pose)):
+            if self._lba is not None and (first or self._keyframe_due(frame.index, pose)):
                 self._lba_last, self._lba_last_pos = frame.index, pose[:3, 3].copy()
                 t_ba = time.perf_counter()
                 n_off = len(self._lba.stats.offsets)
@@ -427,22 +400,15 @@ class StereoOdometry:
                     chain = (N, chain_information(self._chain_cov * self.cfg.lba_chain_scale, self.cfg.lba_chain))
                 args = (frame.index, pose, kf.ids[kf.near], kf.uv[kf.near], kf.disp[kf.near], chain)
                 self._chain_cov = np.zeros((6, 6))
-                if self._lba_pool is not None:  # joined by the next frame; this one keeps its chained pose
-                    self._lba_pending = (self._lba_pool.submit(_timed, self._lba.add_keyframe, *args), kf, chained, n_off)
-                    self._lba_prev_pose = None
-                else:
-                    pose = self._lba.add_keyframe(*args)
-                    timings["lba"] = (time.perf_counter() - t_ba) * 1000.0
-                    correction = self._lba_done(pose, chained, n_off)
-                    if self._sba_cov is not None:  # this step carries the correction: its size joins the noise
-                        self._sba_cov = self._sba_cov + correction
+                pose = self._lba.add_keyframe(*args)
+                timings["lba"] = (time.perf_counter() - t_ba) * 1000.0
+                correction = self._lba_done(pose, chained, n_off)
+                if self._sba_cov is not None:  # this step carries the correction: its size joins the noise
+                    self._sba_cov = self._sba_cov + correction
             if not first:
                 T_rel = inv(prev_pose) @ pose
             kf.pose = pose
-            if kf.promote:
-                self._ref = kf
-            if self.cfg.klt_anchor_gap > 0 and (self._anchor is None or frame.index - self._anchor[0] >= self.cfg.klt_anchor_gap):
-                self._anchor = (frame.index, frame.left, kf.ids.copy(), kf.uv.copy())
+            self._ref = kf
             self._pose = pose
             if not first:  # measured motion from the reference (not through a flagged frame's guess)
                 self._velocity = inv(ref.pose) @ pose
@@ -452,8 +418,6 @@ class StereoOdometry:
             # The stereo BA measured T_ref_cur: it is T_rel when ref is the previous frame.
             from_prev = not first and ref is not None and ref.index == self._last_index
             cov = self._sba_cov if from_prev else None
-            if cov is not None and bump is not None:  # this step carries the joined keyframe's correction
-                cov = cov + bump
             result = VOResult(
                 index=frame.index,
                 T_rel=T_rel,
@@ -479,19 +443,6 @@ class StereoOdometry:
         c = inv(chained) @ pose
         w = 0.5 * np.array([c[2, 1] - c[1, 2], c[0, 2] - c[2, 0], c[1, 0] - c[0, 1]])  # small angles
         return np.diag(np.r_[w, c[:3, 3]] ** 2)
-
-    def _join_lba(self, timings: dict[str, float]) -> np.ndarray:
-        """Wait for the pending keyframe's local BA (``lba_async``), move the keyframe to its
-        answer; returns the covariance its correction adds to this frame's step."""
-        assert self._lba_pending is not None
-        fut, kf, chained, n_off = self._lba_pending
-        self._lba_pending = None
-        t0 = time.perf_counter()
-        pose, ms = fut.result()
-        timings["lba_wait"] = (time.perf_counter() - t0) * 1000.0
-        timings["lba"] = ms
-        kf.pose = pose
-        return self._lba_done(pose, chained, n_off)
 
     def _flagged(
         self,
@@ -565,12 +516,6 @@ class StereoOdometry:
         """Keep keypoints with valid depth; back-project them (eq. 2); pick the loop features."""
         cfg = self.cfg
         valid = z > 0
-        fb = self.camera.fx * self.camera.baseline_m
-        if self._far_points:  # beyond max_depth_m: kept for the stereo BA (rotation), never for PnP
-            dt = self._true(uv, disp)
-            far = ~valid & (dt >= cfg.far_min_disparity_px) & (dt * cfg.max_depth_m < fb)
-            z = np.where(far, fb / np.maximum(dt, 1e-6), z).astype(np.float32)
-            valid = valid | far
         uv, z, disp = uv[valid], z[valid], disp[valid]
         near = z <= cfg.max_depth_m
         ids = ids[valid] if ids is not None else np.full(len(uv), -1, np.int64)
@@ -587,11 +532,7 @@ class StereoOdometry:
             fdesc = desc[pick]
         else:
             pick = near_idx if m <= cfg.loop_features else near_idx[np.linspace(0, m - 1, cfg.loop_features).astype(np.int64)]
-            if cfg.loop_verify_features == "tracker":
-                keep, fdesc = feat.orb_at(frame.left, uv[pick])
-                pick = pick[keep]
-            else:  # loops verify with their own features (loop_features.py): no descriptors needed here
-                fdesc = np.zeros((len(pick), 32), np.uint8)
+            fdesc = np.zeros((len(pick), 32), np.uint8)  # loops verify with their own features (loop_features.py)
         features = FrameFeatures(np.ascontiguousarray(uv[pick]), np.ascontiguousarray(pts3d[pick]), np.ascontiguousarray(fdesc))
         timings["features"] = timings.get("features", 0.0) + (time.perf_counter() - t0) * 1000.0
         return _Keyframe(
@@ -729,11 +670,8 @@ class StereoOdometry:
         return new_uv, z2, d2
 
     def _estimate_klt(self, frame: StereoFrame, first: bool, sharp: float, timings: dict[str, float]):
-        """KLT from the reference into this frame, PnP (+ stereo BA); the reference is the last
-        frame (``klt_reference = "frame"``) or the last keyframe ("keyframe"). In the keyframe
-        case this frame becomes the next reference only when the tracks thin out
-        (``kf_min_ratio``) or ``kf_max_gap`` frames have passed, so the tracking error of one
-        step is not chained into every frame's motion."""
+        """KLT from the reference (the last frame whose motion was estimated) into this frame,
+        PnP (+ stereo BA)."""
         cfg = self.cfg
         ref = self._ref
         if first or ref is None:
@@ -744,34 +682,20 @@ class StereoOdometry:
             elif np.count_nonzero(kf.near) < cfg.min_stereo_points:
                 raise _Flag("too few keypoints with stereo depth")
             return kf, np.eye(4), 0, 0
-        anchored = cfg.klt_reference == "keyframe"
         gap = max(1, frame.index - ref.index)
         t0 = time.perf_counter()
-        pred = self._prediction(gap) if not anchored else self._prediction_from(ref, frame.index)
+        pred = self._prediction(gap)
         guess = None
         dguess = ref.disp
         if pred is not None:
             guess, zp = project(pred, ref.pts3d, self.camera)
             guess = np.where((zp > 0)[:, None], guess, ref.uv)
-            if anchored or cfg.stereo_guess_levels < cfg.stereo_levels:  # predict the disparity too
+            if cfg.stereo_guess_levels < cfg.stereo_levels:  # predict the disparity too
                 dp = self.camera.fx * self.camera.baseline_m / np.maximum(zp, 1e-6)
-                gain = offset_gain(guess[:, 0], dp, self.camera, cfg.disparity_offset_model)
+                gain = offset_gain(guess[:, 0], dp, self.camera)
                 dguess = np.where(zp > 0, dp + self._offset * gain, ref.disp)
-        road = self._road(ref, pred) if cfg.klt_road_prewarp and pred is not None and not anchored else None
-        if road is None:
-            uv_cur, ok = self._split(lambda u, g: feat.track_klt(ref.left, frame.left, u, cfg, g), ref.uv, guess)
-        else:  # road points from the prewarped reference (a thread), the rest plainly
-            sel, H = road
-            rest = np.flatnonzero(~sel)
-            on_road = self._submit(feat.track_klt_prewarped, ref.left, frame.left, ref.uv[sel], H, cfg)
-            uv_cur, ok = np.empty_like(ref.uv), np.zeros(len(ref.uv), bool)
-            uv_cur[rest], ok[rest] = feat.track_klt(
-                ref.left, frame.left, ref.uv[rest], cfg, None if guess is None else guess[rest]
-            )
-            uv_cur[sel], ok[sel] = on_road.result()
+        uv_cur, ok = self._split(lambda u, g: feat.track_klt(ref.left, frame.left, u, cfg, g), ref.uv, guess)
         idx = np.flatnonzero(ok)
-        if cfg.klt_anchor_gap > 0 and not anchored and self._anchor is not None:
-            uv_cur = self._anchor_refine(frame, uv_cur, ref.ids, idx)
         timings["match"] = (time.perf_counter() - t0) * 1000.0
         # Stereo of the tracked points runs beside PnP, re-detection (and its stereo) beside the stereo BA.
         stereo = self._submit(self._stereo_tracked, frame, uv_cur[idx], dguess[idx], timings)
@@ -780,7 +704,7 @@ class StereoOdometry:
         pnp = pnp_ransac(ref.pts3d[idx[near_pos]], uv_cur[idx[near_pos]], self.camera, cfg)
         timings["pnp"] = (time.perf_counter() - t1) * 1000.0
         z, d = stereo.result()
-        detection = self._submit(self._detect_new, frame, uv_cur[idx], z, timings, not anchored)
+        detection = self._submit(self._detect_new, frame, uv_cur[idx], z, timings)
         if pnp is None:
             keep = np.ones(len(idx), bool)
             T_cur_ref, n_inl = None, 0
@@ -806,37 +730,13 @@ class StereoOdometry:
                 keep[near_pos[retry[1][retry[1] < len(near_pos)]]] = True
                 timings["retry_ok"] = 1.0
         new_uv, z2, d2 = detection.result()
-        promote = True
-        if anchored:
-            promote = pnp is None or gap >= cfg.kf_max_gap or n_inl < cfg.kf_min_ratio * len(ref.uv)
-            if promote and int(np.count_nonzero(keep & (z > 0))) < cfg.klt_min_tracks:
-                t2 = time.perf_counter()
-                tracked = uv_cur[idx][keep & (z > 0)]
-                new_uv = feat.detect_corners(frame.left, cfg.klt_features - len(tracked), cfg, avoid=tracked)
-                t3 = time.perf_counter()
-                z2, d2 = self._sparse_depth(frame.left, frame.right, new_uv)
-                timings["features"] = timings.get("features", 0.0) + (t3 - t2) * 1000.0
-                timings["depth"] = timings.get("depth", 0.0) + (time.perf_counter() - t3) * 1000.0
         uv_next = np.concatenate([uv_cur[idx][keep], new_uv])
         z_next = np.concatenate([z[keep], z2])
         d_next = np.concatenate([d[keep], d2])
         ids_next = np.concatenate([ref.ids[idx][keep], self._new_ids(len(new_uv))])
         kf = self._make_keyframe(frame, uv_next, z_next, d_next, None, sharp, timings, ids=ids_next)
-        kf.promote = promote
         T_ref_cur = self._conclude(kf, T_cur_ref, n_inl, gap, f"PnP failed ({len(idx)} tracks)")
         return kf, T_ref_cur, n_inl, len(idx)
-
-    def _road(self, ref: _Keyframe, pred: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        """(mask of ``ref``'s points on its road plane, the plane's homography into the frame
-        predicted by ``pred`` = T_cur_ref), or None without a plane (``klt_road_prewarp``)."""
-        below = ref.near & (ref.uv[:, 1] > self.camera.cy) & (ref.pts3d[:, 2] <= self.cfg.klt_road_max_depth_m)
-        if ref.road is None:
-            ref.road = feat.road_plane(ref.pts3d[below], self.cfg) or ()
-        if not ref.road:
-            return None
-        n, d = ref.road
-        sel = below & (np.abs(ref.pts3d @ n - d) < self.cfg.klt_road_tol_m)
-        return sel, feat.plane_homography(self.camera.K, pred, n, d)
 
     def _orb_retry(self, ref: _Keyframe, frame: StereoFrame, klt: tuple, timings: dict[str, float]):
         """Motion from ``klt_retry_features`` ORB keypoints detected afresh in the reference and
@@ -874,55 +774,11 @@ class StereoOdometry:
         timings["retry"] = (time.perf_counter() - t0) * 1000.0
         return res
 
-    def _anchor_refine(self, frame: StereoFrame, uv_cur: np.ndarray, ids: np.ndarray, idx: np.ndarray) -> np.ndarray:
-        """Re-track the points the anchor frame also has directly from the anchor image, starting
-        at their frame-to-frame position (one pyramid level): the position then carries one LK
-        error from the anchor instead of the sum of every step's since. A re-track that
-        fails or lands more than ``klt_anchor_max_px`` away keeps the frame-to-frame position."""
-        assert self._anchor is not None
-        _, a_left, a_ids, a_uv = self._anchor
-        order = np.argsort(a_ids)
-        tid = ids[idx]
-        pos = np.searchsorted(a_ids[order], tid)
-        pos = np.minimum(pos, len(order) - 1)
-        found = (len(order) > 0) & (a_ids[order][pos] == tid) & (tid >= 0) if len(order) else np.zeros(len(idx), bool)
-        if not np.any(found):
-            return uv_cur
-        sel = idx[found]
-        src = a_uv[order][pos[found]]
-        cfg = self.cfg
-        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
-        p1, st, _ = cv2.calcOpticalFlowPyrLK(
-            a_left,
-            frame.left,
-            np.ascontiguousarray(src, np.float32).reshape(-1, 1, 2),
-            np.ascontiguousarray(uv_cur[sel], np.float32).reshape(-1, 1, 2).copy(),
-            winSize=(cfg.klt_window_px, cfg.klt_window_px),
-            maxLevel=1,
-            criteria=crit,
-            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
-        )
-        p1 = p1.reshape(-1, 2)
-        good = (
-            (st.reshape(-1) == 1)
-            & np.all(np.isfinite(p1), 1)
-            & (np.linalg.norm(p1 - uv_cur[sel], axis=1) <= cfg.klt_anchor_max_px)
-        )
-        out = uv_cur.copy()
-        out[sel[good]] = p1[good]
-        return out
-
     def _new_ids(self, n: int) -> np.ndarray:
         """Fresh landmark ids for ``n`` newly detected points."""
         ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
         self._next_id += n
         return ids
-
-    def _prediction_from(self, ref: _Keyframe, index: int) -> np.ndarray | None:
-        """T_cur_ref predicted by constant velocity from the last frame, for any reference."""
-        if not self._last_ok:
-            return None
-        return inv(self._pose @ self._scaled_velocity(max(1, index - self._last_index))) @ ref.pose
 
     # -- sift / orb --
     def _detect(self, img: np.ndarray):
