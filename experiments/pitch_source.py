@@ -21,6 +21,7 @@ With ``--kernel HUBER OUTLIER`` every solve uses that robust kernel; ``--noise``
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -54,6 +55,7 @@ def main() -> None:
     seq = SyntheticSequence(poses, width=1241, height=376, seed=0, times=times, noise_std=args.noise)
     cam, cfg = seq.camera, Config().frontend
     huber, outlier = args.kernel if args.kernel else (cfg.sba_huber_px, cfg.sba_outlier_px)
+    ba_cfg = dataclasses.replace(cfg, sba_huber_px=huber, sba_outlier_px=outlier)
     fb = cam.fx * cam.baseline_m
     out: dict[str, list[np.ndarray]] = {}
     for i in range(1, len(seq) - 1, args.every):
@@ -95,17 +97,7 @@ def main() -> None:
         }
         for name, (c, d0, d1, use) in inputs.items():
             s = use & (d1 > 0)
-            r = stereo_two_view_ba(
-                T,
-                uv[s],
-                d0[s],
-                c[s],
-                d1[s],
-                cam,
-                huber_px=huber,
-                outlier_px=outlier,
-                iterations=cfg.sba_iterations,
-            )
+            r = stereo_two_view_ba(T, uv[s], d0[s], c[s], d1[s], cam, ba_cfg)
             E = np.linalg.solve(T, r.T_cur_ref)
             step = (np.linalg.norm(r.T_cur_ref[:3, 3]) / np.linalg.norm(T[:3, 3]) - 1) * 100
             out.setdefault(name, []).append(np.r_[np.degrees(log_so3(E[:3, :3])) * 1e3, E[1, 3] * 1e3, step])

@@ -22,7 +22,7 @@ def _window_offsets(offset_px: float, seed: int = 3, estimate: bool = True, join
     0.3 px in disparity); returns the BA's stats and the refined poses."""
     rng = np.random.default_rng(seed)
     X = np.c_[rng.uniform(-20, 20, 1500), rng.uniform(-3, 2, 1500), rng.uniform(4, 60, 1500)]
-    lba = LocalBundleAdjuster(CAM, window=6, iterations=8, estimate_offset=estimate)
+    lba = LocalBundleAdjuster(CAM, FrontendConfig(lba_iterations=8, sba_huber_px=1.0, estimate_disparity_offset=estimate))
     lba.offset_joint = joint
     poses, gts = [], []
     for k in range(12):

@@ -41,7 +41,15 @@ def test_stereo_ba_covariance_is_the_inverse_schur_complement_of_numeric_jacobia
     ref_uv, cur = meas[: 3 * n].reshape(n, 3), meas[3 * n :].reshape(n, 3)
     seed = T.copy()
     seed[:3, 3] += [0.02, 0.01, -0.03]
-    r = stereo_two_view_ba(seed, ref_uv[:, :2], ref_uv[:, 0] - ref_uv[:, 2], cur[:, :2], cur[:, 0] - cur[:, 2], CAM)
+    r = stereo_two_view_ba(
+        seed,
+        ref_uv[:, :2],
+        ref_uv[:, 0] - ref_uv[:, 2],
+        cur[:, :2],
+        cur[:, 0] - cur[:, 2],
+        CAM,
+        FrontendConfig(sba_huber_px=1.0, sba_outlier_px=2.0, sba_iterations=6),
+    )
     assert r.ok and r.inliers.all()
     np.testing.assert_allclose(r.T_cur_ref, T, atol=1e-9)
 

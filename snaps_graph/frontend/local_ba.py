@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..camera import StereoCamera
+from ..config import FrontendConfig
 from ..geometry import adjoint, log_so3
 from .depth import offset_gain
 from .stereo_ba import _exp_so3, _inv3
@@ -87,32 +88,22 @@ def _add_chain_factor(
 class LocalBundleAdjuster:
     """Windowed stereo BA; ``add_keyframe`` returns the refined pose of the keyframe just added."""
 
-    def __init__(
-        self,
-        camera: StereoCamera,
-        window: int = 6,
-        sigma_px: float = 0.5,
-        huber_px: float = 1.0,
-        iterations: int = 5,
-        max_landmarks: int = 300,
-        min_landmarks: int = 30,
-        max_shift_m: float = 0.25,
-        max_turn_deg: float = 1.0,
-        offset_px: float = 0.0,
-        estimate_offset: bool = False,
-        offset_prior_px: float = 0.5,
-    ):
+    sigma_px = 0.5  # pixel noise of a stereo coordinate (the kernel is in pixels, so only its ratio matters)
+    min_landmarks = 30  # fewer shared landmarks: no solve
+    max_shift_m, max_turn_deg = 0.25, 1.0  # a solve moving the new keyframe more is discarded
+
+    def __init__(self, camera: StereoCamera, cfg: FrontendConfig):
+        """The window, kernel, iterations, landmark cap and offset estimate of ``cfg``
+        (``lba_*``, ``sba_huber_px``, ``disparity_offset_*``)."""
         self.camera = camera
-        self.window = max(2, int(window))
-        self.iterations = int(iterations)
-        self.max_landmarks = int(max_landmarks)
-        self.min_landmarks = int(min_landmarks)
-        self.max_shift_m, self.max_turn_deg = float(max_shift_m), float(max_turn_deg)
-        self.sigma_px, self.huber_px = float(sigma_px), float(huber_px)
+        self.window = cfg.lba_window
+        self.iterations = cfg.lba_iterations
+        self.max_landmarks = cfg.lba_max_landmarks
+        self.huber_px = cfg.sba_huber_px
         self.kfs: deque[_KF] = deque(maxlen=self.window)
-        self.offset_px = float(offset_px)  # disparity offset applied (and the prior's mean)
-        self.estimate_offset = bool(estimate_offset)
-        self.offset_prior_px = float(offset_prior_px)
+        self.offset_px = float(cfg.disparity_offset_px)  # disparity offset applied (and the prior's mean)
+        self.estimate_offset = cfg.estimate_disparity_offset
+        self.offset_prior_px = cfg.disparity_offset_prior_px
         self.offset_joint = True  # False: hold the offset in the pose solve, only estimate it
         self.stats = LocalBAStats()
 

@@ -254,16 +254,7 @@ class StereoOdometry:
         if self.cfg.local_ba and self.cfg.mode == "klt":  # needs persistent tracks (landmark ids)
             from .local_ba import LocalBundleAdjuster
 
-            self._lba = LocalBundleAdjuster(
-                camera,
-                self.cfg.lba_window,
-                huber_px=self.cfg.sba_huber_px,
-                iterations=self.cfg.lba_iterations,
-                max_landmarks=self.cfg.lba_max_landmarks,
-                offset_px=self._offset,
-                estimate_offset=self.cfg.estimate_disparity_offset,
-                offset_prior_px=self.cfg.disparity_offset_prior_px,
-            )
+            self._lba = LocalBundleAdjuster(camera, self.cfg)
             self._lba.offset_joint = False  # held until the running estimate is applied
 
     @property
@@ -580,10 +571,7 @@ class StereoOdometry:
             cur_uv[inl],
             self._true(cur_uv[inl], cur_disp[inl]),
             self.camera,
-            huber_px=cfg.sba_huber_px,
-            outlier_px=cfg.sba_outlier_px,
-            keep_px=cfg.sba_keep_px,
-            iterations=cfg.sba_iterations,
+            cfg,
         )
         timings["sba"] = (time.perf_counter() - t0) * 1000.0
         if not r.ok:

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..camera import StereoCamera
+from ..config import FrontendConfig
 
 
 @dataclass
@@ -77,24 +78,22 @@ def stereo_two_view_ba(
     cur_uv: np.ndarray,
     cur_disp: np.ndarray | None,
     camera: StereoCamera,
+    cfg: FrontendConfig,
     *,
     sigma_px: float = 0.5,
-    huber_px: float = 1.0,
-    outlier_px: float = 2.0,
-    iterations: int = 6,
     min_points: int = 8,
-    keep_px: float | None = None,
 ) -> StereoBAResult:
     """Refine T_cur_ref (seed ``T_init``, e.g. PnP) from stereo measurements in both frames.
 
     ``ref_disp`` (N,) reference disparities in pixels (> 0 where known; a point without one is
     not used); ``cur_disp`` (N,) current disparities (<= 0 or NaN: that point's current right
-    image coordinate is missing, its left one still counts). ``keep_px``, when given, also
-    returns as ``kept`` every point within ``keep_px`` in both views at the final pose (a tight
-    ``outlier_px`` for the estimate need not cut the tracks a caller keeps). Never raises for
-    degenerate data:
-    ``ok=False`` with the seed, a reason and an infinite covariance.
+    image coordinate is missing, its left one still counts). The kernel is ``cfg.sba_huber_px``,
+    the outlier cut ``cfg.sba_outlier_px``, ``cfg.sba_iterations`` Gauss-Newton steps per round;
+    ``kept`` holds every point within ``cfg.sba_keep_px`` in both views at the final pose (a
+    tight outlier cut for the estimate need not cut the tracks a caller keeps). Never raises for
+    degenerate data: ``ok=False`` with the seed, a reason and an infinite covariance.
     """
+    huber_px, outlier_px, iterations, keep_px = cfg.sba_huber_px, cfg.sba_outlier_px, cfg.sba_iterations, cfg.sba_keep_px
     T_init = np.asarray(T_init, np.float64)
     n = len(ref_uv)
     bad_cov = np.full((6, 6), np.inf)
@@ -220,10 +219,8 @@ def stereo_two_view_ba(
     T[:3, :3] = U @ Vt
     inl = np.zeros(n, bool)
     inl[idx[active]] = True
-    kept = inl
-    if keep_px is not None:
-        kept = np.zeros(n, bool)
-        kept[idx[front & (norm3(rr) <= keep_px) & (norm3(rc) <= keep_px)]] = True
+    kept = np.zeros(n, bool)
+    kept[idx[front & (norm3(rr) <= keep_px) & (norm3(rc) <= keep_px)]] = True
     ncoord = 2 * active.sum() + has_r[active].sum() + 3 * active.sum()
     rmse = float(np.sqrt((np.sum(rr[:, active] ** 2) + np.sum(rc[:, active] ** 2)) / max(ncoord, 1)))
     if S is None or not np.all(np.isfinite(S)):
