@@ -33,7 +33,7 @@ from snaps_graph.backend import pose_graph  # noqa: E402
 from snaps_graph.config import Config  # noqa: E402
 from snaps_graph.datasets import kitti  # noqa: E402
 from snaps_graph.datasets.open import open_dataset  # noqa: E402
-from snaps_graph.frontend import depth, features, local_ba, odometry  # noqa: E402
+from snaps_graph.frontend import depth, features, local_ba, odometry, tracking  # noqa: E402
 from snaps_graph.loop import snaps as snaps_mod  # noqa: E402
 from snaps_graph.pipeline import SlamPipeline  # noqa: E402
 
@@ -69,12 +69,11 @@ def main() -> None:
     _wrap(kitti, "read_grey", "read (2 images)")
     _wrap(features, "track_klt", "KLT tracking")  # both halves of a split call, each in its thread
     _wrap(depth, "sparse_depth", "sparse stereo, all calls")  # inside the two stereo stages below, both halves
-    _wrap(odometry, "pnp_ransac", "PnP RANSAC")
-    _wrap(SO, "_stereo_klt", "stereo + re-detection")  # before the split (main at 351a433)
-    _wrap(SO, "_stereo_tracked", "stereo of tracked points")
-    _wrap(SO, "_detect_new", "re-detection + its stereo")
-    _wrap(SO, "_refine_motion", "stereo BA")
-    _wrap(SO, "_make_keyframe", "keyframe bookkeeping")
+    _wrap(tracking, "pnp_ransac", "PnP RANSAC")
+    _wrap(tracking.KltTracker, "_stereo_tracked", "stereo of tracked points")
+    _wrap(tracking.KltTracker, "_detect_new", "re-detection + its stereo")
+    _wrap(tracking, "refine_motion", "stereo BA")
+    _wrap(tracking, "make_keyframe", "keyframe bookkeeping")
     _wrap(local_ba.LocalBundleAdjuster, "add_keyframe", "local BA")
     _wrap(snaps_mod.SnapsLoopCloser, "step", "SNAPS (+ thumbnail)")
     _wrap(pose_graph.PoseGraph, "add_frame", "graph add_frame")

@@ -106,6 +106,8 @@ def vo_cache(seq: KittiSequence, cfg: Config) -> VOCache:
 class CachedOdometry:
     """A front end that returns stored results (the pipeline's pluggable front-end interface)."""
 
+    disparity_offset_px = 0.0  # the cached results carry their own (VOResult.disparity_offset_px)
+
     def __init__(self, cache: VOCache):
         self.cache = cache
 

@@ -36,7 +36,7 @@ from .frontend.odometry import StereoOdometry
 from .loop.snaps import SnapsLoopCloser
 from .loop.uiqi import make_thumbnail
 from .mapping.tsdf import FusedMap
-from .types import FrameRecord, LoopEvent, StereoFrame, VOResult
+from .types import FrameRecord, FrontEnd, LoopEvent, StereoFrame, VOResult
 
 
 @dataclass
@@ -78,12 +78,11 @@ class SlamPipeline:
         loops: str | None = None,
         refine: str | None = None,
         build_map: bool | None = None,
-        frontend=None,
+        frontend: FrontEnd | None = None,
         loop_features: LoopFeatureBank | None = None,
     ):
         """``cfg`` is copied, never changed; ``loops``/``refine``/``build_map`` override it in the
-        copy (``self.cfg``, what ran). ``frontend``: any object with ``process(frame) -> VOResult``
-        and ``close()`` (the paper: "it is possible to substitute the visual odometry part with
+        copy (``self.cfg``, what ran). ``frontend``: any ``FrontEnd`` (the paper: "it is possible to substitute the visual odometry part with
         any desired model"); default: ``StereoOdometry`` configured by ``cfg.frontend``.
         ``loop_features``: the loop-verification feature store (default: a new
         ``LoopFeatureBank`` when SNAPS runs)."""
@@ -92,7 +91,7 @@ class SlamPipeline:
         self.refine = self.cfg.graph.refine
 
         self.camera = camera
-        self.vo = frontend if frontend is not None else StereoOdometry(camera, self.cfg.frontend)
+        self.vo: FrontEnd = frontend if frontend is not None else StereoOdometry(camera, self.cfg.frontend)
         self.snaps = SnapsLoopCloser(self.cfg.loop) if self.loops_mode == "snaps" else None
         self.graph = PoseGraph(self.cfg.graph, mode="isam2" if self.refine == "both" else self.refine)
         self.map = FusedMap(camera, self.cfg.map) if self.cfg.map.enabled else None
@@ -169,7 +168,7 @@ class SlamPipeline:
         candidates = 0
         t_loop_ms = t_verify_ms = 0.0
         if self.loop_features is not None:
-            self.loop_features.add(k, frame, float(getattr(vo, "disparity_offset_px", 0.0)))
+            self.loop_features.add(k, frame, vo.disparity_offset_px)
         if self.snaps is not None:
             self._loop_cov.clear()
             step = self.snaps.step(frame.index, vo.T_rel, frame.left, verify=lambda ref: self._verify(ref, vo, frame, k))
@@ -237,8 +236,9 @@ class SlamPipeline:
                 return None
             try:
                 cur = self.loop_features.query(k, frame)
-                offset = float(getattr(vo, "disparity_offset_px", 0.0))
-                m = verify_features(self.loop_features.reference(k_feat), cur, frame, self.camera, self.cfg.frontend, offset)
+                m = verify_features(
+                    self.loop_features.reference(k_feat), cur, frame, self.camera, self.cfg.frontend, vo.disparity_offset_px
+                )
             except Exception as exc:  # best effort: an unverifiable candidate is not a loop
                 self.graph.failures.append((k, f"loop verification raised {type(exc).__name__}: {exc}"))
                 return None
@@ -265,8 +265,7 @@ class SlamPipeline:
     def _add_map_keyframe(self, k: int, frame: StereoFrame) -> None:
         assert self.map is not None
         try:
-            offset = float(getattr(self.vo, "disparity_offset_px", 0.0))  # the front end's estimate now
-            depth = map_depth(frame.left, frame.right, self.camera, self.cfg.frontend, self.cfg.map, offset)
+            depth = map_depth(frame.left, frame.right, self.camera, self.cfg.frontend, self.cfg.map, self.vo.disparity_offset_px)
         except Exception as exc:  # a bad frame must not end the run: the keyframe is skipped
             self.graph.failures.append((k, f"map depth failed: {type(exc).__name__}: {exc}"))
             return

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
@@ -52,6 +53,20 @@ class VOResult:
     # 6x6 covariance of T_rel from the stereo BA (rotation rad, translation m: GTSAM's Pose3
     # tangent at T_rel); None when not estimated (flagged, PnP only, not measured from the previous frame)
     cov: np.ndarray | None = None
+
+
+class FrontEnd(Protocol):
+    """What the pipeline needs of a front end: ``StereoOdometry``, or any substitute (the paper:
+    "it is possible to substitute the visual odometry part with any desired model")."""
+
+    @property
+    def disparity_offset_px(self) -> float:
+        """The disparity offset (measured - true, px) the front end applies now; 0 without one."""
+        ...
+
+    def process(self, frame: StereoFrame) -> VOResult: ...
+
+    def close(self) -> None: ...
 
 
 @dataclass

@@ -12,6 +12,7 @@ from snaps_graph.config import FrontendConfig
 from snaps_graph.errors import SnapsGraphError
 from snaps_graph.frontend.depth import offset_gain, true_disparity
 from snaps_graph.frontend.local_ba import LocalBundleAdjuster
+from snaps_graph.frontend.offset import DisparityOffsetEstimator
 
 CAM = StereoCamera(fx=718.0, fy=718.0, cx=607.0, cy=185.0, baseline_m=0.54, width=1241, height=376)
 
@@ -152,37 +153,40 @@ def test_an_unobservable_offset_is_never_applied():
     """Solves that carry almost no information about the offset (a MAV hovering, a car standing:
     no depth change along the tracks) leave the configured offset in place, however far their
     mean lies; informative solves are then applied."""
-    from snaps_graph.frontend import StereoOdometry
-
-    with StereoOdometry(CAM, FrontendConfig()) as vo:
-        assert vo._lba is not None
-        vo._lba.stats.offsets = [(25.0, 1e-4)] * 30  # sd 100 px each, mean far beyond the clamp
-        vo._update_offset(0)
-        assert vo.disparity_offset_px == 0.0
-        vo._lba.stats.offsets += [(-0.3, 400.0)] * 10  # sd 0.05 px each
-        vo._update_offset(30)
-        assert vo.disparity_offset_px == pytest.approx(-0.3, abs=0.01)
+    est = DisparityOffsetEstimator(FrontendConfig())
+    assert not est.add([(25.0, 1e-4)] * 30)  # sd 100 px each, mean far beyond the clamp
+    assert est.offset == 0.0
+    assert est.add([(-0.3, 400.0)] * 10)  # sd 0.05 px each
+    assert est.offset == pytest.approx(-0.3, abs=0.01)
 
 
 def test_an_offset_within_three_standard_errors_of_the_configured_one_waits():
     """An early estimate past disparity_offset_min_px but within disparity_offset_min_z standard
     errors (an offset-free rig's first solves) is not applied; the same offset, once measured
     well enough to be significant, is."""
-    from snaps_graph.frontend import StereoOdometry
+    est = DisparityOffsetEstimator(FrontendConfig())
+    assert not est.add([(0.06, 100.0)] * 5)  # mean 0.06 px, sd 0.045 px: 1.3 sd
+    assert est.offset == 0.0
+    assert est.add([(0.06, 10000.0)] * 3)  # sd 0.006 px: 10 sd
+    assert est.offset == pytest.approx(0.06, abs=0.001)
+    est = DisparityOffsetEstimator(FrontendConfig(disparity_offset_min_z=0.0))
+    assert est.add([(0.06, 100.0)] * 5)  # without the test: applied at once
+    assert est.offset == pytest.approx(0.06, abs=0.001)
 
-    with StereoOdometry(CAM, FrontendConfig()) as vo:
-        assert vo._lba is not None
-        vo._lba.stats.offsets = [(0.06, 100.0)] * 5  # mean 0.06 px, sd 0.045 px: 1.3 sd
-        vo._update_offset(0)
-        assert vo.disparity_offset_px == 0.0
-        vo._lba.stats.offsets += [(0.06, 10000.0)] * 3  # sd 0.006 px: 10 sd
-        vo._update_offset(5)
-        assert vo.disparity_offset_px == pytest.approx(0.06, abs=0.001)
-    with StereoOdometry(CAM, FrontendConfig(disparity_offset_min_z=0.0)) as vo:
-        assert vo._lba is not None
-        vo._lba.stats.offsets = [(0.06, 100.0)] * 5  # without the test: applied at once
-        vo._update_offset(0)
-        assert vo.disparity_offset_px == pytest.approx(0.06, abs=0.001)
+
+def test_the_offset_estimate_is_an_information_weighted_clamped_mean():
+    """Hand-computed: (0.2 * 100 + 0.5 * 300) / 400 = 0.425 px; non-finite or zero-information
+    solves are skipped; a mean beyond disparity_offset_max_px is clamped to it; a configured
+    offset is where the significance test starts."""
+    cfg = FrontendConfig(disparity_offset_min_solves=2, disparity_offset_max_sd_px=1.0, disparity_offset_min_z=0.0)
+    est = DisparityOffsetEstimator(cfg)
+    assert est.add([(0.2, 100.0), (float("nan"), 5.0), (0.5, 0.0), (0.5, 300.0)])
+    assert est.offset == pytest.approx(0.425, abs=1e-12)
+    est = DisparityOffsetEstimator(dataclasses.replace(cfg, disparity_offset_max_px=1.0))
+    assert est.add([(3.0, 10.0)] * 2) and est.offset == 1.0
+    est = DisparityOffsetEstimator(dataclasses.replace(cfg, disparity_offset_px=0.4, disparity_offset_min_px=0.1))
+    assert not est.add([(0.45, 100.0)] * 2) and est.offset == 0.4  # 0.05 px from the configured one
+    assert not est.applied
 
 
 @pytest.mark.parametrize("memory", [0, 20])
@@ -190,16 +194,11 @@ def test_an_applied_offset_follows_newer_solves_with_a_memory(memory):
     """Once applied, the running estimate forgets older solves with disparity_offset_memory_solves
     (they were measured with a worse offset applied): 100 later solves at -0.6 px move it to
     -0.6 within 0.01 px; without a memory the 30 earlier solves at -0.3 px still hold it back."""
-    from snaps_graph.frontend import StereoOdometry
-
-    with StereoOdometry(CAM, FrontendConfig(disparity_offset_memory_solves=memory)) as vo:
-        assert vo._lba is not None
-        vo._lba.stats.offsets = [(-0.3, 400.0)] * 30
-        vo._update_offset(0)
-        assert vo.disparity_offset_px == pytest.approx(-0.3, abs=1e-6) and vo._lba.offset_joint
-        vo._lba.stats.offsets += [(-0.6, 400.0)] * 100
-        vo._update_offset(30)
-        if memory:
-            assert abs(vo.disparity_offset_px + 0.6) < 0.01, vo.disparity_offset_px
-        else:
-            assert vo.disparity_offset_px > -0.55, vo.disparity_offset_px
+    est = DisparityOffsetEstimator(FrontendConfig(disparity_offset_memory_solves=memory))
+    assert est.add([(-0.3, 400.0)] * 30)
+    assert est.offset == pytest.approx(-0.3, abs=1e-6)
+    est.add([(-0.6, 400.0)] * 100)
+    if memory:
+        assert abs(est.offset + 0.6) < 0.01, est.offset
+    else:
+        assert est.offset > -0.55, est.offset

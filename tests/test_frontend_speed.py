@@ -89,7 +89,7 @@ def test_split_lk_calls_give_bit_identical_poses(small_rendering):
     for split in (0, 50):
         with StereoOdometry(seq.camera, dataclasses.replace(FrontendConfig(), lk_split_min=split)) as vo:
             if split:
-                assert vo._split_pool is not None
+                assert vo._workers._split_pool is not None
             res = [vo.process(f) for f in frames]
         assert all(r.ok for r in res)
         out.append((np.array([r.pose for r in res]), [r.features.uv for r in res]))
@@ -122,7 +122,7 @@ def test_sharpness_is_the_mean_absolute_laplacian():
     """``sharpness`` (an L1 norm in OpenCV) gives exactly numpy's mean |Laplacian|."""
     import cv2
 
-    from snaps_graph.frontend.odometry import sharpness
+    from snaps_graph.frontend.keyframe import sharpness
 
     rng = np.random.default_rng(5)
     for img in (rng.integers(0, 256, (188, 620), dtype=np.uint8), np.full((40, 50), 7, np.uint8)):

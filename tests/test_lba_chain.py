@@ -3,7 +3,7 @@
 import numpy as np
 
 from snaps_graph.frontend.local_ba import _add_chain_factor
-from snaps_graph.frontend.odometry import chain_information
+from snaps_graph.frontend.lba_schedule import chain_information
 from snaps_graph.frontend.stereo_ba import _exp_so3
 from snaps_graph.geometry import log_so3
 

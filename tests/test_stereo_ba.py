@@ -7,7 +7,7 @@ import pytest
 
 from snaps_graph.camera import StereoCamera
 from snaps_graph.config import FrontendConfig
-from snaps_graph.frontend.odometry import pnp_ransac
+from snaps_graph.frontend.motion import pnp_ransac
 from snaps_graph.frontend.stereo_ba import stereo_two_view_ba
 
 # A wide kernel (1.0 / 2.0 px, 6 steps): the BA's own behaviour, apart from the front end's tight default.

@@ -1,4 +1,4 @@
-"""KLT re-detection in weak texture (issue 11, open-road drift): a second corner detection at
+"""KLT re-detection in weak texture (open-road drift): a second corner detection at
 ``klt_weak_quality`` when too few points have stereo depth (``klt_weak_points``)."""
 
 from __future__ import annotations
@@ -35,7 +35,8 @@ def test_weak_texture_pass_adds_corners_with_depth(open_turn):
     counts = {}
     for weak in (0, 300):
         with StereoOdometry(seq.camera, dataclasses.replace(FrontendConfig(), klt_weak_points=weak)) as vo:
-            _, _, new_uv, z2, _ = vo._stereo_klt(frames[10], np.zeros((0, 2), np.float32), None, {})
+            none = np.zeros((0, 2), np.float32)
+            _, z2, _ = vo._klt._detect_new(frames[10], none, np.zeros(0, np.float32), {})
         counts[weak] = int(np.count_nonzero(z2 > 0))
     # The strongest corners are the far trees (no depth within max_depth_m): the first pass
     # alone leaves few corners stereo can range; the second adds the ground's (measured 45 -> 150).
@@ -81,5 +82,5 @@ def test_no_second_pass_where_stereo_fails(open_turn):
     out = {}
     for weak in (0, 300):
         with StereoOdometry(seq.camera, dataclasses.replace(FrontendConfig(), klt_weak_points=weak)) as vo:
-            out[weak] = vo._stereo_klt(broken, np.zeros((0, 2), np.float32), None, {})[2]
+            out[weak] = vo._klt._detect_new(broken, np.zeros((0, 2), np.float32), np.zeros(0, np.float32), {})[0]
     assert np.array_equal(out[0], out[300])

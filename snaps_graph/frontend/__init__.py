@@ -1,6 +1,7 @@
 """Stereo visual odometry front end (paper §II-B..D): depth, features, PnP, loop verification."""
 
 from .depth import dense_depth, dense_disparity, sparse_depth
-from .odometry import StereoOdometry, pnp_ransac
+from .motion import pnp_ransac
+from .odometry import StereoOdometry
 
 __all__ = ["StereoOdometry", "dense_depth", "dense_disparity", "sparse_depth", "pnp_ransac"]

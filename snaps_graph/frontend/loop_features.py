@@ -29,7 +29,7 @@ from ..geometry import inv, rotation_angle_deg
 from ..types import FrameFeatures, StereoFrame
 from .depth import correct_disparity, sparse_disparity
 from .features import match_descriptors
-from .odometry import pnp_ransac
+from .motion import pnp_ransac
 
 
 @dataclass
