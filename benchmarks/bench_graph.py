@@ -28,28 +28,16 @@ from snaps_graph.backend import PoseGraph
 from snaps_graph.config import GraphConfig
 from snaps_graph.evaluation.metrics import ate_rmse, kitti_relative_errors, mean_deviation
 from snaps_graph.evaluation.oracle import true_revisit_pairs
+from snaps_graph.geometry import exp_so3
 from snaps_graph.trajectory_io import read_kitti_poses
 
 DEFAULT_GT = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "kitti_gt" / "00.txt"
 
 
-def so3_exp(w: np.ndarray) -> np.ndarray:
-    """Rotation matrices (N, 3, 3) of rotation vectors (N, 3) (Rodrigues, vectorised)."""
-    theta = np.linalg.norm(w, axis=1)[:, None, None]
-    K = np.zeros((len(w), 3, 3))
-    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -w[:, 2], w[:, 1], -w[:, 0]
-    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = w[:, 2], -w[:, 1], w[:, 0]
-    small = theta < 1e-12
-    t = np.where(small, 1.0, theta)
-    A = np.where(small, 1.0, np.sin(t) / t)
-    B = np.where(small, 0.5, (1 - np.cos(t)) / t**2)
-    return np.eye(3) + A * K + B * (K @ K)
-
-
 def perturb(T: np.ndarray, rot_sigma: float, trans_sigma: float, rng: np.random.Generator) -> np.ndarray:
     """T (N, 4, 4) composed with a random right perturbation."""
     out = T.copy()
-    out[:, :3, :3] = T[:, :3, :3] @ so3_exp(rng.normal(0, rot_sigma, (len(T), 3)))
+    out[:, :3, :3] = T[:, :3, :3] @ np.array([exp_so3(w) for w in rng.normal(0, rot_sigma, (len(T), 3))])
     out[:, :3, 3] += rng.normal(0, trans_sigma, (len(T), 3))
     return out
 
@@ -60,7 +48,7 @@ def simulate_vo(gt: np.ndarray, args, rng: np.random.Generator) -> tuple[np.ndar
     rel = perturb(rel, args.rot_noise_rad, args.trans_noise_m, rng)
     bias = np.zeros((len(rel), 3))
     bias[:, 1] = args.yaw_bias_rad  # about the camera's vertical (y) axis
-    rel[:, :3, :3] = rel[:, :3, :3] @ so3_exp(bias)
+    rel[:, :3, :3] = rel[:, :3, :3] @ np.array([exp_so3(w) for w in bias])
     rel[:, :3, 3] *= 1.0 + args.scale_bias
     rel = np.concatenate([np.eye(4)[None], rel])
     chain = np.empty_like(rel)

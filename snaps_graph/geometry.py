@@ -1,4 +1,5 @@
-"""Small SE(3) helpers on 4x4 numpy matrices (poses are T_world_cam, KITTI camera axes)."""
+"""Small SO(3)/SE(3) helpers on numpy matrices (poses are 4x4 T_world_cam, KITTI camera axes).
+The package's one exp/log of rotations (the loop closer's vectorised one excepted)."""
 
 from __future__ import annotations
 
@@ -42,8 +43,18 @@ def is_finite_pose(T: np.ndarray) -> bool:
     return bool(np.all(np.isfinite(T)))
 
 
-def _hat(w: np.ndarray) -> np.ndarray:
+def hat(w: np.ndarray) -> np.ndarray:
+    """The skew matrix [w]x (hat(w) @ v = w x v)."""
     return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def exp_so3(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a rotation vector (Rodrigues); first order below 1e-12 rad."""
+    th = float(np.linalg.norm(w))
+    W = hat(w)
+    if th < 1e-12:
+        return np.eye(3) + W
+    return np.eye(3) + np.sin(th) / th * W + (1 - np.cos(th)) / th**2 * (W @ W)
 
 
 def log_so3(R: np.ndarray) -> np.ndarray:
@@ -58,14 +69,14 @@ def adjoint(T: np.ndarray) -> np.ndarray:
     """SE(3) adjoint of T = [R, t] for [rotation, translation] twists: exp(Ad xi) T = T exp(xi)."""
     R, t = T[:3, :3], T[:3, 3]
     Ad = np.zeros((6, 6))
-    Ad[:3, :3], Ad[3:, 3:], Ad[3:, :3] = R, R, _hat(t) @ R
+    Ad[:3, :3], Ad[3:, 3:], Ad[3:, :3] = R, R, hat(t) @ R
     return Ad
 
 
 def _left_jacobian(w: np.ndarray) -> np.ndarray:
     """V(w) of SE(3)'s exponential: t = V(w) u for the twist (w, u)."""
     th = float(np.linalg.norm(w))
-    W = _hat(w)
+    W = hat(w)
     if th < 1e-8:
         return np.eye(3) + 0.5 * W
     return np.eye(3) + (1.0 - np.cos(th)) / th**2 * W + (th - np.sin(th)) / th**3 * (W @ W)
@@ -84,18 +95,11 @@ def scale_motion(T: np.ndarray, s: float) -> np.ndarray:
     th = float(np.arccos(c))
     if th > np.pi - 1e-3:
         return np.eye(4)
-    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    w = v * (0.5 if th < 1e-8 else th / (2.0 * np.sin(th)))
+    w = log_so3(R)
     u = np.linalg.solve(_left_jacobian(w), T[:3, 3])
     ws = s * w
-    ths = float(np.linalg.norm(ws))
-    Ws = _hat(ws)
-    if ths < 1e-8:
-        Rs = np.eye(3) + Ws
-    else:
-        Rs = np.eye(3) + np.sin(ths) / ths * Ws + (1.0 - np.cos(ths)) / ths**2 * (Ws @ Ws)
     out = np.eye(4)
-    out[:3, :3] = Rs
+    out[:3, :3] = exp_so3(ws)
     out[:3, 3] = _left_jacobian(ws) @ (s * u)
     return out
 

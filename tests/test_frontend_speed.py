@@ -9,7 +9,8 @@ import pytest
 
 from snaps_graph.camera import StereoCamera
 from snaps_graph.config import FrontendConfig
-from snaps_graph.frontend.stereo_ba import _exp_so3, stereo_two_view_ba
+from snaps_graph.frontend.stereo_ba import stereo_two_view_ba
+from snaps_graph.geometry import exp_so3
 
 CAM = StereoCamera(fx=718.0, fy=718.0, cx=607.0, cy=185.0, baseline_m=0.54, width=1241, height=376)
 
@@ -55,7 +56,7 @@ def test_stereo_ba_covariance_is_the_inverse_schur_complement_of_numeric_jacobia
 
     def f(x):
         Tx = T.copy()
-        dR = _exp_so3(x[:3])
+        dR = exp_so3(x[:3])
         Tx[:3, :3], Tx[:3, 3] = dR @ T[:3, :3], dR @ T[:3, 3] + x[3:6]
         return _predict(Tx, p + x[6:].reshape(n, 3))
 

@@ -2,15 +2,14 @@
 
 import numpy as np
 
-from snaps_graph.frontend.local_ba import _add_chain_factor
 from snaps_graph.frontend.lba_schedule import chain_information
-from snaps_graph.frontend.stereo_ba import _exp_so3
-from snaps_graph.geometry import log_so3
+from snaps_graph.frontend.local_ba import _add_chain_factor
+from snaps_graph.geometry import exp_so3, log_so3
 
 
 def _pose(w, t):
     T = np.eye(4)
-    T[:3, :3], T[:3, 3] = _exp_so3(np.asarray(w, float)), t
+    T[:3, :3], T[:3, 3] = exp_so3(np.asarray(w, float)), t
     return T
 
 
@@ -32,7 +31,7 @@ def _one_step(free: int):
     sl = slice(6 * free, 6 * free + 6)
     dx = np.linalg.solve(S[sl, sl], g[sl])
     before = np.linalg.norm(_residual(Rcw, tcw, N))
-    Rcw[free], tcw[free] = _exp_so3(dx[:3]) @ Rcw[free], _exp_so3(dx[:3]) @ tcw[free] + dx[3:]
+    Rcw[free], tcw[free] = exp_so3(dx[:3]) @ Rcw[free], exp_so3(dx[:3]) @ tcw[free] + dx[3:]
     return before, np.linalg.norm(_residual(Rcw, tcw, N))
 
 

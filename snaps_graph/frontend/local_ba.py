@@ -38,9 +38,9 @@ import numpy as np
 
 from ..camera import StereoCamera
 from ..config import FrontendConfig
-from ..geometry import adjoint, log_so3
+from ..geometry import adjoint, exp_so3, log_so3
 from .depth import offset_gain
-from .stereo_ba import _exp_so3, _inv3
+from .stereo_ba import _inv3
 
 
 @dataclass
@@ -305,7 +305,7 @@ class LocalBundleAdjuster:
             dX = (Hll_inv @ rhs[:, :, None])[:, :, 0]
             off = off + dd
             for j in range(1, W):
-                dR = _exp_so3(dx[j, :3])
+                dR = exp_so3(dx[j, :3])
                 Rcw[j], tcw[j] = dR @ Rcw[j], dR @ tcw[j] + dx[j, 3:]
             X = X + dX
             if not (np.all(np.isfinite(Rcw)) and np.all(np.isfinite(tcw)) and np.all(np.isfinite(X)) and np.isfinite(off)):

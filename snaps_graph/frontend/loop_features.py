@@ -29,7 +29,7 @@ from ..geometry import inv, rotation_angle_deg
 from ..types import FrameFeatures, StereoFrame
 from .depth import correct_disparity, sparse_disparity
 from .features import match_descriptors
-from .motion import pnp_ransac
+from .motion import pnp_ransac, pose_from_rvec
 
 
 @dataclass
@@ -227,9 +227,7 @@ def verify_features(
         rvec, tvec = cv2.solvePnPRefineLM(
             pts.astype(np.float64), uv.astype(np.float64), camera.K, None, rvec, T_cur_ref[:3, 3].reshape(3, 1).copy()
         )
-        T = np.eye(4)
-        T[:3, :3] = cv2.Rodrigues(rvec)[0]
-        T[:3, 3] = tvec.reshape(3)
+        T = pose_from_rvec(rvec, tvec)
         if np.all(np.isfinite(T)):
             T_cur_ref = T
     T_ref_cur = plausible(T_cur_ref, cfg)

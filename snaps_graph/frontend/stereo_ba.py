@@ -31,6 +31,7 @@ import numpy as np
 
 from ..camera import StereoCamera
 from ..config import FrontendConfig
+from ..geometry import exp_so3
 
 
 @dataclass
@@ -44,14 +45,6 @@ class StereoBAResult:
     rmse_px: float = 0.0  # inliers' RMS residual per coordinate, pixels
     rho: np.ndarray | None = None  # (N,) refined inverse depths in the reference camera (1/m)
     kept: np.ndarray | None = None  # bool (N,): within keep_px at the final pose (the inliers without keep_px)
-
-
-def _exp_so3(w: np.ndarray) -> np.ndarray:
-    th = float(np.linalg.norm(w))
-    K = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
-    if th < 1e-12:
-        return np.eye(3) + K
-    return np.eye(3) + np.sin(th) / th * K + (1 - np.cos(th)) / th**2 * (K @ K)
 
 
 def _inv3(M: np.ndarray) -> np.ndarray:
@@ -200,7 +193,7 @@ def stereo_two_view_ba(
                 return fail("degenerate stereo BA (singular system)")
             rhs = bp - (dx @ Hcp.reshape(6, -1)).reshape(3, -1)
             dp = (Hpp_inv * rhs[None, :, :]).sum(1)
-            dR = _exp_so3(dx[:3])
+            dR = exp_so3(dx[:3])
             R, t = dR @ R, dR @ t + dx[3:]
             p = p + np.where(act, dp, 0.0)
             if not (np.all(np.isfinite(R)) and np.all(np.isfinite(t)) and np.all(np.isfinite(p))):
