@@ -27,17 +27,16 @@ import cv2
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from snaps_graph.config import FrontendConfig  # noqa: E402
-from snaps_graph.datasets.kitti import KittiSequence  # noqa: E402
-from snaps_graph.evaluation.metrics import ate_rmse, evaluate, path_length, step_error_axes_percent  # noqa: E402
-from snaps_graph.frontend import StereoOdometry  # noqa: E402
-from snaps_graph.geometry import inv  # noqa: E402
+from snaps_graph.config import FrontendConfig
+from snaps_graph.datasets.kitti import KittiSequence
+from snaps_graph.evaluation.metrics import ate_rmse, evaluate, path_length, step_error_axes_percent
+from snaps_graph.frontend import StereoOdometry
+from snaps_graph.geometry import inv
 
 MODES = {
     "default": dict(),  # the default configuration
-    "klt_pnp": dict(mode="klt", motion="pnp", local_ba=False),  # klt + sparse stereo + PnP only (the default before issue 11)
+    "klt_pnp": dict(mode="klt", motion="pnp", local_ba=False),  # klt + sparse stereo + PnP only
     "klt_sba": dict(mode="klt", motion="stereo_ba", local_ba=False),
     "klt_lba": dict(mode="klt", motion="stereo_ba", local_ba=True, lba_every=1),  # every frame a keyframe
     "klt_lba2": dict(mode="klt", motion="stereo_ba", local_ba=True, lba_every=2, lba_window=8),

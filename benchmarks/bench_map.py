@@ -1,4 +1,4 @@
-"""Map figures of a results folder written by `snaps-graph run ... --map` (issue 13's targets):
+"""Map figures of a results folder written by `snaps-graph run ... --map`:
 accuracy per trajectory against the true world (when the run had --world-mesh), the share of
 map points farther than 30 m from the path (radial streaks), map time as a share of the run, and
 peak memory. With --write-world it first writes the exact world mesh of the synthetic street

@@ -14,22 +14,20 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from snaps_graph.config import Config  # noqa: E402
-from snaps_graph.datasets.kitti import KittiSequence  # noqa: E402
-from snaps_graph.evaluation.metrics import evaluate  # noqa: E402
-from snaps_graph.evaluation.oracle import loop_oracle, true_revisit_pairs  # noqa: E402
-from snaps_graph.io_utils import PREFETCH_FRAMES, prefetch  # noqa: E402
-from snaps_graph.pipeline import SlamPipeline  # noqa: E402
-from snaps_graph.runner import latency_summary, write_results  # noqa: E402
+from snaps_graph.config import Config
+from snaps_graph.datasets.kitti import KittiSequence
+from snaps_graph.evaluation.metrics import evaluate
+from snaps_graph.evaluation.oracle import loop_oracle, true_revisit_pairs
+from snaps_graph.io_utils import PREFETCH_FRAMES, prefetch
+from snaps_graph.pipeline import SlamPipeline
+from snaps_graph.runner import latency_summary, write_results
 
 
 def ensure_sequence(args) -> Path:

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import resource
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -24,11 +23,10 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from snaps_graph.config import Config  # noqa: E402
-from snaps_graph.datasets.open import open_dataset  # noqa: E402
-from snaps_graph.pipeline import SlamPipeline  # noqa: E402
+from snaps_graph.config import Config
+from snaps_graph.datasets.open import open_dataset
+from snaps_graph.pipeline import SlamPipeline
 
 
 def cpu_s() -> float:

@@ -27,13 +27,12 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from snaps_graph.config import Config  # noqa: E402
-from snaps_graph.datasets.kitti import KittiSequence  # noqa: E402
-from snaps_graph.evaluation.metrics import ate_rmse, path_length  # noqa: E402
-from snaps_graph.frontend import StereoOdometry  # noqa: E402
-from snaps_graph.types import StereoFrame  # noqa: E402
+from snaps_graph.config import Config
+from snaps_graph.datasets.kitti import KittiSequence
+from snaps_graph.evaluation.metrics import ate_rmse, path_length
+from snaps_graph.frontend import StereoOdometry
+from snaps_graph.types import StereoFrame
 
 MODES = {
     "default": dict(),

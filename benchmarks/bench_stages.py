@@ -20,22 +20,20 @@ import argparse
 import collections
 import os
 import resource
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from snaps_graph.backend import pose_graph  # noqa: E402
-from snaps_graph.config import Config  # noqa: E402
-from snaps_graph.datasets import kitti  # noqa: E402
-from snaps_graph.datasets.open import open_dataset  # noqa: E402
-from snaps_graph.frontend import depth, features, local_ba, odometry, tracking  # noqa: E402
-from snaps_graph.loop import snaps as snaps_mod  # noqa: E402
-from snaps_graph.pipeline import SlamPipeline  # noqa: E402
+from snaps_graph.backend import pose_graph
+from snaps_graph.config import Config
+from snaps_graph.datasets import kitti
+from snaps_graph.datasets.open import open_dataset
+from snaps_graph.frontend import depth, features, local_ba, odometry, tracking
+from snaps_graph.loop import snaps as snaps_mod
+from snaps_graph.pipeline import SlamPipeline
 
 STAGES: dict[str, list[float]] = collections.defaultdict(lambda: [0.0, 0.0])  # this frame: name -> [cpu s, wall s]
 

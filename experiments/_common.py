@@ -16,7 +16,6 @@ from __future__ import annotations
 import copy
 import csv
 import json
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,15 +24,14 @@ from types import SimpleNamespace
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from snaps_graph.config import Config  # noqa: E402
-from snaps_graph.datasets.kitti import KittiSequence  # noqa: E402
-from snaps_graph.loop.uiqi import make_thumbnail  # noqa: E402
-from snaps_graph.pipeline import SlamPipeline  # noqa: E402
+from snaps_graph.config import Config
+from snaps_graph.datasets.kitti import KittiSequence
+from snaps_graph.loop.uiqi import make_thumbnail
+from snaps_graph.pipeline import SlamPipeline
 from snaps_graph.types import (
-    StereoFrame,  # noqa: E402
-    VOResult,  # noqa: E402
+    StereoFrame,
+    VOResult,
 )
 
 RESULTS = ROOT / "results" / "experiments"
@@ -41,22 +39,41 @@ SHARED = ROOT.parent / "shared" / "data"
 PATHS = {"00": SHARED / "kitti_gt" / "00.txt", "07": SHARED / "kitti_gt" / "07.txt", "loop": "loop"}
 
 
-def frontend_from_args(description: str):
-    """``SEQ [--frames A:B] [--set key=python-literal ...]`` of the front-end experiments: the
-    sequence (with ground truth) and the default FrontendConfig with the overrides."""
-    import argparse
-    import ast
-    import dataclasses
+def config_from_set(items: list[str]) -> Config:
+    """The default Config with ``--set section.key=value`` overrides (the value in TOML: 3, 0.5,
+    true, "yaw"; a bare word is a string), validated; a bad one exits with a one-line error."""
+    import tomllib
 
-    from snaps_graph.config import FrontendConfig
+    from snaps_graph.errors import SnapsGraphError
+
+    data: dict[str, dict] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        section, dot, name = key.partition(".")
+        if not sep or not dot:
+            raise SystemExit(f"error: --set {item!r}: expected section.key=value")
+        try:
+            parsed = tomllib.loads(f"v = {value}")["v"]
+        except tomllib.TOMLDecodeError:
+            parsed = value
+        data.setdefault(section, {})[name] = parsed
+    try:
+        return Config.from_dict(data, source="--set")
+    except SnapsGraphError as exc:
+        raise SystemExit(f"error: {exc}") from None
+
+
+def frontend_from_args(description: str):
+    """``SEQ [--frames A:B] [--set section.key=value ...]`` of the front-end experiments: the
+    sequence (with ground truth) and the front-end config with the overrides."""
+    import argparse
 
     ap = argparse.ArgumentParser(description=description)
     ap.add_argument("seq")
     ap.add_argument("--frames", default=None)
-    ap.add_argument("--set", nargs="*", default=[], help="FrontendConfig overrides key=python-literal")
+    ap.add_argument("--set", nargs="*", default=[], help="config overrides section.key=value (TOML values)")
     args = ap.parse_args()
-    kw = {k: ast.literal_eval(v) for k, v in (s.split("=", 1) for s in args.set)}
-    return KittiSequence(args.seq, frames=args.frames), dataclasses.replace(FrontendConfig(), **kw)
+    return KittiSequence(args.seq, frames=args.frames), config_from_set(args.set).frontend
 
 
 def synthetic_dir(path: str, width: int = 1241, height: int = 376, seed: int = 0, frames: str | None = None) -> Path:

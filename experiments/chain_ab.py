@@ -1,4 +1,4 @@
-"""What the chain's heading factor does inside one local-BA solve (issue 11).
+"""What the chain's heading factor does inside one local-BA solve.
 
 Runs the front end on a sequence with ground truth. At every keyframe that has a chain factor
 the window is solved twice from the same state: once without the factor (the result thrown
@@ -9,7 +9,7 @@ handed out, and (b) the second keyframe relative to the gauge, the step the next
 translation in mm. It also prints how the factor's yaw change moves the other components
 (slope and correlation over the solves).
 
-    python experiments/chain_ab.py /work/data/frontend_street1000 [--frames A:B] [--set key=literal ...]
+    python experiments/chain_ab.py /work/data/frontend_street1000 [--frames A:B] [--set frontend.key=value ...]
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""KLT row bias by image band for ways of removing the LK window bias (issue 11, tracking_bias.py's companion).
+"""KLT row bias by image band for ways of removing the LK window bias (tracking_bias.py's companion).
 
 One-frame pairs of the rendered KITTI 00 path; LK starts at the exact position plus 0.3 px noise
 (a stand-in for the front end's constant-velocity prediction). Variants: the plain 11 px fit; the
@@ -6,16 +6,14 @@ default 11 px + 7 px linear extrapolation in the window's second moment (w^2 - 1
 fit re-converged at level 0 first; quadratic fits through 11/7/5 and 11/9/7; linear 11/5 and 11/9.
 Prints median / mean (sd, standard error) of the row error in px per band (positive = too low).
 
-    python experiments/klt_bias_variants.py [FRAMES=0:400] [EVERY=10]
+    python experiments/klt_bias_variants.py [--trajectory ../shared/data/kitti_gt/00.txt] [--frames 0:400] [--every 40]
 """
 
-import sys
-from pathlib import Path
+import argparse
 
 import cv2
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from snaps_graph.config import Config
 from snaps_graph.datasets.synthetic import SyntheticSequence, load_trajectory
 from snaps_graph.frontend import depth as depth_mod
@@ -88,34 +86,42 @@ def variants(a, b, uv, guess):
     return out
 
 
-poses, times = load_trajectory(
-    str(Path(__file__).resolve().parents[2] / "shared/data/kitti_gt/00.txt"), sys.argv[1] if len(sys.argv) > 1 else "0:400"
-)
-every = int(sys.argv[2]) if len(sys.argv) > 2 else 40
-seq = SyntheticSequence(poses, width=1241, height=376, seed=0, times=times)
-cam, cfg = seq.camera, Config().frontend
-rng = np.random.default_rng(0)
-acc = {}
-for i in range(0, len(seq) - 1, every):
-    f0 = seq.render(i)
-    uv = feat.detect_corners(f0.left, cfg.klt_features, cfg, avoid=np.zeros((0, 2), np.float32))
-    z = depth_mod.sample_depth(f0.depth, uv)
-    uv, z = uv[z > 0], z[z > 0]
-    P = np.c_[(uv[:, 0] - cam.cx) / cam.fx * z, (uv[:, 1] - cam.cy) / cam.fy * z, z, np.ones(len(z))]
-    f1 = seq.render(i + 1, with_depth=False)
-    Q = (np.linalg.solve(seq.gt_poses[i + 1], seq.gt_poses[i]) @ P.T).T
-    true = np.c_[cam.fx * Q[:, 0] / Q[:, 2] + cam.cx, cam.fy * Q[:, 1] / Q[:, 2] + cam.cy]
-    for gname, guess in (("start true+N(0.3)", true + rng.normal(0, 0.3, true.shape)),):
-        for name, (p, ok) in variants(f0.left, f1.left, uv, guess).items():
-            e = p[:, 1] - true[:, 1]
-            keep = ok & (np.abs(e) < 2)
-            acc.setdefault((gname, name), []).append(np.c_[uv[keep, 1], e[keep]])
-for (g, name), parts in acc.items():
-    a = np.concatenate(parts)
-    row = []
-    for lo, hi in BANDS:
-        s = (a[:, 0] >= lo) & (a[:, 0] < hi)
-        e = a[s, 1]
-        row.append(f"{np.median(e):+.4f}/{e.mean():+.4f}({e.std():.3f}, sem {e.std() / np.sqrt(s.sum()):.4f})")
-    print(f"{g:<18} {name:<22} " + "  ".join(row))
-print("bands", BANDS, " median/mean(sd) px")
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--trajectory", default="../shared/data/kitti_gt/00.txt", help="KITTI poses file to render along")
+    ap.add_argument("--frames", default="0:400")
+    ap.add_argument("--every", type=int, default=40, help="one frame pair every this many frames")
+    args = ap.parse_args()
+    poses, times = load_trajectory(args.trajectory, args.frames)
+    every = args.every
+    seq = SyntheticSequence(poses, width=1241, height=376, seed=0, times=times)
+    cam, cfg = seq.camera, Config().frontend
+    rng = np.random.default_rng(0)
+    acc = {}
+    for i in range(0, len(seq) - 1, every):
+        f0 = seq.render(i)
+        uv = feat.detect_corners(f0.left, cfg.klt_features, cfg, avoid=np.zeros((0, 2), np.float32))
+        z = depth_mod.sample_depth(f0.depth, uv)
+        uv, z = uv[z > 0], z[z > 0]
+        P = np.c_[(uv[:, 0] - cam.cx) / cam.fx * z, (uv[:, 1] - cam.cy) / cam.fy * z, z, np.ones(len(z))]
+        f1 = seq.render(i + 1, with_depth=False)
+        Q = (np.linalg.solve(seq.gt_poses[i + 1], seq.gt_poses[i]) @ P.T).T
+        true = np.c_[cam.fx * Q[:, 0] / Q[:, 2] + cam.cx, cam.fy * Q[:, 1] / Q[:, 2] + cam.cy]
+        for gname, guess in (("start true+N(0.3)", true + rng.normal(0, 0.3, true.shape)),):
+            for name, (p, ok) in variants(f0.left, f1.left, uv, guess).items():
+                e = p[:, 1] - true[:, 1]
+                keep = ok & (np.abs(e) < 2)
+                acc.setdefault((gname, name), []).append(np.c_[uv[keep, 1], e[keep]])
+    for (g, name), parts in acc.items():
+        a = np.concatenate(parts)
+        row = []
+        for lo, hi in BANDS:
+            s = (a[:, 0] >= lo) & (a[:, 0] < hi)
+            e = a[s, 1]
+            row.append(f"{np.median(e):+.4f}/{e.mean():+.4f}({e.std():.3f}, sem {e.std() / np.sqrt(s.sum()):.4f})")
+        print(f"{g:<18} {name:<22} " + "  ".join(row))
+    print("bands", BANDS, " median/mean(sd) px")
+
+
+if __name__ == "__main__":
+    main()

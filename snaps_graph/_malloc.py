@@ -1,10 +1,11 @@
-"""glibc malloc thresholds for image-sized temporaries, set once when the package is imported.
+"""glibc malloc thresholds for image-sized temporaries, set by a program that runs the pipeline
+(the CLI) with ``set_malloc_thresholds()``; importing the package changes nothing.
 
 OpenCV and numpy allocate image-sized temporaries (LK pyramids, eigenvalue maps, disparity
 maps) many times a frame. glibc serves allocations above its mmap threshold with a fresh
 ``mmap`` and gives the top of the heap back to the system above its trim threshold, so such a
-temporary can cost one page fault per 4 KB page on every call; in a process that has imported
-gtsam this happened on every ``goodFeaturesToTrack`` call (README, speed section). Fixed
+temporary can cost one page fault per 4 KB page on every call (in a process that has imported
+gtsam, on every ``goodFeaturesToTrack`` call). Fixed
 thresholds keep these blocks in the heap, where they are reused. Where memory comes from does
 not change any result.
 
@@ -43,6 +44,3 @@ def set_malloc_thresholds() -> bool:
         )
     except (OSError, AttributeError):
         return False
-
-
-APPLIED = set_malloc_thresholds()

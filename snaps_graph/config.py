@@ -100,21 +100,20 @@ class FrontendConfig(_Section):
     min_stereo_points: int = 40  # a frame with fewer keypoints with depth cannot be a reference
     min_sharpness_ratio: float = 0.35  # mean |Laplacian| below this x the reference's: blurred
     ransac_seed: int = 0  # cv2.setRNGSeed before every RANSAC (same input -> same output)
-    verify_max_translation_m: float = 30.0  # verify_loop: a larger relative pose is implausible
+    verify_max_translation_m: float = 30.0  # loop verification: a larger relative pose is implausible
     verify_max_rotation_deg: float = 90.0
     # Motion estimate after PnP RANSAC (the seed and the outlier rejection): "stereo_ba" refines
     # it by a two-view stereo bundle adjustment over (u_left, v, u_right) in both frames
-    # (frontend/stereo_ba.py); "pnp" keeps PnP + LM on the inliers (before issue 11).
+    # (frontend/stereo_ba.py); "pnp" keeps PnP + LM on the inliers (the paper's).
     motion: Literal["pnp", "stereo_ba"] = "stereo_ba"
     # Huber kernel width on a (point, view) residual, pixels (stereo BA and local BA); after the
-    # stereo BA's first round, points beyond sba_outlier_px in either view are dropped. Stop 13:
-    # 1.0 / 2.0 -> 0.3 / 0.6 (README "The robust kernel"): the KLT errors' tails carry the pitch bias.
+    # stereo BA's first round, points beyond sba_outlier_px in either view are dropped. Tight,
+    # because the tails of the KLT errors carry the pitch bias (docs/layout.md).
     sba_huber_px: float = 0.3
     sba_outlier_px: float = 0.6
     # When the stereo BA's estimate keeps fewer than sba_keep_below tracks, the tracks within
     # sba_keep_px of its pose in both views are kept too (and count as its inliers): a tight
-    # kernel must not thin out a small image's tracks (320x96: 21 of 90 frames flagged for too
-    # few points with depth without it). Full-size KITTI frames keep 200 or more.
+    # kernel must not thin out a small image's tracks. Full-size KITTI frames keep 200 or more.
     sba_keep_px: float = 2.0
     sba_keep_below: int = 100
     sba_iterations: int = 3  # Gauss-Newton iterations per round (two rounds)
@@ -127,8 +126,7 @@ class FrontendConfig(_Section):
     lba_every: int = 3
     # ... or sooner, once the drive has gone lba_keyframe_m from the last keyframe (0 = never): a
     # fast drive keeps the keyframe spacing of a normal one (3 frames at 0.7-1.2 m per frame,
-    # which 2.5 m leaves as they are). Stop 14: KITTI 06 at every 3rd frame ATE 0.154 -> 0.072 m
-    # (README, "Fast drives").
+    # which 2.5 m leaves as they are).
     lba_keyframe_m: float = 2.5
     # klt: when PnP on the KLT tracks fails or has fewer than min_inliers inliers (large motion:
     # a fast drive, or frames skipped), retry once by matching ORB keypoints detected afresh in
@@ -146,9 +144,8 @@ class FrontendConfig(_Section):
     # disparity_offset_min_solves solves contributed, its standard error is at most
     # disparity_offset_max_sd_px (a drive with too little depth change -- a MAV hovering, a car
     # standing -- leaves the offset unobservable) and it differs by disparity_offset_min_px and by
-    # disparity_offset_min_z standard errors or more. Stop 14: the significance test, not the count
-    # (10 before), is what keeps an offset-free rig's early noise out (README, "disparity offset");
-    # stop 15: 4 standard errors with the yaw model (3 let a fast offset-free drive apply one).
+    # disparity_offset_min_z standard errors or more (frontend/offset.py): the significance test
+    # keeps an offset-free rig's early noise out.
     estimate_disparity_offset: bool = True
     disparity_offset_prior_px: float = 0.5
     disparity_offset_max_px: float = 2.0
@@ -157,8 +154,7 @@ class FrontendConfig(_Section):
     disparity_offset_max_sd_px: float = 0.05
     disparity_offset_min_z: float = 4.0
     # Once applied, the running estimate forgets older solves (weight 1 - 1/memory per new solve;
-    # 0 = never): they were measured with a worse offset applied, whose track selection leans
-    # toward it. Stop 14: 1 px open rendering, frames 0-999, ATE 3.17 -> 1.53 m (README).
+    # 0 = never): they saw a worse offset applied, whose track selection leans toward it.
     disparity_offset_memory_solves: int = 20
     loop_detector: Literal["orb", "sift"] = "orb"  # "orb": ORB pyramid; "sift": SIFT from octave 0
     loop_orb_features: int = 1000  # keypoints per reference frame (before the stereo check)
@@ -175,12 +171,11 @@ class FrontendConfig(_Section):
     loop_depth_check_px: float = 1.0
     loop_depth_min_ratio: float = 0.5
     loop_min_sigma_px: float = 0.5  # floor of the reprojection sigma in the loop covariance
-    # A verified loop measured farther apart than this is refused: a loop is a revisit of the same
-    # place; views 10-30 m apart of one street verify too (KITTI 07 rendering, loop.radius_m = 30:
-    # 539 verified pairs > 10 m apart). Measured distances near 10 m err by up to ~0.3 m, so 8 m
-    # keeps a margin below the evaluation's 10 m "false" line.
+    # A verified loop farther apart than this is refused: a loop is a revisit of the same place,
+    # and views 10-30 m apart along one street verify too; 8 m keeps a margin below the
+    # evaluation's 10 m "false" line.
     loop_max_distance_m: float = 8.0
-    # KLT window bias (issue 11, pitch bias at its source): where the flow curves within the LK
+    # KLT window bias (the pitch bias at its source): where the flow curves within the LK
     # window (the road under forward motion) the translation-only fit is biased by the window's
     # second moment, (w^2 - 1) / 12. Each track is re-fitted at the finest level with a
     # klt_bias_window_px window and extrapolated to a zero-size window (0 disables); a re-fit that
@@ -207,10 +202,8 @@ class FrontendConfig(_Section):
     # (0: never split).
     lk_split_min: int = 200
     # ORB loop keypoints refined at full resolution (cv2.cornerSubPix, half-window this many
-    # pixels x the pyramid scale of the keypoint's level; 0 = the level's pixel grid, as before).
-    # A FAST corner from pyramid level o sits on that level's grid, up to 1.2^o px off; the
-    # refinement halves the verified loops' translation error on the KITTI 07 renderings
-    # (experiments/loop_pose_accuracy.py).
+    # pixels x the pyramid scale of the keypoint's level; 0 = the level's pixel grid): a FAST
+    # corner from pyramid level o sits on that level's grid, up to 1.2^o px off.
     loop_subpixel_px: float = 2.0
 
     def _cross_checks(self, source: str) -> None:
@@ -632,7 +625,7 @@ PROBABILITY = Range(0, 1, lo_open=True, hi_open=True)  # (0, 1)
 ANGLE = Range(0, 180, lo_open=True)  # (0, 180] degrees
 
 # The range of every numeric field, keyed "section.field" (booleans and Literal fields are checked
-# by their type). A new numeric field needs a line here (tests/test_config.py checks it).
+# by their type). A new numeric field needs a line here (tests/test_contract.py checks it).
 # Keys older versions had (and wrote into every run's config.toml): read back with a note.
 _RETIRED_GROUPS = {
     "the map is a TSDF fusion now, not a union of point clouds": (

@@ -1,4 +1,4 @@
-"""Speed work on the front end that must not change what it computes (issue 11)."""
+"""Speed work on the front end that must not change what it computes."""
 
 from __future__ import annotations
 

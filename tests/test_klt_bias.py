@@ -1,4 +1,4 @@
-"""The KLT window bias on the road, and its removal at the source (issue 11's pitch bias)."""
+"""The KLT window bias on the road, and its removal at the source (the pitch bias)."""
 
 import dataclasses
 

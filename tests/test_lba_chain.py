@@ -1,4 +1,4 @@
-"""The chain's relative-pose factor in the local BA window (issue 11: the window's yaw noise)."""
+"""The chain's relative-pose factor in the local BA window (the window's yaw noise)."""
 
 import numpy as np
 

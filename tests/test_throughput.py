@@ -83,12 +83,13 @@ _FAULTS = """
 import resource, cv2, numpy as np
 import snaps_graph.backend  # gtsam: after this import glibc's defaults faulted on every call
 from snaps_graph import _malloc
+applied = _malloc.set_malloc_thresholds()
 img = (np.random.default_rng(0).random((376, 1241)) * 255).astype(np.uint8)
 cv2.goodFeaturesToTrack(img, 1000, 0.01, 10)
 f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
 for _ in range(5):
     cv2.goodFeaturesToTrack(img, 1000, 0.01, 10)
-print(_malloc.APPLIED, (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0) / 5)
+print(applied, (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0) / 5)
 """
 
 

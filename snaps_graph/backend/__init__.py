@@ -1,4 +1,4 @@
-"""Factor-graph back end: the only package that imports gtsam (see pose_graph.py)."""
+"""Factor-graph back end: the package that imports gtsam (see pose_graph.py)."""
 
 from .pose_graph import GraphStats, LoopFactorInfo, PoseGraph, loop_sigma_scale, loop_sigmas, odometry_covariance, odometry_sigmas
 

@@ -43,7 +43,7 @@ Decisions, and why:
   kernel to the norm of the whole whitened 6-vector, and a perfect inlier's norm is already
   ~sqrt(6) = 2.4, so the width ``robust_param`` is 3 (k = 1 cut true loops to ~15% weight and
   left a square test loop unclosed). Cauchy is the default: its influence falls off for large
-  residuals, whereas Huber's stays constant (measured on the square test: a false loop moved the
+  residuals, whereas Huber's stays constant (on the square test a false loop moved the
   result 0.006 m under Cauchy, 0.5 m under Huber, 9.9 m without a kernel).
   ``robust_kernel = "none"`` exists for comparisons.
 * **iSAM2.** QR factorisation: SPEC records ISAM2 with Cholesky throwing

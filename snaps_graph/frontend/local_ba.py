@@ -1,4 +1,4 @@
-"""Sliding-window local bundle adjustment over keyframes (issue 11, item 2).
+"""Sliding-window local bundle adjustment over keyframes.
 
 Each keyframe brings its pose (the VO's T_world_cam) and its landmarks' stereo measurements
 (u_left, u_right, v) with persistent landmark ids (KLT tracks keep their id while they live).
@@ -253,7 +253,7 @@ class LocalBundleAdjuster:
             Fm = F.transpose(1, 2, 0, 3).reshape(6 * W, -1)
             Hm = Hcl.transpose(1, 2, 0, 3).reshape(6 * W, -1)
             # Block by block: one (6W x 3L) GEMM would be multi-threaded by OpenBLAS, which
-            # measured 100x slower than these 6-row products on a busy 2-core machine.
+            # is far slower than these 6-row products on a busy 2-core machine.
             S = np.empty((6 * W, 6 * W))
             for a in range(W):
                 for b in range(a, W):

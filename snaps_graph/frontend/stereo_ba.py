@@ -1,4 +1,4 @@
-"""Motion from stereo measurements: a two-view stereo bundle adjustment (issue 11, item 1).
+"""Motion from stereo measurements: a two-view stereo bundle adjustment.
 
 PnP treats each reference point's stereo depth as exact. Depth from z = f·B/d is uncertain and,
 for far points, biased long (E[1/d] > 1/E[d] for noisy d), which pulls the translation. Here the
