@@ -12,27 +12,7 @@ Decisions, and why:
 * **Noise order.** GTSAM's Pose3 tangent is (rotation rad, translation m): every sigma vector
   here is ``[rx, ry, rz, tx, ty, tz]`` in that order (a swapped order silently makes rotation
   100x too stiff or too loose).
-* **Odometry noise** (SPEC: "a noise model that reflects the VO quality"). A PnP pose estimated
-  from n independent inliers has a covariance that shrinks like 1/n, so its sigmas shrink like
-  1/sqrt(n): ``sigma = odom_sigma * clip(sqrt(odom_ref_inliers / max(n, odom_min_inliers)),
-  odom_sigma_scale_min, odom_sigma_scale_max)``. ``inliers <= 0`` means "not reported" and gives
-  the reference sigmas. A flagged step (``ok=False``: the front end fell back on a
-  constant-velocity guess) is multiplied by ``flagged_sigma_scale`` so loops can bend it freely.
-  A step that carries the front end's stereo-BA covariance
-  (``VOResult.cov``) uses it instead, scaled by ``odom_cov_scale`` and floored by
-  ``odom_cov_floor_*`` (:func:`odometry_covariance`).
-* **Loop noise from the UIQI Q** (paper eq. 4; SPEC: a higher Q gives a tighter model). Q is a
-  similarity, not a calibrated probability; what it tells us is how far the match clears the
-  acceptance threshold. We take the margin above a floor ``q0 = loop_q_floor`` and let the
-  information 1/sigma^2 grow with the square of that margin, full weight at Q = 1::
-
-      scale(Q) = clip((1 - q0) / (Q - q0), 1, loop_sigma_scale_max)   (scale_max when Q <= q0)
-      sigma(Q) = base_sigma * scale(Q)
-
-  The default q0 = 0 suits the exact UIQI, where true revisits score 0.15-0.6: sigma = base / Q,
-  at most 10x (Q = 0.5 -> 2x, 0.2 -> 5x). With the paper's index scale (threshold 0.75) a floor
-  just below it, q0 = 0.7, gives Q = 1 -> 1x, 0.95 -> 1.2x, 0.85 -> 2x, 0.75 -> 6x. Either way it
-  is monotone (non-increasing) in Q by construction.
+* **Noise models** of the odometry and loop factors: ``noise.py``.
 * **Loop measurement.** A geometrically verified loop (``T_ref_cur`` given) uses the measured
   relative pose with the ``loop_sigma_*`` base sigmas. Otherwise the paper's own assumption (SNAPS
   only says the two frames show the same place, §III) is written as a factor: zero translation,
@@ -83,6 +63,7 @@ from ..io_utils import atomic_output
 from ._values import array_to_values as _array_to_values
 from ._values import to_pose3 as _to_pose3
 from ._values import values_to_array as _values_to_array
+from .noise import loop_covariance, loop_sigmas, odometry_covariance, odometry_sigmas
 
 MODES = ("none", "isam2", "batch")  # graph.refine's values but "both" (= isam2 here + optimize_batch)
 
@@ -171,74 +152,6 @@ def _check_pose(T: np.ndarray | None, what: str) -> np.ndarray:
     if not np.all(np.isfinite(T)):
         raise SnapsGraphError(f"{what}: non-finite pose")
     return T
-
-
-def odometry_sigmas(cfg: GraphConfig, inliers: int, ok: bool) -> np.ndarray:
-    """Sigmas (rot rad x3, trans m x3) of one VO step: see the module docstring.
-
-    ``sqrt(odom_ref_inliers / max(inliers, odom_min_inliers))`` clamped to
-    ``[odom_sigma_scale_min, odom_sigma_scale_max]``; ``inliers <= 0`` (not reported) -> 1;
-    a flagged step is further multiplied by ``flagged_sigma_scale``.
-    """
-    if inliers > 0:
-        scale = math.sqrt(cfg.odom_ref_inliers / max(inliers, cfg.odom_min_inliers, 1))
-        scale = min(max(scale, cfg.odom_sigma_scale_min), cfg.odom_sigma_scale_max)
-    else:
-        scale = 1.0
-    if not ok:
-        scale *= cfg.flagged_sigma_scale
-    return scale * np.array([cfg.odom_sigma_rot_rad] * 3 + [cfg.odom_sigma_trans_m] * 3)
-
-
-def odometry_covariance(cfg: GraphConfig, cov: np.ndarray | None) -> np.ndarray | None:
-    """The step covariance: ``odom_cov_scale^2 * cov`` plus the floor sigmas squared on the
-    diagonal; None (use :func:`odometry_sigmas`) when ``cov`` is missing, not a finite symmetric
-    6x6 or not positive semi-definite."""
-    if cov is None:
-        return None
-    C = np.asarray(cov, dtype=float)
-    if C.shape != (6, 6) or not np.all(np.isfinite(C)):
-        return None
-    C = 0.5 * (C + C.T)
-    if np.linalg.eigvalsh(C).min() < -1e-12 * max(float(np.abs(C).max()), 1e-300):
-        return None
-    floor = np.array([cfg.odom_cov_floor_rot_rad] * 3 + [cfg.odom_cov_floor_trans_m] * 3)
-    return cfg.odom_cov_scale**2 * C + np.diag(floor**2)
-
-
-def loop_sigma_scale(cfg: GraphConfig, q: float) -> float:
-    """UIQI-to-noise mapping: ``clip((1 - q0) / (Q - q0), 1, loop_sigma_scale_max)``, q0 =
-    ``loop_q_floor``. 1 at Q = 1, growing as Q falls toward q0 (information ~ (Q - q0)^2)."""
-    q0 = cfg.loop_q_floor
-    margin = min(float(q), 1.0) - q0
-    if margin <= 0.0:
-        return float(cfg.loop_sigma_scale_max)
-    return float(min(max((1.0 - q0) / margin, 1.0), cfg.loop_sigma_scale_max))
-
-
-def loop_sigmas(cfg: GraphConfig, q: float, verified: bool) -> np.ndarray:
-    """Sigmas (rot rad x3, trans m x3) of a loop factor with similarity ``q``."""
-    if verified:
-        base = [cfg.loop_sigma_rot_rad] * 3 + [cfg.loop_sigma_trans_m] * 3
-    else:
-        base = [cfg.unverified_sigma_rot_rad] * 3 + [cfg.unverified_sigma_trans_m] * 3
-    return loop_sigma_scale(cfg, q) * np.array(base)
-
-
-def loop_covariance(cfg: GraphConfig, covariance: np.ndarray) -> np.ndarray | None:
-    """A verified loop's factor covariance: ``loop_cov_scale`` x the verification's 6x6
-    covariance (rot rad, trans m) plus the ``loop_sigma_floor_*`` squared on the diagonal; None
-    when the input is not a finite symmetric positive-definite 6x6."""
-    C = np.asarray(covariance, dtype=float)
-    if C.shape != (6, 6) or not np.all(np.isfinite(C)):
-        return None
-    floor = np.array([cfg.loop_sigma_floor_rot_rad] * 3 + [cfg.loop_sigma_floor_trans_m] * 3)
-    C = cfg.loop_cov_scale * 0.5 * (C + C.T) + np.diag(floor**2)
-    try:
-        np.linalg.cholesky(C)
-    except np.linalg.LinAlgError:
-        return None
-    return C
 
 
 class PoseGraph:
