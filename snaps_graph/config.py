@@ -130,8 +130,7 @@ class FrontendConfig(_Section):
     lba_keyframe_m: float = 2.5
     # klt: when PnP on the KLT tracks fails or has fewer than min_inliers inliers (large motion:
     # a fast drive, or frames skipped), retry once by matching ORB keypoints detected afresh in
-    # the reference and the current frame ("orb"), or flag at once ("none").
-    klt_retry: Literal["none", "orb"] = "orb"
+    # the reference and the current frame.
     klt_retry_features: int = 4000  # ORB keypoints detected per image by the retry
     # Disparity offset, measured - true, px, at the centre column (a rig's rectification residual:
     # a rig whose disparities read 0.3 px small has -0.3). It is modelled as a small turn of the
@@ -655,6 +654,7 @@ _RETIRED_GROUPS = {
         "frontend.lba_select",
     ),
     "far points are not used": ("frontend.sba_far_points", "frontend.far_min_disparity_px"),
+    "KLT always retries a failed frame on ORB matches": ("frontend.klt_retry",),
     "the disparity offset is modelled as a turned right camera": ("frontend.disparity_offset_model",),
     "loops verify with their own features against the nearest stored reference, PnP pose": (
         "frontend.loop_verify_features",

@@ -32,7 +32,7 @@ class Keyframe:
     sharpness: float
     features: FrameFeatures  # VOResult.features
     ids: np.ndarray  # (N,) int64 landmark ids (klt: persistent across frames; -1 where unknown)
-    right: np.ndarray | None = None  # right image (klt_retry matches ORB keypoints with depth from it)
+    right: np.ndarray | None = None  # right image (the ORB retry matches keypoints with depth from it)
 
 
 def sharpness(img: np.ndarray) -> float:

@@ -2,7 +2,7 @@
 PnP (+ the stereo BA) on the tracks, re-detection where tracks ran out.
 
 At speed (large motion, or frames skipped) LK starts from the constant-velocity prediction;
-when PnP on the tracks still fails, ``klt_retry = "orb"`` retries once on ORB matches detected
+when PnP on the tracks still fails, it retries once on ORB matches detected
 afresh plus the tracks. Weak texture: goodFeaturesToTrack's quality threshold is relative to the
 image's strongest corner, which on an open road is a far tree line against the sky; when tracked
 plus new points with depth are fewer than ``klt_weak_points`` and most new corners are out of
@@ -92,7 +92,7 @@ class KltTracker:
             n_inl = len(inl)
             keep = np.zeros(len(idx), bool)
             keep[inl] = True  # drop PnP outliers: mostly bad tracks
-        if cfg.klt_retry == "orb" and n_inl < cfg.min_inliers and ref.right is not None:
+        if n_inl < cfg.min_inliers and ref.right is not None:
             retry = self._orb_retry(ref, frame, (ref.pts3d[idx], ref.uv[idx], ref.disp[idx], uv_cur[idx], d), timings)
             if retry is not None and len(retry[1]) > n_inl:
                 T_cur_ref, n_inl, cov = retry[0], len(retry[1]), retry[2]
