@@ -1,6 +1,7 @@
 """Data passed between stages (images -> front end -> SNAPS -> graph -> map/evaluation).
 
-Plain dataclasses with numpy fields; no stage imports another stage's internals, only these.
+Plain dataclasses with numpy fields (and the front end's Protocol); no stage imports another
+stage's internals, only these.
 """
 
 from __future__ import annotations
