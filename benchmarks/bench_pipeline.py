@@ -180,7 +180,7 @@ def main() -> None:
         write_results(args.out, pipe, result, gt, overwrite=True)
         print(f"results in {args.out}")  # before the false loops below touch the graph
     if args.naive_frames:
-        from bench_frontend import NaiveVO  # the paper's front end written plainly (benchmarks/)
+        from naive_vo import NaiveVO  # the paper's front end written plainly (benchmarks/)
 
         from snaps_graph.config import FrontendConfig
 
