@@ -42,11 +42,15 @@ def _cli(*args: str) -> list[str]:
     return [sys.executable, "-m", "snaps_graph.cli", *args]
 
 
-def _shown(cmd: list[str]) -> str:
-    """The command as a user types it (``snaps-graph ...``), paths relative to the repository."""
+def _shown(cmd: list[str], names: dict[str, str] | None = None) -> str:
+    """The command as a user types it (``snaps-graph ...``), paths relative to the repository;
+    ``names`` shows a data folder by its name (``KITTI06``), since it lies outside the repository."""
     words = ["snaps-graph", *cmd[3:]]
     out = []
     for w in words:
+        if names and w in names:
+            out.append(names[w])
+            continue
         p = Path(w)
         if p.is_absolute():
             try:
@@ -57,6 +61,9 @@ def _shown(cmd: list[str]) -> str:
     return " ".join(out)
 
 
+LOADS: list[float] = []  # the 1-minute load average after each command ran: speed depends on it
+
+
 def _run(cmd: list[str], metrics: Path, reuse: bool) -> dict:
     if not (reuse and metrics.is_file()):
         env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
@@ -64,6 +71,8 @@ def _run(cmd: list[str], metrics: Path, reuse: bool) -> dict:
         rc = subprocess.call(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL)
         if rc not in (0, 3):
             raise SystemExit(f"error: {_shown(cmd)} exited with {rc}")
+        if hasattr(os, "getloadavg"):
+            LOADS.append(os.getloadavg()[0])
     return json.loads(metrics.read_text())
 
 
@@ -113,7 +122,7 @@ def main() -> int:
         if not args.reuse and run_dir.exists() and not (run_dir / "metrics.json").is_file():
             raise SystemExit(f"error: {run_dir}: exists and is not a results folder; choose another --work")
         rows.append(_row("real KITTI 06 clip (stereo)", _run(cmd, run_dir / "metrics.json", args.reuse)))
-        commands.append(_shown(cmd))
+        commands.append(_shown(cmd, {str(args.kitti06): "KITTI06"}))
     else:
         rows.append("| real KITTI 06 clip (stereo) | not measured: no data at --kitti06 | | | | | | |")
 
@@ -129,16 +138,18 @@ def main() -> int:
     for name, why in PENDING:
         rows.append(f"| {name} | {why} | | | | | | |")
 
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    load = f"load average up to {max(LOADS):.1f} while measuring" if LOADS else "rows read from earlier runs (--reuse)"
     md = [
         "| input | frames | path m | loops | ATE m: VO / SNAPS / refined | end drift %: VO / SNAPS / refined "
         "| flagged | frames/s |",
         "|---|---|---|---|---|---|---|---|",
         *rows,
         "",
-        f"Refined = iSAM2. {os.cpu_count()} CPU cores, load average {load:.1f} while measuring. Commands:",
+        f"Refined = iSAM2. {os.cpu_count()} CPU cores, {load}. Commands:",
         "",
         *(f"    {c}" for c in commands),
+        "",
+        "KITTI06 = the `--kitti06` folder: KITTI odometry sequence 06, frames 0-50, stereo, with its ground truth.",
         "",
         "Regenerate: `python benchmarks/results_table.py` (writes this file).",
     ]
