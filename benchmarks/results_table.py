@@ -11,6 +11,7 @@ odometry, the rendered KITTI paths) are printed as "not yet measured", never est
 
     python benchmarks/results_table.py                          # data from ../shared/data
     python benchmarks/results_table.py --kitti06 DATA/kitti/sequences/06 --out docs/results/README-table.md
+    python benchmarks/results_table.py --readme README.md      # ... and the same table into the README
 
 Frames per second are the pipeline's own rate (frames / sum of per-frame processing time, what
 ``run`` prints as "frames/s"); the machine's load average is printed beside them.
@@ -61,6 +62,7 @@ def _shown(cmd: list[str], names: dict[str, str] | None = None) -> str:
     return " ".join(out)
 
 
+BEGIN, END = "<!-- results_table.py: begin -->", "<!-- results_table.py: end -->"
 LOADS: list[float] = []  # the 1-minute load average after each command ran: speed depends on it
 
 
@@ -110,6 +112,12 @@ def main() -> int:
         "--out", "-o", type=Path, default=ROOT / "docs" / "results" / "README-table.md", help="markdown file to write"
     )
     ap.add_argument("--reuse", action="store_true", help="read the run folders already in --work instead of running")
+    ap.add_argument(
+        "--readme",
+        type=Path,
+        default=None,
+        help=f"also replace the text between the markers {BEGIN!r} and {END!r} in this file (README.md) with the table",
+    )
     args = ap.parse_args()
 
     args.work.mkdir(parents=True, exist_ok=True)
@@ -151,15 +159,29 @@ def main() -> int:
         "",
         "KITTI06 = the `--kitti06` folder: KITTI odometry sequence 06, frames 0-50, stereo, with its ground truth.",
         "",
-        "Regenerate: `python benchmarks/results_table.py` (writes this file).",
+        "Regenerate: `python benchmarks/results_table.py --readme README.md` (writes this table here and in docs/results/).",
     ]
     text = "\n".join(md) + "\n"
     args.out.parent.mkdir(parents=True, exist_ok=True)
     tmp = args.out.with_name(f".{args.out.name}.tmp-{os.getpid()}")
     tmp.write_text(text)
     tmp.replace(args.out)
+    if args.readme is not None:
+        _splice(args.readme, text)
     print(text, end="")
     return 0
+
+
+def _splice(path: Path, text: str) -> None:
+    """Put ``text`` between the markers in ``path``; the file must hold both, once, in order."""
+    old = path.read_text()
+    a, b = old.find(BEGIN), old.find(END)
+    if a < 0 or b < a or old.count(BEGIN) != 1 or old.count(END) != 1:
+        raise SystemExit(f"error: {path}: needs one line {BEGIN} and one line {END} after it")
+    new = old[: a + len(BEGIN)] + "\n" + text + old[b:]
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.write_text(new)
+    tmp.replace(path)
 
 
 if __name__ == "__main__":
