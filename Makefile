@@ -2,12 +2,13 @@
 #   make demo   -- set up .venv, then run the demo on built-in synthetic data
 #   make test   -- set up .venv, then lint (ruff, mypy) and run the test suite
 #   make quick  -- the tests without the slow ones (pytest -m "not slow"), for a local loop
+#   make data   -- render the synthetic benchmark sequences (docs/datasets.md) into results/data/
 PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup demo test quick lint bench clean sysdeps
+.PHONY: setup demo test quick lint bench clean sysdeps data
 
 setup: sysdeps $(STAMP)
 
@@ -37,6 +38,37 @@ quick: setup
 
 bench: setup
 	$(BIN)/python benchmarks/run_all.py
+
+# The benchmarks' synthetic sequences as named recipes (docs/datasets.md). KITTI_GT holds the
+# ground-truth paths NN.txt (with NN_times.txt beside them, or the official KITTI layout's
+# poses/NN.txt, whose times synth finds in ../sequences/NN/times.txt). A sequence already
+# rendered is kept (synth never replaces a folder without --overwrite); pick some with
+# `make data DATASETS="loop300 street00_1000"`.
+KITTI_GT ?= ../shared/data/kitti_gt
+DATA_DIR ?= results/data
+DATASETS ?= loop300 street00_400 street00_1000 open00_1000 open00_1000_rect03 open00_1000_rect10 street07 hard07 street00
+SYNTH    := $(BIN)/snaps-graph synth
+
+data: $(DATASETS:%=$(DATA_DIR)/%/poses.txt)
+
+$(DATA_DIR)/loop300/poses.txt: | sysdeps $(STAMP)
+	$(SYNTH) --trajectory loop --out $(@D)
+$(DATA_DIR)/street00_400/poses.txt: | sysdeps $(STAMP)
+	$(SYNTH) --trajectory $(KITTI_GT)/00.txt --frames 0:400 --out $(@D)
+$(DATA_DIR)/street00_1000/poses.txt: | sysdeps $(STAMP)
+	$(SYNTH) --trajectory $(KITTI_GT)/00.txt --frames 0:1000 --out $(@D)
+$(DATA_DIR)/open00_1000/poses.txt: | sysdeps $(STAMP)
+	$(SYNTH) --trajectory $(KITTI_GT)/00.txt --frames 0:1000 --scene open --out $(@D)
+$(DATA_DIR)/open00_1000_rect03/poses.txt: | sysdeps $(STAMP)
+	$(SYNTH) --trajectory $(KITTI_GT)/00.txt --frames 0:1000 --scene open --rectification-error 0.3 --out $(@D)
+$(DATA_DIR)/open00_1000_rect10/poses.txt: | sysdeps $(STAMP)
+	$(SYNTH) --trajectory $(KITTI_GT)/00.txt --frames 0:1000 --scene open --rectification-error 1.0 --out $(@D)
+$(DATA_DIR)/street07/poses.txt: | sysdeps $(STAMP)
+	$(SYNTH) --trajectory $(KITTI_GT)/07.txt --out $(@D)
+$(DATA_DIR)/hard07/poses.txt: | sysdeps $(STAMP)
+	$(SYNTH) --trajectory $(KITTI_GT)/07.txt --aliasing --traffic --lighting --out $(@D)
+$(DATA_DIR)/street00/poses.txt: | sysdeps $(STAMP)
+	$(SYNTH) --trajectory $(KITTI_GT)/00.txt --world-mesh $(DATA_DIR)/street00_world.ply --out $(@D)
 
 clean:
 	rm -rf $(VENV) results .pytest_cache .mypy_cache .ruff_cache
