@@ -22,6 +22,7 @@ from tqdm import tqdm
 from .config import Config, FrontendMode, LoopMode, RefineMode, choices
 from .errors import SnapsGraphError
 from .io_utils import PREFETCH_FRAMES, check_output_folder, output_folder
+from .trajectory_io import ODOMETRY_FORMATS
 
 # Heavy modules (OpenCV, gtsam, open3d, matplotlib) are imported inside the commands that use
 # them, after the cheap checks, so `config`, `--help` and a bad option answer at once.
@@ -169,6 +170,13 @@ def run(
     ),
     viewer: bool = typer.Option(False, "--viewer", help="Spawn the rerun viewer and stream the run to it (needs rerun-sdk)."),
     rrd: Optional[Path] = typer.Option(None, "--rrd", help="Record the run to a rerun .rrd file (needs rerun-sdk)."),
+    odometry: Optional[Path] = typer.Option(
+        None,
+        "--odometry",
+        help="Poses from elsewhere instead of the stereo VO: a KITTI pose file (line i = frame i) or TUM "
+        "(t x y z qx qy qz qw, matched by timestamp); SEQ may then be monocular.",
+    ),
+    odometry_format: Optional[str] = typer.Option(None, "--odometry-format", help="kitti | tum (default: by the column count)."),
 ) -> None:
     """Run stereo VO (+ SNAPS, + graph refinement, + map) over a sequence and write a results folder.
 
@@ -194,10 +202,22 @@ def run(
     check_output_folder(out, overwrite)
     if _inside(seq_dir, out):
         raise_user(f"{out}: --out would replace the input sequence {seq_dir}")
+    if odometry_format is not None and odometry_format not in ODOMETRY_FORMATS:
+        raise_user(f"--odometry-format must be one of {', '.join(ODOMETRY_FORMATS)}, not '{odometry_format}'")
+    if odometry is not None:
+        if not odometry.is_file():
+            raise_user(f"{odometry}: odometry file not found")
+        if _inside(odometry, out):
+            raise_user(f"{out}: --out would replace the odometry file {odometry}")
     from .datasets.open import open_dataset  # the heavy imports (OpenCV, gtsam) after the checks
     from .runner import mostly_flagged, run_sequence
 
     seq = open_dataset(seq_dir, frames=frames, gt=gt, left_topic=left_topic, right_topic=right_topic, calib=calib)
+    if not getattr(seq, "stereo", True):
+        if odometry is None:
+            raise_user(f"{seq_dir}: no right images: the stereo VO needs them (give odometry from elsewhere: --odometry POSES)")
+        if cfg.resolved(loops=loops, refine=refine, build_map=map_).map.enabled:
+            raise_user(f"{seq_dir}: no right images: the map needs stereo depth (run without --map)")
     _print_notes(seq)
     observer = None
     if viewer or rrd is not None:
@@ -225,6 +245,8 @@ def run(
                 on_frame=on_frame,
                 observer=observer,
                 prefetch_frames=prefetch,
+                odometry=odometry,
+                odometry_format=odometry_format,
             )
         except BaseException:
             if observer is not None:
