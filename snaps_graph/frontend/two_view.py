@@ -1,6 +1,6 @@
 """Loop verification without stereo: two-view geometry between a reference frame and the current one.
 
-Features of both frames (``loop_features.detect_loop_keypoints``: ORB or SIFT), ratio-test
+SIFT features of both frames (``loop_features.detect_loop_keypoints``), ratio-test
 matches, the essential matrix under RANSAC (``cv2.findEssentialMat`` with USAC_ACCURATE: local
 optimisation of the inliers, which a plain 5-point RANSAC lacks; seeded) and ``cv2.recoverPose``
 give the rotation and the direction of the translation; at least ``min_inliers`` matches must
@@ -13,6 +13,7 @@ Sampson residuals' Jacobian. See docs/odometry-input.md for the figures behind t
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import cv2
@@ -21,7 +22,7 @@ import numpy as np
 from ..camera import StereoCamera
 from ..config import FrontendConfig
 from ..geometry import rotation_angle_deg
-from ..types import FrameFeatures
+from ..types import FrameFeatures, StereoFrame
 from .features import match_descriptors
 from .loop_features import LoopFeatureBank, detect_loop_keypoints
 
@@ -41,16 +42,30 @@ class TwoViewMatch:
     rms_px: float  # Sampson error rms of the inliers
     cov_rot: np.ndarray  # 3x3, right perturbation of R_ref_cur (rad)
     cov_dir: np.ndarray  # 3x3 (rank 2), of ``direction`` in the reference frame
+    pairs: np.ndarray  # (inliers, 2) int: the inlier matches' indices into the reference's and the current frame's features
+
+
+DETECTOR = "sift"  # two-view geometry's features (docs/odometry-input.md: SIFT against ORB)
+
+
+def two_view_features(img: np.ndarray, cfg: FrontendConfig, n: int | None = None, detector: str = DETECTOR) -> FrameFeatures:
+    """Keypoints and descriptors of one image (no depth) for two-view verification."""
+    uv, desc, _ = detect_loop_keypoints(img, dataclasses.replace(cfg, loop_detector=detector), n)
+    return FrameFeatures(uv, np.zeros((len(uv), 3), np.float32), desc)
 
 
 class MonoFeatureBank(LoopFeatureBank):
     """``LoopFeatureBank`` for frames without a right image: keypoints and descriptors only."""
 
     def _compute(self, left: np.ndarray, right: np.ndarray, offset_px: float) -> FrameFeatures | None:
-        uv, desc, _ = detect_loop_keypoints(left, self.cfg)
-        if len(uv) < self.cfg.min_inliers:
-            return None
-        return FrameFeatures(uv, np.zeros((len(uv), 3), np.float32), desc)
+        f = two_view_features(left, self.cfg)
+        return f if len(f.uv) >= self.cfg.min_inliers else None
+
+    def query(self, k: int, frame: StereoFrame) -> FrameFeatures:
+        if self._query_k != k or self._query is None:
+            self._query = two_view_features(frame.left, self.cfg, self.cfg.loop_query_features)
+            self._query_k = k
+        return self._query
 
 
 def _sampson(E: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
@@ -142,7 +157,7 @@ def two_view_pose(
     cov_rot = cov_rot + np.eye(3) * MIN_SIGMA_ROT_RAD**2
     P = np.eye(3) - np.outer(d, d)
     cov_dir = cov_dir + P * MIN_SIGMA_DIR_RAD**2
-    return TwoViewMatch(R, d, int(len(inl)), rms * camera.fx, cov_rot, cov_dir)
+    return TwoViewMatch(R, d, int(len(inl)), rms * camera.fx, cov_rot, cov_dir, np.c_[ia[inl], ib[inl]])
 
 
 def loop_measurement(m: TwoViewMatch, odometry_distance_m: float) -> tuple[np.ndarray, np.ndarray]:
