@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -45,10 +46,12 @@ class TwoViewMatch:
     pairs: np.ndarray  # (inliers, 2) int: the inlier matches' indices into the reference's and the current frame's features
 
 
-DETECTOR = "sift"  # two-view geometry's features (docs/odometry-input.md: SIFT against ORB)
+DETECTOR: Literal["orb", "sift"] = "sift"  # two-view geometry's features (docs/odometry-input.md: SIFT against ORB)
 
 
-def two_view_features(img: np.ndarray, cfg: FrontendConfig, n: int | None = None, detector: str = DETECTOR) -> FrameFeatures:
+def two_view_features(
+    img: np.ndarray, cfg: FrontendConfig, n: int | None = None, detector: Literal["orb", "sift"] = DETECTOR
+) -> FrameFeatures:
     """Keypoints and descriptors of one image (no depth) for two-view verification."""
     uv, desc, _ = detect_loop_keypoints(img, dataclasses.replace(cfg, loop_detector=detector), n)
     return FrameFeatures(uv, np.zeros((len(uv), 3), np.float32), desc)
