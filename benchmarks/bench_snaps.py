@@ -81,6 +81,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--noise", type=float, default=12.0, help="per-frame thumbnail noise, grey levels (std)")
     ap.add_argument("--cell-m", type=float, default=6.0, help="place texture cell size, metres")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--search", choices=["drift", "radius"], default="drift", help="loop.search (drift gate or the paper's radius)"
+    )
     args = ap.parse_args(argv)
 
     if not args.gt.is_file():
@@ -92,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
         gt = gt[: args.frames]
     n = len(gt)
 
-    cfg = LoopConfig(thumbnail_scale=1.0)  # the images below already have thumbnail size
+    cfg = LoopConfig(thumbnail_scale=1.0, search=args.search)  # the images below already have thumbnail size
     closer = SnapsLoopCloser(cfg)
     textures = PlaceTextures(args.cell_m, args.seed)
     rng = np.random.default_rng(args.seed + 1)
@@ -142,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
 
     print(
         f"SNAPS latency on {args.gt.name}: {n} frames, thumbnails {THUMB_HW[1]}x{THUMB_HW[0]}, "
-        f"yaw bias {args.yaw_bias_deg} deg/frame, scale error {args.scale_error:+.1%}, noise {args.noise}"
+        f"yaw bias {args.yaw_bias_deg} deg/frame, scale error {args.scale_error:+.1%}, noise {args.noise}, search {args.search}"
     )
     print("t_ms per frame (detection + correction):")
     print(row("no candidate", t_none))

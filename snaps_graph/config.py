@@ -287,6 +287,13 @@ class LoopConfig(_Section):
     _name = "loop"
 
     radius_m: float = 10.0  # candidates lie within this distance of the current position
+    # Candidate gate: "drift" = within search_sigmas standard deviations of the [odometry] drift
+    # accrued between the candidate and now (through the last verified loop if shorter), never
+    # less than radius_m nor more than search_max_radius_m, nearest in sigmas first; "radius" =
+    # the paper's fixed radius_m around an estimate taken as exact.
+    search: Literal["drift", "radius"] = "drift"
+    search_sigmas: float = 3.0
+    search_max_radius_m: float = 40.0
     frame_distance: int = 100  # M: candidate j must satisfy N - j >= M
     # K: poses N-K..N are corrected (never the reference or older). 100 = the paper's Table I. 300
     # (where gamma ends for the first loop) helped the KITTI 07 renderings but bent the whole
@@ -383,6 +390,12 @@ class LoopConfig(_Section):
     # share of the turn an earlier loop already weighed and left out. With the default pause both
     # give the same horizontal mean deviation within 0.03x VO on the demo loop, 07, 07 hard, 00.
     heading_prior: Literal["span", "tracked"] = "span"
+
+    def _cross_checks(self, source: str) -> None:
+        if self.search_max_radius_m < self.radius_m:
+            raise SnapsGraphError(
+                f"{source}: loop.search_max_radius_m must be >= loop.radius_m, got {self.search_max_radius_m} and {self.radius_m}"
+            )
 
 
 @dataclass
@@ -515,7 +528,9 @@ class OdometryConfig(_Section):
     _name = "odometry"
 
     trans_drift_pct: float = 1.0  # translation error per distance driven, percent
-    rot_drift_deg_per_100m: float = 1.0  # heading (and attitude) error per 100 m driven, degrees
+    # Heading (and attitude) error per 100 m driven, degrees: 1 % of lateral drift over 1 km of
+    # driving needs about 0.1 (lateral error b D^2 / 2; docs/loop-closure.md).
+    rot_drift_deg_per_100m: float = 0.1
 
 
 @dataclass
@@ -802,6 +817,8 @@ RULES: dict[str, Range] = {
     "frontend.loop_verify_neighbours": NON_NEGATIVE,
     "frontend.loop_subpixel_px": NON_NEGATIVE,
     "loop.radius_m": POSITIVE,
+    "loop.search_sigmas": POSITIVE,
+    "loop.search_max_radius_m": POSITIVE,
     "odometry.trans_drift_pct": Range(0, 50, lo_open=True),
     "odometry.rot_drift_deg_per_100m": Range(0, 90, lo_open=True),
     "loop.frame_distance": AT_LEAST_1,

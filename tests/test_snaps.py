@@ -37,6 +37,7 @@ def cfg(**kw) -> LoopConfig:
         correction_weight="q",  # eq. 6 exactly as the paper weighs it (verified weight: own test)
         discount_window="fixed",  # the paper's window K and gamma (span/shapes: test_loop_features)
         discount_shape="paper",
+        search="radius",  # the paper's fixed radius (the drift gate: own tests)
     )
     base.update(kw)
     return LoopConfig(**base)
@@ -630,3 +631,62 @@ def test_heading_prior_tracked_after_a_loop(prior, second_gain):
     g2 = 0.5 if prior == "span" else 3.5 / 8.5
     yaw_ref = yaw_deg(closer.poses[1])
     assert yaws[6] == pytest.approx(yaws[5] - g2 * gamma(2, 0) * (yaws[5] - yaw_ref), abs=1e-9)
+
+
+# ---------------------------------------------------------------- drift-aware search
+def drifted_revisit(offset_x: float, n_out: int = 300) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """A drive n_out metres along z (1 m per frame), then, as estimated, back beside frame 100
+    shifted ``offset_x`` metres across (a drift the true path does not have); the last frame
+    shows the place of frame 100."""
+    poses = [pose(z=float(k)) for k in range(n_out)] + [pose(z=100.0, x=offset_x)]
+    images = [tex(k % 997) for k in range(n_out)] + [tex(100)]
+    return poses, images
+
+
+@pytest.mark.parametrize("search, found", [("radius", False), ("drift", True)])
+def test_drift_gate_reaches_a_revisit_beyond_the_radius(search, found):
+    from snaps_graph.config import OdometryConfig
+
+    # 20 m off after ~1400 m driven: outside radius 5.5, inside 3 sigma of a 1 %/0.1 deg model.
+    closer = SnapsLoopCloser(cfg(search=search, search_max_radius_m=60.0, attempts=100), OdometryConfig(1.0, 0.1))
+    poses, images = drifted_revisit(20.0, n_out=800)
+    steps = drive(closer, poses, images)
+    assert (steps[-1].loop is not None) == found
+    if found:
+        assert steps[-1].loop.reference == 100
+
+
+def test_drift_gate_never_below_radius_and_grows_with_distance():
+    from snaps_graph.config import OdometryConfig
+
+    closer = SnapsLoopCloser(cfg(search="drift", search_max_radius_m=60.0), OdometryConfig(1.0, 0.1))
+    g = closer._gate(np.array([0.0, 10.0, 200.0, 500.0, 1000.0, 1e5]))
+    assert g[0] == g[1] == 5.5  # the paper's radius below
+    assert np.all(np.diff(g[2:5]) > 0) and g[-1] == 60.0
+    # faster than linear: heading drift
+    s = closer.drift_sigma(np.array([500.0, 1000.0]))
+    assert s[1] > 2.0 * s[0]
+
+
+def test_verified_loop_restarts_the_uncertainty():
+    from snaps_graph.config import OdometryConfig
+
+    closer = SnapsLoopCloser(cfg(search="drift"), OdometryConfig(1.0, 0.1))
+    poses, images = drifted_revisit(0.0, n_out=300)
+    drive(closer, poses[:300], images[:300])
+    ids = np.array([50])
+    before = float(closer.driven_since(299, ids)[0])
+    closer._last_loop = (299, 40)  # as if frame 299 had been verified against frame 40
+    after = float(closer.driven_since(299, ids)[0])
+    assert before == pytest.approx(249.0) and after == pytest.approx(10.0)
+
+
+def test_wide_gate_samples_across_it_within_attempts():
+    closer = SnapsLoopCloser(cfg(search="drift", attempts=5))
+    seen: set[int] = set()
+    for _ in range(30):
+        pick = closer._pick(60)
+        assert len(pick) <= 5 and pick[0] == 0 and len(set(pick.tolist())) == len(pick)
+        seen |= set(pick.tolist())
+    assert seen == set(range(60))  # every candidate of a wide gate is compared within a few frames
+    assert closer._pick(4).tolist() == [0, 1, 2, 3]
