@@ -5,10 +5,12 @@
 1. composes the VO increment onto the previous heuristic pose (already corrected, so corrections
    persist into every later frame);
 2. stores the frame's 1/6-scale thumbnail (§III-A);
-3. searches loop candidates (§III-B): earlier frames j with ‖p_j − p_N‖ ≤ radius (current,
-   corrected positions), N − j ≥ frame distance M, |wrap(yaw_j − yaw_N)| ≤ max yaw difference, and
-   only if N − last pinned frame > inter-frame pause; nearest first (ties: older frame first), at
-   most ``attempts`` of them are compared by UIQI (eq. 4) on thumbnails; candidates with
+3. searches loop candidates (§III-B): earlier frames j with ‖p_j − p_N‖ within the gate (current,
+   corrected positions; ``search = "radius"``: the paper's fixed radius; ``"drift"``: n sigma of
+   the drift model's uncertainty accrued between j and N, see :meth:`SnapsLoopCloser.search`),
+   N − j ≥ frame distance M, |wrap(yaw_j − yaw_N)| ≤ max yaw difference (widened by the heading
+   drift), and only if N − last pinned frame > inter-frame pause; nearest first (ties: older frame
+   first), at most ``attempts`` of them are compared by UIQI (eq. 4) on thumbnails; candidates with
    Q ≥ minimum similarity are, highest Q first, the loop. With a verifier (the pipeline always has
    one), they are tried in that order and the first that passes geometric verification is the
    loop; with ``require_verification`` none passing means no loop (see :meth:`_try_close`).
@@ -40,18 +42,16 @@
 
    The window (``discount_window``, ``discount_shape``): the paper's K = ``discount_length`` and
    γ above; or K following the loop's span N − j ("span": min(``discount_length_max``,
-   ``discount_span_factor``·(N − j))) with γ stretched over the window ("window") or a linear ramp
-   ("linear"), so the correction ends at 0 instead of stepping there (γ is 0.86 at s' = 100).
+   ``discount_span_factor``·(N − j))) with a linear ramp ("linear"), so the correction ends at 0
+   instead of stepping there (γ is 0.86 at s' = 100).
 
-   The heading turn (``correction_model``): "shift" turns each window frame's orientation by
-   w·γ_s of the verified turn and moves positions by the ramp only; "bend" turns the headings
-   progressively from the window's anchor (frame N − K − 1, fixed) to N, re-composes the window's
-   positions from the VO steps turned with them (a heading error that grew along the loop bent
-   the path, and turning it back straightens the middle of the loop, which δ at N cannot see),
-   then spreads what remains of δ by the ramp. The share of the turn applied is the gain
-   g = P / (P + s²) (``heading_drift_deg``, ``verified_heading_sigma_deg``) with P the heading
-   variance since the reference ("span") or, with ``heading_prior = "tracked"``, at most what the
-   last verified loop left plus the drift since.
+   The heading turn bends the window: the headings turn progressively from the window's anchor
+   (frame N − K − 1, fixed) to N, the window's positions are re-composed from the VO steps turned
+   with them (a heading error that grew along the loop bent the path, and turning it back
+   straightens the middle of the loop, which δ at N cannot see), then what remains of δ is spread
+   by the ramp. The share of the turn applied is the gain g = P / (P + s²)
+   (``heading_drift_deg``, ``verified_heading_sigma_deg``) with P the heading variance since the
+   reference.
 
 Frame numbering. Internally frames are numbered by their position in the processed stream
 (0, 1, ...): M, K and the pause count processed frames. The caller's ``index`` (the dataset's
@@ -124,18 +124,10 @@ class SnapsStep:
     t_verify_ms: float = 0.0  # geometric verification time on this frame (tried or successful)
 
 
-def _rotation_correction(dR: np.ndarray, kind: str) -> np.ndarray:
-    """World-frame axis-angle vector of the rotation dR = R_target R_N^T ("full"), or of its
-    part about the world vertical y axis ("yaw")."""
-    if kind == "yaw":
-        # Closest rotation about y: R_y(t) = [[c, 0, s], [0, 1, 0], [-s, 0, c]].
-        return np.array([0.0, math.atan2(dR[0, 2] - dR[2, 0], dR[0, 0] + dR[2, 2]), 0.0])
-    c = np.clip((np.trace(dR) - 1.0) / 2.0, -1.0, 1.0)
-    theta = math.acos(c)
-    if theta < 1e-12:
-        return np.zeros(3)
-    w = np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]])
-    return w * (theta / (2.0 * math.sin(theta))) if theta < math.pi - 1e-6 else w  # near pi: loop rotations never are
+def _yaw_correction(dR: np.ndarray) -> np.ndarray:
+    """World-frame axis-angle vector of the part of dR = R_target R_N^T about the world vertical y."""
+    # Closest rotation about y: R_y(t) = [[c, 0, s], [0, 1, 0], [-s, 0, c]].
+    return np.array([0.0, math.atan2(dR[0, 2] - dR[2, 0], dR[0, 0] + dR[2, 2]), 0.0])
 
 
 def _exp_so3(rotvec: np.ndarray, scales: np.ndarray) -> np.ndarray:
@@ -154,17 +146,12 @@ def _exp_so3(rotvec: np.ndarray, scales: np.ndarray) -> np.ndarray:
 def discount(cfg: LoopConfig, alpha: int, s_prime: np.ndarray, window: int | None = None) -> np.ndarray:
     """γ of eq. 6 for offsets s' = N − s, clamped at 0 (see module docstring).
 
-    With ``window`` = K and ``discount_shape`` "window": the paper's curve stretched so it reaches
-    0 just past the window's oldest frame, γ = 1 − exp(−c·(1 − s'/(K + 1))) (no step at N − K);
-    "linear": γ = (1 − e^−c)·(1 − s'/(K + 1)), the share of a drift that grew evenly over the window.
+    With ``window`` = K and ``discount_shape`` "linear": γ = (1 − e^−c)·(1 − s'/(K + 1)), the
+    share of a drift that grew evenly over the window.
     """
-    shape = cfg.discount_shape
-    if window is None or shape == "paper":
+    if window is None or cfg.discount_shape == "paper":
         return np.maximum(0.0, 1.0 - np.exp(-(cfg.discount_offset - alpha * cfg.discount_rate * s_prime)))
-    frac = np.clip(1.0 - s_prime / (window + 1.0), 0.0, 1.0)
-    if shape == "linear":
-        return (1.0 - math.exp(-cfg.discount_offset)) * frac
-    return 1.0 - np.exp(-cfg.discount_offset * frac)
+    return (1.0 - math.exp(-cfg.discount_offset)) * np.clip(1.0 - s_prime / (window + 1.0), 0.0, 1.0)
 
 
 class SnapsLoopCloser:
@@ -213,8 +200,6 @@ class SnapsLoopCloser:
         self._pause_from = 0  # the loop that started the current pause
         self._alpha = 0  # loops that corrected the trajectory (eq. 6's alpha)
         self._pinned_distance = 0.0  # distance of the last loop (m)
-        self._heading_pin: int | None = None  # last frame whose heading a verified loop corrected
-        self._heading_var = 0.0  # its heading variance left after that correction (deg^2)
         self._loops: list[LoopEvent] = []
         self.similarities_computed = 0
         self.rejected_unverified = 0  # loops refused because no candidate verified
@@ -576,24 +561,15 @@ class SnapsLoopCloser:
         in_pause = max_distance is not None  # a closer revisit inside the pause: for the graph only
         rotvec = None
         if verified and self.cfg.correction_rotation != "none" and not in_pause:
-            prior = (n - ref) * self.cfg.heading_drift_deg**2
-            if self.cfg.heading_prior == "tracked" and self._heading_pin is not None:
-                prior = min(prior, self._heading_var + (n - self._heading_pin) * self.cfg.heading_drift_deg**2)
-            gain = self._gain(prior)
-            self._heading_pin, self._heading_var = n, (1.0 - gain) * prior
-            rotvec = (
-                _rotation_correction(
-                    self._R[ref] @ np.asarray(T_ref_cur, float)[:3, :3] @ self._R[n].T, self.cfg.correction_rotation
-                )
-                * gain
-            )
+            gain = self._gain((n - ref) * self.cfg.heading_drift_deg**2)
+            rotvec = _yaw_correction(self._R[ref] @ np.asarray(T_ref_cur, float)[:3, :3] @ self._R[n].T) * gain
         # Eq. 6 weighs the move by Q: the confidence that N stands where the reference stood. A
         # verified loop measured where N stands, so with correction_weight = "verified" it moves
         # with weight 1 (gamma still discounts older poses); "q" is the paper's rule everywhere.
         weight = 1.0 if (verified and self.cfg.correction_weight == "verified") else sim.q
         if in_pause:
-            # Correcting again right after a loop made the heuristic worse (README, issue 12): the
-            # loop goes to the factor graph only and the pause keeps running.
+            # Correcting again re-bends what the last loop explained: the loop goes to the factor
+            # graph only and the pause keeps running.
             weight, n_corrected, alpha = 0.0, 0, self._alpha
         else:
             self._alpha = alpha = self._alpha + 1
@@ -708,14 +684,14 @@ class SnapsLoopCloser:
     def _correct(self, n: int, q: float, delta: np.ndarray, alpha: int, rotvec: np.ndarray | None = None, first: int = 0) -> int:
         """Eq. 6 (our reading): p_s += w·γ_s·δ for s in [max(N−K, first), N], w = Q (or 1 for a
         verified loop under correction_weight = "verified"); with ``rotvec`` (world-frame
-        axis-angle toward the verified orientation) also R_s ← Exp(w·γ_s·rotvec)·R_s ("shift"),
-        or first the bend of ``correction_model = "bend"`` (module docstring). ``first``
+        axis-angle toward the verified heading) first the bend (module docstring), or, for a
+        window that starts at frame 0 (no anchor), R_s ← Exp(w·γ_s·rotvec)·R_s. ``first``
         is the frame after the reference: the reference and older frames are the loop's anchor
         and never move (only possible when K > M). Returns how many moved."""
         K = self.window_length(n - first + 1)
         lo = max(0, n - K, first)
         gamma = discount(self.cfg, alpha, n - np.arange(lo, n + 1, dtype=float), n - lo)
-        if rotvec is not None and self.cfg.correction_model == "bend" and lo > 0:
+        if rotvec is not None and lo > 0:
             # Turn the window's headings progressively from its anchor (frame lo - 1, fixed) to N
             # and re-compose its positions from the VO steps turned with them; the ramp below
             # then spreads only what remains of delta.
