@@ -522,3 +522,33 @@ def test_no_flag_no_rerun(kitti06_dir, tmp_path):
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert proc.stdout.strip().splitlines()[-1] == "CLEAN", proc.stdout + proc.stderr
+
+
+# ---------------------------------------------------------------- monocular (cam0 alone) + pose file
+
+
+def test_euroc_cam0_alone_with_absolute_tum_odometry(euroc_dir, tmp_path):
+    """A EuRoC folder with cam0 alone: undistorted monocular frames; a TUM file stamped in
+    absolute seconds (as EuRoC tools write them) matches the frames; without it, one-line error."""
+    from snaps_graph.datasets.euroc import EurocSequence
+    from snaps_graph.trajectory_io import tum_text
+
+    mono = tmp_path / "mono" / "mav0"
+    mono.mkdir(parents=True)
+    shutil.copytree(euroc_dir / "mav0" / "cam0", mono / "cam0")
+    seq = EurocSequence(mono.parent, frames="0:12")
+    assert not seq.stereo and seq.camera.baseline_m == 0.0 and len(seq) == 12
+    f = seq[3]
+    assert f.right.size == 0 and f.left.shape == (seq.camera.height, seq.camera.width)
+    stamps = np.array([int(line.split(",")[0]) for line in (mono / "cam0" / "data.csv").read_text().splitlines()[1:]])
+    poses = np.repeat(np.eye(4)[None], len(stamps), 0)
+    poses[:, 2, 3] = 0.05 * np.arange(len(stamps))  # 5 cm a frame forward
+    odo = tmp_path / "odo.tum"
+    odo.write_text(tum_text(poses, stamps * 1e-9))
+    out = tmp_path / "run"
+    proc = cli("run", str(mono.parent), "--frames", "0:12", "--odometry", str(odo), "--out", str(out))
+    assert proc.returncode == 0, proc.stderr
+    vo = np.loadtxt(out / "poses_vo.txt")
+    assert np.allclose(vo[:, 11], 0.05 * np.arange(12), atol=1e-6)  # z of each frame, from the file
+    proc = cli("run", str(mono.parent), "--frames", "0:12", "--out", str(tmp_path / "run2"))
+    assert proc.returncode == 2 and "no right images" in proc.stderr and proc.stderr.count("\n") == 1

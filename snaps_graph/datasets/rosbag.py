@@ -196,6 +196,7 @@ class RosbagSequence(FrameSelection):
         self._pair_stamps = np.stack([sl[ol][il], sr[orr][ir]], 1)
         self._pair_bag_t = np.stack([bl[ol][il], br[orr][ir]], 1)
         self._times_all = (self._pair_stamps[:, 0] - self._pair_stamps[0, 0]) * 1e-9
+        self.t0_ns = int(self._pair_stamps[0, 0])  # the absolute time of timestamp 0 (pose files with absolute stamps)
 
         if calib is None:
             self.rectifier, self.camera = self._make_camera(infos[left_topic], infos[right_topic])

@@ -31,6 +31,16 @@ def drift_covariance(T_rel: np.ndarray, cfg: OdometryConfig) -> np.ndarray:
     return np.diag([s_r**2] * 3 + [s_t**2] * 3)
 
 
+def time_origin(track: PoseFile, first_time_s: float, origin_s: float | None) -> float:
+    """The time origin to match a TUM file against a dataset whose frame times count from
+    ``origin_s`` (absolute, s; EuRoC and bags): the origin when the file's first stamp is nearer
+    the dataset's first frame in absolute time than in relative time, else 0 (KITTI files)."""
+    if track.fmt != "tum" or origin_s is None:
+        return 0.0
+    t = float(track.keys[0])
+    return float(origin_s) if abs(t - (origin_s + first_time_s)) < abs(t - first_time_s) else 0.0
+
+
 class PoseFileOdometry:
     """A front end (``process(frame) -> VOResult``, ``close()``) reading its poses from a pose file.
 
@@ -38,10 +48,19 @@ class PoseFileOdometry:
     nearest pose within ``tolerance_s``). A frame without a pose is a ``SnapsGraphError`` naming
     the file and the line that would hold it; :meth:`check` tests a whole run's frames up front."""
 
-    def __init__(self, track: PoseFile, cfg: OdometryConfig | None = None, tolerance_s: float = TIME_TOLERANCE_S):
+    def __init__(
+        self,
+        track: PoseFile,
+        cfg: OdometryConfig | None = None,
+        tolerance_s: float = TIME_TOLERANCE_S,
+        time_origin_s: float = 0.0,
+    ):
+        """``time_origin_s``: added to a frame's timestamp before it is matched to a TUM stamp (a
+        dataset whose frame times count from its first frame: see :func:`time_origin`)."""
         self.track = track
         self.cfg = cfg or OdometryConfig()
         self.tolerance_s = float(tolerance_s)
+        self.time_origin_s = float(time_origin_s)
         self._origin_inv: np.ndarray | None = None
         self._prev: np.ndarray | None = None
         self._pose = np.eye(4)
@@ -58,6 +77,7 @@ class PoseFileOdometry:
                     f"line {frame + 1} would hold it): fewer poses than images"
                 )
             return int(frame)
+        timestamp = timestamp + self.time_origin_s
         i = int(np.searchsorted(tr.keys, timestamp))
         best = min((j for j in (i - 1, i) if 0 <= j < n), key=lambda j: abs(tr.keys[j] - timestamp))
         if not abs(tr.keys[best] - timestamp) <= self.tolerance_s:
