@@ -651,3 +651,20 @@ def test_wide_gate_samples_across_it_within_attempts():
         seen |= set(pick.tolist())
     assert seen == set(range(60))  # every candidate of a wide gate is compared within a few frames
     assert closer._pick(4).tolist() == [0, 1, 2, 3]
+
+
+def test_correction_ramp_follows_the_distance_driven():
+    """Drift grows with distance: frames standing still share one correction, and a jump in the
+    frame numbers (frames left out, driven at the speed before it) carries its share of it."""
+    closer = SnapsLoopCloser(cfg(discount_window="span", discount_shape="linear", correction_rotation="none"))
+    zs = [0, 1, 2, 3, 3, 3, 3, 4, 5, 6]  # a stop at z = 3 (frames 3-6)
+    index = list(range(10)) + [30]  # frame 30 after 20 frames left out, 20 m later
+    zs.append(26)
+    for k, (i, z) in enumerate(zip(index, zs)):
+        T_rel = np.eye(4) if k == 0 else pose(z=float(z - zs[k - 1]))
+        closer.step(i, T_rel, tex(k))
+    before = closer.positions
+    closer._correct(10, 1.0, np.array([1.0, 0.0, 0.0]), 1, first=1)
+    moved = (closer.positions - before)[:, 0]
+    share = (1.0 - math.exp(-3.0)) * np.array([0, 1, 2, 3, 3, 3, 3, 4, 5, 6, 26], float) / 26.0
+    np.testing.assert_allclose(moved, share, atol=1e-12)

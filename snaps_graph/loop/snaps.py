@@ -290,7 +290,7 @@ class SnapsLoopCloser:
             gap = max(1, int(index) - int(self._index[n - 1]))
             if gap == 1:
                 self._speed += 0.1 * (step_m - self._speed) if n > 1 else step_m - self._speed
-            self._s[n] = self._s[n - 1] + max(step_m, gap * self._speed)
+            self._s[n] = self._s[n - 1] + (step_m if gap == 1 else max(step_m, gap * self._speed))
         self._R[n], self._p[n] = R, p
         self._yaw[n] = yaw_deg(R)
         self._index[n] = index
@@ -691,11 +691,19 @@ class SnapsLoopCloser:
         K = self.window_length(n - first + 1)
         lo = max(0, n - K, first)
         gamma = discount(self.cfg, alpha, n - np.arange(lo, n + 1, dtype=float), n - lo)
+        # Each window frame's share of the drift: the distance driven from the anchor (frame
+        # lo - 1) over the window's, as drift grows with distance, not frames (stops, gaps).
+        frac = np.arange(1, n - lo + 2, dtype=float) / (n - lo + 1)
+        if lo > 0 and self.cfg.ramp == "distance":
+            driven = self._s[lo : n + 1] - self._s[lo - 1]
+            if driven[-1] > 1e-9:
+                frac = driven / driven[-1]
+                if self.cfg.discount_shape == "linear":
+                    gamma = (1.0 - math.exp(-self.cfg.discount_offset)) * frac
         if rotvec is not None and lo > 0:
             # Turn the window's headings progressively from its anchor (frame lo - 1, fixed) to N
             # and re-compose its positions from the VO steps turned with them; the ramp below
             # then spreads only what remains of delta.
-            frac = np.arange(1, n - lo + 2, dtype=float) / (n - lo + 1)
             Rs = _exp_so3(rotvec, q * frac)
             steps = np.diff(self._p[lo - 1 : n + 1], axis=0)
             turned = np.einsum("kij,kj->ki", np.concatenate([np.eye(3)[None], Rs[:-1]]), steps)
