@@ -35,6 +35,7 @@ from .camera import StereoCamera
 from .config import Config
 from .errors import SnapsGraphError
 from .frontend.depth import ORDER_MAX_FRAMES, check_stereo_pair, map_depth, stereo_order
+from .frontend.external import PoseFileOdometry, time_origin
 from .frontend.loop_features import LoopFeatureBank, verify_nearby
 from .frontend.odometry import StereoOdometry
 from .frontend.two_view import MonoFeatureBank, loop_measurement, two_view_pose
@@ -42,6 +43,7 @@ from .frontend.verify import verify_loop
 from .loop.snaps import SnapsLoopCloser
 from .loop.uiqi import make_thumbnail
 from .mapping.tsdf import FusedMap
+from .trajectory_io import PoseFile
 from .types import FrameFeatures, FrameRecord, LoopEvent, StereoFrame, VOResult
 
 
@@ -73,6 +75,18 @@ class RunResult:
     def n_flagged(self) -> int:
         """Frames the front end flagged (its constant-velocity guess stands in for the pose)."""
         return sum(1 for r in self.records if not r.vo_ok)
+
+
+def pose_file_frontend(
+    track: PoseFile, cfg: Config | None, frames, timestamps, origin_s: float | None = None
+) -> PoseFileOdometry:
+    """The front end of a pose file for a run over ``frames`` (numbers) at ``timestamps`` (s from
+    ``origin_s``, the dataset's absolute clock when it has one): TUM stamps matched on the clock
+    the file uses (``external.time_origin``), every frame checked for a pose before the first runs."""
+    origin = time_origin(track, float(timestamps[0]), origin_s)
+    fe = PoseFileOdometry(track, (cfg or Config()).odometry, time_origin_s=origin)
+    fe.check(frames, timestamps)
+    return fe
 
 
 def is_monocular(frame: StereoFrame) -> bool:

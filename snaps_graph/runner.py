@@ -39,10 +39,9 @@ from .evaluation.loops import write_candidates_csv
 from .evaluation.metrics import evaluate
 from .evaluation.report import latency_summary as _latency_summary
 from .evaluation.report import write_metrics_json
-from .frontend.external import PoseFileOdometry, time_origin
 from .io_utils import PREFETCH_FRAMES, atomic_write_text, check_output_folder, output_folder, prefetch
 from .mapping.outputs import write_map_outputs
-from .pipeline import FrameOutput, RunResult, SlamPipeline
+from .pipeline import FrameOutput, RunResult, SlamPipeline, pose_file_frontend
 from .trajectory_io import read_pose_file, write_kitti_poses, write_tum_poses
 from .types import FRAME_COLUMNS, FrameRecord, LoopEvent
 
@@ -78,11 +77,9 @@ def run_sequence(
     check_output_folder(out_dir, overwrite)
     frontend = odometry
     if isinstance(odometry, (str, Path)):
-        track = read_pose_file(odometry, odometry_format)
         t0_ns = getattr(dataset, "t0_ns", None)
-        origin = time_origin(track, float(dataset.timestamps[0]), None if t0_ns is None else t0_ns * 1e-9)
-        frontend = PoseFileOdometry(track, (cfg or Config()).odometry, time_origin_s=origin)
-        frontend.check(dataset.indices, dataset.timestamps)
+        track = read_pose_file(odometry, odometry_format)
+        frontend = pose_file_frontend(track, cfg, dataset.indices, dataset.timestamps, None if t0_ns is None else t0_ns * 1e-9)
     pipe = SlamPipeline(dataset.camera, cfg, loops=loops, refine=refine, build_map=build_map, frontend=frontend)
     pipe.observer = observer
     with contextlib.closing(prefetch(dataset, prefetch_frames)) as frames:  # the next frames are read meanwhile

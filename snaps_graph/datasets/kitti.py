@@ -14,9 +14,9 @@ Frames are read lazily, one at a time, in file-number order (numeric: 0.png, 2.p
 frame's number is its file's number (positions when some stem is not a number). times.txt and
 poses.txt hold one line per image in that order, or, for numbered files, one line per frame
 number from 0 (a subset of a sequence's images keeps the full files: line i is frame i). A frame
-range ``A:B`` (Python slice semantics) selects the frames numbered A..B-1 (positions when the
-files are not numbered). Every user error is a ``SnapsGraphError`` whose one-line message names
-the file.
+range ``A:B`` (Python slice semantics) selects positions A..B-1 in that order (for KITTI's
+contiguous 000000.png... these are the file numbers). Every user error is a ``SnapsGraphError``
+whose one-line message names the file.
 """
 
 from __future__ import annotations
@@ -112,19 +112,8 @@ class KittiSequence(FrameSelection):
         if self.gt_path is not None:
             self._gt_all = self._per_image(read_kitti_poses(self.gt_path), self.gt_path, "poses")
 
-        if self._numbered:
-            rng = parse_frame_range(frames)
-            start, stop = (0, n_all) if rng is None else (int(np.searchsorted(self._numbers, rng[0])), n_all)
-            if rng is not None and rng[1] is not None:
-                stop = int(np.searchsorted(self._numbers, rng[1]))
-            if start >= stop:
-                raise SnapsGraphError(
-                    f"frame range '{frames}': no image of {left_dir} is numbered in it "
-                    f"(they run from {self._numbers[0]} to {self._numbers[-1]})"
-                )
-        else:
-            rng = parse_frame_range(frames, n_all)
-            start, stop = (0, n_all) if rng is None else (rng[0], rng[1] if rng[1] is not None else n_all)
+        rng = parse_frame_range(frames, n_all)
+        start, stop = (0, n_all) if rng is None else (rng[0], rng[1] if rng[1] is not None else n_all)
         self.start, self.stop = start, stop
 
         # The image size is read once from the first frame; every frame must match it.
