@@ -12,7 +12,8 @@ the revisit subset (frames 100-230, 1540-1660: ../shared/data/kitti00_loop). Per
 * the mean deviation over frames 1560-1660 of the odometry, SNAPS's heuristic and the refined
   (batch) trajectory, and the two ratios against the odometry.
 
-``--search radius`` runs the paper's fixed radius instead of the drift-aware gate. Results go to
+``--search radius`` runs the paper's fixed radius instead of the drift-aware gate; ``--verify-all``
+verifies every compared pair, so the recall covers every threshold. Results go to
 ``--work`` (default: a temporary folder, removed at the end).
 
     python benchmarks/bench_revisit.py [--data ../shared/data/kitti00_loop] [--pct 1 2] [--seeds 0 1 2]
@@ -58,7 +59,7 @@ def one_run(seq: Path, gt_all: np.ndarray, pct: float, seed: int, work: Path, ar
     write_kitti_poses(odo, drifted)
     out = work / name
     cfg = work / f"{name}.toml"
-    cfg.write_text(f'[loop]\nsearch = "{args.search}"\n')
+    cfg.write_text(f'[loop]\nsearch = "{args.search}"\nverify_all_candidates = {"true" if args.verify_all else "false"}\n')
     cmd = [sys.executable, "-m", "snaps_graph.cli", "run", str(seq), "--odometry", str(odo), "--out", str(out)]
     cmd += ["--refine", "batch", "--config", str(cfg), "--overwrite"]
     proc = subprocess.run(cmd, capture_output=True, text=True)
@@ -93,6 +94,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--search", choices=["drift", "radius"], default="drift", help="loop.search")
     ap.add_argument("--true-m", type=float, default=2.0, help="a compared pair within this is a true loop, m")
     ap.add_argument("--false-m", type=float, default=10.0, help="a loop between frames farther apart is false, m")
+    ap.add_argument("--verify-all", action="store_true", help="verify every compared pair (the recall's full curve; same loops)")
     ap.add_argument("--work", type=Path, default=None, help="keep the drifted files and runs here")
     args = ap.parse_args(argv)
     seq, gt_file = args.data / "sequences" / "00", args.data / "poses" / "00.txt"
