@@ -84,7 +84,8 @@ def main(argv: list[str] | None = None) -> int:
     print("VO: metres (3D mean deviation / horizontal / ATE); the others: x VO")
     print(f"{'path':<16} {'VO m':>20} {'SNAPS x VO':>20} {'batch x VO':>20} {'oracle x VO':>20} {'loops':>5} {'false':>5}")
     for seq in args.seqs:
-        run = args.work / seq.name
+        name = seq.resolve().parent.name if seq.name == "sequence" else seq.name  # `snaps-graph demo` names it so
+        run = args.work / name
         run_folder(seq, run, args)
         ev = evaluate_run(run, args.false_m)
         vo = ev["vo"]
@@ -93,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
             for key in ("snaps", "batch", "oracle")
         }
         print(
-            f"{seq.name:<16} {' / '.join(f'{v:.3f}' for v in vo):>20} {ratio['snaps']:>20} {ratio['batch']:>20} {ratio['oracle']:>20} "
+            f"{name:<16} {' / '.join(f'{v:.3f}' for v in vo):>20} {ratio['snaps']:>20} {ratio['batch']:>20} {ratio['oracle']:>20} "
             f"{ev['loops']:5d} {ev['false']:5d}",
             flush=True,
         )

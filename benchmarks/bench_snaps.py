@@ -6,7 +6,7 @@ find revisits by its own (drifted, corrected) positions. Thumbnails have the rea
 (207x63, fed at ``thumbnail_scale = 1``): a deterministic place texture keyed by the *true*
 position's coarse cell and heading quadrant (smoothed random noise) plus per-frame noise, so
 revisits look alike and different places do not. Everything else is LoopConfig's defaults
-(Table I).
+(``--search drift``, the drift-aware gate; ``--search radius`` = the paper's fixed radius).
 
 Prints the median / p95 of ``SnapsStep.t_ms`` (detection + correction) for frames with no
 candidate, frames that computed similarities (with and without a loop) and loop frames; the number
@@ -15,6 +15,7 @@ the mean deviation from ground truth of the drifted VO chain and of the SNAPS he
 
     python benchmarks/bench_snaps.py                 # full sequence
     python benchmarks/bench_snaps.py --frames 1500   # reduced size
+    python benchmarks/bench_snaps.py --search radius # the paper's fixed radius
 """
 
 from __future__ import annotations
