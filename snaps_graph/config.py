@@ -353,9 +353,6 @@ class LoopConfig(_Section):
     # ramp from 0.95 at N to 0 just past the window's oldest frame, so the correction never steps.
     # discount_window = "fixed" + "paper" is eq. 6 exactly.
     discount_shape: Literal["paper", "linear"] = "linear"
-    # Each window frame's share of the correction: its share of the distance driven since the
-    # window's anchor (drift grows with distance: stops, gaps), or of the frame count ("frames").
-    ramp: Literal["distance", "frames"] = "distance"
     # During the inter-frame pause, keep searching candidates estimated closer than this fraction
     # of the last loop's distance (verified |t_ref_cur|, else the estimated distance); one that
     # verifies at a measured distance below the same limit is a loop for the factor graph only
@@ -705,6 +702,7 @@ RETIRED = {
 RETIRED |= {
     "loop.correction_model": 'a verified heading turn always bends eq. 6\'s window ("shift" measured worse)',
     "loop.heading_prior": 'the heading prior is the drift since the reference ("tracked" measured no better)',
+    "loop.ramp": "eq. 6's ramp follows the distance driven (by frame count measured worse)",
 }
 
 RULES: dict[str, Range] = {

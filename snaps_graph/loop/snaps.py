@@ -43,10 +43,12 @@
    The window (``discount_window``, ``discount_shape``): the paper's K = ``discount_length`` and
    γ above; or K following the loop's span N − j ("span": min(``discount_length_max``,
    ``discount_span_factor``·(N − j))) with a linear ramp ("linear"), so the correction ends at 0
-   instead of stepping there (γ is 0.86 at s' = 100).
+   instead of stepping there (γ is 0.86 at s' = 100). The ramp runs in the distance driven since
+   the window's anchor, not in frames: drift grows with distance, so frames standing still share
+   one correction and frames left out (a gap in the frame numbers) carry their distance's share.
 
-   The heading turn bends the window: the headings turn progressively from the window's anchor
-   (frame N − K − 1, fixed) to N, the window's positions are re-composed from the VO steps turned
+   The heading turn bends the window: the headings turn progressively (by the same distance
+   share) from the window's anchor (frame N − K − 1, fixed) to N, the window's positions are re-composed from the VO steps turned
    with them (a heading error that grew along the loop bent the path, and turning it back
    straightens the middle of the loop, which δ at N cannot see), then what remains of δ is spread
    by the ramp. The share of the turn applied is the gain g = P / (P + s²)
@@ -694,7 +696,7 @@ class SnapsLoopCloser:
         # Each window frame's share of the drift: the distance driven from the anchor (frame
         # lo - 1) over the window's, as drift grows with distance, not frames (stops, gaps).
         frac = np.arange(1, n - lo + 2, dtype=float) / (n - lo + 1)
-        if lo > 0 and self.cfg.ramp == "distance":
+        if lo > 0:
             driven = self._s[lo : n + 1] - self._s[lo - 1]
             if driven[-1] > 1e-9:
                 frac = driven / driven[-1]
