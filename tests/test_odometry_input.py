@@ -212,3 +212,17 @@ def test_cli_end_to_end_on_the_real_revisit(tmp_path):
     for lp in loops:  # every loop is a true one: the two frames stand within 10 m
         assert np.linalg.norm(gt[lp["frame"], :3, 3] - gt[lp["reference"], :3, 3]) < 10.0, lp
     assert any(lp["verified"] and 1573 <= lp["frame"] <= 1630 for lp in loops)
+
+
+def test_stereo_sequence_with_pose_file_keeps_stereo_verification(tiny_seq):
+    """With a right image the pose file replaces only the VO: the stereo loop features stay."""
+    from snaps_graph.frontend.loop_features import LoopFeatureBank
+
+    ds = KittiSequence(tiny_seq)
+    cfg = Config()
+    pipe = SlamPipeline(ds.camera, cfg, frontend=PoseFileOdometry(read_pose_file(tiny_seq / "poses.txt"), cfg.odometry))
+    for f in ds:
+        pipe.process(f)
+    res = pipe.finish()
+    assert isinstance(pipe.loop_features, LoopFeatureBank) and pipe.two_view is None
+    assert np.allclose(res.trajectories["vo"], ds.gt_poses, atol=1e-6)
