@@ -122,6 +122,20 @@ def main() -> None:
         + ", ".join(f"{v:+.3f}" for v in np.median(axes, axis=0))
         + " deg"
     )
+    rel = np.array([np.linalg.solve(gt[r], gt[c])[:3, 3] for r, c in ok_pairs])
+    ahead = rel[:, 2] > 0
+    print(
+        f"  yaw error with the current frame ahead of the reference {np.median(axes[ahead, 1]):+.3f} deg, behind "
+        f"{np.median(axes[~ahead, 1]):+.3f} deg; correlation with the truth's lateral offset {np.corrcoef(axes[:, 1], rel[:, 0])[0, 1]:.2f}"
+    )
+    cur_of = np.array([c for _, c in ok_pairs])
+    for lo in range(cur_frames[0], cur_frames[-1] + 1, 20):
+        sel = (cur_of >= lo) & (cur_of < lo + 20)
+        if sel.any():
+            print(
+                f"  frames {lo}-{min(lo + 19, cur_frames[-1])}: yaw error {np.median(axes[sel, 1]):+.2f} deg, "
+                f"the truth's lateral offset {np.median(rel[sel, 0]):+.2f} m, the estimate's direction x {np.median([est[i].direction[0] for i in np.flatnonzero(sel)]):+.2f}"
+            )
     print(f"direction error     median {np.median(dir_a):.2f} deg, p90 {np.percentile(dir_a, 90):.2f} deg")
     for lo, hi in ((0.0, 0.5), (0.5, 1.0), (1.0, args.radius)):
         sel = (base_a >= lo) & (base_a < hi)
