@@ -6,7 +6,7 @@ find revisits by its own (drifted, corrected) positions. Thumbnails have the rea
 (207x63, fed at ``thumbnail_scale = 1``): a deterministic place texture keyed by the *true*
 position's coarse cell and heading quadrant (smoothed random noise) plus per-frame noise, so
 revisits look alike and different places do not. Everything else is LoopConfig's defaults
-(Table I).
+(``--search drift``, the drift-aware gate; ``--search radius`` = the paper's fixed radius).
 
 Prints the median / p95 of ``SnapsStep.t_ms`` (detection + correction) for frames with no
 candidate, frames that computed similarities (with and without a loop) and loop frames; the number
@@ -15,6 +15,7 @@ the mean deviation from ground truth of the drifted VO chain and of the SNAPS he
 
     python benchmarks/bench_snaps.py                 # full sequence
     python benchmarks/bench_snaps.py --frames 1500   # reduced size
+    python benchmarks/bench_snaps.py --search radius # the paper's fixed radius
 """
 
 from __future__ import annotations
@@ -81,6 +82,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--noise", type=float, default=12.0, help="per-frame thumbnail noise, grey levels (std)")
     ap.add_argument("--cell-m", type=float, default=6.0, help="place texture cell size, metres")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--search", choices=["drift", "radius"], default="drift", help="loop.search (drift gate or the paper's radius)"
+    )
     args = ap.parse_args(argv)
 
     if not args.gt.is_file():
@@ -92,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
         gt = gt[: args.frames]
     n = len(gt)
 
-    cfg = LoopConfig(thumbnail_scale=1.0)  # the images below already have thumbnail size
+    cfg = LoopConfig(thumbnail_scale=1.0, search=args.search)  # the images below already have thumbnail size
     closer = SnapsLoopCloser(cfg)
     textures = PlaceTextures(args.cell_m, args.seed)
     rng = np.random.default_rng(args.seed + 1)
@@ -142,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
 
     print(
         f"SNAPS latency on {args.gt.name}: {n} frames, thumbnails {THUMB_HW[1]}x{THUMB_HW[0]}, "
-        f"yaw bias {args.yaw_bias_deg} deg/frame, scale error {args.scale_error:+.1%}, noise {args.noise}"
+        f"yaw bias {args.yaw_bias_deg} deg/frame, scale error {args.scale_error:+.1%}, noise {args.noise}, search {args.search}"
     )
     print("t_ms per frame (detection + correction):")
     print(row("no candidate", t_none))

@@ -8,8 +8,6 @@ replays SNAPS over the cached VO with each eq. 6 variant, detection unchanged:
 - ``xyz``: target p_ref + R_ref t_ref_cur (verified), weight 1, the three position components;
 - ``ground``: the same, ground-plane components only (the reference's height error stays out);
 - ``ground_yaw``: ground plane, plus the window turned about the vertical to the verified heading;
-- ``xyz_full``: the full verified relative pose: position and the whole rotation;
-- ``ground_full``: ground-plane position and the whole verified rotation.
 
 Prints and writes (results/experiments/loop_correction.md) per sequence and variant: the 3D,
 horizontal and vertical mean deviation and ATE of the heuristic trajectory against VO, loops and
@@ -43,8 +41,6 @@ VARIANTS = {
     "xyz": dict(correction_axes="xyz", correction_rotation="none"),
     "ground": dict(correction_axes="ground", correction_rotation="none"),
     "ground_yaw": dict(correction_axes="ground", correction_rotation="yaw"),
-    "xyz_full": dict(correction_axes="xyz", correction_rotation="full"),
-    "ground_full": dict(correction_axes="ground", correction_rotation="full"),
     "xyz_yaw": dict(correction_axes="xyz", correction_rotation="yaw"),
 }
 

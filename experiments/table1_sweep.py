@@ -49,7 +49,7 @@ SWEEPS = {
     "window": [8, 16],
     "correction_weight": ["q", "verified"],
     "correction_axes": ["xyz", "ground"],
-    "correction_rotation": ["none", "yaw", "full"],
+    "correction_rotation": ["none", "yaw"],
 }
 
 

@@ -1,4 +1,4 @@
-"""Command line: ``snaps-graph synth | run | batch | convert | eval | compare | loops | demo | config``.
+"""Command line: ``snaps-graph synth | run | batch | convert | eval | compare | loops | demo | config | drift``.
 
 Thin: each command parses its options, calls the package and prints. Exit status: 0 done; 2 a
 user error (``SnapsGraphError``: one line ``error: ...`` naming the file, never a traceback; also
@@ -22,6 +22,7 @@ from tqdm import tqdm
 from .config import Config, FrontendMode, LoopMode, RefineMode, choices
 from .errors import SnapsGraphError
 from .io_utils import PREFETCH_FRAMES, check_output_folder, output_folder
+from .trajectory_io import ODOMETRY_FORMATS
 
 # Heavy modules (OpenCV, gtsam, open3d, matplotlib) are imported inside the commands that use
 # them, after the cheap checks, so `config`, `--help` and a bad option answer at once.
@@ -169,6 +170,13 @@ def run(
     ),
     viewer: bool = typer.Option(False, "--viewer", help="Spawn the rerun viewer and stream the run to it (needs rerun-sdk)."),
     rrd: Optional[Path] = typer.Option(None, "--rrd", help="Record the run to a rerun .rrd file (needs rerun-sdk)."),
+    odometry: Optional[Path] = typer.Option(
+        None,
+        "--odometry",
+        help="Poses from elsewhere instead of the stereo VO: a KITTI pose file (line i = frame i) or TUM "
+        "(t x y z qx qy qz qw, matched by timestamp); SEQ may then be monocular.",
+    ),
+    odometry_format: Optional[str] = typer.Option(None, "--odometry-format", help="kitti | tum (default: by the column count)."),
 ) -> None:
     """Run stereo VO (+ SNAPS, + graph refinement, + map) over a sequence and write a results folder.
 
@@ -194,10 +202,22 @@ def run(
     check_output_folder(out, overwrite)
     if _inside(seq_dir, out):
         raise_user(f"{out}: --out would replace the input sequence {seq_dir}")
+    if odometry_format is not None and odometry_format not in ODOMETRY_FORMATS:
+        raise_user(f"--odometry-format must be one of {', '.join(ODOMETRY_FORMATS)}, not '{odometry_format}'")
+    if odometry is not None:
+        if not odometry.is_file():
+            raise_user(f"{odometry}: odometry file not found")
+        if _inside(odometry, out):
+            raise_user(f"{out}: --out would replace the odometry file {odometry}")
     from .datasets.open import open_dataset  # the heavy imports (OpenCV, gtsam) after the checks
     from .runner import mostly_flagged, run_sequence
 
     seq = open_dataset(seq_dir, frames=frames, gt=gt, left_topic=left_topic, right_topic=right_topic, calib=calib)
+    if not getattr(seq, "stereo", True):
+        if odometry is None:
+            raise_user(f"{seq_dir}: no right images: the stereo VO needs them (give odometry from elsewhere: --odometry POSES)")
+        if cfg.resolved(loops=loops, refine=refine, build_map=map_).map.enabled:
+            raise_user(f"{seq_dir}: no right images: the map needs stereo depth (run without --map)")
     _print_notes(seq)
     observer = None
     if viewer or rrd is not None:
@@ -225,6 +245,8 @@ def run(
                 on_frame=on_frame,
                 observer=observer,
                 prefetch_frames=prefetch,
+                odometry=odometry,
+                odometry_format=odometry_format,
             )
         except BaseException:
             if observer is not None:
@@ -509,6 +531,43 @@ def _interrupted() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not interrupt the exit
     print("interrupted: no results written", file=sys.stderr)
     sys.exit(EXIT_INTERRUPTED)
+
+
+@app.command()
+def drift(
+    gt: Path = typer.Argument(..., help="Ground-truth trajectory (a KITTI pose file)."),
+    out: Path = typer.Option(..., "--out", help="Drifted trajectory to write (KITTI pose file)."),
+    seed: int = typer.Option(0, "--seed", help="Random-walk seed (same seed, same file)."),
+    pct: Optional[float] = typer.Option(
+        None, "--pct", help="Rescale the model so the end drift is this percent of the distance driven."
+    ),
+    scale_bias_pct: Optional[float] = typer.Option(None, "--scale-bias-pct", help="Translation scale error, percent."),
+    heading_rw: Optional[float] = typer.Option(None, "--heading-rw", help="Heading random walk, deg per sqrt(m)."),
+    pitch_rw: Optional[float] = typer.Option(None, "--pitch-rw", help="Pitch random walk, deg per sqrt(m)."),
+    roll: Optional[float] = typer.Option(None, "--roll", help="Slow roll drift, deg per 100 m (default 0)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace OUT if it exists."),
+) -> None:
+    """Perturb a ground-truth trajectory with a stereo VO's errors (scale bias, heading and pitch
+    random walks, optional roll); defaults from our VO on real KITTI 06."""
+    import dataclasses
+
+    from .evaluation.drift import DriftModel, drift_trajectory, end_drift_pct
+    from .trajectory_io import read_kitti_poses, write_kitti_poses
+
+    if out.exists() and not overwrite:
+        raise_user(f"{out} exists (pass --overwrite to replace it)")
+    if out.exists() and out.resolve() == gt.resolve():
+        raise_user(f"{out} is the input ground truth")
+    poses = read_kitti_poses(gt)
+    changes = {"scale_bias_pct": scale_bias_pct, "heading_rw_deg_per_sqrt_m": heading_rw}
+    changes |= {"pitch_rw_deg_per_sqrt_m": pitch_rw, "roll_deg_per_100m": roll}
+    for name, value in changes.items():
+        if value is not None and not (value >= 0 and value < 1e3):
+            raise_user(f"drift: --{name} must be a number in [0, 1000), got {value}")
+    model = dataclasses.replace(DriftModel(), **{k: v for k, v in changes.items() if v is not None})
+    drifted = drift_trajectory(poses, seed, model, pct)
+    write_kitti_poses(out, drifted)
+    typer.echo(f"wrote {out}: {len(drifted)} poses, end drift {end_drift_pct(drifted, poses):.3f} % of the distance")
 
 
 if __name__ == "__main__":

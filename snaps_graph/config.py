@@ -223,15 +223,17 @@ class LoopConfig(_Section):
     _name = "loop"
 
     radius_m: float = 10.0  # candidates lie within this distance of the current position
+    # Candidate gate: "drift" = within search_sigmas standard deviations of the [odometry] drift
+    # accrued between the candidate and now (through the last verified loop if shorter), never
+    # less than radius_m nor more than search_max_radius_m, nearest in sigmas first; "radius" =
+    # the paper's fixed radius_m around an estimate taken as exact.
+    search: Literal["drift", "radius"] = "drift"
+    search_sigmas: float = 3.0
+    search_max_radius_m: float = 40.0
     frame_distance: int = 100  # M: candidate j must satisfy N - j >= M
-    # K: poses N-K..N are corrected (never the reference or older). 100 = the paper's Table I. 300
-    # (where gamma ends for the first loop) helped the KITTI 07 renderings but bent the whole
-    # 300-frame demo loop: SNAPS worse than VO there (README, eq. 6 decisions).
-    discount_length: int = 100
-    # Q threshold for a loop. The paper's 0.75 is unreachable with the exact Wang-Bovik index on
-    # a moving camera (real KITTI 06: Q = 0.33-0.44 between frames 1.2 m apart); tuned on the
-    # synthetic KITTI 00 rendering: true revisits median 0.14 unshifted (0.26 with shift_px = 8),
-    # no place farther than 20 m above 0.11 in our sample (README).
+    discount_length: int = 100  # K of discount_window = "fixed": poses N-K..N move (the paper's Table I)
+    # Q threshold for a loop: the paper's 0.75 is unreachable with the exact Wang-Bovik index on a
+    # moving camera (docs/loop-closure.md).
     min_similarity: float = 0.15
     inter_frame_pause: int = 50  # frames after the last pinned frame before another loop
     attempts: int = 5  # at most this many candidates (nearest first) are compared
@@ -239,8 +241,7 @@ class LoopConfig(_Section):
     thumbnail_scale: float = 1.0 / 6.0  # thumbnails: left image rescaled by this (INTER_AREA)
     window: int = 16  # UIQI sliding window B (Wang & Bovik use 8; 16 separates revisits better)
     # Compare thumbnails also at horizontal shifts up to this (heading differences between
-    # passes); 0 = the paper (unshifted). Measured on synthetic KITTI 00 with verification on:
-    # 0 -> 15 loops, 1.0 ms on candidate frames; 8 -> 16 loops, 3.3 ms; no false loop either way.
+    # passes); 0 = the paper (unshifted), 3x cheaper for about the same loops.
     shift_px: int = 0
     shift_step_px: int = 2  # ...in steps of this many thumbnail pixels
     discount_offset: float = 3.0  # the 3 in gamma = 1 - exp(-(3 - alpha*0.01*s'))
@@ -267,21 +268,15 @@ class LoopConfig(_Section):
     verify_all_candidates: bool = False
     # What eq. 6 moves: "xyz" = the three position components (the paper); "ground" = the
     # ground-plane components only (world x, z), so the reference's own height error is not
-    # copied into the current frame. Measured (experiments/loop_correction.py, KITTI 00 and 07
-    # renderings): "xyz" raised the vertical mean deviation 5-8 % on 00, "ground" leaves it as VO's.
+    # copied into the current frame.
     correction_axes: Literal["xyz", "ground"] = "ground"
     # Orientation correction of a verified loop: "none" = orientations keep their VO values (the
     # paper); "yaw" = the window turns about the world vertical toward the verified heading
-    # R_ref R_ref_cur, by the same w*gamma as the positions, so later frames continue on the
-    # corrected heading; "full" = the whole verified rotation (pitch too: raised the height error).
-    correction_rotation: Literal["none", "yaw", "full"] = "yaw"
-    # The rotation correction is weighted by its uncertainty against the drift it corrects: gain
-    # g = n*d^2 / (n*d^2 + s^2) for a loop n frames after its reference, d the VO's heading
-    # random walk per sqrt(frame), s the verified heading's standard deviation. d re-measured on
-    # today's front end (README): 0.0027-0.0032 deg*sqrt(n) on the KITTI 00 street rendering
-    # (0.005 on the front end before issue 11's chain factor); verification's heading error
-    # 0.02-0.14 deg rms. A loop 100 frames after its reference turns by 8 % of the measured
-    # rotation, one 1000 frames after it by 47 %.
+    # R_ref R_ref_cur (bent progressively over eq. 6's window), so later frames continue on the
+    # corrected heading.
+    correction_rotation: Literal["none", "yaw"] = "yaw"
+    # The turn applied is the gain g = n*d^2 / (n*d^2 + s^2) of a loop n frames after its
+    # reference: d the VO's heading random walk per sqrt(frame), s the verified heading's sigma.
     heading_drift_deg: float = 0.003
     verified_heading_sigma_deg: float = 0.1
     # Eq. 6's window for a loop from frame N to its reference j: "fixed" = discount_length frames
@@ -290,35 +285,21 @@ class LoopConfig(_Section):
     discount_window: Literal["fixed", "span"] = "span"
     discount_span_factor: float = 1.0
     discount_length_max: int = 1000
-    # Shape of gamma over the window: "paper" = 1 - exp(-(3 - alpha*0.01*s')) (eq. 6; steps from
-    # ~0.86 to 0 at N - K when K = 100); "window" = the same curve stretched to reach 0 just past
-    # the window's oldest frame; "linear" = a ramp from 0.95 at N to 0 there. Measured
-    # (experiments/loop_verification.py; demo loop, KITTI 07 plain and hard, 00): "span" +
-    # "linear" is never worse than VO in 3D mean deviation or ATE on any of them; the paper's
-    # K = 100 was worse in ATE on the demo loop (1.06x) and hard 07 (1.08x), K = 300 in mean
-    # deviation on the demo loop (1.47x). discount_window = "fixed" + "paper" is eq. 6 exactly.
-    discount_shape: Literal["paper", "window", "linear"] = "linear"
-    # How a verified loop's heading correction moves the window: "shift" = orientations turn by
-    # w*gamma_s, positions only by the ramp of delta; "bend" = the window's headings turn
-    # progressively (0 at its oldest frame, the full turn at N), its positions are re-composed
-    # from the VO steps turned with them, and the ramp then spreads what remains of delta.
-    # Measured (experiments/loop_verification.py, SNAPS horizontal mean deviation x VO, shift ->
-    # bend): demo loop 0.75 -> 0.60, KITTI 07 0.87 -> 0.50, 07 hard 0.69 -> 0.14, 00 0.34 -> 0.30.
-    correction_model: Literal["shift", "bend"] = "bend"
+    # Shape of gamma over the window: "paper" = 1 - exp(-(3 - alpha*0.01*s')) (eq. 6); "linear" = a
+    # ramp from 0.95 at N to 0 just past the window's oldest frame, so the correction never steps.
+    # discount_window = "fixed" + "paper" is eq. 6 exactly.
+    discount_shape: Literal["paper", "linear"] = "linear"
     # During the inter-frame pause, keep searching candidates estimated closer than this fraction
     # of the last loop's distance (verified |t_ref_cur|, else the estimated distance); one that
     # verifies at a measured distance below the same limit is a loop for the factor graph only
-    # (the heuristic is not corrected again, the pause keeps running). 0 = the paper's pause (no
-    # search at all). 0.5 since stop 14: over two front ends and four paths the refined result
-    # improved six times, held once and cost once (README, "The pause after a loop stays");
-    # correcting the heuristic again instead made it worse on the demo loop and 07 (README).
+    # (correcting the heuristic again re-bends what the last loop explained). 0 = the paper's pause.
     pause_closer_ratio: float = 0.5
-    # Prior variance of the heading a verified loop corrects: "span" = the drift since the
-    # reference, (N - j) * heading_drift_deg^2; "tracked" = at most what is left after the last
-    # heading correction plus the drift since, so loops in quick succession do not re-apply the
-    # share of the turn an earlier loop already weighed and left out. With the default pause both
-    # give the same horizontal mean deviation within 0.03x VO on the demo loop, 07, 07 hard, 00.
-    heading_prior: Literal["span", "tracked"] = "span"
+
+    def _cross_checks(self, source: str) -> None:
+        if self.search_max_radius_m < self.radius_m:
+            raise SnapsGraphError(
+                f"{source}: loop.search_max_radius_m must be >= loop.radius_m, got {self.search_max_radius_m} and {self.radius_m}"
+            )
 
 
 @dataclass
@@ -429,7 +410,9 @@ class OdometryConfig(_Section):
     _name = "odometry"
 
     trans_drift_pct: float = 1.0  # translation error per distance driven, percent
-    rot_drift_deg_per_100m: float = 1.0  # heading (and attitude) error per 100 m driven, degrees
+    # Heading (and attitude) error per 100 m driven, degrees: 1 % of lateral drift over 1 km of
+    # driving needs about 0.1 (lateral error b D^2 / 2; docs/loop-closure.md).
+    rot_drift_deg_per_100m: float = 0.1
 
 
 @dataclass
@@ -674,6 +657,11 @@ _RETIRED_GROUPS = {
     "the top-down PNG is coloured by height at a fixed resolution": ("map.topdown_colour_by", "map.topdown_dpi"),
 }
 RETIRED = {key: why for why, keys in _RETIRED_GROUPS.items() for key in keys}
+RETIRED |= {
+    "loop.correction_model": 'a verified heading turn always bends eq. 6\'s window ("shift" measured worse)',
+    "loop.heading_prior": 'the heading prior is the drift since the reference ("tracked" measured no better)',
+    "loop.ramp": "eq. 6's ramp follows the distance driven (by frame count measured worse)",
+}
 
 RULES: dict[str, Range] = {
     "frontend.num_disparities": Range(16, 1024, multiple=16),
@@ -750,6 +738,8 @@ RULES: dict[str, Range] = {
     "frontend.loop_max_distance_m": POSITIVE,
     "frontend.loop_subpixel_px": NON_NEGATIVE,
     "loop.radius_m": POSITIVE,
+    "loop.search_sigmas": POSITIVE,
+    "loop.search_max_radius_m": POSITIVE,
     "odometry.trans_drift_pct": Range(0, 50, lo_open=True),
     "odometry.rot_drift_deg_per_100m": Range(0, 90, lo_open=True),
     "loop.frame_distance": AT_LEAST_1,

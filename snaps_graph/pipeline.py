@@ -10,6 +10,10 @@ Stream positions ``k = 0, 1, 2, ...`` key everything internally (graph variables
 keyframes); the dataset's own frame number is kept beside them (``FrameRecord.frame``,
 ``LoopEvent.frame``/``reference``), so a run over ``--frames 100:200`` reports file numbers.
 
+Monocular frames (an empty or None right image) need a front end other than the stereo VO (a
+pose file: ``frontend.external.PoseFileOdometry``); SNAPS then verifies loops by two-view
+geometry (``frontend.two_view``), there is no map and no stereo-order check.
+
 A frame that ``process`` rejects (wrong size or type, a repeated or decreasing frame number, a
 non-finite timestamp) raises ``SnapsGraphError`` before any state changes: the pipeline stays
 usable, and the next good frame is processed normally.
@@ -31,11 +35,14 @@ from .camera import StereoCamera
 from .config import Config
 from .errors import SnapsGraphError
 from .frontend.depth import ORDER_MAX_FRAMES, check_stereo_pair, map_depth, stereo_order
+from .frontend.external import PoseFileOdometry, time_origin
 from .frontend.loop_features import LoopFeatureBank, verify_features
 from .frontend.odometry import StereoOdometry
+from .frontend.two_view import MonoFeatureBank, loop_measurement, two_view_pose
 from .loop.snaps import SnapsLoopCloser
 from .loop.uiqi import make_thumbnail
 from .mapping.tsdf import FusedMap
+from .trajectory_io import PoseFile
 from .types import FrameRecord, FrontEnd, LoopEvent, StereoFrame, VOResult
 
 
@@ -69,6 +76,23 @@ class RunResult:
         return sum(1 for r in self.records if not r.vo_ok)
 
 
+def pose_file_frontend(
+    track: PoseFile, cfg: Config | None, frames, timestamps, origin_s: float | None = None
+) -> PoseFileOdometry:
+    """The front end of a pose file for a run over ``frames`` (numbers) at ``timestamps`` (s from
+    ``origin_s``, the dataset's absolute clock when it has one): TUM stamps matched on the clock
+    the file uses (``external.time_origin``), every frame checked for a pose before the first runs."""
+    origin = time_origin(track, float(timestamps[0]), origin_s)
+    fe = PoseFileOdometry(track, (cfg or Config()).odometry, time_origin_s=origin)
+    fe.check(frames, timestamps)
+    return fe
+
+
+def is_monocular(frame: StereoFrame) -> bool:
+    """The frame has no right image (None or empty)."""
+    return frame.right is None or np.asarray(frame.right).size == 0
+
+
 class SlamPipeline:
     def __init__(
         self,
@@ -92,7 +116,7 @@ class SlamPipeline:
 
         self.camera = camera
         self.vo: FrontEnd = frontend if frontend is not None else StereoOdometry(camera, self.cfg.frontend)
-        self.snaps = SnapsLoopCloser(self.cfg.loop) if self.loops_mode == "snaps" else None
+        self.snaps = SnapsLoopCloser(self.cfg.loop, self.cfg.odometry) if self.loops_mode == "snaps" else None
         self.graph = PoseGraph(self.cfg.graph, mode="isam2" if self.refine == "both" else self.refine)
         self.map = FusedMap(camera, self.cfg.map) if self.cfg.map.enabled else None
         if loop_features is None and self.snaps is not None:
@@ -107,6 +131,8 @@ class SlamPipeline:
         self.vo_covs: list[np.ndarray | None] = []  # each step's VOResult.cov, as the graph got it (the oracle's noise)
         self._shape: tuple[int, int] | None = None  # (H, W) of the first frame
         self._order_pending = True  # no stereo_order verdict yet
+        self._monocular: bool | None = None  # set by the first frame
+        self.two_view: MonoFeatureBank | None = None  # monocular loop verification's features
         self.loops: list[LoopEvent] = []
         self.records: list[FrameRecord] = []
         self._t_start = time.perf_counter()
@@ -128,10 +154,20 @@ class SlamPipeline:
             raise SnapsGraphError(f"frame {index}: timestamp {frame.timestamp!r} is not a number") from None
         if not math.isfinite(t):
             raise SnapsGraphError(f"frame {index}: timestamp {t} is not finite")
+        mono = is_monocular(frame)
         try:
-            check_stereo_pair(frame.left, frame.right)
+            check_stereo_pair(frame.left, frame.left if mono else frame.right)
         except SnapsGraphError as exc:
             raise SnapsGraphError(f"frame {index}: {exc}") from None
+        if mono and isinstance(self.vo, StereoOdometry):
+            raise SnapsGraphError(
+                f"frame {index}: no right image: the stereo VO needs one (give odometry from elsewhere: --odometry)"
+            )
+        if mono and self.map is not None:
+            raise SnapsGraphError(f"frame {index}: no right image: the map needs stereo depth (run without --map)")
+        if self._monocular is not None and mono != self._monocular:
+            have = "monocular" if self._monocular else "stereo"
+            raise SnapsGraphError(f"frame {index}: {'no' if mono else 'a'} right image in a {have} run")
         h, w = frame.left.shape  # the camera's size is the front end's check (a custom one may differ)
         if self._shape is not None and (h, w) != self._shape:
             raise SnapsGraphError(
@@ -149,7 +185,9 @@ class SlamPipeline:
         self.check_frame(frame)
         t0 = time.perf_counter()
         k = len(self._frame_ids)
-        if self._order_pending and k < ORDER_MAX_FRAMES:  # the first pairs until one gives a verdict
+        if self._monocular is None:
+            self._start_monocular(is_monocular(frame))
+        if self._order_pending and k < ORDER_MAX_FRAMES and not self._monocular:  # the first pairs until one gives a verdict
             verdict, why = stereo_order(frame.left, frame.right)
             if verdict == "swapped":
                 raise SnapsGraphError(f"frame {frame.index}: left and right look swapped ({why}); swap the two inputs")
@@ -169,6 +207,8 @@ class SlamPipeline:
         t_loop_ms = t_verify_ms = 0.0
         if self.loop_features is not None:
             self.loop_features.add(k, frame, vo.disparity_offset_px)
+        if self.two_view is not None:
+            self.two_view.add(k, frame)
         if self.snaps is not None:
             self._loop_cov.clear()
             step = self.snaps.step(frame.index, vo.T_rel, frame.left, verify=lambda ref: self._verify(ref, vo, frame, k))
@@ -228,6 +268,8 @@ class SlamPipeline:
         most a few frames); the covariance is kept for the loop factor. Returns (T_ref_cur,
         inliers) or None; never raises."""
         k_ref = self._k_of_frame.get(ref_index)
+        if self.two_view is not None and frame is not None and k is not None:
+            return self._verify_two_view(ref_index, k_ref, vo, frame, k)
         if self.loop_features is not None and frame is not None and k is not None:
             if k_ref is None:
                 return None
@@ -252,6 +294,43 @@ class SlamPipeline:
             self._loop_cov[int(ref_index)] = m.cov
             return T, m.inliers
         return None
+
+    def _start_monocular(self, mono: bool) -> None:
+        """At the first frame: a monocular run verifies loops by two-view geometry."""
+        self._monocular = mono
+        if not mono:
+            return
+        self._order_pending = False
+        if self.loop_features is not None:
+            self.loop_features.close()
+            self.loop_features = None
+        if self.snaps is not None:
+            self.two_view = MonoFeatureBank(self.camera, self.cfg.frontend, background=False)
+
+    def _verify_two_view(self, ref_index: int, k_ref: int | None, vo: VOResult, frame: StereoFrame, k: int):
+        """Monocular verification: the essential matrix between the stored reference nearest to
+        the candidate and this frame (``frontend.two_view``), carried to the candidate by the
+        odometry; the length of the translation from the odometry, capped by the same-place
+        assumption. (T_ref_cur, inliers) or None; the covariance is kept for the loop factor."""
+        assert self.two_view is not None
+        if k_ref is None:
+            return None
+        k_feat = self.two_view.nearest(k_ref)
+        if k_feat is None:
+            return None
+        try:
+            m = two_view_pose(self.two_view.reference(k_feat), self.two_view.query(k, frame), self.camera, self.cfg.frontend)
+        except Exception as exc:  # best effort: an unverifiable candidate is not a loop
+            self.graph.failures.append((k, f"loop verification raised {type(exc).__name__}: {exc}"))
+            return None
+        if m is None:
+            return None
+        odo = np.linalg.solve(self._vo_poses[k_feat], vo.pose)
+        T, cov = loop_measurement(m, float(np.linalg.norm(odo[:3, 3])))
+        if k_feat != k_ref:
+            T = np.linalg.solve(self._vo_poses[k_ref], self._vo_poses[k_feat]) @ T
+        self._loop_cov[int(ref_index)] = cov
+        return T, m.inliers
 
     def _add_loop_factor(self, loop: LoopEvent, vo: VOResult) -> None:
         """A loop-closure factor for a SNAPS loop: measured by verification when it succeeded
@@ -278,6 +357,8 @@ class SlamPipeline:
         self.vo.close()
         if self.loop_features is not None:
             self.loop_features.close()
+        if self.two_view is not None:
+            self.two_view.close()
         trajs: dict[str, np.ndarray] = {"vo": np.array(self._vo_poses)}
         if self.snaps is not None:
             # The loop closer's trajectory, with every eq. 6 correction applied (a pose stored at

@@ -41,8 +41,8 @@ from .evaluation.report import latency_summary as _latency_summary
 from .evaluation.report import write_metrics_json
 from .io_utils import PREFETCH_FRAMES, atomic_write_text, check_output_folder, output_folder, prefetch
 from .mapping.outputs import write_map_outputs
-from .pipeline import FrameOutput, RunResult, SlamPipeline
-from .trajectory_io import write_kitti_poses, write_tum_poses
+from .pipeline import FrameOutput, RunResult, SlamPipeline, pose_file_frontend
+from .trajectory_io import read_pose_file, write_kitti_poses, write_tum_poses
 from .types import FRAME_COLUMNS, FrameRecord, LoopEvent
 
 # Exit status of `snaps-graph run` when more than this fraction of the frames was flagged by the
@@ -62,16 +62,25 @@ def run_sequence(
     on_frame: Callable[[FrameOutput], None] | None = None,
     observer=None,
     prefetch_frames: int = PREFETCH_FRAMES,
+    odometry=None,
+    odometry_format: str | None = None,
 ) -> tuple[RunResult, dict]:
     """Run a whole dataset (any reader of ``datasets.open.open_dataset``) and write the results
     folder. ``observer``: see ``SlamPipeline.observer`` (the rerun logger). ``prefetch_frames``:
-    frames read ahead on a background thread (0: none; ``io_utils.prefetch``).
+    frames read ahead on a background thread (0: none; ``io_utils.prefetch``). ``odometry``: a
+    pose file (KITTI or TUM, ``odometry_format`` or detected; ``trajectory_io.read_pose_file``)
+    or a front end object, used instead of the stereo VO; every frame must have a pose.
 
     Everything that can be checked before the first frame is: the configuration (with the
     overrides) and the output folder."""
     (cfg or Config()).resolved(loops=loops, refine=refine, build_map=build_map)
     check_output_folder(out_dir, overwrite)
-    pipe = SlamPipeline(dataset.camera, cfg, loops=loops, refine=refine, build_map=build_map)
+    frontend = odometry
+    if isinstance(odometry, (str, Path)):
+        t0_ns = getattr(dataset, "t0_ns", None)
+        track = read_pose_file(odometry, odometry_format)
+        frontend = pose_file_frontend(track, cfg, dataset.indices, dataset.timestamps, None if t0_ns is None else t0_ns * 1e-9)
+    pipe = SlamPipeline(dataset.camera, cfg, loops=loops, refine=refine, build_map=build_map, frontend=frontend)
     pipe.observer = observer
     with contextlib.closing(prefetch(dataset, prefetch_frames)) as frames:  # the next frames are read meanwhile
         for frame in frames:

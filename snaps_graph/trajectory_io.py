@@ -7,6 +7,7 @@ evo's ``evo_ape kitti`` / ``evo_ape tum`` read.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -187,3 +188,81 @@ def write_times(path: str | Path, times: np.ndarray) -> None:
     if not np.all(np.isfinite(times)):
         raise ValueError("refusing to write non-finite timestamps")
     atomic_write_text(path, "".join(f"{t:.6e}\n" for t in times))
+
+
+ODOMETRY_FORMATS = ("kitti", "tum")
+
+
+@dataclass
+class PoseFile:
+    """An odometry pose file as read: ``fmt`` "kitti" (``keys`` = frame numbers: line i holds
+    frame i) or "tum" (``keys`` = timestamps, s); ``lines`` the 1-based line of each pose."""
+
+    path: str
+    fmt: str
+    keys: np.ndarray  # (N,) frame numbers (kitti) or timestamps (tum), increasing
+    poses: np.ndarray  # (N, 4, 4) T_world_cam
+    lines: np.ndarray  # (N,) int
+
+
+def read_pose_file(path: str | Path, fmt: str | None = None) -> PoseFile:
+    """Read an odometry file, KITTI (12 numbers a line) or TUM (``t x y z qx qy qz qw``); ``fmt``
+    None: by the column count of the first pose line. Every defect is a one-line error naming
+    the file and the line: wrong column count, a non-number, NaN or infinity, a 3x3 part that
+    is not a rotation (or a quaternion that is not a unit one), timestamps that do not increase,
+    a blank line between KITTI poses (it would shift every later frame), no pose at all."""
+    path = Path(path)
+    if fmt is not None and fmt not in ODOMETRY_FORMATS:
+        raise SnapsGraphError(f"{path}: odometry format must be one of {', '.join(ODOMETRY_FORMATS)}, not '{fmt}'")
+    rows: list[tuple[int, list[str]]] = []
+    for lineno, line in enumerate(read_text(path, "odometry").splitlines(), 1):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            rows.append((lineno, []))
+            continue
+        rows.append((lineno, s.replace(",", " ").split()))
+    first = next((r for _, r in rows if r), None)
+    if first is None:
+        raise SnapsGraphError(f"{path}: no poses (the file is empty)")
+    if fmt is None:
+        if len(first) not in (8, 12):
+            lineno = next(n for n, r in rows if r)
+            raise SnapsGraphError(
+                f"{path}:{lineno}: {len(first)} numbers: neither a KITTI pose line (12) nor a TUM line (8: t x y z qx qy qz qw)"
+            )
+        fmt = "kitti" if len(first) == 12 else "tum"
+    want = 12 if fmt == "kitti" else 8
+    keys, poses, lines = [], [], []
+    seen_blank = 0
+    for lineno, fields in rows:
+        where = f"{path}:{lineno}"
+        if not fields:
+            seen_blank = seen_blank or (lineno if poses else 0)
+            continue
+        if fmt == "kitti" and seen_blank:
+            raise SnapsGraphError(f"{path}:{seen_blank}: blank line between KITTI poses (line i must hold frame i)")
+        if len(fields) != want:
+            raise SnapsGraphError(f"{where}: a {fmt.upper()} pose line needs {want} numbers, found {len(fields)}")
+        try:
+            vals = [float(v) for v in fields]
+        except ValueError:
+            raise SnapsGraphError(f"{where}: not a number in a {fmt.upper()} pose line") from None
+        if not all(math.isfinite(v) for v in vals):
+            raise SnapsGraphError(f"{where}: NaN or infinite number in a pose line")
+        T = np.eye(4)
+        if fmt == "kitti":
+            T[:3, :4] = np.array(vals).reshape(3, 4)
+            _check_rotation(T[:3, :3], where)
+            keys.append(float(len(poses)))
+        else:
+            q = np.array(vals[4:8])
+            if abs(float(np.linalg.norm(q)) - 1.0) > ROTATION_TOLERANCE:
+                raise SnapsGraphError(f"{where}: the quaternion is not a rotation (|q| = {np.linalg.norm(q):.3g}, not 1)")
+            if keys and not vals[0] > keys[-1]:
+                raise SnapsGraphError(f"{where}: timestamp {vals[0]!r} does not increase (previous {keys[-1]!r})")
+            T[:3, :3] = quaternion_to_rotation(q)
+            T[:3, 3] = vals[1:4]
+            keys.append(vals[0])
+        poses.append(T)
+        lines.append(lineno)
+    return PoseFile(str(path), fmt, np.array(keys), np.array(poses), np.array(lines, int))

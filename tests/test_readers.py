@@ -279,10 +279,12 @@ def test_bad_bags_are_one_line(kitti8, tmp_path):
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "image encoding 'yuv422' is not supported" in proc.stderr, (
         proc.stderr
     )
-    # a bag with no stereo pair
+    # one image topic: monocular (this one without CameraInfo), and the stereo VO cannot run on it
     _write_single_topic_bag(tmp_path / "single", kitti8)
     proc = cli("run", str(tmp_path / "single"), "--out", str(tmp_path / "o"))
-    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "no stereo pair among the image topics" in proc.stderr
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "no sensor_msgs/CameraInfo topic beside" in proc.stderr
+    proc = cli("run", str(tmp_path / "single"), "--out", str(tmp_path / "o"), "--calib", str(kitti8.path / "calib.txt"))
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "no right images" in proc.stderr
     # two candidate pairs: the user must choose; then it runs
     write_stereo_bag(tmp_path / "two", kitti8, "mcap", n=2, extra_topics=("/other/left/image", "/other/right/image"))
     with pytest.raises(SnapsGraphError, match="several stereo pairs"):
@@ -522,3 +524,82 @@ def test_no_flag_no_rerun(kitti06_dir, tmp_path):
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert proc.stdout.strip().splitlines()[-1] == "CLEAN", proc.stdout + proc.stderr
+
+
+# ---------------------------------------------------------------- monocular (cam0 alone) + pose file
+
+
+def test_euroc_cam0_alone_with_absolute_tum_odometry(euroc_dir, tmp_path):
+    """A EuRoC folder with cam0 alone: undistorted monocular frames; a TUM file stamped in
+    absolute seconds (as EuRoC tools write them) matches the frames; without it, one-line error."""
+    from snaps_graph.datasets.euroc import EurocSequence
+    from snaps_graph.trajectory_io import tum_text
+
+    mono = tmp_path / "mono" / "mav0"
+    mono.mkdir(parents=True)
+    shutil.copytree(euroc_dir / "mav0" / "cam0", mono / "cam0")
+    seq = EurocSequence(mono.parent, frames="0:12")
+    assert not seq.stereo and seq.camera.baseline_m == 0.0 and len(seq) == 12
+    f = seq[3]
+    assert f.right.size == 0 and f.left.shape == (seq.camera.height, seq.camera.width)
+    stamps = np.array([int(line.split(",")[0]) for line in (mono / "cam0" / "data.csv").read_text().splitlines()[1:]])
+    poses = np.repeat(np.eye(4)[None], len(stamps), 0)
+    poses[:, 2, 3] = 0.05 * np.arange(len(stamps))  # 5 cm a frame forward
+    odo = tmp_path / "odo.tum"
+    odo.write_text(tum_text(poses, stamps * 1e-9))
+    out = tmp_path / "run"
+    proc = cli("run", str(mono.parent), "--frames", "0:12", "--odometry", str(odo), "--out", str(out))
+    assert proc.returncode == 0, proc.stderr
+    vo = np.loadtxt(out / "poses_vo.txt")
+    assert np.allclose(vo[:, 11], 0.05 * np.arange(12), atol=1e-6)  # z of each frame, from the file
+    proc = cli("run", str(mono.parent), "--frames", "0:12", "--out", str(tmp_path / "run2"))
+    assert proc.returncode == 2 and "no right images" in proc.stderr and proc.stderr.count("\n") == 1
+
+
+def test_bag_with_one_image_topic_is_monocular(kitti8, tmp_path):
+    """A ROS 2 bag with one image topic (and its CameraInfo): monocular frames, run on a TUM
+    file stamped in the bag's absolute time."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from snaps_graph.trajectory_io import tum_text
+
+    ts = get_typestore(Stores.LATEST)
+    T = ts.types
+    Header, Time = T["std_msgs/msg/Header"], T["builtin_interfaces/msg/Time"]
+    Image, Info, Roi = T["sensor_msgs/msg/Image"], T["sensor_msgs/msg/CameraInfo"], T["sensor_msgs/msg/RegionOfInterest"]
+    cam = kitti8.camera
+    t0 = 1_600_000_000_000_000_000
+    stamps = [t0 + int(round(kitti8[i].timestamp * 1e9)) for i in range(4)]
+    bag = tmp_path / "mono_bag"
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        ci = w.add_connection("/cam/image_raw", "sensor_msgs/msg/Image", typestore=ts)
+        cc = w.add_connection("/cam/camera_info", "sensor_msgs/msg/CameraInfo", typestore=ts)
+        for i, t_ns in enumerate(stamps):
+            img = kitti8[i].left
+            h = Header(stamp=Time(sec=t_ns // 10**9, nanosec=t_ns % 10**9), frame_id="cam")
+            w.write(ci, t_ns, ts.serialize_cdr(make_image(Image, h, img, "mono8"), "sensor_msgs/msg/Image"))
+            info = Info(
+                header=h,
+                height=img.shape[0],
+                width=img.shape[1],
+                distortion_model="plumb_bob",
+                d=np.zeros(5),
+                k=cam.K.reshape(-1).copy(),
+                r=np.eye(3).reshape(-1),
+                p=cam.P0.reshape(-1).copy(),
+                binning_x=0,
+                binning_y=0,
+                roi=Roi(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
+            )
+            w.write(cc, t_ns, ts.serialize_cdr(info, "sensor_msgs/msg/CameraInfo"))
+    seq = open_dataset(bag)
+    assert not seq.stereo and len(seq) == 4 and seq.camera.baseline_m == 0.0 and seq.camera.fx == cam.fx
+    assert seq[2].right.size == 0 and np.array_equal(seq[2].left, kitti8[2].left)
+    gt = kitti8.gt_poses[:4]
+    odo = tmp_path / "odo.tum"
+    odo.write_text(tum_text(gt, np.array(stamps) * 1e-9))
+    result, _ = run_sequence(seq, tmp_path / "out", odometry=odo)
+    assert np.allclose(result.trajectories["vo"], gt, atol=1e-6)
+    with pytest.raises(SnapsGraphError, match="no right image"):
+        SlamPipeline(seq.camera, Config()).process(seq[0])

@@ -37,6 +37,7 @@ def cfg(**kw) -> LoopConfig:
         correction_weight="q",  # eq. 6 exactly as the paper weighs it (verified weight: own test)
         discount_window="fixed",  # the paper's window K and gamma (span/shapes: test_loop_features)
         discount_shape="paper",
+        search="radius",  # the paper's fixed radius (the drift gate: own tests)
     )
     base.update(kw)
     return LoopConfig(**base)
@@ -447,13 +448,13 @@ def test_eq6_ground_rule_never_copies_the_reference_height_error():
     assert after_xyz[6] > 2.0 * before_xyz[6]
 
 
-@pytest.mark.parametrize("rotation, sigma, gain", [("yaw", 0.0, 1.0), ("full", 0.0, 1.0), ("yaw", math.sqrt(5.0), 0.5)])
-def test_eq6_rotation_correction_turns_window_to_verified_heading(rotation, sigma, gain):
+@pytest.mark.parametrize("sigma, gain", [(0.0, 1.0), (math.sqrt(5.0), 0.5)])
+def test_eq6_rotation_correction_turns_window_to_verified_heading(sigma, gain):
     """The VO turned 3 deg too far in its first step, so frames 1..5 head 3 deg off. The verified
-    rotation at the loop (frame 5 vs frame 0) turns the window [1, 5] back by g*w*gamma_s*3 deg
-    (gamma_0 = 1 - e^-3), and a frame composed afterwards keeps the corrected heading. The gain g
-    weighs the drift over the 5 frames (5 * 1 deg^2) against the measurement's variance sigma^2:
-    1 with an exact measurement, 0.5 when sigma^2 = 5."""
+    rotation at the loop (frame 5 vs frame 0) bends the window [1, 5] back from its anchor
+    (frame 0): frame s turns by g*w*3*s/5 deg, and a frame composed afterwards keeps the
+    corrected heading. The gain g weighs the drift over the 5 frames (5 * 1 deg^2) against the
+    measurement's variance sigma^2: 1 with an exact measurement, 0.5 when sigma^2 = 5."""
     true = [pose(z=float(k)) for k in range(6)]
     est = [true[0]] + [pose(z=float(k), yaw=3.0) for k in range(1, 6)]
     images = [tex(k) for k in range(6)]
@@ -463,10 +464,9 @@ def test_eq6_rotation_correction_turns_window_to_verified_heading(rotation, sigm
         cfg(
             correction_weight="verified",
             correction_axes="ground",
-            correction_rotation=rotation,
+            correction_rotation="yaw",
             heading_drift_deg=1.0,
             verified_heading_sigma_deg=sigma,
-            correction_model="shift",  # orientations by w*gamma_s ("bend": test_bend_*)
         )
     )
     for k in range(6):
@@ -475,7 +475,7 @@ def test_eq6_rotation_correction_turns_window_to_verified_heading(rotation, sigm
     assert step.loop is not None and closer.heading_gain(5) == pytest.approx(gain)
     yaw = yaw_deg(closer.poses)
     for s in range(1, 6):
-        assert yaw[s] == pytest.approx(3.0 * (1.0 - gain * gamma(1, 5 - s)), abs=1e-9)
+        assert yaw[s] == pytest.approx(3.0 * (1.0 - gain * s / 5.0), abs=1e-9)
     nxt = closer.step(6, pose(z=1.0), tex(6))  # one more metre straight ahead in the camera frame
     assert yaw_deg(nxt.pose) == pytest.approx(yaw[5], abs=1e-9)
 
@@ -484,11 +484,11 @@ def test_eq6_options_validated():
     with pytest.raises(SnapsGraphError, match="correction_axes"):
         SnapsLoopCloser(cfg(correction_axes="z"))
     with pytest.raises(SnapsGraphError, match="correction_rotation"):
-        SnapsLoopCloser(cfg(correction_rotation="pitch"))
-    with pytest.raises(SnapsGraphError, match="correction_model"):
-        SnapsLoopCloser(cfg(correction_model="warp"))
-    with pytest.raises(SnapsGraphError, match="heading_prior"):
-        SnapsLoopCloser(cfg(heading_prior="kalman"))
+        SnapsLoopCloser(cfg(correction_rotation="full"))
+    with pytest.raises(SnapsGraphError, match="search"):
+        SnapsLoopCloser(cfg(search="grid"))
+    with pytest.raises(SnapsGraphError, match="search_max_radius_m"):
+        SnapsLoopCloser(cfg(search_max_radius_m=1.0))
     with pytest.raises(SnapsGraphError, match="pause_closer_ratio"):
         SnapsLoopCloser(cfg(pause_closer_ratio=1.0))
 
@@ -505,8 +505,8 @@ def test_eq6_never_moves_the_reference_or_older_frames():
     assert closer.positions[3, 2] != 3.0
 
 
-# ---------------------------------------------------------------- bend, pause, heading prior
-def _circle_case(model: str):
+# ---------------------------------------------------------------- bend, pause
+def _circle_case():
     """A 36-frame circle (10 deg and 1 m per frame) that the VO turns 0.2 deg too far per frame;
     frame 36 revisits frame 0 and verification measures the exact relative pose. Returns the
     position errors (true vs corrected) of frames 0..36 and the closer."""
@@ -529,7 +529,6 @@ def _circle_case(model: str):
             verified_heading_sigma_deg=0.0,  # exact measurement: the full turn
             discount_window="span",
             discount_shape="linear",
-            correction_model=model,
         )
     )
     turn = pose(yaw=0.2)  # the VO's extra 0.2 deg per frame
@@ -542,15 +541,12 @@ def _circle_case(model: str):
 
 
 def test_bend_undoes_a_constant_heading_drift():
-    """A heading error growing evenly along the loop is what "bend" models: turning the window's
-    headings progressively and re-composing its positions puts every frame back on the circle
-    (the ramp has nothing left to spread); "shift" only slides positions along a ramp, so the
-    middle of the loop keeps most of its error."""
-    err_bend, closer = _circle_case("bend")
-    err_shift, _ = _circle_case("shift")
-    assert np.max(err_bend) < 1e-6
+    """A heading error growing evenly along the loop is what the bend models: turning the
+    window's headings progressively and re-composing its positions puts every frame back on the
+    circle (the ramp has nothing left to spread)."""
+    err, closer = _circle_case()
+    assert np.max(err) < 1e-6
     assert yaw_deg(closer.poses[36]) == pytest.approx(0.0, abs=1e-6)
-    assert np.max(err_shift[10:27]) > 0.1  # mid-loop frames stay off with the ramp alone
 
 
 def _pause_case(ratio: float, second_z: float, measured_z: float | None = None):
@@ -598,35 +594,77 @@ def test_closer_loop_keeps_the_pause_of_the_loop_that_started_it():
     assert step.loop is not None and step.loop.reference == 1 and closer.last_pinned == 16
 
 
-@pytest.mark.parametrize("prior, second_gain", [("span", 0.5), ("tracked", 0.2)])
-def test_heading_prior_tracked_after_a_loop(prior, second_gain):
-    """Two verified loops 1 frame apart (frames 5 and 6, each 5 frames after its reference; VO
-    heading 3 deg off; heading_drift 1 deg/sqrt(frame), sigma^2 5 deg^2): the first applies gain
-    5 / (5 + 5) = 0.5. "span" applies 0.5 again to what is left; "tracked" starts from the
-    2.5 deg^2 the first left plus 1 frame of drift: 3.5 / (3.5 + 5)."""
-    closer = SnapsLoopCloser(
-        cfg(
-            inter_frame_pause=0,
-            correction_weight="verified",
-            correction_rotation="yaw",
-            heading_drift_deg=1.0,
-            verified_heading_sigma_deg=math.sqrt(5.0),
-            heading_prior=prior,
-            correction_model="shift",
-        )
-    )
-    true = [pose(z=float(k)) for k in range(7)]
-    est = [true[0]] + [pose(z=float(k), yaw=3.0) for k in range(1, 7)]
-    images = [tex(k) for k in range(5)] + [tex(0) // 2, tex(1) // 2]
-    yaws = []
-    for k in range(7):
-        T_rel = np.eye(4) if k == 0 else inv(est[k - 1]) @ est[k]
-        step = closer.step(k, T_rel, images[k], verify=lambda ref, k=k: (inv(true[ref]) @ true[k], 50))
-        yaws.append(yaw_deg(step.pose))
-    assert step.loop is not None and step.loop.reference == 1
-    g1 = 0.5
-    assert yaws[5] == pytest.approx(3.0 * (1 - g1 * gamma(1, 0)), abs=1e-9)
-    # Frame 6 arrives on frame 5's corrected heading; its target is frame 1's (never moved by it).
-    g2 = 0.5 if prior == "span" else 3.5 / 8.5
-    yaw_ref = yaw_deg(closer.poses[1])
-    assert yaws[6] == pytest.approx(yaws[5] - g2 * gamma(2, 0) * (yaws[5] - yaw_ref), abs=1e-9)
+# ---------------------------------------------------------------- drift-aware search
+def drifted_revisit(offset_x: float, n_out: int = 300) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """A drive n_out metres along z (1 m per frame), then, as estimated, back beside frame 100
+    shifted ``offset_x`` metres across (a drift the true path does not have); the last frame
+    shows the place of frame 100."""
+    poses = [pose(z=float(k)) for k in range(n_out)] + [pose(z=100.0, x=offset_x)]
+    images = [tex(k % 997) for k in range(n_out)] + [tex(100)]
+    return poses, images
+
+
+@pytest.mark.parametrize("search, found", [("radius", False), ("drift", True)])
+def test_drift_gate_reaches_a_revisit_beyond_the_radius(search, found):
+    from snaps_graph.config import OdometryConfig
+
+    # 20 m off after ~1400 m driven: outside radius 5.5, inside 3 sigma of a 1 %/0.1 deg model.
+    closer = SnapsLoopCloser(cfg(search=search, search_max_radius_m=60.0, attempts=100), OdometryConfig(1.0, 0.1))
+    poses, images = drifted_revisit(20.0, n_out=800)
+    steps = drive(closer, poses, images)
+    assert (steps[-1].loop is not None) == found
+    if found:
+        assert steps[-1].loop.reference == 100
+
+
+def test_drift_gate_never_below_radius_and_grows_with_distance():
+    from snaps_graph.config import OdometryConfig
+
+    closer = SnapsLoopCloser(cfg(search="drift", search_max_radius_m=60.0), OdometryConfig(1.0, 0.1))
+    g = closer._gate(np.array([0.0, 10.0, 200.0, 500.0, 1000.0, 1e5]))
+    assert g[0] == g[1] == 5.5  # the paper's radius below
+    assert np.all(np.diff(g[2:5]) > 0) and g[-1] == 60.0
+    # faster than linear: heading drift
+    s = closer.drift_sigma(np.array([500.0, 1000.0]))
+    assert s[1] > 2.0 * s[0]
+
+
+def test_verified_loop_restarts_the_uncertainty():
+    from snaps_graph.config import OdometryConfig
+
+    closer = SnapsLoopCloser(cfg(search="drift"), OdometryConfig(1.0, 0.1))
+    poses, images = drifted_revisit(0.0, n_out=300)
+    drive(closer, poses[:300], images[:300])
+    ids = np.array([50])
+    before = float(closer.driven_since(299, ids)[0])
+    closer._last_loop = (299, 40)  # as if frame 299 had been verified against frame 40
+    after = float(closer.driven_since(299, ids)[0])
+    assert before == pytest.approx(249.0) and after == pytest.approx(10.0)
+
+
+def test_wide_gate_samples_across_it_within_attempts():
+    closer = SnapsLoopCloser(cfg(search="drift", attempts=5))
+    seen: set[int] = set()
+    for _ in range(30):
+        pick = closer._pick(60)
+        assert len(pick) <= 5 and pick[0] == 0 and len(set(pick.tolist())) == len(pick)
+        seen |= set(pick.tolist())
+    assert seen == set(range(60))  # every candidate of a wide gate is compared within a few frames
+    assert closer._pick(4).tolist() == [0, 1, 2, 3]
+
+
+def test_correction_ramp_follows_the_distance_driven():
+    """Drift grows with distance: frames standing still share one correction, and a jump in the
+    frame numbers (frames left out, driven at the speed before it) carries its share of it."""
+    closer = SnapsLoopCloser(cfg(discount_window="span", discount_shape="linear", correction_rotation="none"))
+    zs = [0, 1, 2, 3, 3, 3, 3, 4, 5, 6]  # a stop at z = 3 (frames 3-6)
+    index = list(range(10)) + [30]  # frame 30 after 20 frames left out, 20 m later
+    zs.append(26)
+    for k, (i, z) in enumerate(zip(index, zs)):
+        T_rel = np.eye(4) if k == 0 else pose(z=float(z - zs[k - 1]))
+        closer.step(i, T_rel, tex(k))
+    before = closer.positions
+    closer._correct(10, 1.0, np.array([1.0, 0.0, 0.0]), 1, first=1)
+    moved = (closer.positions - before)[:, 0]
+    share = (1.0 - math.exp(-3.0)) * np.array([0, 1, 2, 3, 3, 3, 3, 4, 5, 6, 26], float) / 26.0
+    np.testing.assert_allclose(moved, share, atol=1e-12)

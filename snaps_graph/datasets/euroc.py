@@ -14,6 +14,10 @@ The pair is rectified with ``cv2.stereoRectify`` (alpha = 0: only valid pixels, 
 once). Ground truth (body poses at 200 Hz) is interpolated at the frame times and expressed for
 the rectified left camera: ``T_W_rect = T_W_B(t) · T_BS_cam0 · T_raw_rect``; frames outside the
 ground truth's time span are dropped (noted). Frame indices are pair numbers.
+
+With ``cam0`` alone (no ``cam1/``) the sequence is monocular: cam0's images are undistorted (same
+orientation, alpha = 0), frames have an empty right image, and the camera's baseline is 0; it
+needs odometry from elsewhere.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..camera import StereoCamera
 from ..errors import SnapsGraphError
 from ..io_utils import parse_frame_range, read_text
 from ..types import StereoFrame
@@ -36,6 +41,9 @@ def find_mav0(path: str | Path) -> Path | None:
     p = Path(path)
     for cand in (p, p / "mav0"):
         if (cand / "cam0").is_dir() and (cand / "cam1").is_dir():
+            return cand
+    for cand in (p, p / "mav0"):  # monocular: cam0 alone
+        if (cand / "cam0" / "data.csv").is_file():
             return cand
     return None
 
@@ -152,6 +160,29 @@ def stereo_rectifier(mav0: Path) -> tuple[StereoRectifier, np.ndarray]:
     return rect, c0["T_BS"]
 
 
+class MonoUndistorter:
+    """cam0 alone: undistorted into a pinhole camera of the same orientation (the rectifier's
+    interface, for a monocular sequence: ``rectify`` keeps the empty right image)."""
+
+    def __init__(self, K: np.ndarray, D: np.ndarray, size: tuple[int, int], source: str):
+        import cv2
+
+        w, h = (int(v) for v in size)
+        newK, _ = cv2.getOptimalNewCameraMatrix(np.asarray(K, float), np.asarray(D, float), (w, h), 0.0)
+        if not np.all(np.isfinite(newK)) or newK[0, 0] <= 0 or newK[1, 1] <= 0:
+            raise SnapsGraphError(f"{source}: the intrinsics and distortion give no valid undistorted camera")
+        self._maps = cv2.initUndistortRectifyMap(np.asarray(K, float), np.asarray(D, float), None, newK, (w, h), cv2.CV_32FC1)
+        self.camera = StereoCamera(float(newK[0, 0]), float(newK[1, 1]), float(newK[0, 2]), float(newK[1, 2]), 0.0, w, h)
+
+    def rectify(self, left: np.ndarray, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        import cv2
+
+        return cv2.remap(left, self._maps[0], self._maps[1], cv2.INTER_LINEAR), right
+
+    def rect_pose(self, T: np.ndarray) -> np.ndarray:
+        return np.asarray(T, float)
+
+
 class EurocSequence(FrameSelection):
     """A EuRoC MAV stereo sequence, rectified, read frame by frame (the dataset protocol)."""
 
@@ -161,11 +192,18 @@ class EurocSequence(FrameSelection):
             raise SnapsGraphError(f"{path}: not a EuRoC sequence (no mav0/cam0 and mav0/cam1)")
         self.path = mav0
         self.notes: list[str] = []
-        self.rectifier, self.T_BS0 = stereo_rectifier(mav0)
+        self.stereo = (mav0 / "cam1").is_dir()
+        self.rectifier: StereoRectifier | MonoUndistorter
+        if self.stereo:
+            self.rectifier, self.T_BS0 = stereo_rectifier(mav0)
+        else:
+            c0 = read_sensor_yaml(mav0 / "cam0" / "sensor.yaml")
+            self.rectifier = MonoUndistorter(c0["K"], c0["D"], c0["size"], str(mav0 / "cam0" / "sensor.yaml"))
+            self.T_BS0 = c0["T_BS"]
         self.camera = self.rectifier.camera
 
         t0, f0, miss0 = read_image_list(mav0 / "cam0" / "data.csv")
-        t1, f1, miss1 = read_image_list(mav0 / "cam1" / "data.csv")
+        t1, f1, miss1 = read_image_list(mav0 / "cam1" / "data.csv") if self.stereo else (t0, f0, 0)
         for cam, miss in (("cam0", miss0), ("cam1", miss1)):
             if miss:
                 self.notes.append(f"{mav0 / cam / 'data.csv'}: {miss} listed images are missing from {cam}/data/ (skipped)")
@@ -207,9 +245,10 @@ class EurocSequence(FrameSelection):
     def raw_pair(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """The unrectified images of frame ``i`` (position in the selection)."""
         k = self.start + i
-        left, right = read_grey(self._left[k]), read_grey(self._right[k])
+        left = read_grey(self._left[k])
+        right = read_grey(self._right[k]) if self.stereo else np.zeros((0, 0), np.uint8)
         want = (self.camera.height, self.camera.width)
-        for p, img in ((self._left[k], left), (self._right[k], right)):
+        for p, img in ((self._left[k], left), (self._right[k], right)) if self.stereo else ((self._left[k], left),):
             if img.shape != want:
                 raise SnapsGraphError(f"{p}: size {img.shape[1]}x{img.shape[0]} differs from sensor.yaml's {want[1]}x{want[0]}")
         return left, right

@@ -3,18 +3,20 @@
 Layout of a sequence folder ``SEQ``::
 
     SEQ/image_0/NNNNNN.png   rectified left grey images
-    SEQ/image_1/NNNNNN.png   rectified right grey images
+    SEQ/image_1/NNNNNN.png   rectified right grey images (absent: a monocular sequence, whose
+                             frames have an empty right image; it needs odometry from elsewhere)
     SEQ/calib.txt            'P0:' and 'P1:' lines (others ignored)
     SEQ/times.txt            optional, one timestamp (s) a line
     SEQ/poses.txt            optional ground truth (KITTI pose format); for the official layout
                              ROOT/sequences/XX, ground truth is found at ROOT/poses/XX.txt
 
 Frames are read lazily, one at a time, in file-number order (numeric: 0.png, 2.png, 10.png); a
-frame's number is its file's number (positions when some stem is not a number). A frame range
-``A:B`` (Python slice semantics) selects positions A..B-1 in that order (for KITTI's contiguous
-000000.png... these are the file numbers); times.txt and poses.txt hold one line per image, in the
-same order. Every user error is a
-``SnapsGraphError`` whose one-line message names the file.
+frame's number is its file's number (positions when some stem is not a number). times.txt and
+poses.txt hold one line per image in that order, or, for numbered files, one line per frame
+number from 0 (a subset of a sequence's images keeps the full files: line i is frame i). A frame
+range ``A:B`` (Python slice semantics) selects positions A..B-1 in that order (for KITTI's
+contiguous 000000.png... these are the file numbers). Every user error is a ``SnapsGraphError``
+whose one-line message names the file.
 """
 
 from __future__ import annotations
@@ -79,14 +81,14 @@ class KittiSequence(FrameSelection):
         if not self.path.is_dir():
             raise SnapsGraphError(f"{self.path}: sequence folder not found")
         left_dir, right_dir = self.path / "image_0", self.path / "image_1"
-        for d in (left_dir, right_dir):
-            if not d.is_dir():
-                raise SnapsGraphError(f"{d}: missing image folder (expected image_0/ and image_1/)")
+        if not left_dir.is_dir():
+            raise SnapsGraphError(f"{left_dir}: missing image folder (expected image_0/, and image_1/ for stereo)")
+        self.stereo = right_dir.is_dir()
         self._left = _list_images(left_dir)
-        self._right = _list_images(right_dir)
+        self._right = _list_images(right_dir) if self.stereo else []
         if not self._left:
             raise SnapsGraphError(f"{left_dir}: no images")
-        if len(self._left) != len(self._right):
+        if self.stereo and len(self._left) != len(self._right):
             raise SnapsGraphError(
                 f"{self.path}: {len(self._left)} left images in image_0/ but {len(self._right)} right images in image_1/"
             )
@@ -94,25 +96,21 @@ class KittiSequence(FrameSelection):
             if lp.stem != rp.stem:
                 raise SnapsGraphError(f"{rp}: right image does not pair with left image {lp.name}")
         self._numbers = _frame_numbers(self._left)
+        self._numbered = all(p.stem.isdigit() for p in self._left)
         n_all = len(self._left)
         self.camera = StereoCamera.from_calib_file(self.path / "calib.txt")
 
         times_path = self.path / "times.txt"
         if times_path.is_file():
-            times = read_times(times_path)
-            if len(times) != n_all:
-                raise SnapsGraphError(f"{times_path}: {len(times)} timestamps for {n_all} images")
+            times = self._per_image(read_times(times_path), times_path, "timestamps")
         else:
-            times = np.arange(n_all) * 0.1  # KITTI's 10 Hz
+            times = self._numbers * 0.1 if self._numbered else np.arange(n_all) * 0.1  # KITTI's 10 Hz
         self._times_all = times
 
         self.gt_path = self._find_gt(gt)
         self._gt_all = None
         if self.gt_path is not None:
-            gt_poses = read_kitti_poses(self.gt_path)
-            if len(gt_poses) != n_all:
-                raise SnapsGraphError(f"{self.gt_path}: {len(gt_poses)} poses for {n_all} images")
-            self._gt_all = gt_poses
+            self._gt_all = self._per_image(read_kitti_poses(self.gt_path), self.gt_path, "poses")
 
         rng = parse_frame_range(frames, n_all)
         start, stop = (0, n_all) if rng is None else (rng[0], rng[1] if rng[1] is not None else n_all)
@@ -122,6 +120,21 @@ class KittiSequence(FrameSelection):
         first = read_grey(self._left[start])
         self.camera = self.camera.with_size(first.shape[1], first.shape[0])
         self.camera.check_image_size(first.shape[1], first.shape[0], source=str(self.path / "calib.txt"))
+
+    def _per_image(self, values: np.ndarray, path: Path, what: str) -> np.ndarray:
+        """One row per image: the file holds one per image, or (numbered files) one per frame
+        number from 0, of which the images' rows are taken."""
+        n_all = len(self._left)
+        if len(values) == n_all:
+            return values
+        if self._numbered and len(values) > int(self._numbers[-1]):
+            return values[self._numbers]
+        if self._numbered:
+            raise SnapsGraphError(
+                f"{path}: {len(values)} {what} for {n_all} images numbered up to {self._numbers[-1]} "
+                f"(need one per image, or one per frame number from 0)"
+            )
+        raise SnapsGraphError(f"{path}: {len(values)} {what} for {n_all} images")
 
     def _find_gt(self, gt: str | Path | None) -> Path | None:
         if gt is not None:
@@ -151,8 +164,8 @@ class KittiSequence(FrameSelection):
     def __getitem__(self, i: int) -> StereoFrame:
         k = self._position(i)
         left = read_grey(self._left[k])
-        right = read_grey(self._right[k])
-        if left.shape != right.shape:
+        right = read_grey(self._right[k]) if self.stereo else np.zeros((0, 0), np.uint8)
+        if self.stereo and left.shape != right.shape:
             raise SnapsGraphError(
                 f"{self._right[k]}: size {right.shape[1]}x{right.shape[0]} differs from left image {left.shape[1]}x{left.shape[0]}"
             )

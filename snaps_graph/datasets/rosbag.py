@@ -12,6 +12,9 @@ reader through the ``rosbags`` library (pure Python, no ROS install; the ``bags`
   period), in stamp order; unpaired messages are dropped and counted in ``notes``.
 - Topics: ``left_topic``/``right_topic``, or found by name (``left``/``right``, ``cam0``/``cam1``,
   ``infra1``/``infra2`` in otherwise equal names); a bag with several candidate pairs asks for them.
+  A bag with one image topic (or ``left_topic`` alone, with no right partner) is monocular: its
+  frames have an empty right image, its camera (undistorted by its CameraInfo) a baseline of 0,
+  and it needs odometry from elsewhere.
 - Without CameraInfo (EuRoC's bags have none), ``calib`` gives the calibration: a calib.txt of
   rectified cameras or a folder with cam0/ and cam1/ ``sensor.yaml`` (rectified on the fly).
 - Ground truth: a bag carries none; ``gt`` may name a KITTI pose file with one pose per pair.
@@ -160,11 +163,13 @@ class RosbagSequence(FrameSelection):
         info_topics = sorted({c.topic for c in conns if c.msgtype == INFO_TYPE})
         left_topic, right_topic = self._choose_topics(image_topics, left_topic, right_topic)
         self.left_topic, self.right_topic = left_topic, right_topic
-        self._conn = {t: [c for c in conns if c.topic == t] for t in (left_topic, right_topic)}
-        self._msgtype = {t: self._conn[t][0].msgtype for t in (left_topic, right_topic)}
+        self.stereo = right_topic is not None
+        topics = [left_topic] if right_topic is None else [left_topic, right_topic]
+        self._conn = {t: [c for c in conns if c.topic == t] for t in topics}
+        self._msgtype = {t: self._conn[t][0].msgtype for t in topics}
 
         infos = {}
-        for t in (left_topic, right_topic) if calib is None else ():
+        for t in topics if calib is None else ():
             it = _camera_info_topic(t, info_topics)
             if it is None:
                 raise SnapsGraphError(
@@ -174,15 +179,15 @@ class RosbagSequence(FrameSelection):
             infos[t] = self._first_message(it)
 
         # One pass over the image messages: header stamps and bag times, no pixels kept.
-        stamps = {left_topic: [], right_topic: []}
-        bag_t = {left_topic: [], right_topic: []}
-        for conn, t_bag, raw in self._reader.messages(connections=self._conn[left_topic] + self._conn[right_topic]):
+        stamps: dict[str, list[int]] = {t: [] for t in topics}
+        bag_t: dict[str, list[int]] = {t: [] for t in topics}
+        for conn, t_bag, raw in self._reader.messages(connections=[c for t in topics for c in self._conn[t]]):
             msg = self._deserialize(raw, conn)
             st = msg.header.stamp
             stamps[conn.topic].append(int(st.sec) * 1_000_000_000 + int(st.nanosec))
             bag_t[conn.topic].append(int(t_bag))
-        sl, sr = (np.array(stamps[t], np.int64) for t in (left_topic, right_topic))
-        bl, br = (np.array(bag_t[t], np.int64) for t in (left_topic, right_topic))
+        sl, sr = (np.array(stamps[t], np.int64) for t in (topics[0], topics[-1]))
+        bl, br = (np.array(bag_t[t], np.int64) for t in (topics[0], topics[-1]))
         if len(sl) == 0 or len(sr) == 0:
             raise SnapsGraphError(f"{self.path}: no messages on {left_topic if len(sl) == 0 else right_topic}")
         ol, orr = np.argsort(sl, kind="stable"), np.argsort(sr, kind="stable")
@@ -196,8 +201,12 @@ class RosbagSequence(FrameSelection):
         self._pair_stamps = np.stack([sl[ol][il], sr[orr][ir]], 1)
         self._pair_bag_t = np.stack([bl[ol][il], br[orr][ir]], 1)
         self._times_all = (self._pair_stamps[:, 0] - self._pair_stamps[0, 0]) * 1e-9
+        self.t0_ns = int(self._pair_stamps[0, 0])  # the absolute time of timestamp 0 (pose files with absolute stamps)
 
-        if calib is None:
+        if calib is None and right_topic is None:
+            self.rectifier, self.camera = self._mono_camera(infos[left_topic])
+        elif calib is None:
+            assert right_topic is not None
             self.rectifier, self.camera = self._make_camera(infos[left_topic], infos[right_topic])
         else:  # the bag's CameraInfo (if any) is ignored
             from .open import load_calibration
@@ -226,7 +235,7 @@ class RosbagSequence(FrameSelection):
         self[0]  # decode one pair now: an unsupported encoding or a size mismatch stops before the run
 
     # ---- set-up helpers ----
-    def _choose_topics(self, image_topics, left, right) -> tuple[str, str]:
+    def _choose_topics(self, image_topics, left, right) -> tuple[str, str | None]:
         if not image_topics:
             raise SnapsGraphError(f"{self.path}: no sensor_msgs/Image or CompressedImage topics")
         for t, flag in ((left, "--left-topic"), (right, "--right-topic")):
@@ -236,9 +245,13 @@ class RosbagSequence(FrameSelection):
             if left == right:
                 raise SnapsGraphError(f"{self.path}: --left-topic and --right-topic are the same topic")
             return left, right
+        if len(image_topics) == 1 and not right:
+            return image_topics[0], None  # monocular
         pairs = find_stereo_topics(image_topics)
         if left or right:
             pairs = [p for p in pairs if left in p or right in p]
+        if left and not right and not pairs:
+            return left, None  # monocular: the named topic has no right partner
         if not pairs:
             raise SnapsGraphError(
                 f"{self.path}: no stereo pair among the image topics ({', '.join(image_topics)}); name them with --left-topic/--right-topic"
@@ -259,6 +272,21 @@ class RosbagSequence(FrameSelection):
         for conn, _t, raw in self._reader.messages(connections=conns):
             return self._deserialize(raw, conn)
         raise SnapsGraphError(f"{self.path}: {topic} has no messages")
+
+    def _mono_camera(self, info):
+        """(undistorter or None, camera of baseline 0) of a monocular topic's CameraInfo."""
+        from ..camera import StereoCamera
+        from .euroc import MonoUndistorter
+
+        size = (int(info.width), int(info.height))
+        K, D, _R, P = _info_mats(info)
+        if K.size != 9 or not np.all(np.isfinite(K)) or size[0] <= 0 or size[1] <= 0:
+            raise SnapsGraphError(f"{self.path}: {self.left_topic} CameraInfo needs a finite K and an image size")
+        if "rect" in self.left_topic.lower() or not np.any(D):
+            Kp = P.reshape(3, 4)[:, :3] if P.size == 12 and P[0] > 0 else K.reshape(3, 3)
+            return None, StereoCamera(float(Kp[0, 0]), float(Kp[1, 1]), float(Kp[0, 2]), float(Kp[1, 2]), 0.0, *size)
+        und = MonoUndistorter(K.reshape(3, 3), D, size, f"{self.path}: {self.left_topic} CameraInfo")
+        return und, und.camera
 
     def _make_camera(self, info_l, info_r):
         src = f"{self.path}: {self.right_topic} CameraInfo"
@@ -295,9 +323,12 @@ class RosbagSequence(FrameSelection):
 
     def _pair(self, lmsg, lconn, rmsg, rconn, k: int) -> StereoFrame:
         left = decode_image(lmsg, lconn.msgtype, f"{self.path}: {lconn.topic}")
-        right = decode_image(rmsg, rconn.msgtype, f"{self.path}: {rconn.topic}")
+        if rmsg is None:  # monocular
+            right = np.zeros((0, 0), np.uint8)
+        else:
+            right = decode_image(rmsg, rconn.msgtype, f"{self.path}: {rconn.topic}")
         want = (self.camera.height, self.camera.width)
-        for img, conn in ((left, lconn), (right, rconn)):
+        for img, conn in ((left, lconn), (right, rconn)) if rmsg is not None else ((left, lconn),):
             if img.shape != want:
                 raise SnapsGraphError(
                     f"{self.path}: {conn.topic}: image {img.shape[1]}x{img.shape[0]} differs from its CameraInfo {want[1]}x{want[0]}"
@@ -309,21 +340,21 @@ class RosbagSequence(FrameSelection):
     def _stream(self, k0: int, k1: int) -> Iterator[StereoFrame]:
         """Pairs k0..k1-1 in order, from one sweep over the bag's messages in that time range."""
         lt, rt = self.left_topic, self.right_topic
-        want = {
-            lt: {int(s): k for k, s in enumerate(self._pair_stamps[k0:k1, 0], k0)},
-            rt: {int(s): k for k, s in enumerate(self._pair_stamps[k0:k1, 1], k0)},
-        }
+        want = {lt: {int(s): k for k, s in enumerate(self._pair_stamps[k0:k1, 0], k0)}}
+        if rt is not None:
+            want[rt] = {int(s): k for k, s in enumerate(self._pair_stamps[k0:k1, 1], k0)}
         got: dict[int, list] = {}
         nxt = k0
         t_lo = int(self._pair_bag_t[k0:k1].min())
         t_hi = int(self._pair_bag_t[k0:k1].max()) + 1
-        for conn, _t, raw in self._reader.messages(connections=self._conn[lt] + self._conn[rt], start=t_lo, stop=t_hi):
+        conns = [c for t in want for c in self._conn[t]]
+        for conn, _t, raw in self._reader.messages(connections=conns, start=t_lo, stop=t_hi):
             msg = self._deserialize(raw, conn)
             st = msg.header.stamp
             k = want[conn.topic].get(int(st.sec) * 1_000_000_000 + int(st.nanosec))
             if k is None:
                 continue
-            slot = got.setdefault(k, [None, None])
+            slot = got.setdefault(k, [None, None] if rt is not None else [None, (None, None)])
             slot[0 if conn.topic == lt else 1] = (msg, conn)
             while nxt in got and None not in got[nxt]:
                 (lm, lc), (rm, rc) = got.pop(nxt)

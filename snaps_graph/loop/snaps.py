@@ -5,10 +5,12 @@
 1. composes the VO increment onto the previous heuristic pose (already corrected, so corrections
    persist into every later frame);
 2. stores the frame's 1/6-scale thumbnail (§III-A);
-3. searches loop candidates (§III-B): earlier frames j with ‖p_j − p_N‖ ≤ radius (current,
-   corrected positions), N − j ≥ frame distance M, |wrap(yaw_j − yaw_N)| ≤ max yaw difference, and
-   only if N − last pinned frame > inter-frame pause; nearest first (ties: older frame first), at
-   most ``attempts`` of them are compared by UIQI (eq. 4) on thumbnails; candidates with
+3. searches loop candidates (§III-B): earlier frames j with ‖p_j − p_N‖ within the gate (current,
+   corrected positions; ``search = "radius"``: the paper's fixed radius; ``"drift"``: n sigma of
+   the drift model's uncertainty accrued between j and N, see :meth:`SnapsLoopCloser.search`),
+   N − j ≥ frame distance M, |wrap(yaw_j − yaw_N)| ≤ max yaw difference (widened by the heading
+   drift), and only if N − last pinned frame > inter-frame pause; nearest first (ties: older frame
+   first), at most ``attempts`` of them are compared by UIQI (eq. 4) on thumbnails; candidates with
    Q ≥ minimum similarity are, highest Q first, the loop. With a verifier (the pipeline always has
    one), they are tried in that order and the first that passes geometric verification is the
    loop; with ``require_verification`` none passing means no loop (see :meth:`_try_close`).
@@ -40,18 +42,18 @@
 
    The window (``discount_window``, ``discount_shape``): the paper's K = ``discount_length`` and
    γ above; or K following the loop's span N − j ("span": min(``discount_length_max``,
-   ``discount_span_factor``·(N − j))) with γ stretched over the window ("window") or a linear ramp
-   ("linear"), so the correction ends at 0 instead of stepping there (γ is 0.86 at s' = 100).
+   ``discount_span_factor``·(N − j))) with a linear ramp ("linear"), so the correction ends at 0
+   instead of stepping there (γ is 0.86 at s' = 100). The ramp runs in the distance driven since
+   the window's anchor, not in frames: drift grows with distance, so frames standing still share
+   one correction and frames left out (a gap in the frame numbers) carry their distance's share.
 
-   The heading turn (``correction_model``): "shift" turns each window frame's orientation by
-   w·γ_s of the verified turn and moves positions by the ramp only; "bend" turns the headings
-   progressively from the window's anchor (frame N − K − 1, fixed) to N, re-composes the window's
-   positions from the VO steps turned with them (a heading error that grew along the loop bent
-   the path, and turning it back straightens the middle of the loop, which δ at N cannot see),
-   then spreads what remains of δ by the ramp. The share of the turn applied is the gain
-   g = P / (P + s²) (``heading_drift_deg``, ``verified_heading_sigma_deg``) with P the heading
-   variance since the reference ("span") or, with ``heading_prior = "tracked"``, at most what the
-   last verified loop left plus the drift since.
+   The heading turn bends the window: the headings turn progressively (by the same distance
+   share) from the window's anchor (frame N − K − 1, fixed) to N, the window's positions are re-composed from the VO steps turned
+   with them (a heading error that grew along the loop bent the path, and turning it back
+   straightens the middle of the loop, which δ at N cannot see), then what remains of δ is spread
+   by the ramp. The share of the turn applied is the gain g = P / (P + s²)
+   (``heading_drift_deg``, ``verified_heading_sigma_deg``) with P the heading variance since the
+   reference.
 
 Frame numbering. Internally frames are numbered by their position in the processed stream
 (0, 1, ...): M, K and the pause count processed frames. The caller's ``index`` (the dataset's
@@ -84,7 +86,7 @@ from time import perf_counter
 
 import numpy as np
 
-from ..config import LoopConfig
+from ..config import LoopConfig, OdometryConfig
 from ..errors import SnapsGraphError
 from ..geometry import wrap_deg, yaw_deg
 from ..types import CandidateRecord, LoopEvent
@@ -124,18 +126,10 @@ class SnapsStep:
     t_verify_ms: float = 0.0  # geometric verification time on this frame (tried or successful)
 
 
-def _rotation_correction(dR: np.ndarray, kind: str) -> np.ndarray:
-    """World-frame axis-angle vector of the rotation dR = R_target R_N^T ("full"), or of its
-    part about the world vertical y axis ("yaw")."""
-    if kind == "yaw":
-        # Closest rotation about y: R_y(t) = [[c, 0, s], [0, 1, 0], [-s, 0, c]].
-        return np.array([0.0, math.atan2(dR[0, 2] - dR[2, 0], dR[0, 0] + dR[2, 2]), 0.0])
-    c = np.clip((np.trace(dR) - 1.0) / 2.0, -1.0, 1.0)
-    theta = math.acos(c)
-    if theta < 1e-12:
-        return np.zeros(3)
-    w = np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]])
-    return w * (theta / (2.0 * math.sin(theta))) if theta < math.pi - 1e-6 else w  # near pi: loop rotations never are
+def _yaw_correction(dR: np.ndarray) -> np.ndarray:
+    """World-frame axis-angle vector of the part of dR = R_target R_N^T about the world vertical y."""
+    # Closest rotation about y: R_y(t) = [[c, 0, s], [0, 1, 0], [-s, 0, c]].
+    return np.array([0.0, math.atan2(dR[0, 2] - dR[2, 0], dR[0, 0] + dR[2, 2]), 0.0])
 
 
 def _exp_so3(rotvec: np.ndarray, scales: np.ndarray) -> np.ndarray:
@@ -154,45 +148,60 @@ def _exp_so3(rotvec: np.ndarray, scales: np.ndarray) -> np.ndarray:
 def discount(cfg: LoopConfig, alpha: int, s_prime: np.ndarray, window: int | None = None) -> np.ndarray:
     """γ of eq. 6 for offsets s' = N − s, clamped at 0 (see module docstring).
 
-    With ``window`` = K and ``discount_shape`` "window": the paper's curve stretched so it reaches
-    0 just past the window's oldest frame, γ = 1 − exp(−c·(1 − s'/(K + 1))) (no step at N − K);
-    "linear": γ = (1 − e^−c)·(1 − s'/(K + 1)), the share of a drift that grew evenly over the window.
+    With ``window`` = K and ``discount_shape`` "linear": γ = (1 − e^−c)·(1 − s'/(K + 1)), the
+    share of a drift that grew evenly over the window.
     """
-    shape = cfg.discount_shape
-    if window is None or shape == "paper":
+    if window is None or cfg.discount_shape == "paper":
         return np.maximum(0.0, 1.0 - np.exp(-(cfg.discount_offset - alpha * cfg.discount_rate * s_prime)))
-    frac = np.clip(1.0 - s_prime / (window + 1.0), 0.0, 1.0)
-    if shape == "linear":
-        return (1.0 - math.exp(-cfg.discount_offset)) * frac
-    return 1.0 - np.exp(-cfg.discount_offset * frac)
+    return (1.0 - math.exp(-cfg.discount_offset)) * np.clip(1.0 - s_prime / (window + 1.0), 0.0, 1.0)
 
 
 class SnapsLoopCloser:
     """Real-time SNAPS loop closer and owner of the heuristic trajectory (no I/O inside)."""
 
-    def __init__(self, cfg: LoopConfig | None = None):
+    def __init__(self, cfg: LoopConfig | None = None, odometry: OdometryConfig | None = None):
         self.cfg = cfg if cfg is not None else LoopConfig()
         self.cfg.validate()
+        self.odometry = odometry if odometry is not None else OdometryConfig()
+        self.odometry.validate()
+        # Drift model of the search gate: sigma(D)^2 = (a D)^2 + (b D^2 / 2)^2 for D metres driven.
+        self._drift_a = self.odometry.trans_drift_pct / 100.0
+        self._drift_b = math.radians(self.odometry.rot_drift_deg_per_100m) / 100.0
+        r = self.cfg.radius_m
+        # Grid levels (drift search): cell sizes radius * 2^k up to the largest gate.
+        self._levels = [r * 2.0**k for k in range(1 + max(0, math.ceil(math.log2(max(1.0, self.cfg.search_max_radius_m / r)))))]
+        if self.cfg.search != "drift":
+            self._levels = self._levels[:1]
+        self._grids: list[dict[int, list[int]]] = [{} for _ in self._levels]
+        self._nears: list[dict[int, int]] = [{} for _ in self._levels]
+        self._cells = [np.empty((1024, 3), dtype=np.int64) for _ in self._levels]
+        # A frame enters level k >= 1 once the distance driven since it makes its gate wider than
+        # level k-1's cell: recent frames (the common neighbours) stay in level 0 only.
+        self._level_driven = [0.0] + [self._driven_for_gate(size) for size in self._levels[:-1]]
+        self._filed = [0] * len(self._levels)  # frames 0 .. _filed[k]-1 are in level k
+        self._last_loop: tuple[int, int] | None = None  # (frame, reference) of the last verified loop
+        self._speed = 0.0  # metres per frame number, running mean (see step)
+        self._phase = 0  # rotates the sampled candidates across a wide gate (see _pick)
         cap = 1024
         self._R = np.empty((cap, 3, 3))
         self._p = np.empty((cap, 3))
         self._yaw = np.empty(cap)
         self._index = np.empty(cap, dtype=np.int64)
-        self._cell = np.empty((cap, 3), dtype=np.int64)  # grid cell of each indexed frame
+        self._s = np.empty(cap)  # distance driven up to each frame (estimated), m
         self._n = 0  # frames processed
         self._n_indexed = 0  # frames 0 .. _n_indexed-1 are in the grid
-        self._grid: dict[int, list[int]] = {}
-        # key -> how many non-empty grid cells lie in its 3x3 neighbourhood. Most frames have no
-        # indexed frame nearby, and one look-up here answers that instead of nine in _grid.
-        self._near: dict[int, int] = {}
+        # Level 0 is the paper's grid (cell = radius). _near: key -> how many non-empty grid cells
+        # lie in its 3x3 neighbourhood; most frames have no indexed frame nearby, and one look-up
+        # there answers that instead of nine in _grid.
+        self._grid = self._grids[0]
+        self._near = self._nears[0]
+        self._cell = self._cells[0]
         self._thumbs: list[np.ndarray] = []
         self._stats: OrderedDict[int, WindowStats] = OrderedDict()
         self._last_pinned: int | None = None
         self._pause_from = 0  # the loop that started the current pause
         self._alpha = 0  # loops that corrected the trajectory (eq. 6's alpha)
         self._pinned_distance = 0.0  # distance of the last loop (m)
-        self._heading_pin: int | None = None  # last frame whose heading a verified loop corrected
-        self._heading_var = 0.0  # its heading variance left after that correction (deg^2)
         self._loops: list[LoopEvent] = []
         self.similarities_computed = 0
         self.rejected_unverified = 0  # loops refused because no candidate verified
@@ -269,6 +278,7 @@ class SnapsLoopCloser:
         self._grow(n + 1)
         if n == 0:
             R, p = np.eye(3), np.zeros(3)
+            self._s[0] = 0.0
         else:
             T = np.asarray(T_rel, dtype=float)
             if T.shape != (4, 4) or not np.all(np.isfinite(T)):
@@ -276,6 +286,13 @@ class SnapsLoopCloser:
             R_prev, p_prev = self._R[n - 1], self._p[n - 1]
             R = R_prev @ T[:3, :3]
             p = p_prev + R_prev @ T[:3, 3]
+            # Distance driven: a jump in the frame numbers (frames left out) is driven at the
+            # speed of the frames before it, never less than the straight line across it.
+            step_m = math.sqrt(float(T[0, 3] ** 2 + T[1, 3] ** 2 + T[2, 3] ** 2))
+            gap = max(1, int(index) - int(self._index[n - 1]))
+            if gap == 1:
+                self._speed += 0.1 * (step_m - self._speed) if n > 1 else step_m - self._speed
+            self._s[n] = self._s[n - 1] + (step_m if gap == 1 else max(step_m, gap * self._speed))
         self._R[n], self._p[n] = R, p
         self._yaw[n] = yaw_deg(R)
         self._index[n] = index
@@ -285,12 +302,14 @@ class SnapsLoopCloser:
         t0 = perf_counter()
         if n - self.cfg.frame_distance >= 0:
             self._insert(n - self.cfg.frame_distance)
+            for lvl in range(1, len(self._levels)):
+                self._promote(n, lvl)
         loop, computed = None, 0
         if self._last_pinned is None or n - self._pause_from > self.cfg.inter_frame_pause:
             ids, dists = self.search(n)
             if ids.size:
-                a = self.cfg.attempts
-                loop, computed = self._try_close(n, ids[:a], dists[:a], verify)
+                pick = self._pick(len(ids))
+                loop, computed = self._try_close(n, ids[pick], dists[pick], verify)
         elif self.cfg.pause_closer_ratio > 0.0:  # in the pause: only a clearly closer revisit
             ids, dists = self.search(n)
             if ids.size:
@@ -308,11 +327,16 @@ class SnapsLoopCloser:
 
     # ---- candidates ----
     def search(self, n: int) -> tuple[np.ndarray, np.ndarray]:
-        """Candidates of stream frame ``n`` by radius, frame distance and yaw, nearest first.
+        """Candidates of stream frame ``n`` by the position gate, frame distance and yaw.
 
-        Ignores the inter-frame pause and the attempts limit (``step`` applies those). Returns
-        (stream positions, distances in metres), sorted by distance, ties by older frame.
+        ``search = "radius"``: within ``radius_m`` (the paper), nearest first. ``"drift"``: within
+        ``search_sigmas`` standard deviations of the drift accrued between j and n (never less
+        than ``radius_m``, at most ``search_max_radius_m``), nearest in sigmas first. Ignores the
+        inter-frame pause and the attempts limit (``step`` applies those). Returns (stream
+        positions, distances in metres), ties by older frame.
         """
+        if self.cfg.search == "drift":
+            return self._search_drift(n)
         cfg = self.cfg
         p = self._p[n]
         r = cfg.radius_m
@@ -337,6 +361,117 @@ class SnapsLoopCloser:
         ids, d = ids[ok], d[ok]
         order = np.lexsort((ids, d))
         return ids[order], d[order]
+
+    def driven_since(self, n: int, ids: np.ndarray) -> np.ndarray:
+        """Metres of odometry between each frame of ``ids`` and frame ``n``: along the path, or
+        through the last verified loop (its frame and reference are tied by a measurement)."""
+        s = self._s
+        d = s[n] - s[ids]
+        if self._last_loop is not None:
+            frame, ref = self._last_loop
+            d = np.minimum(d, s[n] - s[frame] + np.abs(s[ids] - s[ref]))
+        return d
+
+    def drift_sigma(self, driven: np.ndarray | float) -> np.ndarray:
+        """1-sigma position error (m) after ``driven`` metres: translation drift plus the lateral
+        error of a heading error that grows linearly with the distance."""
+        D = np.asarray(driven, dtype=float)
+        return np.hypot(self._drift_a * D, 0.5 * self._drift_b * D * D)
+
+    def _gate(self, driven: np.ndarray | float) -> np.ndarray:
+        cfg = self.cfg
+        return np.clip(cfg.search_sigmas * self.drift_sigma(driven), cfg.radius_m, cfg.search_max_radius_m)
+
+    def _search_drift(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        cfg = self.cfg
+        last = n - cfg.frame_distance
+        if last < 0 or self._n_indexed == 0:
+            return _NO_IDS, _NO_DISTS
+        # Each level holds the frames whose gate fits its 3x3 cells (see _promote).
+        x, _, z = self._p[n].tolist()
+        found: list[int] = []
+        for lvl, size in enumerate(self._levels):
+            base = math.floor(x / size) * _RADIX + math.floor(z / size)
+            if base not in self._nears[lvl]:  # no indexed frame anywhere near: the common case
+                continue
+            grid = self._grids[lvl]
+            for off in _NEIGHBOUR_OFFSETS:
+                members = grid.get(base + off)
+                if members:
+                    found.extend(members)
+        if not found:
+            return _NO_IDS, _NO_DISTS
+        if len(found) > 48:  # many neighbours: one vector test drops those beyond the widest gate
+            ids = np.array(found, dtype=np.int64)
+            d2 = np.sum((self._p[ids] - self._p[n]) ** 2, axis=1)
+            found = ids[(d2 <= cfg.search_max_radius_m**2) & (ids <= last)].tolist()
+        if len(found) <= 48:  # few left (most frames): scalar Python beats numpy's call overhead
+            return self._search_drift_small(n, found)
+        ids = np.unique(np.array(found, dtype=np.int64))
+        d = np.linalg.norm(self._p[ids] - self._p[n], axis=1)
+        driven = self.driven_since(n, ids)
+        sigma = np.maximum(self.drift_sigma(driven), cfg.radius_m / cfg.search_sigmas)
+        gates = np.minimum(cfg.search_sigmas * sigma, cfg.search_max_radius_m)
+        # The yaw gate widens by the heading drift too (n sigma of b*D, degrees).
+        yaw_gate = cfg.max_yaw_deg + cfg.search_sigmas * np.degrees(self._drift_b * driven)
+        ok = (d <= gates) & (np.abs(wrap_deg(self._yaw[ids] - self._yaw[n])) <= yaw_gate)
+        if not ok.any():
+            return _NO_IDS, _NO_DISTS
+        ids, d, m = ids[ok], d[ok], d[ok] / sigma[ok]
+        order = np.lexsort((ids, m))
+        return ids[order], d[order]
+
+    def _search_drift_small(self, n: int, found: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`_search_drift`'s rules for a short member list, without numpy arrays."""
+        cfg = self.cfg
+        last = n - cfg.frame_distance
+        px, py, pz = self._p[n].tolist()
+        yaw_n = float(self._yaw[n])
+        s_n = float(self._s[n])
+        loop = self._last_loop
+        if loop is not None:
+            via, s_ref = s_n - float(self._s[loop[0]]), float(self._s[loop[1]])
+        a2, hb = self._drift_a**2, 0.5 * self._drift_b
+        k, floor, cap = cfg.search_sigmas, cfg.radius_m / cfg.search_sigmas, cfg.search_max_radius_m
+        yaw_k = k * math.degrees(self._drift_b)
+        hits = []
+        for j in set(found):
+            if j > last:
+                continue
+            x, y, z = self._p[j].tolist()
+            d2 = (x - px) ** 2 + (y - py) ** 2 + (z - pz) ** 2
+            if d2 > cap * cap:
+                continue
+            s_j = float(self._s[j])
+            D = s_n - s_j
+            if loop is not None:
+                D = min(D, via + abs(s_j - s_ref))
+            sigma = max(math.sqrt(a2 * D * D + (hb * D * D) ** 2), floor)
+            gate = min(k * sigma, cap)
+            if d2 > gate * gate:
+                continue
+            dyaw = (float(self._yaw[j]) - yaw_n + 180.0) % 360.0 - 180.0
+            if abs(dyaw) <= cfg.max_yaw_deg + yaw_k * D:
+                d = math.sqrt(d2)
+                hits.append((d / sigma, j, d))
+        if not hits:
+            return _NO_IDS, _NO_DISTS
+        hits.sort()  # nearest in sigmas first, ties by older frame
+        return np.array([j for _, j, _ in hits], dtype=np.int64), np.array([d for _, _, d in hits])
+
+    def _pick(self, n_found: int) -> np.ndarray:
+        """Which of ``n_found`` candidates (nearest first) are compared: all up to ``attempts``;
+        beyond that the nearest and, with the drift search, ``attempts`` - 1 spread evenly over
+        the rest, shifted each frame, so a true match a drift's length away is reached within a
+        few frames instead of never (the estimated nearest is not the true one under drift)."""
+        a = self.cfg.attempts
+        if n_found <= a or a <= 1 or self.cfg.search != "drift":
+            return np.arange(min(a, n_found))
+        rest = n_found - 1
+        stride = rest / (a - 1)
+        self._phase = (self._phase + 1) % max(1, math.ceil(stride))
+        offs = (self._phase + np.arange(a - 1) * stride).astype(np.int64) % rest
+        return np.concatenate([[0], 1 + np.unique(offs)])
 
     def _search_small(self, n: int, found: list[int]) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`search`'s rules for a short member list, without numpy arrays."""
@@ -428,29 +563,22 @@ class SnapsLoopCloser:
         in_pause = max_distance is not None  # a closer revisit inside the pause: for the graph only
         rotvec = None
         if verified and self.cfg.correction_rotation != "none" and not in_pause:
-            prior = (n - ref) * self.cfg.heading_drift_deg**2
-            if self.cfg.heading_prior == "tracked" and self._heading_pin is not None:
-                prior = min(prior, self._heading_var + (n - self._heading_pin) * self.cfg.heading_drift_deg**2)
-            gain = self._gain(prior)
-            self._heading_pin, self._heading_var = n, (1.0 - gain) * prior
-            rotvec = (
-                _rotation_correction(
-                    self._R[ref] @ np.asarray(T_ref_cur, float)[:3, :3] @ self._R[n].T, self.cfg.correction_rotation
-                )
-                * gain
-            )
+            gain = self._gain((n - ref) * self.cfg.heading_drift_deg**2)
+            rotvec = _yaw_correction(self._R[ref] @ np.asarray(T_ref_cur, float)[:3, :3] @ self._R[n].T) * gain
         # Eq. 6 weighs the move by Q: the confidence that N stands where the reference stood. A
         # verified loop measured where N stands, so with correction_weight = "verified" it moves
         # with weight 1 (gamma still discounts older poses); "q" is the paper's rule everywhere.
         weight = 1.0 if (verified and self.cfg.correction_weight == "verified") else sim.q
         if in_pause:
-            # Correcting again right after a loop made the heuristic worse (README, issue 12): the
-            # loop goes to the factor graph only and the pause keeps running.
+            # Correcting again re-bends what the last loop explained: the loop goes to the factor
+            # graph only and the pause keeps running.
             weight, n_corrected, alpha = 0.0, 0, self._alpha
         else:
             self._alpha = alpha = self._alpha + 1
             n_corrected = self._correct(n, weight, delta, alpha, rotvec, first=ref + 1)
             self._last_pinned = self._pause_from = n
+            if verified:  # the search's uncertainty restarts from this measurement
+                self._last_loop = (n, ref)
         self._pinned_distance = float(np.linalg.norm(np.asarray(T_ref_cur, float)[:3, 3])) if verified else float(dists[best])
         event = LoopEvent(
             frame=int(self._index[n]),
@@ -558,18 +686,26 @@ class SnapsLoopCloser:
     def _correct(self, n: int, q: float, delta: np.ndarray, alpha: int, rotvec: np.ndarray | None = None, first: int = 0) -> int:
         """Eq. 6 (our reading): p_s += w·γ_s·δ for s in [max(N−K, first), N], w = Q (or 1 for a
         verified loop under correction_weight = "verified"); with ``rotvec`` (world-frame
-        axis-angle toward the verified orientation) also R_s ← Exp(w·γ_s·rotvec)·R_s ("shift"),
-        or first the bend of ``correction_model = "bend"`` (module docstring). ``first``
+        axis-angle toward the verified heading) first the bend (module docstring), or, for a
+        window that starts at frame 0 (no anchor), R_s ← Exp(w·γ_s·rotvec)·R_s. ``first``
         is the frame after the reference: the reference and older frames are the loop's anchor
         and never move (only possible when K > M). Returns how many moved."""
         K = self.window_length(n - first + 1)
         lo = max(0, n - K, first)
         gamma = discount(self.cfg, alpha, n - np.arange(lo, n + 1, dtype=float), n - lo)
-        if rotvec is not None and self.cfg.correction_model == "bend" and lo > 0:
+        # Each window frame's share of the drift: the distance driven from the anchor (frame
+        # lo - 1) over the window's, as drift grows with distance, not frames (stops, gaps).
+        frac = np.arange(1, n - lo + 2, dtype=float) / (n - lo + 1)
+        if lo > 0:
+            driven = self._s[lo : n + 1] - self._s[lo - 1]
+            if driven[-1] > 1e-9:
+                frac = driven / driven[-1]
+                if self.cfg.discount_shape == "linear":
+                    gamma = (1.0 - math.exp(-self.cfg.discount_offset)) * frac
+        if rotvec is not None and lo > 0:
             # Turn the window's headings progressively from its anchor (frame lo - 1, fixed) to N
             # and re-compose its positions from the VO steps turned with them; the ramp below
             # then spreads only what remains of delta.
-            frac = np.arange(1, n - lo + 2, dtype=float) / (n - lo + 1)
             Rs = _exp_so3(rotvec, q * frac)
             steps = np.diff(self._p[lo - 1 : n + 1], axis=0)
             turned = np.einsum("kij,kj->ki", np.concatenate([np.eye(3)[None], Rs[:-1]]), steps)
@@ -585,19 +721,21 @@ class SnapsLoopCloser:
         if rotvec is not None:
             self._R[lo : n + 1] = _exp_so3(rotvec, q * gamma) @ self._R[lo : n + 1]
             self._yaw[lo : n + 1] = yaw_deg(self._R[lo : n + 1])
-        hi = min(n + 1, self._n_indexed)
-        if hi > lo:  # re-file moved frames that are already in the grid
-            new = np.floor(self._p[lo:hi] / self.cfg.radius_m).astype(np.int64)
-            for k in np.flatnonzero(np.any(new != self._cell[lo:hi], axis=1)):
-                j = lo + int(k)
-                old_key = _cell_key(self._cell[j])
-                members = self._grid[old_key]
-                members.remove(j)
-                if not members:
-                    del self._grid[old_key]
-                    self._count_near(old_key, -1)
-                self._cell[j] = new[k]
-                self._file(_cell_key(new[k]), j)
+        for lvl, size in enumerate(self._levels):  # re-file moved frames that are already in the grids
+            hi = min(n + 1, self._filed[lvl])
+            if hi > lo:
+                cells, grid = self._cells[lvl], self._grids[lvl]
+                new = np.floor(self._p[lo:hi] / size).astype(np.int64)
+                for k in np.flatnonzero(np.any(new != cells[lo:hi], axis=1)):
+                    j = lo + int(k)
+                    old_key = _cell_key(cells[j])
+                    members = grid[old_key]
+                    members.remove(j)
+                    if not members:
+                        del grid[old_key]
+                        self._count_near(old_key, -1, lvl)
+                    cells[j] = new[k]
+                    self._file(_cell_key(new[k]), j, lvl)
         return int(np.count_nonzero(gamma > 0.0))
 
     # ---- storage ----
@@ -606,19 +744,44 @@ class SnapsLoopCloser:
         c = [math.floor(v / r) for v in self._p[j].tolist()]
         self._cell[j] = c
         self._file(_cell_key(c), j)
-        self._n_indexed = j + 1
+        self._n_indexed = self._filed[0] = j + 1
 
-    def _file(self, key: int, j: int) -> None:
-        members = self._grid.get(key)
+    def _promote(self, n: int, lvl: int) -> None:
+        """File into level ``lvl`` the indexed frames driven far enough from (see __init__)."""
+        j, s, need, size = self._filed[lvl], self._s, self._level_driven[lvl], self._levels[lvl]
+        cells = self._cells[lvl]
+        while j < self._n_indexed and s[n] - s[j] >= need:
+            c = [math.floor(v / size) for v in self._p[j].tolist()]
+            cells[j] = c
+            self._file(_cell_key(c), j, lvl)
+            j += 1
+        self._filed[lvl] = j
+
+    def _driven_for_gate(self, gate: float) -> float:
+        """The distance driven at which the drift gate first exceeds ``gate`` metres."""
+        if self.cfg.search_sigmas * float(self.drift_sigma(1e7)) <= gate:
+            return math.inf
+        lo, hi = 0.0, 1e7
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            if self.cfg.search_sigmas * float(self.drift_sigma(mid)) > gate:
+                hi = mid
+            else:
+                lo = mid
+        return lo
+
+    def _file(self, key: int, j: int, lvl: int = 0) -> None:
+        grid = self._grids[lvl]
+        members = grid.get(key)
         if members is None:
-            self._grid[key] = [j]
-            self._count_near(key, +1)
+            grid[key] = [j]
+            self._count_near(key, +1, lvl)
         else:
             members.append(j)
 
-    def _count_near(self, key: int, step: int) -> None:
+    def _count_near(self, key: int, step: int, lvl: int = 0) -> None:
         """A cell became non-empty (+1) or empty (-1): update its 3x3 neighbourhood's counts."""
-        near = self._near
+        near = self._nears[lvl]
         for off in _NEIGHBOUR_OFFSETS:
             c = near.get(key + off, 0) + step
             if c:
@@ -645,11 +808,16 @@ class SnapsLoopCloser:
         if need <= cap:
             return
         new_cap = max(need, 2 * cap)
-        for name in ("_R", "_p", "_yaw", "_index", "_cell"):
-            old = getattr(self, name)
+
+        def grown(old: np.ndarray) -> np.ndarray:
             arr = np.empty((new_cap,) + old.shape[1:], dtype=old.dtype)
             arr[:cap] = old
-            setattr(self, name, arr)
+            return arr
+
+        for name in ("_R", "_p", "_yaw", "_index", "_s"):
+            setattr(self, name, grown(getattr(self, name)))
+        self._cells = [grown(c) for c in self._cells]
+        self._cell = self._cells[0]
 
 
 __all__ = ["SnapsLoopCloser", "SnapsStep", "discount"]

@@ -1,0 +1,147 @@
+"""The real revisit under drifted odometry: does SNAPS find it, and what do the loops give?
+
+For each drift (percent of the distance driven, ``--pct``) and seed, the ground truth of KITTI 00
+(frames 0 .. last image) goes through the drift tool (snaps_graph.evaluation.drift), and
+``snaps-graph run SEQ --odometry DRIFTED --refine batch`` runs SNAPS on the real left images of
+the revisit subset (frames 100-230, 1540-1660: ../shared/data/kitti00_loop). Per run it prints
+
+* whether a verified loop closes inside the revisit (frames 1573-1630), and the loops' frames;
+* false loops: accepted loops whose frames stand more than ``--false-m`` apart in the truth;
+* the maximum recall at 100 % precision over compared pairs within ``--true-m`` (Q + verification,
+  ``snaps-graph loops``);
+* the mean deviation over frames 1560-1660 of the odometry, SNAPS's heuristic and the refined
+  (batch) trajectory, and the two ratios against the odometry.
+
+``--search radius`` runs the paper's fixed radius instead of the drift-aware gate; ``--verify-all``
+verifies every compared pair, so the recall covers every threshold. Results go to
+``--work`` (default: a temporary folder, removed at the end).
+
+    python benchmarks/bench_revisit.py [--data ../shared/data/kitti00_loop] [--pct 1 2] [--seeds 0 1 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from snaps_graph.evaluation.drift import drift_trajectory
+from snaps_graph.evaluation.loops import loops_run
+from snaps_graph.trajectory_io import read_kitti_poses, write_kitti_poses
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_DATA = ROOT / ".." / "shared" / "data" / "kitti00_loop"
+REVISIT = (1573, 1630)  # frames that pass within 1 m of the first pass (the data's README)
+WINDOW = (1560, 1660)  # the deviation is measured over these frames
+
+
+def _frame_ids(seq: Path) -> list[int]:
+    return sorted(int(p.stem) for p in (seq / "image_0").glob("*.png"))
+
+
+def _window_dev(poses: np.ndarray, gt: np.ndarray, frames: list[int]) -> float:
+    """Mean position error over WINDOW; ``gt`` is the run's poses_gt.txt (row k = frames[k])."""
+    sel = [k for k, f in enumerate(frames) if WINDOW[0] <= f <= WINDOW[1]]
+    return float(np.mean(np.linalg.norm(poses[sel, :3, 3] - gt[sel, :3, 3], axis=1)))
+
+
+def one_run(seq: Path, gt_all: np.ndarray, pct: float, seed: int, work: Path, args) -> dict:
+    frames = _frame_ids(seq)
+    gt = gt_all[: frames[-1] + 1]
+    drifted = drift_trajectory(gt, seed, pct=pct)
+    name = f"p{pct:g}_s{seed}_{args.search}"
+    odo = work / f"{name}.txt"
+    write_kitti_poses(odo, drifted)
+    out = work / name
+    cfg = work / f"{name}.toml"
+    cfg.write_text(f'[loop]\nsearch = "{args.search}"\nverify_all_candidates = {"true" if args.verify_all else "false"}\n')
+    cmd = [sys.executable, "-m", "snaps_graph.cli", "run", str(seq), "--odometry", str(odo), "--out", str(out)]
+    cmd += ["--refine", "batch", "--config", str(cfg), "--overwrite"]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode not in (0, 3):
+        raise SystemExit(f"run failed ({proc.returncode}): {' '.join(cmd)}\n{proc.stderr[-2000:]}")
+    loops = [json.loads(line) for line in (out / "loops.jsonl").read_text().splitlines() if line.strip()]
+    ev = loops_run(out, None, true_m=args.true_m, false_m=args.false_m, png=out / "loops_pr.png")
+    in_revisit = [lp for lp in loops if lp.get("verified") and REVISIT[0] <= lp["frame"] <= REVISIT[1]]
+    false = [lp for lp in loops if np.linalg.norm(gt[lp["frame"], :3, 3] - gt[lp["reference"], :3, 3]) > args.false_m]
+    run_gt = read_kitti_poses(out / "poses_gt.txt")
+    est = {}
+    for traj in ("vo", "snaps", "batch"):
+        f = out / f"poses_{traj}.txt"
+        if f.is_file():
+            est[traj] = _window_dev(read_kitti_poses(f), run_gt, frames)
+    return {
+        "pct": pct,
+        "seed": seed,
+        "loops": [(lp["frame"], lp["reference"], bool(lp.get("verified"))) for lp in loops],
+        "closed_in_revisit": bool(in_revisit),
+        "false_loops": len(false),
+        "recall_p1": ev.get("max_recall_at_100_precision_verified"),
+        "dev": est,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the kitti00_loop folder (sequences/00, poses/00.txt)")
+    ap.add_argument("--pct", type=float, nargs="+", default=[1.0, 2.0], help="end drift, percent of the distance")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    ap.add_argument("--search", choices=["drift", "radius"], default="drift", help="loop.search")
+    ap.add_argument("--true-m", type=float, default=2.0, help="a compared pair within this is a true loop, m")
+    ap.add_argument("--false-m", type=float, default=10.0, help="a loop between frames farther apart is false, m")
+    ap.add_argument("--verify-all", action="store_true", help="verify every compared pair (the recall's full curve; same loops)")
+    ap.add_argument("--work", type=Path, default=None, help="keep the drifted files and runs here")
+    args = ap.parse_args(argv)
+    seq, gt_file = args.data / "sequences" / "00", args.data / "poses" / "00.txt"
+    if not (seq / "image_0").is_dir() or not gt_file.is_file():
+        print(f"error: {args.data}: no sequences/00/image_0 or poses/00.txt", file=sys.stderr)
+        return 2
+    gt_all = read_kitti_poses(gt_file)
+    tmp = None
+    if args.work is None:
+        tmp = tempfile.TemporaryDirectory(prefix="bench_revisit_")
+        work = Path(tmp.name)
+    else:
+        work = args.work
+        work.mkdir(parents=True, exist_ok=True)
+    print(f"search = {args.search}; deviation over frames {WINDOW[0]}-{WINDOW[1]}, m")
+    print(
+        f"{'pct':>4} {'seed':>4} {'revisit':>7} {'false':>5} {'R@P1':>5} {'odo':>7} {'snaps':>7} {'batch':>7} {'snaps/odo':>9} {'batch/odo':>9}  loops"
+    )
+    rows = []
+    try:
+        for pct in args.pct:
+            for seed in args.seeds:
+                r = one_run(seq, gt_all, pct, seed, work, args)
+                rows.append(r)
+                d = r["dev"]
+                odo, sn, ba = d.get("vo", np.nan), d.get("snaps", np.nan), d.get("batch", np.nan)
+                rec = r["recall_p1"]
+                loops = " ".join(f"{f}->{j}{'' if v else '?'}" for f, j, v in r["loops"])
+                print(
+                    f"{pct:4g} {seed:4d} {'yes' if r['closed_in_revisit'] else 'NO':>7} {r['false_loops']:5d} "
+                    f"{rec if rec is not None else float('nan'):5.2f} {odo:7.2f} {sn:7.2f} {ba:7.2f} {sn / odo:9.2f} {ba / odo:9.2f}  {loops}",
+                    flush=True,
+                )
+    finally:
+        if tmp is not None:
+            tmp.cleanup()
+    closed = sum(r["closed_in_revisit"] for r in rows)
+    false = sum(r["false_loops"] for r in rows)
+    sn = [r["dev"]["snaps"] / r["dev"]["vo"] for r in rows if "snaps" in r["dev"]]
+    ba = [r["dev"]["batch"] / r["dev"]["vo"] for r in rows if "batch" in r["dev"]]
+    recs = [r["recall_p1"] for r in rows if r["recall_p1"] is not None]
+    print(
+        f"closed in the revisit {closed}/{len(rows)}; false loops {false}; recall@P1 min {min(recs) if recs else float('nan'):.2f}; "
+        f"snaps/odo max {max(sn) if sn else float('nan'):.2f}; batch/odo max {max(ba) if ba else float('nan'):.2f}"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
