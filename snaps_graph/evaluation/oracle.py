@@ -73,7 +73,7 @@ def odometry_graph(
 ) -> PoseGraph:
     """A batch-mode graph of a run's VO steps, as the pipeline builds it: frame k gets the step
     from ``vo`` with the noise of its ``inliers`` / ``ok`` (frames.csv; default: reference
-    sigmas, all good), or with ``covs[k]`` (``VOResult.cov``) where ``odom_noise = "ba"``, and
+    sigmas, all good), or with ``covs[k]`` (``VOResult.cov``) where the step has one, and
     the initial estimate ``initial[k]`` (default: the VO pose)."""
     n = len(vo)
     inliers = np.zeros(n, int) if inliers is None else np.asarray(inliers, int)
@@ -101,7 +101,7 @@ def loop_oracle(
     ``vo`` and ``gt`` are (N, 4, 4) T_world_cam for the same frames; ``inliers`` and ``ok`` are the
     per-frame VO inlier counts and flags (as in ``frames.csv``) for the odometry noise model
     (default: the reference sigmas, all frames good); ``covs`` the steps' ``VOResult.cov``, used
-    as the pipeline uses them (``odom_noise = "ba"``; ``SlamPipeline.vo_covs``). The candidate
+    as the pipeline uses them (``SlamPipeline.vo_covs``). The candidate
     geometry (radius, frame distance, yaw) is ``cfg.loop``'s, so the oracle sees exactly the
     revisits SNAPS may close.
     Each loop carries the tightest noise a verified loop gets (a zero verification covariance:

@@ -4,8 +4,10 @@ The paper: "it is possible to substitute the visual odometry part with any desir
 ``PoseFileOdometry`` takes the poses of a pose file (``trajectory_io.read_pose_file``) and
 returns, for each processed frame, the relative pose from the previous processed frame (frame
 numbers may jump: the file carries the pose across a gap) with a covariance from the drift model
-``[odometry]`` (a pose file carries none): a step of d metres gets sigma_t = trans_drift_pct/100 * d
-and sigma_rot = rot_drift_deg_per_100m/100 * d (rad); the graph adds its ``odom_cov_floor_*``.
+``[odometry]`` (a pose file carries none). Independent steps add up as a random walk, so the model
+is one: a step that drives d metres (along the file's own poses, so a gap counts what was driven
+through it) gets variance (p/100)^2 * L * d, which reaches the model's p % of the distance over a
+drive of L = ``DRIFT_REFERENCE_M`` (rotation alike); the graph adds its ``odom_cov_floor_*``.
 No file I/O: the runner reads the file.
 """
 
@@ -23,12 +25,24 @@ from ..types import StereoFrame, VOResult
 TIME_TOLERANCE_S = 0.02  # TUM stamps: a frame takes the nearest pose within this (KITTI 10 Hz, EuRoC 20 Hz)
 
 
-def drift_covariance(T_rel: np.ndarray, cfg: OdometryConfig) -> np.ndarray:
-    """6x6 diagonal covariance (rot rad, trans m: GTSAM's Pose3 tangent) of a step from the drift model."""
-    d = float(np.linalg.norm(T_rel[:3, 3]))
-    s_t = cfg.trans_drift_pct / 100.0 * d
-    s_r = math.radians(cfg.rot_drift_deg_per_100m / 100.0 * d)
+# The drive over which the drift model's percentages hold as one sigma (a random walk is
+# calibrated at one length; KITTI's relative errors average segments of 100-800 m).
+DRIFT_REFERENCE_M = 1000.0
+
+
+def drift_covariance(driven_m: float, cfg: OdometryConfig) -> np.ndarray:
+    """6x6 diagonal covariance (rot rad, trans m: GTSAM's Pose3 tangent) of a step that drove
+    ``driven_m`` metres, from the drift model as a random walk in the distance driven."""
+    scale = math.sqrt(DRIFT_REFERENCE_M * max(float(driven_m), 0.0))
+    s_t = cfg.trans_drift_pct / 100.0 * scale
+    s_r = math.radians(cfg.rot_drift_deg_per_100m / 100.0 * scale)
     return np.diag([s_r**2] * 3 + [s_t**2] * 3)
+
+
+def driven_distance(track: PoseFile) -> np.ndarray:
+    """Cumulative distance driven at each pose of the file, metres."""
+    p = track.poses[:, :3, 3]
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
 
 
 def time_origin(track: PoseFile, first_time_s: float, origin_s: float | None) -> float:
@@ -63,6 +77,8 @@ class PoseFileOdometry:
         self.time_origin_s = float(time_origin_s)
         self._origin_inv: np.ndarray | None = None
         self._prev: np.ndarray | None = None
+        self._prev_at = 0
+        self._driven = driven_distance(track)
         self._pose = np.eye(4)
         self.disparity_offset_px = 0.0  # no stereo: nothing to correct
 
@@ -99,16 +115,17 @@ class PoseFileOdometry:
         return np.linalg.solve(Pa, Pb)
 
     def process(self, frame: StereoFrame) -> VOResult:
-        P = self.track.poses[self.locate(int(frame.index), float(frame.timestamp))]
+        at = self.locate(int(frame.index), float(frame.timestamp))
+        P = self.track.poses[at]
         if self._prev is None:
             self._origin_inv = np.linalg.inv(P)
             T_rel = np.eye(4)
             cov = None
         else:
             T_rel = np.linalg.solve(self._prev, P)
-            cov = drift_covariance(T_rel, self.cfg)
+            cov = drift_covariance(abs(self._driven[at] - self._driven[self._prev_at]), self.cfg)
         assert self._origin_inv is not None
-        self._prev = P
+        self._prev, self._prev_at = P, at
         self._pose = self._origin_inv @ P
         return VOResult(int(frame.index), T_rel, self._pose.copy(), True, cov=cov)
 
