@@ -21,7 +21,15 @@ from tqdm import tqdm
 
 from .config import Config, FrontendMode, LoopMode, RefineMode, choices
 from .errors import SnapsGraphError
-from .io_utils import PREFETCH_FRAMES, check_output_folder, output_folder
+from .io_utils import (
+    PREFETCH_FRAMES,
+    check_inputs_outside,
+    check_output_folder,
+    check_recording_path,
+    committed_folders,
+    inside,
+    output_folder,
+)
 
 # Heavy modules (OpenCV, gtsam, open3d, matplotlib) are imported inside the commands that use
 # them, after the cheap checks, so `config`, `--help` and a bad option answer at once.
@@ -105,11 +113,17 @@ def synth(
         raise_user(f"{world_mesh}: --world-mesh must name a .ply (or .obj, .off, .stl) file")
     if mesh_only and world_mesh is None:
         raise_user("--mesh-only needs --world-mesh FILE.ply")
+    mesh_inside = None
     if not mesh_only:
+        check_inputs_outside(out, [("trajectory", Path(trajectory) if trajectory != "loop" else None), ("times", times)])
         check_output_folder(out, overwrite)
-        for given in (Path(trajectory), times):
-            if given is not None and given.exists() and _inside(given, out):
-                raise_user(f"{out}: --out would replace the input {given}")
+        if world_mesh is not None and inside(world_mesh, out):  # written with the sequence, not deleted by it
+            mesh_inside = world_mesh.resolve().relative_to(out.resolve())
+    if world_mesh is not None and mesh_inside is None:
+        if world_mesh.is_dir():
+            raise_user(f"{world_mesh}: --world-mesh names a folder")
+        if world_mesh.exists() and not overwrite:
+            raise_user(f"{world_mesh}: exists (use --overwrite to replace it)")
     world = WorldConfig(scene=scene, aliasing=aliasing, traffic=traffic, lighting=lighting)
     poses, ts = load_trajectory(trajectory, frames, times=str(times) if times else None)
     seq = SyntheticSequence(
@@ -123,13 +137,17 @@ def synth(
         world_config=world,
         rectification_error_px=rectification_error,
     )
-    if world_mesh is not None:
+    if world_mesh is not None and mesh_inside is None:
         seq.write_world_mesh(world_mesh)
         typer.echo(f"wrote the world mesh ({len(seq.world.triangles)} triangles) to {world_mesh}")
         if mesh_only:
             return
     with _progress(len(seq), "render") as bar, output_folder(out, overwrite) as tmp:
         render_to_folder(seq, tmp, progress=lambda *_: bar.update(1), write_depth=depth, overwrite=True)
+        if mesh_inside is not None:
+            seq.write_world_mesh(tmp / mesh_inside)
+    if mesh_inside is not None:
+        typer.echo(f"wrote the world mesh ({len(seq.world.triangles)} triangles) to {world_mesh}")
     typer.echo(f"wrote {len(seq)} stereo pairs to {out}")
 
 
@@ -189,21 +207,32 @@ def run(
         cfg.map.world_mesh = str(world_mesh)
     if gravity_prior is not None:
         cfg.graph.gravity_prior = gravity_prior
-    # Before anything is read: the configuration that will run, and the output folder.
+    # Before anything is read: the configuration that will run, the output folder, and every
+    # path the run reads or writes against it.
     cfg.resolved(loops=loops, refine=refine, build_map=map_)
+    inputs = [("sequence", seq_dir), ("config", config), ("ground truth", gt), ("calibration", calib)]
+    check_inputs_outside(out, inputs + [("world mesh", world_mesh)])
     check_output_folder(out, overwrite)
-    if _inside(seq_dir, out):
-        raise_user(f"{out}: --out would replace the input sequence {seq_dir}")
+    rrd_inside = check_recording_path(rrd, out) if rrd is not None else None
     from .datasets.open import open_dataset  # the heavy imports (OpenCV, gtsam) after the checks
     from .runner import mostly_flagged, run_sequence
 
     seq = open_dataset(seq_dir, frames=frames, gt=gt, left_topic=left_topic, right_topic=right_topic, calib=calib)
+    check_inputs_outside(out, [("ground truth", getattr(seq, "gt_path", None))])
     _print_notes(seq)
-    observer = None
-    if viewer or rrd is not None:
+    loggers: list = []
+
+    def make_observer(tmp: Path):
         from .viz.rerun_logger import RerunLogger
 
-        observer = RerunLogger(seq.camera, spawn=viewer, rrd=rrd, name=str(seq_dir), gt_poses=seq.gt_poses)
+        target = tmp / rrd_inside if rrd_inside is not None else rrd
+        loggers.append(RerunLogger(seq.camera, spawn=viewer, rrd=target, name=str(seq_dir), gt_poses=seq.gt_poses))
+        return loggers[0]
+
+    def close_recording(tmp: Path) -> None:
+        if loggers:
+            loggers[0].close()  # the recording whole before the results folder is renamed into place
+
     n_loops = 0
     with _progress(len(seq) or None, "slam") as bar:
 
@@ -223,17 +252,16 @@ def run(
                 build_map=map_,
                 overwrite=overwrite,
                 on_frame=on_frame,
-                observer=observer,
+                observer=make_observer if (viewer or rrd is not None) else None,
                 prefetch_frames=prefetch,
+                before_commit=close_recording,
             )
         except BaseException:
-            if observer is not None:
-                observer.abort()  # no half-written recording
+            if loggers:
+                loggers[0].abort()  # no half-written recording
             raise
-    if observer is not None:
-        observer.close()
-        if rrd is not None:
-            typer.echo(f"rerun recording in {rrd}")
+    if rrd is not None:
+        typer.echo(f"rerun recording in {rrd}")
     _print_summary(metrics, out)
     if mostly_flagged(metrics):
         print(
@@ -296,9 +324,8 @@ def convert(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty OUT folder (whole, at the end)."),
 ) -> None:
     """Write any readable source as a KITTI folder of rectified pairs."""
+    check_inputs_outside(out, [("source", src), ("ground truth", gt), ("calibration", calib)])
     check_output_folder(out, overwrite)
-    if _inside(src, out):
-        raise_user(f"{out}: --out would replace the input {src}")
     from .datasets.convert import write_kitti_folder
     from .datasets.open import open_dataset
 
@@ -412,12 +439,6 @@ def raise_user(msg: str) -> None:
     raise SnapsGraphError(msg)
 
 
-def _inside(path: Path, folder: Path) -> bool:
-    """``path`` is ``folder`` or lies under it (links resolved)."""
-    p, f = path.resolve(), folder.resolve()
-    return p == f or f in p.parents
-
-
 def _check_choice(option: str, value: str | None, literal) -> None:
     allowed = choices(literal) or ()
     if value is not None and value not in allowed:
@@ -458,7 +479,9 @@ def _print_summary(metrics: dict, out: Path) -> None:
     )
     if "trajectories" in metrics:
         typer.echo(_metrics_table(metrics["trajectories"]))
-    if "map" in metrics:
+    if "map" in metrics and "error" in metrics["map"]:
+        typer.echo(f"warning: no map (the map stage failed: {metrics['map']['error']}); the trajectories are written", err=True)
+    elif "map" in metrics:
         typer.echo(
             f"map: {metrics['map']['keyframes']} keyframes, {metrics['map']['bytes'] / 2**20:.0f} MiB of stored depth, fused under {metrics['map']['trajectory']}"
         )
@@ -507,7 +530,11 @@ def main() -> None:
 
 def _interrupted() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not interrupt the exit
-    print("interrupted: no results written", file=sys.stderr)
+    done = committed_folders()
+    if done:
+        print(f"interrupted after the results were written: {', '.join(map(str, done))} complete", file=sys.stderr)
+    else:
+        print("interrupted: no results written", file=sys.stderr)
     sys.exit(EXIT_INTERRUPTED)
 
 
