@@ -317,7 +317,7 @@ def output_folder(path: str | Path, overwrite: bool = False) -> Iterator[Path]:
             remove_results_folder(tmp)
         tmp.mkdir()
         fault_step()
-        atomic_write_text(tmp / MARKER, f"snaps_graph {_version()}\n")
+        (tmp / MARKER).write_text(f"snaps_graph {_version()}\n")  # in place: even a cut-short marker marks it
     except OSError as exc:
         raise SnapsGraphError(f"{exc.filename or tmp}: cannot create the results folder ({exc.strerror or exc})") from None
     old: Path | None = None

@@ -581,3 +581,159 @@ def test_swapped_or_repeated_cameras_are_one_line_errors_and_leave_no_folder(seq
     assert ("swap the two inputs" in line) == (fault == "swapped"), line
     assert ("repeats the left" in line) == (fault == "same"), line
     assert not out.exists()
+
+
+# ------------------------------------------------------------------ never destroy a user's file
+def tree(path: Path) -> dict[str, str]:
+    """Every file under ``path`` (or the file itself) and its content hash: what must not change."""
+    import hashlib
+
+    files = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())
+    return {str(p): hashlib.sha256(p.read_bytes()).hexdigest() for p in files}
+
+
+def no_leftovers(folder: Path) -> list[str]:
+    return [p.name for p in folder.iterdir() if re.match(r"^\..*\.(tmp|old)-\d+$", p.name)]
+
+
+@pytest.fixture
+def done_run(seq, tmp_path) -> Path:
+    """A finished results folder of the tiny sequence (5 frames)."""
+    out = tmp_path / "done"
+    proc = cli("run", seq, "--out", out, "--frames", "0:5")
+    assert proc.returncode == 0, proc.stderr
+    return out
+
+
+def test_rrd_never_replaces_an_input_or_another_runs_file(seq, done_run, tmp_path):
+    before = tree(seq) | tree(done_run)
+    out = tmp_path / "new"
+    cases = [
+        (seq / "calib.txt", "must name a .rrd file"),
+        (done_run / "poses_vo.txt", "must name a .rrd file"),
+        (done_run / "rec.rrd", "inside the results folder"),
+        (seq, "names a folder"),
+    ]
+    for rrd, expect in cases:
+        assert_user_error(cli("run", seq, "--out", out, "--rrd", rrd), rrd, expect)
+    not_a_recording = tmp_path / "notes.rrd"
+    not_a_recording.write_text("my notes\n")
+    assert_user_error(cli("run", seq, "--out", out, "--rrd", not_a_recording), "not a rerun recording")
+    assert not_a_recording.read_text() == "my notes\n"
+    assert tree(seq) | tree(done_run) == before
+    assert not out.exists() and not no_leftovers(tmp_path)
+
+
+def test_rrd_inside_out_is_written_with_the_results(seq, tmp_path):
+    pytest.importorskip("rerun")
+    out = tmp_path / "run"
+    proc = cli("run", seq, "--out", out, "--frames", "0:3", "--rrd", out / "run.rrd")
+    assert proc.returncode == 0, proc.stderr
+    assert (out / "run.rrd").read_bytes()[:4] == b"RRF2" and (out / "metrics.json").is_file()
+    assert not no_leftovers(tmp_path)
+
+
+def test_overwrite_never_deletes_a_folder_this_tool_did_not_write(seq, tmp_path):
+    home = tmp_path / "home"
+    (home / "docs").mkdir(parents=True)
+    (home / "docs" / "thesis.tex").write_text("years of work\n")
+    (home / "notes.txt").write_text("x\n")
+    before = tree(home)
+    line = assert_user_error(cli("run", seq, "--out", home, "--overwrite"), home, "not a folder this tool wrote")
+    assert ".snaps_graph_results" in line
+    assert_user_error(cli("synth", "--out", home, "--frames", "0:2", "--width", "64", "--height", "48", "--overwrite"), home)
+    assert tree(home) == before and not no_leftovers(tmp_path)
+
+
+@pytest.mark.parametrize("option", ["--config", "--gt"])
+def test_an_input_inside_out_is_refused_before_anything_is_deleted(seq, done_run, option):
+    inner = done_run / ("my.toml" if option == "--config" else "my_gt.txt")
+    shutil.copy(seq / "poses.txt", inner) if option == "--gt" else inner.write_text("[loop]\nmin_similarity = 0.2\n")
+    before = tree(done_run)
+    assert_user_error(cli("run", seq, "--out", done_run, option, inner, "--overwrite"), inner, "would replace the input")
+    assert tree(done_run) == before
+
+
+def test_synth_world_mesh_inside_out_is_kept(tmp_path):
+    out = tmp_path / "seq"
+    args = ["synth", "--out", out, "--frames", "0:2", "--width", "64", "--height", "48", "--world-mesh", out / "world.ply"]
+    for extra in ([], ["--overwrite"]):
+        proc = cli(*args, *extra)
+        assert proc.returncode == 0, proc.stderr
+        assert (out / "world.ply").stat().st_size > 1000, proc.stdout
+        assert len(list((out / "image_0").glob("*.png"))) == 2
+    assert not no_leftovers(tmp_path)
+
+
+def test_leftovers_of_a_killed_replacement_are_restored_and_said(seq, done_run, tmp_path):
+    """kill -9 between the two renames: OUT absent, the old run in .OUT.old-PID, the new one in
+    .OUT.tmp-PID. The next start puts the old one back, removes the new one and says both."""
+    old = tree(done_run)
+    dead = 2**22 + 12345  # above Linux's pid_max default: no such process
+    shutil.copytree(done_run, tmp_path / f".done.tmp-{dead}")
+    done_run.rename(tmp_path / f".done.old-{dead}")
+    proc = cli("run", seq, "--out", done_run, "--frames", "0:3")
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert proc.returncode == 2 and len(lines) == 3 and "Traceback" not in proc.stderr, proc.stderr
+    assert lines[2].startswith("error: ") and "--overwrite" in lines[2]  # the old results are back: kept without it
+    notes = "\n".join(lines[:2])
+    assert all(line.startswith("note: ") for line in lines[:2])
+    assert f"restored the previous results from .done.old-{dead}" in notes and f"removed .done.tmp-{dead}" in notes
+    assert {k.replace(f".done.old-{dead}", "done"): v for k, v in old.items()} == tree(done_run)
+    assert not no_leftovers(tmp_path)
+
+
+@pytest.mark.parametrize("how", ["dot", "symlink"])
+def test_out_the_current_folder_or_a_symlink_is_refused_before_the_first_frame(seq, tmp_path, how):
+    (seq / "image_0" / "000003.png").write_bytes(b"corrupt")  # reached only if frames were read
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    env = dict(os.environ, PYTHONWARNINGS="ignore")
+    if how == "dot":
+        proc = subprocess.run(CLI + ["run", str(seq), "--out", "."], capture_output=True, text=True, env=env, cwd=empty)
+        assert_user_error(proc, "current folder")
+    else:
+        link = tmp_path / "link"
+        link.symlink_to(empty)
+        assert_user_error(cli("run", seq, "--out", link), link, "symbolic link")
+    assert list(empty.iterdir()) == []
+
+
+def test_ctrl_c_during_the_swap_says_the_results_are_complete(tiny_seq, tmp_path, monkeypatch):
+    """SIGINT while the folder is renamed into place is held back until the swap is done; the
+    results are then whole and the process knows it (the CLI's message says so)."""
+    import snaps_graph.io_utils as io_utils
+
+    seq = KittiSequence(tiny_seq, frames="0:3")
+    pipe = SlamPipeline(seq.camera, Config(), loops="none", refine="none")
+    for f in seq:
+        pipe.process(f)
+    result = pipe.finish()
+    out = tmp_path / "run"
+    real_replace = os.replace
+
+    def replace(src, dst):
+        if Path(dst) == out:
+            os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C at the final rename
+        real_replace(src, dst)
+
+    monkeypatch.setattr(io_utils.os, "replace", replace)
+    with pytest.raises(KeyboardInterrupt):
+        write_results(out, pipe, result)
+    assert (out / "metrics.json").is_file() and out.resolve() in io_utils.committed_folders()
+    assert not no_leftovers(tmp_path)
+
+
+def test_a_failed_map_stage_keeps_the_trajectories(seq, tmp_path, monkeypatch):
+    import snaps_graph.runner as runner
+
+    def broken(*a, **k):
+        raise RuntimeError("[Open3D Error] (CreateFromDepthImage) something\nsecond line")
+
+    syn = KittiSequence(seq, frames="0:3")
+    cfg = Config()
+    cfg.map.enabled = True
+    monkeypatch.setattr(runner, "write_map_outputs", broken)
+    _, metrics = runner.run_sequence(syn, tmp_path / "run", cfg, loops="none", refine="none", build_map=True)
+    assert (tmp_path / "run" / "poses_vo.txt").is_file()
+    assert metrics["map"] == {"error": "RuntimeError: [Open3D Error] (CreateFromDepthImage) something"}
