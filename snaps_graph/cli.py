@@ -9,19 +9,32 @@ says why); 130 interrupted (Ctrl-C: one line, no results folder).
 
 from __future__ import annotations
 
-import json
+import os
 import signal
 import sys
-import time
-from pathlib import Path
-from typing import Optional
 
-import typer
-from tqdm import tqdm
 
-from .config import Config, FrontendMode, LoopMode, RefineMode, choices
-from .errors import SnapsGraphError
-from .io_utils import (
+def _sigint_while_starting(signum, frame) -> None:
+    # Ctrl-C while this module's imports run (before main() installs its handler): nothing is
+    # written yet, and an exception raised inside an import would print a traceback.
+    print("interrupted: no results written", file=sys.stderr)
+    os._exit(130)
+
+
+_SIGINT_BEFORE = signal.signal(signal.SIGINT, _sigint_while_starting)
+
+import contextlib  # noqa: E402
+import json  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Optional  # noqa: E402
+
+import typer  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from .config import Config, FrontendMode, LoopMode, RefineMode, choices  # noqa: E402
+from .errors import SnapsGraphError, interrupted, note_interrupt  # noqa: E402
+from .io_utils import (  # noqa: E402
     PREFETCH_FRAMES,
     check_inputs_outside,
     check_output_folder,
@@ -498,6 +511,7 @@ class Interrupted(BaseException):
 
 
 def _on_sigint(signum, frame) -> None:
+    note_interrupt()
     raise Interrupted()
 
 
@@ -505,12 +519,16 @@ def main() -> None:
     signal.signal(signal.SIGINT, _on_sigint)
     try:
         rc = app(standalone_mode=False)
-    except SnapsGraphError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        sys.exit(EXIT_USER_ERROR)
     except (Interrupted, KeyboardInterrupt):
         _interrupted()
+    except SnapsGraphError as exc:
+        if interrupted():
+            _interrupted()
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(EXIT_USER_ERROR)
     except Exception as exc:
+        if interrupted():  # an import or a call cut by Ctrl-C reports its own error
+            _interrupted()
         # click's exceptions (typer >= 0.16 vendors its own click, so matched by their interface)
         if type(exc).__name__ == "Abort":
             _interrupted()
@@ -535,8 +553,15 @@ def _interrupted() -> None:
         print(f"interrupted after the results were written: {', '.join(map(str, done))} complete", file=sys.stderr)
     else:
         print("interrupted: no results written", file=sys.stderr)
-    sys.exit(EXIT_INTERRUPTED)
+    with contextlib.suppress(Exception):
+        sys.stdout.flush()
+        sys.stderr.flush()
+    # Cleanup ran on the way here; exit now: the finalizers of a library whose import the
+    # Ctrl-C cut (open3d) would print pages and change the status.
+    os._exit(EXIT_INTERRUPTED)
 
+
+signal.signal(signal.SIGINT, _SIGINT_BEFORE)  # the module is imported: main() takes over
 
 if __name__ == "__main__":
     main()

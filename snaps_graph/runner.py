@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from .config import Config
-from .errors import SnapsGraphError
+from .errors import SnapsGraphError, interrupted
 from .evaluation.loops import write_candidates_csv
 from .evaluation.metrics import evaluate
 from .evaluation.report import latency_summary as _latency_summary
@@ -126,6 +126,8 @@ def _write_all(out: Path, pipe: SlamPipeline, result: RunResult, gt_poses: np.nd
         try:
             map_metrics = write_map_outputs(out, pipe.map, result.trajectories, gt_poses, pipe.cfg.map)
         except Exception as exc:  # the map is built from the trajectories: never lose them for it
+            if interrupted():  # Ctrl-C cut an import or a call: the user stopped, the map did not fail
+                raise
             map_metrics = {"error": _one_line(f"{type(exc).__name__}: {exc}")}
         if map_metrics is not None:
             metrics["map"] = map_metrics
