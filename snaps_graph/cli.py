@@ -24,6 +24,7 @@ def _sigint_while_starting(signum, frame) -> None:
 _SIGINT_BEFORE = signal.signal(signal.SIGINT, _sigint_while_starting)
 
 import contextlib  # noqa: E402
+import errno  # noqa: E402
 import json  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -54,6 +55,9 @@ app = typer.Typer(
     help="Stereo visual SLAM with SNAPS loop closure and a GTSAM pose graph.",
 )
 
+
+# The renderer holds about a hundred bytes per pixel: 16 Mpixel is about 2 GB.
+SYNTH_MAX_SIDE, SYNTH_MAX_PIXELS = 8192, 16 * 2**20
 
 EXIT_USER_ERROR = 2
 EXIT_MOSTLY_FLAGGED = 3
@@ -116,8 +120,11 @@ def synth(
 
     if width < 32 or height < 32:
         raise_user(f"--width/--height too small: {width}x{height}")
-    if width > 20000 or height > 20000:
-        raise_user(f"--width/--height too large: {width}x{height}")
+    if width > SYNTH_MAX_SIDE or height > SYNTH_MAX_SIDE or width * height > SYNTH_MAX_PIXELS:
+        raise_user(
+            f"--width/--height too large: {width}x{height} (at most {SYNTH_MAX_SIDE} a side and "
+            f"{SYNTH_MAX_PIXELS // 2**20} Mpixel, what the renderer's per-pixel buffers fit in a few GB)"
+        )
     if seed < 0:
         raise_user(f"--seed must be >= 0, not {seed}")
     if scene not in SCENES:
@@ -519,6 +526,11 @@ def main() -> None:
     signal.signal(signal.SIGINT, _on_sigint)
     try:
         rc = app(standalone_mode=False)
+        sys.stdout.flush()
+    except OSError as exc:
+        if exc.filename is not None or exc.errno not in _STDOUT_ERRNOS:
+            raise
+        _stdout_failed(exc)
     except (Interrupted, KeyboardInterrupt):
         _interrupted()
     except SnapsGraphError as exc:
@@ -544,6 +556,25 @@ def main() -> None:
             sys.exit(code)
         raise
     sys.exit(rc if isinstance(rc, int) else 0)
+
+
+_STDOUT_ERRNOS = (errno.ENOSPC, errno.EPIPE, errno.EIO, errno.EDQUOT, errno.EFBIG)
+
+
+def _stdout_failed(exc: OSError) -> None:
+    """Standard output cannot be written (a full device, a closed pipe): say so on stderr; the
+    results folder, when it was completed, stands (exit 0)."""
+    with contextlib.suppress(OSError):  # no second failure at the interpreter's final flush
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    done = committed_folders()
+    if done:
+        print(
+            f"note: standard output not written ({exc.strerror}); the results are complete in {', '.join(map(str, done))}",
+            file=sys.stderr,
+        )
+        sys.exit(0)
+    print(f"error: cannot write to standard output ({exc.strerror or exc})", file=sys.stderr)
+    sys.exit(EXIT_USER_ERROR)
 
 
 def _interrupted() -> None:

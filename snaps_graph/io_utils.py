@@ -67,24 +67,78 @@ def _umask() -> int:
     return _UMASK
 
 
-def read_text(path: str | Path, what: str) -> str:
-    """A text file's content; a one-line SnapsGraphError naming it when it is missing, a folder,
-    unreadable or not text (NUL bytes, not UTF-8)."""
+TEXT_MAX_BYTES = 512 * 2**20  # the largest text input read (a long ground-truth csv is ~100 MB)
+
+
+def read_text(path: str | Path, what: str, max_bytes: int = TEXT_MAX_BYTES) -> str:
+    """A text file's content (a UTF-8 byte-order mark dropped); a one-line SnapsGraphError naming
+    it when it is missing, a folder, larger than ``max_bytes``, unreadable or not text (NUL
+    bytes, not UTF-8)."""
     path = Path(path)
     if path.is_dir():
         raise SnapsGraphError(f"{path}: is a folder, expected a {what} file")
     if not path.is_file():
         raise SnapsGraphError(f"{path}: {what} file not found")
     try:
-        data = path.read_bytes()
+        with open(path, "rb") as fh:
+            data = fh.read(max_bytes + 1)  # never more, whatever the file (or a device) holds
     except OSError as exc:
         raise SnapsGraphError(f"{path}: cannot read the {what} file ({exc.strerror or exc})") from None
+    if len(data) > max_bytes:
+        raise SnapsGraphError(f"{path}: larger than {max_bytes / 2**20:g} MiB, too large for a {what} file")
     if b"\0" in data:
         raise SnapsGraphError(f"{path}: binary data, expected a text {what} file")
     try:
-        return data.decode("utf-8")
+        return data.decode("utf-8-sig")
     except UnicodeDecodeError:
         raise SnapsGraphError(f"{path}: not a text (UTF-8) file, expected a {what} file") from None
+
+
+MAX_IMAGE_PIXELS = 64 * 2**20  # 64 Mpixel: far above any stereo camera, far below a decoding bomb
+# OpenCV's own limit for the formats whose header is not read here (read when cv2 first decodes).
+os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", str(MAX_IMAGE_PIXELS))
+
+
+def check_image_file(path: str | Path) -> None:
+    """Before decoding: a PNG's or JPEG's size from its header (a small file can decode to
+    gigabytes), and a JPEG's end marker (libjpeg fills a truncated file with grey and goes
+    on). A one-line SnapsGraphError naming the file; other formats are left to the decoder."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(256 * 1024)
+            fh.seek(0, os.SEEK_END)
+            size = fh.tell()
+            fh.seek(max(0, size - 64))
+            tail = fh.read()
+    except OSError as exc:
+        raise SnapsGraphError(f"{path}: cannot read the image ({exc.strerror or exc})") from None
+    wh = None
+    if head.startswith(b"\x89PNG\r\n\x1a\n") and len(head) >= 24:
+        wh = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    elif head.startswith(b"\xff\xd8"):
+        if b"\xff\xd9" not in tail:
+            raise SnapsGraphError(f"{path}: truncated JPEG (no end marker)")
+        wh = _jpeg_size(head)
+    if wh is not None and wh[0] * wh[1] > MAX_IMAGE_PIXELS:
+        raise SnapsGraphError(f"{path}: image {wh[0]}x{wh[1]} is larger than {MAX_IMAGE_PIXELS / 2**20:g} Mpixel")
+
+
+def _jpeg_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from a JPEG's first start-of-frame segment, None when not in ``data``."""
+    i = 2
+    while i + 9 < len(data):
+        if data[i] != 0xFF:
+            return None
+        marker = data[i + 1]
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+            i += 2
+            continue
+        length = int.from_bytes(data[i + 2 : i + 4], "big")
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            return int.from_bytes(data[i + 7 : i + 9], "big"), int.from_bytes(data[i + 5 : i + 7], "big")
+        i += 2 + length
+    return None
 
 
 def read_toml(path: str | Path, what: str) -> dict:
@@ -92,7 +146,7 @@ def read_toml(path: str | Path, what: str) -> dict:
     unreadable, not UTF-8 text or malformed TOML. ``what`` names the file's role ("config")."""
     path = Path(path)
     try:
-        return tomllib.loads(path.read_bytes().decode("utf-8"))
+        return tomllib.loads(path.read_bytes().decode("utf-8-sig"))
     except FileNotFoundError:
         raise SnapsGraphError(f"{path}: {what} file not found") from None
     except IsADirectoryError:

@@ -737,3 +737,101 @@ def test_a_failed_map_stage_keeps_the_trajectories(seq, tmp_path, monkeypatch):
     _, metrics = runner.run_sequence(syn, tmp_path / "run", cfg, loops="none", refine="none", build_map=True)
     assert (tmp_path / "run" / "poses_vo.txt").is_file()
     assert metrics["map"] == {"error": "RuntimeError: [Open3D Error] (CreateFromDepthImage) something"}
+
+
+# ------------------------------------------------------------------ bounded inputs, no crash
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full (Linux)")
+def test_stdout_on_a_full_device_after_the_results_is_a_note_and_exit_0(seq, tmp_path):
+    out = tmp_path / "run"
+    env = dict(os.environ, PYTHONWARNINGS="ignore")
+    with open("/dev/full", "w") as full:
+        proc = subprocess.run(
+            CLI + ["run", str(seq), "--out", str(out), "--frames", "0:3"], stdout=full, stderr=subprocess.PIPE, text=True, env=env
+        )
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert proc.returncode == 0 and len(lines) == 1 and lines[0].startswith("note: standard output not written"), proc.stderr
+    assert (out / "metrics.json").is_file()
+
+
+def test_the_api_refuses_what_the_readers_refuse(tiny_seq):
+    seq = KittiSequence(tiny_seq, frames="0:3")
+    frames = list(seq)
+    pipe = SlamPipeline(seq.camera, Config(), loops="none", refine="none")
+    with pytest.raises(SnapsGraphError, match="takes a StereoFrame, not NoneType"):
+        pipe.process(None)  # type: ignore[arg-type]
+    pipe.process(frames[0])
+    with pytest.raises(SnapsGraphError, match="timestamp -1.0 does not increase"):
+        pipe.process(StereoFrame(1, -1.0, frames[1].left, frames[1].right))
+    pipe.process(frames[1])  # still usable
+
+
+@pytest.mark.parametrize(
+    "p0,p1,expect",
+    [
+        (_p(180, 160, 48)[:10] + [0, 0], _p(180, 160, 48, -97.2)[:10] + [0, 0], "third row"),  # P[2,2] = 0
+        (_p(180, 160, 48)[:1] + [90] + _p(180, 160, 48)[2:], _p(180, 160, 48, -97.2), "skew"),
+        (_p(180, 160, 48), _p(180, 160, 48, -97.2)[:7] + [-20.0] + [0, 0, 1, 0], "vertical offset"),
+    ],
+)
+def test_degenerate_calibration_is_a_one_line_error(seq, tmp_path, p0, p1, expect):
+    _calib(seq, p0, p1)
+    assert expect in assert_user_error(cli("run", seq, "--out", tmp_path / "run"), seq / "calib.txt")
+
+
+def test_calibration_with_a_byte_order_mark_is_read(seq):
+    text = (seq / "calib.txt").read_text()
+    (seq / "calib.txt").write_bytes(b"\xef\xbb\xbf" + text.encode())
+    assert KittiSequence(seq).camera.fx > 0
+
+
+def test_a_huge_calibration_file_is_refused_without_reading_it(seq, tmp_path):
+    with open(seq / "calib.txt", "r+b") as fh:
+        fh.truncate(2**31)  # sparse: 2 GB that cost no disk
+    assert "larger than 1 MiB" in assert_user_error(cli("run", seq, "--out", tmp_path / "run"), seq / "calib.txt")
+
+
+def test_an_image_that_would_decode_to_gigabytes_is_refused_from_its_header(seq, tmp_path):
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    ihdr = struct.pack(">IIBBBBB", 32000, 32000, 8, 0, 0, 0, 0)
+    bomb = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 32001 * 8)) + chunk(b"IEND", b"")
+    (seq / "image_1" / "000000.png").write_bytes(bomb)
+    assert "32000x32000" in assert_user_error(cli("run", seq, "--out", tmp_path / "run"), seq / "image_1" / "000000.png")
+
+
+def test_a_truncated_jpeg_is_an_error_naming_it(tmp_path):
+    import cv2
+
+    from snaps_graph.datasets.kitti import read_grey
+
+    path = tmp_path / "000000.jpg"
+    ok, data = cv2.imencode(".jpg", (np.random.default_rng(0).random((96, 320)) * 255).astype(np.uint8))
+    path.write_bytes(data.tobytes()[: len(data) // 2])
+    with pytest.raises(SnapsGraphError, match=re.escape(f"{path}: truncated JPEG")):
+        read_grey(path)
+
+
+def test_numbered_and_named_images_mixed_are_refused(seq, tmp_path):
+    for side in ("image_0", "image_1"):
+        shutil.copy(seq / side / "000007.png", seq / side / "extra.png")
+        (seq / side / "000007.png").unlink()
+    assert "named image among numbered" in assert_user_error(cli("run", seq, "--out", tmp_path / "run"), "extra.png")
+
+
+def test_black_first_frames_are_not_taken_for_a_repeated_camera():
+    from snaps_graph.frontend.depth import stereo_order
+
+    black = np.zeros((96, 320), np.uint8)
+    assert stereo_order(black, black)[0] == "unknown"
+    textured = (np.random.default_rng(0).random((96, 320)) * 255).astype(np.uint8)
+    assert stereo_order(textured, textured)[0] == "same"
+
+
+def test_synth_size_is_bounded_by_memory(tmp_path):
+    out = tmp_path / "big"
+    assert "too large" in assert_user_error(cli("synth", "--out", out, "--width", "20000", "--height", "20000"))
+    assert not out.exists()
