@@ -43,6 +43,7 @@ from .io_utils import (  # noqa: E402
     committed_folders,
     inside,
     output_folder,
+    parse_frame_range,
 )
 
 # Heavy modules (OpenCV, gtsam, open3d, matplotlib) are imported inside the commands that use
@@ -52,8 +53,24 @@ app = typer.Typer(
     add_completion=False,
     no_args_is_help=True,
     pretty_exceptions_enable=False,
+    context_settings={"help_option_names": ["-h", "--help"]},
     help="Stereo visual SLAM with SNAPS loop closure and a GTSAM pose graph.",
 )
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        from . import __version__
+
+        typer.echo(f"snaps-graph {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _main_options(
+    version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True, help="Print the version and exit."),
+) -> None:
+    """Stereo visual SLAM with SNAPS loop closure and a GTSAM pose graph."""
 
 
 # The renderer holds about a hundred bytes per pixel: 16 Mpixel is about 2 GB.
@@ -73,7 +90,7 @@ def _progress(total: int | None, desc: str):
 @app.command()
 def synth(
     out: Path = typer.Option(
-        ..., "--out", help="Sequence folder to write (image_0/, image_1/, calib.txt, times.txt, poses.txt)."
+        ..., "--out", "-o", help="Sequence folder to write (image_0/, image_1/, calib.txt, times.txt, poses.txt)."
     ),
     trajectory: str = typer.Option(
         "loop", "--trajectory", help="A KITTI pose file to drive along, or 'loop' for the built-in closed loop."
@@ -177,9 +194,9 @@ def run(
         ...,
         help="A KITTI folder (image_0/, image_1/, calib.txt), a EuRoC mav0/ folder, a ROS 1 .bag, a ROS 2 bag folder or .mcap, or live:DEV[,DEV].",
     ),
-    out: Path = typer.Option(..., "--out", help="Results folder."),
+    out: Path = typer.Option(..., "--out", "-o", help="Results folder."),
     frames: Optional[str] = typer.Option(None, "--frames", help="Frame range A:B (A included, B excluded)."),
-    config: Optional[Path] = typer.Option(None, "--config", help="A TOML config (see `snaps-graph config`)."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="A TOML config (see `snaps-graph config`)."),
     gt: Optional[Path] = typer.Option(None, "--gt", help="Ground-truth poses (default: SEQ/poses.txt or ROOT/poses/XX.txt)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty OUT folder (whole, at the end of the run)."),
     left_topic: Optional[str] = typer.Option(None, "--left-topic", help="ROS bag: left image topic (default: found by name)."),
@@ -216,6 +233,11 @@ def run(
     _check_choice("--loops", loops, LoopMode)
     _check_choice("--refine", refine, RefineMode)
     _check_choice("--mode", mode, FrontendMode)
+    if not str(seq_dir).startswith("live:") and not seq_dir.exists():  # a mistyped path: at once
+        raise_user(f"{seq_dir}: sequence folder not found (nor a bag file)")
+    for given, what in ((gt, "ground-truth"), (calib, "calibration")):
+        if given is not None and not given.exists():
+            raise_user(f"{given}: {what} file not found")
     cfg = Config.load(config) if config else Config()
     if mode is not None:
         cfg.frontend.mode = mode  # type: ignore[assignment]
@@ -240,6 +262,7 @@ def run(
     seq = open_dataset(seq_dir, frames=frames, gt=gt, left_topic=left_topic, right_topic=right_topic, calib=calib)
     check_inputs_outside(out, [("ground truth", getattr(seq, "gt_path", None))])
     _print_notes(seq)
+    _note_clipped_range(frames, len(seq))
     loggers: list = []
 
     def make_observer(tmp: Path):
@@ -295,7 +318,9 @@ def run(
 @app.command()
 def batch(
     plan: Path = typer.Argument(..., help="A plan (TOML): sequences, run options, variants (config overrides)."),
-    out: Path = typer.Option(..., "--out", help="Folder for DIR/<sequence>/<variant>/ run folders and summary.csv / summary.md."),
+    out: Path = typer.Option(
+        ..., "--out", "-o", help="Folder for DIR/<sequence>/<variant>/ run folders and summary.csv / summary.md."
+    ),
     address: Optional[str] = typer.Option(None, "--address", help="Join this Ray cluster (default: start Ray on this machine)."),
     max_parallel: Optional[int] = typer.Option(
         None, "--max-parallel", help="At most this many cells at once (default: as many as Ray has CPUs for)."
@@ -332,7 +357,7 @@ def batch(
 def convert(
     src: Path = typer.Argument(..., help="Any readable source: KITTI folder, EuRoC mav0/ folder, ROS 1/2 bag, live:DEV[,DEV]."),
     out: Path = typer.Option(
-        ..., "--out", help="KITTI folder to write (image_0/, image_1/, calib.txt, times.txt, poses.txt when known)."
+        ..., "--out", "-o", help="KITTI folder to write (image_0/, image_1/, calib.txt, times.txt, poses.txt when known)."
     ),
     frames: Optional[str] = typer.Option(None, "--frames", help="Frame range A:B (A included, B excluded)."),
     gt: Optional[Path] = typer.Option(None, "--gt", help="Ground truth of the source (EuRoC state csv; KITTI poses for a bag)."),
@@ -356,6 +381,15 @@ def convert(
     typer.echo(f"wrote {n} stereo pairs to {out}" + (" with poses.txt" if seq.gt_poses is not None else ""))
 
 
+def _note_clipped_range(frames: str | None, n: int) -> None:
+    """A range beyond the sequence's end runs to the end (one start past it is an error): say so."""
+    rng = parse_frame_range(frames)
+    if rng is not None and rng[1] is not None and rng[1] - rng[0] > n:
+        typer.echo(
+            f"note: --frames {frames}: the sequence has {rng[0] + n} frames; running {rng[0]}:{rng[0] + n}", err=True
+        )
+
+
 def _print_notes(seq) -> None:
     """What a reader dropped or assumed (unpaired images, frames without ground truth)."""
     for note in getattr(seq, "notes", ()):
@@ -364,11 +398,25 @@ def _print_notes(seq) -> None:
 
 @app.command("eval")
 def eval_(
-    est: Path = typer.Argument(..., help="Estimated poses (KITTI format; .tum for TUM)."),
-    gt: Path = typer.Option(..., "--gt", help="Ground-truth poses (KITTI format; .tum for TUM)."),
+    est: Path = typer.Argument(..., help="Estimated poses (KITTI format; .tum for TUM); with two files: the reference."),
+    second: Optional[Path] = typer.Argument(
+        None, metavar="[EST]", help="evo's order, reference first: `snaps-graph eval GT EST` (instead of --gt)."
+    ),
+    gt: Optional[Path] = typer.Option(None, "--gt", help="Ground-truth poses (KITTI format; .tum for TUM)."),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object instead of a table."),
 ) -> None:
-    """Mean deviation, ATE RMSE (SE(3)-aligned), KITTI t_rel / r_rel of a trajectory."""
+    """Mean deviation, ATE RMSE (SE(3)-aligned), KITTI t_rel / r_rel of a trajectory.
+
+    `snaps-graph eval EST --gt GT`, or in evo's order `snaps-graph eval GT EST`."""
+    if second is not None:
+        if gt is not None:
+            raise_user("eval: give the ground truth once: `eval EST --gt GT` or, in evo's order, `eval GT EST`")
+        est, gt = second, est
+    if gt is None:
+        raise SnapsGraphError("eval: no ground truth: `eval EST --gt GT` or, in evo's order (reference first), `eval GT EST`")
+    for given in (est, gt):
+        if not given.exists():
+            raise_user(f"{given}: pose file not found")
     from .evaluation.metrics import evaluate
     from .trajectory_io import read_poses
 
@@ -393,6 +441,8 @@ def compare(
     ),
 ) -> None:
     """Heuristic (SNAPS) against optimised corrections: report.md, PNGs and metrics.json."""
+    if not run_dir.exists():  # a mistyped path: before the heavy imports
+        raise_user(f"{run_dir}: run folder not found")
     from .evaluation.report import compare_run
 
     measure = None
@@ -419,6 +469,8 @@ def loops(
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object instead of text."),
 ) -> None:
     """Loop-closure evaluation: precision-recall over the Q threshold, revisits found, false loops."""
+    if not run_dir.exists():  # a mistyped path: before the heavy imports
+        raise_user(f"{run_dir}: run folder not found")
     from .evaluation.loops import json_text, loops_run, summary_lines
 
     ev = loops_run(run_dir, gt, true_m=true_m, false_m=false_m, png=png)
@@ -433,7 +485,7 @@ def loops(
 
 @app.command()
 def demo(
-    out: Path = typer.Option(Path("results/demo"), "--out", help="Where the demo writes everything."),
+    out: Path = typer.Option(Path("results/demo"), "--out", "-o", help="Where the demo writes everything."),
     frames: int = typer.Option(300, "--frames", help="Length of the built-in loop, frames."),
     width: int = typer.Option(1241, "--width"),
     height: int = typer.Option(376, "--height"),

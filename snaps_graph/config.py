@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import difflib
 import math
 import sys
 from dataclasses import dataclass, field
@@ -583,7 +584,7 @@ class Config:
         cfg.source = source
         for key, value in data.items():
             if not hasattr(cfg, key):
-                raise SnapsGraphError(f"{source}: unknown key '{key}'")
+                raise SnapsGraphError(f"{source}: unknown key '{key}'{_did_you_mean(key, cfg)}")
             current = getattr(cfg, key)
             if dataclasses.is_dataclass(current):
                 if not isinstance(value, dict):
@@ -595,9 +596,15 @@ class Config:
                         )
                         continue
                     if not hasattr(current, sub):
-                        raise SnapsGraphError(f"{source}: unknown key '{key}.{sub}'")
+                        raise SnapsGraphError(f"{source}: unknown key '{key}.{sub}'{_did_you_mean(sub, current, key + '.')}")
                     setattr(current, sub, _coerce(getattr(current, sub), subval, f"{source}: {key}.{sub}"))
             else:
+                if isinstance(value, dict):  # a table where a value belongs: a misspelled section
+                    close = difflib.get_close_matches(
+                        key, [f.name for f in dataclasses.fields(cfg) if dataclasses.is_dataclass(getattr(cfg, f.name))], n=1
+                    )
+                    hint = f" (did you mean [{close[0]}]?)" if close else ""
+                    raise SnapsGraphError(f"{source}: [{key}] is not a section{hint}")
                 setattr(cfg, key, _coerce(current, value, f"{source}: {key}"))
         cfg.validate()
         return cfg
@@ -874,6 +881,12 @@ RULES: dict[str, Range] = {
     "map.accuracy_tolerance_m": POSITIVE,
     "map.accuracy_samples": _ge(1000),
 }
+
+
+def _did_you_mean(name: str, obj: Any, prefix: str = "") -> str:
+    """ " (did you mean 'loop.min_similarity'?)" for a misspelled key, else ""."""
+    close = difflib.get_close_matches(name, [f.name for f in dataclasses.fields(obj)], n=1, cutoff=0.7)
+    return f" (did you mean '{prefix}{close[0]}'?)" if close else ""
 
 
 _HINTS: dict[type, dict[str, Any]] = {}

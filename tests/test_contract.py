@@ -835,3 +835,68 @@ def test_synth_size_is_bounded_by_memory(tmp_path):
     out = tmp_path / "big"
     assert "too large" in assert_user_error(cli("synth", "--out", out, "--width", "20000", "--height", "20000"))
     assert not out.exists()
+
+
+# ------------------------------------------------------------------ the command line's habits
+def test_help_version_and_short_options(seq, tmp_path):
+    from snaps_graph import __version__
+
+    for args in (["-h"], ["run", "-h"], ["batch", "-h"]):
+        proc = cli(*args)
+        assert proc.returncode == 0 and "Usage:" in proc.stdout, (args, proc.stderr)
+    version = cli("--version")
+    assert version.returncode == 0 and version.stdout.strip() == f"snaps-graph {__version__}"
+    config = write_config(tmp_path / "c.toml", "[loop]\nmin_similarity = 0.2\n")
+    proc = cli("run", seq, "-o", tmp_path / "run", "-c", config, "--frames", "0:3")
+    assert proc.returncode == 0, proc.stderr
+    assert "min_similarity = 0.2" in (tmp_path / "run" / "config.toml").read_text()
+
+
+def test_eval_accepts_evos_order_reference_first(tiny_seq, tmp_path):
+    gt = tiny_seq / "poses.txt"
+    est = tmp_path / "est.txt"
+    rows = [line.split() for line in gt.read_text().splitlines()]
+    est.write_text("".join(" ".join(r[:3] + [str(float(r[3]) + 0.1)] + r[4:]) + "\n" for r in rows))
+    ours = cli("eval", est, "--gt", gt, "--json")
+    evo = cli("eval", gt, est, "--json")
+    assert ours.returncode == 0 and evo.returncode == 0, ours.stderr + evo.stderr
+    assert json.loads(ours.stdout) == json.loads(evo.stdout)
+    assert "evo's order" in assert_user_error(cli("eval", est))
+    assert_user_error(cli("eval", gt, est, "--gt", gt), "once")
+
+
+@pytest.mark.parametrize(
+    "text,expect",
+    [
+        ("[loop]\nmin_similarty = 0.2\n", "did you mean 'loop.min_similarity'?"),
+        ("[loops]\nmin_similarity = 0.2\n", "[loops] is not a section (did you mean [loop]?)"),
+        ("[frontnd]\nmode = 'klt'\n", "did you mean 'frontend'?"),
+    ],
+)
+def test_a_misspelled_config_key_or_section_gets_did_you_mean(tmp_path, text, expect):
+    path = write_config(tmp_path / "c.toml", text)
+    assert expect in assert_user_error(cli("config", path), path)
+
+
+def test_a_frame_range_past_the_end_runs_to_the_end_and_says_so(seq, tmp_path):
+    proc = cli("run", seq, "--out", tmp_path / "run", "--frames", "2:500")
+    assert proc.returncode == 0, proc.stderr
+    assert f"note: --frames 2:500: the sequence has {N_FRAMES} frames; running 2:{N_FRAMES}" in proc.stderr
+    assert len((tmp_path / "run" / "poses_vo.txt").read_text().splitlines()) == N_FRAMES - 2
+    assert "only 8 frames" in assert_user_error(cli("run", seq, "--out", tmp_path / "r2", "--frames", "100:200"))
+
+
+@pytest.mark.parametrize("args", [["run", "NOPE", "-o", "x"], ["eval", "NOPE", "--gt", "NOPE2"], ["compare", "NOPE"]])
+def test_a_mistyped_path_fails_before_the_heavy_imports(tmp_path, args):
+    """Checked by what the process imported, not by a clock: no OpenCV, gtsam or open3d."""
+    code = (
+        "import sys, runpy\n"
+        f"sys.argv = ['snaps-graph', *{args!r}]\n"
+        "try:\n    runpy.run_module('snaps_graph.cli', run_name='__main__')\n"
+        "except SystemExit as e:\n"
+        "    heavy = [m for m in ('cv2', 'gtsam', 'open3d', 'matplotlib') if m in sys.modules]\n"
+        "    print('heavy:', heavy, 'exit:', e.code)\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path)
+    assert "heavy: [] exit: 2" in proc.stdout, proc.stdout + proc.stderr
+    assert "NOPE" in proc.stderr and "not found" in proc.stderr
