@@ -575,7 +575,7 @@ def _prepare_out(out_dir: str | Path) -> Path:
     try:
         out.mkdir(parents=True, exist_ok=True)
         if not (out / MARKER).is_file():
-            atomic_write_text(out / MARKER, f"snaps_graph {__version__} batch\n")
+            atomic_write_text(out / MARKER, json.dumps({"snaps_graph": __version__, "batch": True, "files": None}) + "\n")
     except OSError as exc:
         raise SnapsGraphError(f"{out}: cannot create the folder ({exc.strerror or exc})") from None
     return out

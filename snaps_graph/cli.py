@@ -385,9 +385,7 @@ def _note_clipped_range(frames: str | None, n: int) -> None:
     """A range beyond the sequence's end runs to the end (one start past it is an error): say so."""
     rng = parse_frame_range(frames)
     if rng is not None and rng[1] is not None and rng[1] - rng[0] > n:
-        typer.echo(
-            f"note: --frames {frames}: the sequence has {rng[0] + n} frames; running {rng[0]}:{rng[0] + n}", err=True
-        )
+        typer.echo(f"note: --frames {frames}: the sequence has {rng[0] + n} frames; running {rng[0]}:{rng[0] + n}", err=True)
 
 
 def _print_notes(seq) -> None:

@@ -5,7 +5,9 @@ background thread (``prefetch``)."""
 from __future__ import annotations
 
 import contextlib
+import fnmatch
 import glob
+import json
 import os
 import queue
 import shutil
@@ -67,6 +69,7 @@ def _umask() -> int:
     return _UMASK
 
 
+TOML_MAX_BYTES = 16 * 2**20  # a config or a plan is a few kB
 TEXT_MAX_BYTES = 512 * 2**20  # the largest text input read (a long ground-truth csv is ~100 MB)
 
 
@@ -79,13 +82,7 @@ def read_text(path: str | Path, what: str, max_bytes: int = TEXT_MAX_BYTES) -> s
         raise SnapsGraphError(f"{path}: is a folder, expected a {what} file")
     if not path.is_file():
         raise SnapsGraphError(f"{path}: {what} file not found")
-    try:
-        with open(path, "rb") as fh:
-            data = fh.read(max_bytes + 1)  # never more, whatever the file (or a device) holds
-    except OSError as exc:
-        raise SnapsGraphError(f"{path}: cannot read the {what} file ({exc.strerror or exc})") from None
-    if len(data) > max_bytes:
-        raise SnapsGraphError(f"{path}: larger than {max_bytes / 2**20:g} MiB, too large for a {what} file")
+    data = _read_capped(path, what, max_bytes)
     if b"\0" in data:
         raise SnapsGraphError(f"{path}: binary data, expected a text {what} file")
     try:
@@ -141,12 +138,28 @@ def _jpeg_size(data: bytes) -> tuple[int, int] | None:
     return None
 
 
+def _read_capped(path: Path, what: str, max_bytes: int) -> bytes:
+    """At most ``max_bytes`` of a file (a larger one is refused before it is read)."""
+    try:
+        with open(path, "rb") as fh:
+            if os.fstat(fh.fileno()).st_size > max_bytes:
+                raise SnapsGraphError(f"{path}: larger than {max_bytes / 2**20:g} MiB, too large for a {what} file")
+            data = fh.read(max_bytes + 1)  # never more, whatever the file (or a device) holds
+    except OSError as exc:
+        if isinstance(exc, (FileNotFoundError, IsADirectoryError)):
+            raise
+        raise SnapsGraphError(f"{path}: cannot read the {what} file ({exc.strerror or exc})") from None
+    if len(data) > max_bytes:
+        raise SnapsGraphError(f"{path}: larger than {max_bytes / 2**20:g} MiB, too large for a {what} file")
+    return data
+
+
 def read_toml(path: str | Path, what: str) -> dict:
     """A TOML file's tables; a one-line SnapsGraphError naming it when it is missing, a folder,
     unreadable, not UTF-8 text or malformed TOML. ``what`` names the file's role ("config")."""
     path = Path(path)
     try:
-        return tomllib.loads(path.read_bytes().decode("utf-8-sig"))
+        return tomllib.loads(_read_capped(path, what, TOML_MAX_BYTES).decode("utf-8-sig"))
     except FileNotFoundError:
         raise SnapsGraphError(f"{path}: {what} file not found") from None
     except IsADirectoryError:
@@ -193,6 +206,28 @@ def is_results_folder(folder: str | Path) -> bool:
         return False
 
 
+# Files the tool's later commands add to a results folder (compare, loops, batch): its own too.
+ADDED_LATER = ("report.md", "*.png", "batch.json")
+
+
+def foreign_entries(folder: str | Path) -> list[str]:
+    """What in a results folder this tool did not write: entries neither listed in its MARKER
+    (the run's files) nor added by a later command (ADDED_LATER). ``--overwrite`` keeps them."""
+    folder = Path(folder)
+    try:
+        listed = json.loads((folder / MARKER).read_text()).get("files") or []
+    except (OSError, ValueError, AttributeError):
+        listed = []
+    own = {MARKER, *listed}
+    return sorted(
+        p.name for p in folder.iterdir() if p.name not in own and not any(fnmatch.fnmatch(p.name, pat) for pat in ADDED_LATER)
+    )
+
+
+def _write_marker(folder: Path, files: list[str] | None) -> None:
+    (folder / MARKER).write_text(json.dumps({"snaps_graph": _version(), "files": files}) + "\n")
+
+
 def _abs(path: str | Path) -> Path:
     return Path(os.path.abspath(path))
 
@@ -229,6 +264,12 @@ def check_output_folder(path: str | Path, overwrite: bool = False, reuse: bool =
             raise SnapsGraphError(
                 f"{out}: not a folder this tool wrote (no {MARKER} file), so --overwrite will not delete it; "
                 "choose another folder or empty it yourself"
+            )
+        foreign = foreign_entries(out)
+        if foreign:
+            shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
+            raise SnapsGraphError(
+                f"{out}: holds {shown}, which this tool did not write; move it out first (--overwrite replaces the folder whole)"
             )
     return out
 
@@ -371,7 +412,7 @@ def output_folder(path: str | Path, overwrite: bool = False) -> Iterator[Path]:
             remove_results_folder(tmp)
         tmp.mkdir()
         fault_step()
-        (tmp / MARKER).write_text(f"snaps_graph {_version()}\n")  # in place: even a cut-short marker marks it
+        _write_marker(tmp, None)  # in place: even a cut-short marker marks it
     except OSError as exc:
         raise SnapsGraphError(f"{exc.filename or tmp}: cannot create the results folder ({exc.strerror or exc})") from None
     old: Path | None = None
@@ -379,6 +420,8 @@ def output_folder(path: str | Path, overwrite: bool = False) -> Iterator[Path]:
     try:
         yield tmp
         check_output_folder(out, overwrite)  # nothing appeared there meanwhile
+        fault_step()
+        _write_marker(tmp, sorted(p.name for p in tmp.iterdir() if p.name != MARKER))  # what --overwrite may replace
         with _no_sigint():
             if full.is_dir() and any(full.iterdir()):
                 old = full.parent / f".{full.name}.old-{os.getpid()}"

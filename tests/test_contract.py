@@ -900,3 +900,15 @@ def test_a_mistyped_path_fails_before_the_heavy_imports(tmp_path, args):
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path)
     assert "heavy: [] exit: 2" in proc.stdout, proc.stdout + proc.stderr
     assert "NOPE" in proc.stderr and "not found" in proc.stderr
+
+
+def test_overwrite_keeps_a_file_the_user_added_to_a_results_folder(seq, done_run):
+    assert cli("compare", done_run).returncode == 0  # report.md and pictures: the tool's own
+    (done_run / "my_notes.txt").write_text("mine\n")
+    before = tree(done_run)
+    line = assert_user_error(cli("run", seq, "--out", done_run, "--frames", "0:3", "--overwrite"), "my_notes.txt")
+    assert "did not write" in line and tree(done_run) == before
+    (done_run / "my_notes.txt").unlink()
+    proc = cli("run", seq, "--out", done_run, "--frames", "0:3", "--overwrite")
+    assert proc.returncode == 0, proc.stderr
+    assert len((done_run / "poses_vo.txt").read_text().splitlines()) == 3 and not (done_run / "report.md").exists()

@@ -101,8 +101,9 @@ def test_a_kill_at_every_step_leaves_old_or_new_results_and_the_next_start_recov
         assert not leftovers(out), (n, leftovers(out))
         assert digest(out) in ((old, new) if with_old else (None, new)), n
         assert len(notes) == len(had) and all(line.startswith("note: ") and "killed" in line for line in notes), (n, had, notes)
-    # mkdir, one per file but the marker, the swap (and: move the old aside, delete it, done)
-    assert steps == 1 + (len(new) - 1) + 1 + (3 if with_old else 0), steps
+    # mkdir, one per file but the marker, the marker's list, the swap (and: move the old aside,
+    # delete it, done)
+    assert steps == 1 + (len(new) - 1) + 1 + 1 + (3 if with_old else 0), steps
 
 
 def test_recovery_touches_only_folders_this_tool_wrote(tmp_path, capfd):
