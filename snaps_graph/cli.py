@@ -233,12 +233,12 @@ def run(
     _check_choice("--loops", loops, LoopMode)
     _check_choice("--refine", refine, RefineMode)
     _check_choice("--mode", mode, FrontendMode)
+    cfg = Config.load(config) if config else Config()
     if not str(seq_dir).startswith("live:") and not seq_dir.exists():  # a mistyped path: at once
         raise_user(f"{seq_dir}: sequence folder not found (nor a bag file)")
     for given, what in ((gt, "ground-truth"), (calib, "calibration")):
         if given is not None and not given.exists():
             raise_user(f"{given}: {what} file not found")
-    cfg = Config.load(config) if config else Config()
     if mode is not None:
         cfg.frontend.mode = mode  # type: ignore[assignment]
     if map_all:

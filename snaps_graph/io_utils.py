@@ -385,15 +385,21 @@ def remove_results_folder(folder: Path) -> None:
 
 @contextmanager
 def _no_sigint() -> Iterator[None]:
-    """Ctrl-C held back (delivered afterwards) while the results folder is swapped in."""
-    main = threading.current_thread() is threading.main_thread()
-    if main:
-        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    """Ctrl-C held back while the results folder is swapped in, then delivered to the handler
+    that was in place (a signal mask would not do: another thread may take the signal)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    pending: list[int] = []
+    old = signal.signal(signal.SIGINT, lambda signum, frame: pending.append(signum))
     try:
         yield
     finally:
-        if main:
-            signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+        signal.signal(signal.SIGINT, old)
+        if pending and callable(old):
+            old(signal.SIGINT, None)  # the CLI's raises, a batch driver's sets its flag
+        elif pending and old == signal.SIG_DFL:
+            raise KeyboardInterrupt
 
 
 @contextmanager

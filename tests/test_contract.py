@@ -717,9 +717,17 @@ def test_ctrl_c_during_the_swap_says_the_results_are_complete(tiny_seq, tmp_path
             os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C at the final rename
         real_replace(src, dst)
 
+    import threading
+
     monkeypatch.setattr(io_utils.os, "replace", replace)
-    with pytest.raises(KeyboardInterrupt):
-        write_results(out, pipe, result)
+    busy = threading.Event()
+    other = threading.Thread(target=busy.wait, args=(30,), daemon=True)  # a thread that could take the signal
+    other.start()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            write_results(out, pipe, result)
+    finally:
+        busy.set()
     assert (out / "metrics.json").is_file() and out.resolve() in io_utils.committed_folders()
     assert not no_leftovers(tmp_path)
 
