@@ -144,11 +144,14 @@ def test_synth_out_contract(tmp_path):
     out = tmp_path / "seq"
     ok = cli("synth", "--out", out, "--frames", "0:3", "--width", "64", "--height", "48")
     assert ok.returncode == 0, ok.stderr
-    (out / "stale.txt").write_text("old")
     assert_user_error(cli("synth", "--out", out, "--frames", "0:2", "--width", "64", "--height", "48"), out, "--overwrite")
+    (out / "mine.txt").write_text("a file the user put there")
+    refused = cli("synth", "--out", out, "--frames", "0:2", "--width", "64", "--height", "48", "--overwrite")
+    assert "mine.txt" in assert_user_error(refused, out) and (out / "mine.txt").read_text() == "a file the user put there"
+    (out / "mine.txt").unlink()
     again = cli("synth", "--out", out, "--frames", "0:2", "--width", "64", "--height", "48", "--overwrite")
     assert again.returncode == 0, again.stderr
-    assert not (out / "stale.txt").exists() and len(list((out / "image_0").glob("*.png"))) == 2
+    assert len(list((out / "image_0").glob("*.png"))) == 2 and len((out / "poses.txt").read_text().splitlines()) == 2
 
 
 # ------------------------------------------------------------------ binary / non-text files
