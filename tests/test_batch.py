@@ -148,7 +148,9 @@ def test_cli_bad_plan_is_one_line_error_before_anything_is_written(seqs, tmp_pat
     )
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith(f"error: {plan}: variants.x: graph.odom_sigma_rot_rad must be > 0, got -1")
+    assert len(lines) == 1 and lines[0].startswith(
+        f"error: {plan}: variants.x: graph.odom_sigma_rot_rad must be in (0, 3.14159], got -1"
+    )
     assert not out.exists()
 
 

@@ -266,10 +266,10 @@ def test_calibration_with_p0_offset_gives_the_true_baseline():
 
 # ------------------------------------------------------------------ configuration
 BAD_CONFIGS = [
-    ("[frontend]\nmax_step_m = -1.0\n", "frontend.max_step_m must be > 0, got -1"),
-    ("[graph]\nodom_sigma_trans_m = -1\n", "graph.odom_sigma_trans_m must be > 0, got -1"),
-    ("[graph]\nprior_sigma_rot_rad = 0.0\n", "graph.prior_sigma_rot_rad must be > 0"),
-    ("[graph]\nloop_sigma_trans_m = -0.1\n", "graph.loop_sigma_trans_m must be > 0"),
+    ("[frontend]\nmax_step_m = -1.0\n", "frontend.max_step_m must be in (0, 1000], got -1"),
+    ("[graph]\nodom_sigma_trans_m = -1\n", "graph.odom_sigma_trans_m must be in (0, 10000], got -1"),
+    ("[graph]\nprior_sigma_rot_rad = 0.0\n", "graph.prior_sigma_rot_rad must be in (0, 3.14159]"),
+    ("[graph]\nloop_sigma_trans_m = -0.1\n", "graph.loop_sigma_trans_m must be in (0, 10000]"),
     ('[frontend]\nmode = "fast"\n', "frontend.mode must be one of 'sift', 'orb', 'klt', got 'fast'"),
     ('[graph]\nrefine = "turbo"\n', "graph.refine must be one of"),
     ('[graph]\nrobust_kernel = "tukey"\n', "graph.robust_kernel must be one of"),
@@ -312,7 +312,7 @@ def test_cli_mode_options(seq, tmp_path, opt, value):
 def test_config_validated_at_construction_and_never_mutated():
     from snaps_graph.config import GraphConfig
 
-    with pytest.raises(SnapsGraphError, match=r"^config: graph.odom_sigma_trans_m must be > 0, got -1$"):
+    with pytest.raises(SnapsGraphError, match=r"^config: graph.odom_sigma_trans_m must be in \(0, 10000\], got -1$"):
         GraphConfig(odom_sigma_trans_m=-1.0)
     cfg = Config()
     before = copy.deepcopy(cfg)
@@ -342,6 +342,26 @@ def test_every_numeric_config_field_has_a_range():
             if hint in (int, float) and choices(hint) is None and f"{section}.{f.name}" not in RULES:
                 missing.append(f"{section}.{f.name}")
     assert not missing, f"add a range to config.RULES for {missing}"
+    unbounded = [k for k, r in RULES.items() if r.lo is None or r.hi is None]
+    assert not unbounded, f"give these config.RULES ranges both bounds (a value the checks accept must not crash): {unbounded}"
+
+
+@pytest.mark.parametrize(
+    "key,value",
+    [
+        ("frontend.klt_min_distance_px", 2147483647),
+        ("frontend.orb_features", 2**31),
+        ("frontend.ransac_seed", 2**31),
+        ("graph.batch_max_iterations", 2**62),
+        ("frontend.stereo_window_px", 10**6),
+        ("graph.odom_cov_scale", 1e300),
+        ("graph.gravity_rounds", 10**9),
+    ],
+)
+def test_values_that_crashed_or_hung_are_out_of_range(tmp_path, key, value):
+    section, field = key.split(".")
+    path = write_config(tmp_path / "c.toml", f"[{section}]\n{field} = {value}\n")
+    assert key in assert_user_error(cli("config", path), path)
 
 
 def test_dumped_config_loads_back(tmp_path):
