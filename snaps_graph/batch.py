@@ -5,7 +5,7 @@ into ``DIR/<sequence>/<variant>/``, an ordinary results folder, and writes ``DIR
 and ``DIR/summary.md``::
 
     sequences = ["/data/kitti/sequences/00", { path = "results/seq07", name = "s07", gt = "gt.txt" }, "/data/euroc/MH_01"]
-    frames = "0:1000"      # run options: frames, config, refine, loops, map, mode, map_all, gravity_prior
+    frames = "0:1000"      # run options: frames, config, refine, loops, map, mode, map_all
     refine = "batch"
     cpus_per_task = 1      # CPUs Ray reserves per cell (OpenCV and BLAS threads are pinned to it)
     [variants.default]
@@ -39,7 +39,6 @@ import json
 import math
 import os
 import re
-import shutil
 import signal
 import subprocess
 import sys
@@ -51,10 +50,21 @@ from pathlib import Path
 from typing import Any
 
 from . import __version__
+from ._malloc import set_malloc_thresholds
 from .config import Config, FrontendMode, LoopMode, RefineMode, choices
 from .datasets.open import open_dataset
 from .errors import SnapsGraphError
-from .io_utils import atomic_write_text, check_output_folder, parse_frame_range, read_toml
+from .io_utils import (
+    MARKER,
+    atomic_write_text,
+    check_inputs_outside,
+    check_output_folder,
+    inside,
+    is_results_folder,
+    parse_frame_range,
+    read_toml,
+    recover_leftovers,
+)
 from .runner import mostly_flagged, run_sequence
 
 CELL_FILE = "batch.json"  # written into a cell's folder after its run: the resume record
@@ -73,7 +83,6 @@ RUN_OPTIONS: dict[str, tuple[str | None, Any]] = {
     "map": ("map.enabled", bool),
     "mode": ("frontend.mode", FrontendMode),
     "map_all": ("map.per_trajectory", bool),
-    "gravity_prior": ("graph.gravity_prior", bool),
 }
 TOP_ONLY = ("sequences", "variants", "config", "cpus_per_task")
 CONFIG_SECTIONS = ("frontend", "loop", "graph", "map")
@@ -157,6 +166,7 @@ def plan_from_dict(data: dict[str, Any], source: str = "plan", base_dir: str | P
     seqs = _sequences(data, source, base)
     cells: list[Cell] = []
     checked: dict[tuple[str, str | None], str | None] = {}  # (sequence, frames) -> its ground-truth file
+    digests: dict[str, str] = {}
     for s_name, s_path, s_gt, reader in seqs:
         for v_name, (cfg, frames) in resolved.items():
             seq_key = (s_name, frames)
@@ -164,7 +174,10 @@ def plan_from_dict(data: dict[str, Any], source: str = "plan", base_dir: str | P
                 checked[seq_key] = _check_sequence(s_name, s_path, s_gt, frames, reader, source)
             gt = checked[seq_key]
             extra = "".join(f";{k}={v}" for k, v in reader)
-            cells.append(Cell(s_name, v_name, s_path, gt, frames, cfg, config_hash(cfg, s_path + extra, frames, gt), reader))
+            if s_name not in digests:
+                digests[s_name] = inputs_digest([s_path, gt, *(v for k, v in reader if k == "calib")])
+            key = config_hash(cfg, s_path + extra, frames, gt, digests[s_name])
+            cells.append(Cell(s_name, v_name, s_path, gt, frames, cfg, key, reader))
     return Plan(source, cells, float(cpus))
 
 
@@ -309,10 +322,42 @@ def _sequences(data: dict[str, Any], source: str, base: Path) -> list[tuple[str,
     return out
 
 
-def config_hash(cfg: Config, seq_path: str, frames: str | None, gt: str | None) -> str:
-    """What decides a run's output: the full configuration, the sequence, the frames, the ground truth."""
-    text = json.dumps({"config": cfg.dumps(), "sequence": seq_path, "frames": frames or "", "gt": gt or ""}, sort_keys=True)
+def config_hash(cfg: Config, seq_path: str, frames: str | None, gt: str | None, inputs: str = "") -> str:
+    """What decides a run's output: the full configuration, the sequence, the frames, the ground
+    truth, the inputs' content (``inputs_digest``) and the code (version and commit)."""
+    text = json.dumps(
+        {
+            "config": cfg.dumps(),
+            "sequence": seq_path,
+            "frames": frames or "",
+            "gt": gt or "",
+            "inputs": inputs,
+            "code": f"{__version__} {git_commit()}",
+        },
+        sort_keys=True,
+    )
     return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+DIGEST_CONTENT_BYTES = 16 * 2**20  # files up to this size are hashed whole (calibration, times, ground truth)
+
+
+def inputs_digest(paths) -> str:
+    """A digest of every file under ``paths`` (files or folders; None skipped): each file's
+    relative name, size and modification time, and the content of the small ones. A changed
+    calibration, ground truth, time or image gives another digest, so a resumed batch re-runs."""
+    h = hashlib.sha256()
+    for given in paths:
+        if given is None:
+            continue
+        root = Path(given)
+        files = [root] if root.is_file() else sorted(p for p in root.rglob("*") if p.is_file())
+        for f in files:
+            st = f.stat()
+            h.update(f"{f.relative_to(root) if f != root else f.name}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
+            if st.st_size <= DIGEST_CONTENT_BYTES and f.suffix.lower() not in (".png", ".jpg", ".jpeg", ".pgm"):
+                h.update(hashlib.sha256(f.read_bytes()).digest())
+    return h.hexdigest()[:16]
 
 
 # ---------------------------------------------------------------- one cell (a Ray task)
@@ -326,6 +371,14 @@ def completed(cell: Cell, out_dir: str | Path) -> dict | None:
         return None
     if not isinstance(rec, dict) or rec.get("config_hash") != cell.config_hash:
         return None
+    files = rec.get("files")
+    if not isinstance(files, dict) or not files:
+        return None
+    for name, size in files.items():  # the folder whole, as the run left it
+        f = folder / name
+        if not f.is_file() or f.stat().st_size != size:
+            return None
+    rec.pop("files", None)
     rec.update(status="skipped", metrics=_metrics_digest(metrics))
     return rec
 
@@ -350,6 +403,7 @@ def run_cell(cell: Cell, out_dir: str, threads: int) -> dict:
         "reason": "",
     }
     folder = cell.folder(out_dir)
+    set_malloc_thresholds()  # a worker process runs the pipeline as the CLI does
     try:
         _remove_stale_temp(folder)
         seq = cell.open()
@@ -363,7 +417,8 @@ def run_cell(cell: Cell, out_dir: str, threads: int) -> dict:
         rec["status"] = "ok"
         if mostly_flagged(metrics):
             rec["reason"] = f"warning: the front end flagged {metrics['flagged_frames']} of {metrics['frames']} frames"
-        atomic_write_text(folder / CELL_FILE, json.dumps(rec, indent=2) + "\n")
+        files = {p.name: p.stat().st_size for p in sorted(folder.iterdir()) if p.is_file() and p.name != CELL_FILE}
+        atomic_write_text(folder / CELL_FILE, json.dumps(rec | {"files": files}, indent=2) + "\n")
         rec["metrics"] = _metrics_digest(metrics)
     except SnapsGraphError as exc:
         rec["reason"] = _one_line(str(exc))
@@ -398,16 +453,9 @@ def pinned_threads(n: int) -> Iterator[None]:
 
 def _remove_stale_temp(folder: Path) -> None:
     """Temporary siblings left by a killed earlier attempt (``.NAME.tmp-PID``, ``.NAME.old-PID``).
-    The batch lock makes this task the only writer of ``folder``."""
-    if folder.parent.is_dir():
-        for p in folder.parent.glob(f".{folder.name}.tmp-*"):
-            shutil.rmtree(p, ignore_errors=True)
-        old = sorted(folder.parent.glob(f".{folder.name}.old-*"))
-        for p in old:
-            if folder.exists():
-                shutil.rmtree(p, ignore_errors=True)
-            else:  # a swap was interrupted half-way: the old run is the folder's content
-                os.replace(p, folder)
+    The batch lock makes this task the only writer of ``folder``, so any other process's are stale."""
+    for note in recover_leftovers(folder, any_pid=True):
+        print(f"note: {note}", file=sys.stderr)
 
 
 def _node_id() -> str:
@@ -471,6 +519,13 @@ def run_batch(
     written with the unfinished cells as ``cancelled``, and the exception propagates."""
     if max_parallel is not None and max_parallel < 1:
         raise SnapsGraphError(f"--max-parallel must be at least 1, got {max_parallel}")
+    check_cell_folders(plan, out_dir)
+    if address:
+        _check_reachable(address)  # before anything is written
+    elif not ray_init and plan.cpus_per_task > (os.cpu_count() or 1):
+        raise SnapsGraphError(
+            f"{plan.source}: cpus_per_task = {plan.cpus_per_task:g}, but this machine has {os.cpu_count()} CPUs (no cell could start)"
+        )
     out = _prepare_out(out_dir)
     t0 = time.perf_counter()
     with _lock(out):
@@ -495,10 +550,33 @@ def run_batch(
     return rows
 
 
+def check_cell_folders(plan: Plan, out_dir: str | Path) -> None:
+    """No cell folder is or holds an input, nor lies inside an input sequence folder (a variant
+    named like a sequence's subfolder, ``--out`` on the folder holding the data)."""
+    for cell in plan.cells:
+        folder = cell.folder(out_dir)
+        inputs = [("sequence", cell.seq_path), ("ground truth", cell.gt), *((k, v) for k, v in cell.reader if k == "calib")]
+        try:
+            check_inputs_outside(folder, inputs)
+        except SnapsGraphError as exc:
+            raise SnapsGraphError(f"{plan.source}: cell {cell.sequence}/{cell.variant}: {exc}") from None
+        for role, given in inputs:
+            if given is not None and Path(given).is_dir() and inside(folder, given):
+                raise SnapsGraphError(
+                    f"{plan.source}: cell {cell.sequence}/{cell.variant}: its folder {folder} lies inside the input {role} {given}; choose another --out"
+                )
+
+
 def _prepare_out(out_dir: str | Path) -> Path:
+    """The batch folder: new, empty, or one a batch wrote (MARKER); never a user's folder whose
+    summary.csv / summary.md a batch would replace."""
     out = check_output_folder(out_dir, reuse=True)
+    if out.is_dir() and not is_results_folder(out):
+        raise SnapsGraphError(f"{out}: not a folder this tool wrote (no {MARKER} file); choose a new or empty --out for a batch")
     try:
         out.mkdir(parents=True, exist_ok=True)
+        if not (out / MARKER).is_file():
+            atomic_write_text(out / MARKER, json.dumps({"snaps_graph": __version__, "batch": True, "files": None}) + "\n")
     except OSError as exc:
         raise SnapsGraphError(f"{out}: cannot create the folder ({exc.strerror or exc})") from None
     return out
@@ -506,16 +584,32 @@ def _prepare_out(out_dir: str | Path) -> Path:
 
 @contextlib.contextmanager
 def _lock(out: Path) -> Iterator[None]:
-    """One batch at a time per output folder (two would race on the same cells)."""
-    with open(out / ".batch.lock", "w") as fh:
+    """One batch at a time per output folder (two would race on the same cells). The lock file
+    is removed at the end, by its holder; a lock taken on a file removed meanwhile is retaken."""
+    path = out / ".batch.lock"
+    for _ in range(3):
+        fh = open(path, "w")
         try:
             fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
+            fh.close()
             raise SnapsGraphError(f"{out}: another batch is running into this folder") from None
         try:
-            yield
-        finally:
-            fcntl.flock(fh, fcntl.LOCK_UN)
+            same = os.fstat(fh.fileno()).st_ino == os.stat(path).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        fh.close()
+    else:
+        raise SnapsGraphError(f"{out}: another batch is running into this folder")
+    try:
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            path.unlink()
+        fcntl.flock(fh, fcntl.LOCK_UN)
+        fh.close()
 
 
 def _bar(total: int, initial: int, progress: bool):
@@ -576,6 +670,11 @@ def _ray_session(address: str | None, ray_init: dict[str, Any] | None, needed: b
 
 
 def _run_tasks(ray, plan, todo, out, records, bar, max_parallel, progress, interrupted) -> None:
+    biggest = max((n.get("Resources", {}).get("CPU", 0) for n in ray.nodes() if n.get("Alive")), default=0)
+    if plan.cpus_per_task > biggest:  # Ray would wait for such a node for ever
+        raise SnapsGraphError(
+            f"{plan.source}: cpus_per_task = {plan.cpus_per_task:g}, but no Ray node has more than {biggest:g} CPUs"
+        )
     threads = max(1, math.ceil(plan.cpus_per_task))
     task = ray.remote(run_cell).options(
         num_cpus=plan.cpus_per_task,
@@ -680,9 +779,19 @@ def _check_reachable(address: str) -> None:
     if not m:
         return
     try:
-        socket.create_connection((m.group(1), int(m.group(2))), timeout=5).close()
+        with socket.create_connection((m.group(1), int(m.group(2))), timeout=5) as sock:
+            # Ray's head speaks gRPC (HTTP/2): its answer to the client preface starts with a SETTINGS frame
+            sock.sendall(b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0]))
+            head = b""
+            while len(head) < 9:
+                chunk = sock.recv(9 - len(head))
+                if not chunk:
+                    break
+                head += chunk
     except OSError as exc:
         raise SnapsGraphError(f"--address {address}: no Ray cluster answers there ({exc.strerror or exc})") from None
+    if len(head) < 9 or head[3] != 4:
+        raise SnapsGraphError(f"--address {address}: something answers there, but not a Ray cluster (no gRPC server)")
 
 
 def _cell_line(rec: dict) -> str:

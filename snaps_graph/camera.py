@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import SnapsGraphError
-from .io_utils import atomic_write_text
+from .io_utils import atomic_write_text, read_text
 
 # P0/P1 of KITTI odometry sequence 00 (grey cameras), the synthetic renderer's default camera.
 KITTI00_P0 = np.array([[718.856, 0.0, 607.1928, 0.0], [0.0, 718.856, 185.2157, 0.0], [0.0, 0.0, 1.0, 0.0]])
@@ -18,6 +18,7 @@ KITTI00_SIZE = (1241, 376)  # width, height
 # Plausible calibration: anything outside is a malformed calib.txt, not a camera.
 MIN_FOCAL_PX, MAX_FOCAL_PX = 1.0, 1e5
 MIN_BASELINE_M, MAX_BASELINE_M = 0.0, 10.0
+CALIB_MAX_BYTES = 2**20  # a calib.txt is a few lines
 
 
 @dataclass(frozen=True)
@@ -72,6 +73,20 @@ class StereoCamera:
                 )
         if not (abs(cx) <= MAX_FOCAL_PX and abs(cy) <= MAX_FOCAL_PX):
             raise SnapsGraphError(f"{source}: principal point ({cx:.6g}, {cy:.6g}) px is absurd")
+        # A rectified pinhole P = K [R | t] with K upper triangular without skew: the last row is
+        # (0, 0, 1); skew or a rotated row would be ignored by every formula that reads K.
+        for name, P in (("P0", P0), ("P1", P1)):
+            if not np.allclose(P[2, :3], (0.0, 0.0, 1.0), atol=1e-6):
+                raise SnapsGraphError(
+                    f"{source}: {name}'s third row starts {P[2, :3].tolist()}, not [0, 0, 1] (not a rectified camera)"
+                )
+            if abs(P[0, 1]) > 1e-3 * fx or abs(P[1, 0]) > 1e-3 * fx:
+                raise SnapsGraphError(f"{source}: {name} has skew ({P[0, 1]:.6g}, {P[1, 0]:.6g}); a rectified camera has none")
+        if abs(P1[1, 3] - P0[1, 3]) > 1e-3 * fy:  # rows no longer match: not a horizontal rectified pair
+            raise SnapsGraphError(
+                f"{source}: P1[1,3] - P0[1,3] = {P1[1, 3] - P0[1, 3]:.6g}: a vertical offset between the cameras "
+                "(a rectified horizontal pair has none)"
+            )
         # A rectified pair shares K: P1 = K [I | -B e_x] (a different focal length would silently
         # scale the baseline and every depth).
         for (i, j), name in (((0, 0), "fx"), ((1, 1), "fy"), ((0, 2), "cx"), ((1, 2), "cy")):
@@ -97,12 +112,7 @@ class StereoCamera:
     @classmethod
     def from_calib_file(cls, path: str | Path) -> "StereoCamera":
         path = Path(path)
-        if not path.is_file():
-            raise SnapsGraphError(f"{path}: calibration file not found")
-        try:
-            text = path.read_text()
-        except (OSError, UnicodeDecodeError) as exc:
-            raise SnapsGraphError(f"{path}: cannot read calibration ({exc})") from None
+        text = read_text(path, "calibration", max_bytes=CALIB_MAX_BYTES)
         mats: dict[str, np.ndarray] = {}
         for lineno, line in enumerate(text.splitlines(), 1):
             if ":" not in line:

@@ -9,20 +9,44 @@ says why); 130 interrupted (Ctrl-C: one line, no results folder).
 
 from __future__ import annotations
 
-import json
+import os
 import signal
 import sys
-import time
-from pathlib import Path
-from typing import Optional
 
-import typer
-from tqdm import tqdm
 
-from .config import Config, FrontendMode, LoopMode, RefineMode, choices
-from .errors import SnapsGraphError
-from .io_utils import PREFETCH_FRAMES, check_output_folder, output_folder
-from .trajectory_io import ODOMETRY_FORMATS
+def _sigint_while_starting(signum, frame) -> None:
+    # Ctrl-C while this module's imports run (before main() installs its handler): nothing is
+    # written yet, and an exception raised inside an import would print a traceback.
+    print("interrupted: no results written", file=sys.stderr)
+    os._exit(130)
+
+
+_SIGINT_BEFORE = signal.signal(signal.SIGINT, _sigint_while_starting)
+
+import contextlib  # noqa: E402
+import errno  # noqa: E402
+import json  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Optional  # noqa: E402
+
+import typer  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from ._malloc import set_malloc_thresholds  # noqa: E402
+from .config import Config, FrontendMode, LoopMode, RefineMode, choices  # noqa: E402
+from .errors import SnapsGraphError, interrupted, note_interrupt  # noqa: E402
+from .io_utils import (  # noqa: E402
+    PREFETCH_FRAMES,
+    check_inputs_outside,
+    check_output_folder,
+    check_recording_path,
+    committed_folders,
+    inside,
+    output_folder,
+    parse_frame_range,
+)
+from .trajectory_io import ODOMETRY_FORMATS  # noqa: E402
 
 # Heavy modules (OpenCV, gtsam, open3d, matplotlib) are imported inside the commands that use
 # them, after the cheap checks, so `config`, `--help` and a bad option answer at once.
@@ -31,9 +55,28 @@ app = typer.Typer(
     add_completion=False,
     no_args_is_help=True,
     pretty_exceptions_enable=False,
+    context_settings={"help_option_names": ["-h", "--help"]},
     help="Stereo visual SLAM with SNAPS loop closure and a GTSAM pose graph.",
 )
 
+
+def _print_version(value: bool) -> None:
+    if value:
+        from . import __version__
+
+        typer.echo(f"snaps-graph {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _main_options(
+    version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True, help="Print the version and exit."),
+) -> None:
+    """Stereo visual SLAM with SNAPS loop closure and a GTSAM pose graph."""
+
+
+# The renderer holds about a hundred bytes per pixel: 16 Mpixel is about 2 GB.
+SYNTH_MAX_SIDE, SYNTH_MAX_PIXELS = 8192, 16 * 2**20
 
 EXIT_USER_ERROR = 2
 EXIT_MOSTLY_FLAGGED = 3
@@ -49,7 +92,7 @@ def _progress(total: int | None, desc: str):
 @app.command()
 def synth(
     out: Path = typer.Option(
-        ..., "--out", help="Sequence folder to write (image_0/, image_1/, calib.txt, times.txt, poses.txt)."
+        ..., "--out", "-o", help="Sequence folder to write (image_0/, image_1/, calib.txt, times.txt, poses.txt)."
     ),
     trajectory: str = typer.Option(
         "loop", "--trajectory", help="A KITTI pose file to drive along, or 'loop' for the built-in closed loop."
@@ -96,8 +139,11 @@ def synth(
 
     if width < 32 or height < 32:
         raise_user(f"--width/--height too small: {width}x{height}")
-    if width > 20000 or height > 20000:
-        raise_user(f"--width/--height too large: {width}x{height}")
+    if width > SYNTH_MAX_SIDE or height > SYNTH_MAX_SIDE or width * height > SYNTH_MAX_PIXELS:
+        raise_user(
+            f"--width/--height too large: {width}x{height} (at most {SYNTH_MAX_SIDE} a side and "
+            f"{SYNTH_MAX_PIXELS // 2**20} Mpixel, what the renderer's per-pixel buffers fit in a few GB)"
+        )
     if seed < 0:
         raise_user(f"--seed must be >= 0, not {seed}")
     if scene not in SCENES:
@@ -106,11 +152,17 @@ def synth(
         raise_user(f"{world_mesh}: --world-mesh must name a .ply (or .obj, .off, .stl) file")
     if mesh_only and world_mesh is None:
         raise_user("--mesh-only needs --world-mesh FILE.ply")
+    mesh_inside = None
     if not mesh_only:
+        check_inputs_outside(out, [("trajectory", Path(trajectory) if trajectory != "loop" else None), ("times", times)])
         check_output_folder(out, overwrite)
-        for given in (Path(trajectory), times):
-            if given is not None and given.exists() and _inside(given, out):
-                raise_user(f"{out}: --out would replace the input {given}")
+        if world_mesh is not None and inside(world_mesh, out):  # written with the sequence, not deleted by it
+            mesh_inside = world_mesh.resolve().relative_to(out.resolve())
+    if world_mesh is not None and mesh_inside is None:
+        if world_mesh.is_dir():
+            raise_user(f"{world_mesh}: --world-mesh names a folder")
+        if world_mesh.exists() and not overwrite:
+            raise_user(f"{world_mesh}: exists (use --overwrite to replace it)")
     world = WorldConfig(scene=scene, aliasing=aliasing, traffic=traffic, lighting=lighting)
     poses, ts = load_trajectory(trajectory, frames, times=str(times) if times else None)
     seq = SyntheticSequence(
@@ -124,13 +176,17 @@ def synth(
         world_config=world,
         rectification_error_px=rectification_error,
     )
-    if world_mesh is not None:
+    if world_mesh is not None and mesh_inside is None:
         seq.write_world_mesh(world_mesh)
         typer.echo(f"wrote the world mesh ({len(seq.world.triangles)} triangles) to {world_mesh}")
         if mesh_only:
             return
     with _progress(len(seq), "render") as bar, output_folder(out, overwrite) as tmp:
         render_to_folder(seq, tmp, progress=lambda *_: bar.update(1), write_depth=depth, overwrite=True)
+        if mesh_inside is not None:
+            seq.write_world_mesh(tmp / mesh_inside)
+    if mesh_inside is not None:
+        typer.echo(f"wrote the world mesh ({len(seq.world.triangles)} triangles) to {world_mesh}")
     typer.echo(f"wrote {len(seq)} stereo pairs to {out}")
 
 
@@ -140,9 +196,9 @@ def run(
         ...,
         help="A KITTI folder (image_0/, image_1/, calib.txt), a EuRoC mav0/ folder, a ROS 1 .bag, a ROS 2 bag folder or .mcap, or live:DEV[,DEV].",
     ),
-    out: Path = typer.Option(..., "--out", help="Results folder."),
+    out: Path = typer.Option(..., "--out", "-o", help="Results folder."),
     frames: Optional[str] = typer.Option(None, "--frames", help="Frame range A:B (A included, B excluded)."),
-    config: Optional[Path] = typer.Option(None, "--config", help="A TOML config (see `snaps-graph config`)."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="A TOML config (see `snaps-graph config`)."),
     gt: Optional[Path] = typer.Option(None, "--gt", help="Ground-truth poses (default: SEQ/poses.txt or ROOT/poses/XX.txt)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty OUT folder (whole, at the end of the run)."),
     left_topic: Optional[str] = typer.Option(None, "--left-topic", help="ROS bag: left image topic (default: found by name)."),
@@ -163,11 +219,6 @@ def run(
     world_mesh: Optional[Path] = typer.Option(
         None, "--world-mesh", help="With --map: the true world mesh (PLY); map accuracy per trajectory."
     ),
-    gravity_prior: Optional[bool] = typer.Option(
-        None,
-        "--gravity-prior/--no-gravity-prior",
-        help="Batch refinement: level-vehicle prior on every frame's attitude (default from config: off).",
-    ),
     viewer: bool = typer.Option(False, "--viewer", help="Spawn the rerun viewer and stream the run to it (needs rerun-sdk)."),
     rrd: Optional[Path] = typer.Option(None, "--rrd", help="Record the run to a rerun .rrd file (needs rerun-sdk)."),
     odometry: Optional[Path] = typer.Option(
@@ -187,6 +238,11 @@ def run(
     _check_choice("--refine", refine, RefineMode)
     _check_choice("--mode", mode, FrontendMode)
     cfg = Config.load(config) if config else Config()
+    if not str(seq_dir).startswith("live:") and not seq_dir.exists():  # a mistyped path: at once
+        raise_user(f"{seq_dir}: sequence folder not found (nor a bag file)")
+    for given, what in ((gt, "ground-truth"), (calib, "calibration")):
+        if given is not None and not given.exists():
+            raise_user(f"{given}: {what} file not found")
     if mode is not None:
         cfg.frontend.mode = mode  # type: ignore[assignment]
     if map_all:
@@ -195,35 +251,42 @@ def run(
         if not world_mesh.is_file():
             raise_user(f"{world_mesh}: world mesh not found")
         cfg.map.world_mesh = str(world_mesh)
-    if gravity_prior is not None:
-        cfg.graph.gravity_prior = gravity_prior
-    # Before anything is read: the configuration that will run, and the output folder.
+    # Before anything is read: the configuration that will run, the output folder, and every
+    # path the run reads or writes against it.
     cfg.resolved(loops=loops, refine=refine, build_map=map_)
+    inputs = [("sequence", seq_dir), ("config", config), ("ground truth", gt), ("calibration", calib), ("odometry", odometry)]
+    check_inputs_outside(out, inputs + [("world mesh", world_mesh)])
     check_output_folder(out, overwrite)
-    if _inside(seq_dir, out):
-        raise_user(f"{out}: --out would replace the input sequence {seq_dir}")
+    rrd_inside = check_recording_path(rrd, out) if rrd is not None else None
     if odometry_format is not None and odometry_format not in ODOMETRY_FORMATS:
         raise_user(f"--odometry-format must be one of {', '.join(ODOMETRY_FORMATS)}, not '{odometry_format}'")
-    if odometry is not None:
-        if not odometry.is_file():
-            raise_user(f"{odometry}: odometry file not found")
-        if _inside(odometry, out):
-            raise_user(f"{out}: --out would replace the odometry file {odometry}")
+    if odometry is not None and not odometry.is_file():
+        raise_user(f"{odometry}: odometry file not found")
     from .datasets.open import open_dataset  # the heavy imports (OpenCV, gtsam) after the checks
     from .runner import mostly_flagged, run_sequence
 
     seq = open_dataset(seq_dir, frames=frames, gt=gt, left_topic=left_topic, right_topic=right_topic, calib=calib)
+    check_inputs_outside(out, [("ground truth", getattr(seq, "gt_path", None))])
     if not getattr(seq, "stereo", True):
         if odometry is None:
             raise_user(f"{seq_dir}: no right images: the stereo VO needs them (give odometry from elsewhere: --odometry POSES)")
         if cfg.resolved(loops=loops, refine=refine, build_map=map_).map.enabled:
             raise_user(f"{seq_dir}: no right images: the map needs stereo depth (run without --map)")
     _print_notes(seq)
-    observer = None
-    if viewer or rrd is not None:
+    _note_clipped_range(frames, len(seq))
+    loggers: list = []
+
+    def make_observer(tmp: Path):
         from .viz.rerun_logger import RerunLogger
 
-        observer = RerunLogger(seq.camera, spawn=viewer, rrd=rrd, name=str(seq_dir), gt_poses=seq.gt_poses)
+        target = tmp / rrd_inside if rrd_inside is not None else rrd
+        loggers.append(RerunLogger(seq.camera, spawn=viewer, rrd=target, name=str(seq_dir), gt_poses=seq.gt_poses))
+        return loggers[0]
+
+    def close_recording(tmp: Path) -> None:
+        if loggers:
+            loggers[0].close()  # the recording whole before the results folder is renamed into place
+
     n_loops = 0
     with _progress(len(seq) or None, "slam") as bar:
 
@@ -243,19 +306,18 @@ def run(
                 build_map=map_,
                 overwrite=overwrite,
                 on_frame=on_frame,
-                observer=observer,
+                observer=make_observer if (viewer or rrd is not None) else None,
                 prefetch_frames=prefetch,
+                before_commit=close_recording,
                 odometry=odometry,
                 odometry_format=odometry_format,
             )
         except BaseException:
-            if observer is not None:
-                observer.abort()  # no half-written recording
+            if loggers:
+                loggers[0].abort()  # no half-written recording
             raise
-    if observer is not None:
-        observer.close()
-        if rrd is not None:
-            typer.echo(f"rerun recording in {rrd}")
+    if rrd is not None:
+        typer.echo(f"rerun recording in {rrd}")
     _print_summary(metrics, out)
     if mostly_flagged(metrics):
         print(
@@ -269,7 +331,9 @@ def run(
 @app.command()
 def batch(
     plan: Path = typer.Argument(..., help="A plan (TOML): sequences, run options, variants (config overrides)."),
-    out: Path = typer.Option(..., "--out", help="Folder for DIR/<sequence>/<variant>/ run folders and summary.csv / summary.md."),
+    out: Path = typer.Option(
+        ..., "--out", "-o", help="Folder for DIR/<sequence>/<variant>/ run folders and summary.csv / summary.md."
+    ),
     address: Optional[str] = typer.Option(None, "--address", help="Join this Ray cluster (default: start Ray on this machine)."),
     max_parallel: Optional[int] = typer.Option(
         None, "--max-parallel", help="At most this many cells at once (default: as many as Ray has CPUs for)."
@@ -306,7 +370,7 @@ def batch(
 def convert(
     src: Path = typer.Argument(..., help="Any readable source: KITTI folder, EuRoC mav0/ folder, ROS 1/2 bag, live:DEV[,DEV]."),
     out: Path = typer.Option(
-        ..., "--out", help="KITTI folder to write (image_0/, image_1/, calib.txt, times.txt, poses.txt when known)."
+        ..., "--out", "-o", help="KITTI folder to write (image_0/, image_1/, calib.txt, times.txt, poses.txt when known)."
     ),
     frames: Optional[str] = typer.Option(None, "--frames", help="Frame range A:B (A included, B excluded)."),
     gt: Optional[Path] = typer.Option(None, "--gt", help="Ground truth of the source (EuRoC state csv; KITTI poses for a bag)."),
@@ -318,9 +382,8 @@ def convert(
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty OUT folder (whole, at the end)."),
 ) -> None:
     """Write any readable source as a KITTI folder of rectified pairs."""
+    check_inputs_outside(out, [("source", src), ("ground truth", gt), ("calibration", calib)])
     check_output_folder(out, overwrite)
-    if _inside(src, out):
-        raise_user(f"{out}: --out would replace the input {src}")
     from .datasets.convert import write_kitti_folder
     from .datasets.open import open_dataset
 
@@ -331,6 +394,13 @@ def convert(
     typer.echo(f"wrote {n} stereo pairs to {out}" + (" with poses.txt" if seq.gt_poses is not None else ""))
 
 
+def _note_clipped_range(frames: str | None, n: int) -> None:
+    """A range beyond the sequence's end runs to the end (one start past it is an error): say so."""
+    rng = parse_frame_range(frames)
+    if rng is not None and rng[1] is not None and rng[1] - rng[0] > n:
+        typer.echo(f"note: --frames {frames}: the sequence has {rng[0] + n} frames; running {rng[0]}:{rng[0] + n}", err=True)
+
+
 def _print_notes(seq) -> None:
     """What a reader dropped or assumed (unpaired images, frames without ground truth)."""
     for note in getattr(seq, "notes", ()):
@@ -339,11 +409,25 @@ def _print_notes(seq) -> None:
 
 @app.command("eval")
 def eval_(
-    est: Path = typer.Argument(..., help="Estimated poses (KITTI format; .tum for TUM)."),
-    gt: Path = typer.Option(..., "--gt", help="Ground-truth poses (KITTI format; .tum for TUM)."),
+    est: Path = typer.Argument(..., help="Estimated poses (KITTI format; .tum for TUM); with two files: the reference."),
+    second: Optional[Path] = typer.Argument(
+        None, metavar="[EST]", help="evo's order, reference first: `snaps-graph eval GT EST` (instead of --gt)."
+    ),
+    gt: Optional[Path] = typer.Option(None, "--gt", help="Ground-truth poses (KITTI format; .tum for TUM)."),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object instead of a table."),
 ) -> None:
-    """Mean deviation, ATE RMSE (SE(3)-aligned), KITTI t_rel / r_rel of a trajectory."""
+    """Mean deviation, ATE RMSE (SE(3)-aligned), KITTI t_rel / r_rel of a trajectory.
+
+    `snaps-graph eval EST --gt GT`, or in evo's order `snaps-graph eval GT EST`."""
+    if second is not None:
+        if gt is not None:
+            raise_user("eval: give the ground truth once: `eval EST --gt GT` or, in evo's order, `eval GT EST`")
+        est, gt = second, est
+    if gt is None:
+        raise SnapsGraphError("eval: no ground truth: `eval EST --gt GT` or, in evo's order (reference first), `eval GT EST`")
+    for given in (est, gt):
+        if not given.exists():
+            raise_user(f"{given}: pose file not found")
     from .evaluation.metrics import evaluate
     from .trajectory_io import read_poses
 
@@ -368,6 +452,8 @@ def compare(
     ),
 ) -> None:
     """Heuristic (SNAPS) against optimised corrections: report.md, PNGs and metrics.json."""
+    if not run_dir.exists():  # a mistyped path: before the heavy imports
+        raise_user(f"{run_dir}: run folder not found")
     from .evaluation.report import compare_run
 
     measure = None
@@ -394,6 +480,8 @@ def loops(
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object instead of text."),
 ) -> None:
     """Loop-closure evaluation: precision-recall over the Q threshold, revisits found, false loops."""
+    if not run_dir.exists():  # a mistyped path: before the heavy imports
+        raise_user(f"{run_dir}: run folder not found")
     from .evaluation.loops import json_text, loops_run, summary_lines
 
     ev = loops_run(run_dir, gt, true_m=true_m, false_m=false_m, png=png)
@@ -408,7 +496,7 @@ def loops(
 
 @app.command()
 def demo(
-    out: Path = typer.Option(Path("results/demo"), "--out", help="Where the demo writes everything."),
+    out: Path = typer.Option(Path("results/demo"), "--out", "-o", help="Where the demo writes everything."),
     frames: int = typer.Option(300, "--frames", help="Length of the built-in loop, frames."),
     width: int = typer.Option(1241, "--width"),
     height: int = typer.Option(376, "--height"),
@@ -432,12 +520,6 @@ def config_cmd(
 
 def raise_user(msg: str) -> None:
     raise SnapsGraphError(msg)
-
-
-def _inside(path: Path, folder: Path) -> bool:
-    """``path`` is ``folder`` or lies under it (links resolved)."""
-    p, f = path.resolve(), folder.resolve()
-    return p == f or f in p.parents
 
 
 def _check_choice(option: str, value: str | None, literal) -> None:
@@ -480,7 +562,9 @@ def _print_summary(metrics: dict, out: Path) -> None:
     )
     if "trajectories" in metrics:
         typer.echo(_metrics_table(metrics["trajectories"]))
-    if "map" in metrics:
+    if "map" in metrics and "error" in metrics["map"]:
+        typer.echo(f"warning: no map (the map stage failed: {metrics['map']['error']}); the trajectories are written", err=True)
+    elif "map" in metrics:
         typer.echo(
             f"map: {metrics['map']['keyframes']} keyframes, {metrics['map']['bytes'] / 2**20:.0f} MiB of stored depth, fused under {metrics['map']['trajectory']}"
         )
@@ -497,19 +581,30 @@ class Interrupted(BaseException):
 
 
 def _on_sigint(signum, frame) -> None:
+    note_interrupt()
     raise Interrupted()
 
 
 def main() -> None:
     signal.signal(signal.SIGINT, _on_sigint)
+    set_malloc_thresholds()  # the process is ours: large frames stop costing page faults
     try:
         rc = app(standalone_mode=False)
-    except SnapsGraphError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        sys.exit(EXIT_USER_ERROR)
+        sys.stdout.flush()
+    except OSError as exc:
+        if exc.filename is not None or exc.errno not in _STDOUT_ERRNOS:
+            raise
+        _stdout_failed(exc)
     except (Interrupted, KeyboardInterrupt):
         _interrupted()
+    except SnapsGraphError as exc:
+        if interrupted():
+            _interrupted()
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(EXIT_USER_ERROR)
     except Exception as exc:
+        if interrupted():  # an import or a call cut by Ctrl-C reports its own error
+            _interrupted()
         # click's exceptions (typer >= 0.16 vendors its own click, so matched by their interface)
         if type(exc).__name__ == "Abort":
             _interrupted()
@@ -527,10 +622,38 @@ def main() -> None:
     sys.exit(rc if isinstance(rc, int) else 0)
 
 
+_STDOUT_ERRNOS = (errno.ENOSPC, errno.EPIPE, errno.EIO, errno.EDQUOT, errno.EFBIG)
+
+
+def _stdout_failed(exc: OSError) -> None:
+    """Standard output cannot be written (a full device, a closed pipe): say so on stderr; the
+    results folder, when it was completed, stands (exit 0)."""
+    with contextlib.suppress(OSError):  # no second failure at the interpreter's final flush
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    done = committed_folders()
+    if done:
+        print(
+            f"note: standard output not written ({exc.strerror}); the results are complete in {', '.join(map(str, done))}",
+            file=sys.stderr,
+        )
+        sys.exit(0)
+    print(f"error: cannot write to standard output ({exc.strerror or exc})", file=sys.stderr)
+    sys.exit(EXIT_USER_ERROR)
+
+
 def _interrupted() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not interrupt the exit
-    print("interrupted: no results written", file=sys.stderr)
-    sys.exit(EXIT_INTERRUPTED)
+    done = committed_folders()
+    if done:
+        print(f"interrupted after the results were written: {', '.join(map(str, done))} complete", file=sys.stderr)
+    else:
+        print("interrupted: no results written", file=sys.stderr)
+    with contextlib.suppress(Exception):
+        sys.stdout.flush()
+        sys.stderr.flush()
+    # Cleanup ran on the way here; exit now: the finalizers of a library whose import the
+    # Ctrl-C cut (open3d) would print pages and change the status.
+    os._exit(EXIT_INTERRUPTED)
 
 
 @app.command()
@@ -569,6 +692,8 @@ def drift(
     write_kitti_poses(out, drifted)
     typer.echo(f"wrote {out}: {len(drifted)} poses, end drift {end_drift_pct(drifted, poses):.3f} % of the distance")
 
+
+signal.signal(signal.SIGINT, _SIGINT_BEFORE)  # the module is imported: main() takes over
 
 if __name__ == "__main__":
     main()

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import difflib
 import math
 import sys
 from dataclasses import dataclass, field
@@ -480,7 +481,7 @@ class Config:
         cfg.source = source
         for key, value in data.items():
             if not hasattr(cfg, key):
-                raise SnapsGraphError(f"{source}: unknown key '{key}'")
+                raise SnapsGraphError(f"{source}: unknown key '{key}'{_did_you_mean(key, cfg)}")
             current = getattr(cfg, key)
             if dataclasses.is_dataclass(current):
                 if not isinstance(value, dict):
@@ -492,9 +493,15 @@ class Config:
                         )
                         continue
                     if not hasattr(current, sub):
-                        raise SnapsGraphError(f"{source}: unknown key '{key}.{sub}'")
+                        raise SnapsGraphError(f"{source}: unknown key '{key}.{sub}'{_did_you_mean(sub, current, key + '.')}")
                     setattr(current, sub, _coerce(getattr(current, sub), subval, f"{source}: {key}.{sub}"))
             else:
+                if isinstance(value, dict):  # a table where a value belongs: a misspelled section
+                    close = difflib.get_close_matches(
+                        key, [f.name for f in dataclasses.fields(cfg) if dataclasses.is_dataclass(getattr(cfg, f.name))], n=1
+                    )
+                    hint = f" (did you mean [{close[0]}]?)" if close else ""
+                    raise SnapsGraphError(f"{source}: [{key}] is not a section{hint}")
                 setattr(cfg, key, _coerce(current, value, f"{source}: {key}"))
         cfg.validate()
         return cfg
@@ -599,9 +606,31 @@ def _ge(lo: float) -> Range:
     return Range(lo=lo)
 
 
+def _in(lo: float, hi: float) -> Range:
+    return Range(lo, hi)
+
+
+def _pos(hi: float) -> Range:
+    return Range(0, hi, lo_open=True)
+
+
+def _nn(hi: float) -> Range:
+    return Range(0, hi)
+
+
 POSITIVE = _gt(0)
 NON_NEGATIVE = _ge(0)
 AT_LEAST_1 = _ge(1)
+# Upper bounds: far beyond any useful setting, and below what would exhaust memory, time or a
+# C int (an OpenCV or gtsam argument) and crash instead of an error line.
+MAX_POINTS = 100_000  # features, tracks, landmarks, inliers per frame
+MAX_FRAMES = 10_000_000  # frame counts and gaps (about two weeks at 10 Hz)
+MAX_ITERATIONS = 100_000  # solver iterations
+MAX_WINDOW_PX = 101  # matching windows (an image pyramid level is rarely smaller)
+MAX_LEVELS = 10  # pyramid levels
+MAX_SCALE = 1e6  # dimensionless sigma and covariance factors
+SIGMA_ROT = Range(0, math.pi, lo_open=True)  # a rotation sigma, rad
+SIGMA_TRANS = Range(0, 1e4, lo_open=True)  # a translation sigma, m
 FRACTION = Range(0, 1, lo_open=True)  # (0, 1]
 PROBABILITY = Range(0, 1, lo_open=True, hi_open=True)  # (0, 1)
 ANGLE = Range(0, 180, lo_open=True)  # (0, 180] degrees
@@ -666,148 +695,154 @@ RETIRED |= {
 RULES: dict[str, Range] = {
     "frontend.num_disparities": Range(16, 1024, multiple=16),
     "frontend.block_size": Range(5, 255, odd=True),
-    "frontend.wls_lambda": NON_NEGATIVE,
-    "frontend.wls_sigma": POSITIVE,
-    "frontend.min_depth_m": POSITIVE,
-    "frontend.max_depth_m": POSITIVE,
-    "frontend.sift_features": AT_LEAST_1,
-    "frontend.orb_features": AT_LEAST_1,
-    "frontend.klt_features": AT_LEAST_1,
-    "frontend.klt_min_tracks": NON_NEGATIVE,
+    "frontend.wls_lambda": _nn(1e6),
+    "frontend.wls_sigma": _pos(100),
+    "frontend.min_depth_m": _pos(1000),
+    "frontend.max_depth_m": _pos(1e4),
+    "frontend.sift_features": _in(1, MAX_POINTS),
+    "frontend.orb_features": _in(1, MAX_POINTS),
+    "frontend.klt_features": _in(1, MAX_POINTS),
+    "frontend.klt_min_tracks": _nn(MAX_POINTS),
     "frontend.ratio_test": FRACTION,
-    "frontend.pnp_reprojection_px": POSITIVE,
-    "frontend.pnp_iterations": AT_LEAST_1,
+    "frontend.pnp_reprojection_px": _pos(100),
+    "frontend.pnp_iterations": _in(1, 100_000),
     "frontend.pnp_confidence": PROBABILITY,
-    "frontend.min_inliers": _ge(6),  # PnP needs at least 6
-    "frontend.max_step_m": POSITIVE,
+    "frontend.min_inliers": _in(6, MAX_POINTS),  # PnP needs at least 6
+    "frontend.max_step_m": _pos(1000),
     "frontend.max_step_deg": ANGLE,
-    "frontend.min_frame_std": NON_NEGATIVE,
+    "frontend.min_frame_std": _nn(255),
     "frontend.threads": Range(1, 256),
     "frontend.sgbm_block_size": Range(1, 255, odd=True),
-    "frontend.stereo_window_px": _ge(3),
-    "frontend.stereo_levels": NON_NEGATIVE,
-    "frontend.stereo_guess_levels": NON_NEGATIVE,
-    "frontend.stereo_max_dy_px": NON_NEGATIVE,
-    "frontend.stereo_lr_check_px": NON_NEGATIVE,
-    "frontend.klt_window_px": _ge(3),
-    "frontend.klt_levels": NON_NEGATIVE,
+    "frontend.stereo_window_px": _in(3, MAX_WINDOW_PX),
+    "frontend.stereo_levels": _nn(MAX_LEVELS),
+    "frontend.stereo_guess_levels": _nn(MAX_LEVELS),
+    "frontend.stereo_max_dy_px": _nn(100),
+    "frontend.stereo_lr_check_px": _nn(100),
+    "frontend.klt_window_px": _in(3, MAX_WINDOW_PX),
+    "frontend.klt_levels": _nn(MAX_LEVELS),
     "frontend.klt_quality": FRACTION,
-    "frontend.klt_min_distance_px": AT_LEAST_1,
-    "frontend.klt_border_px": NON_NEGATIVE,
-    "frontend.loop_features": AT_LEAST_1,
-    "frontend.min_stereo_points": _ge(6),
-    "frontend.min_sharpness_ratio": NON_NEGATIVE,
-    "frontend.ransac_seed": NON_NEGATIVE,
-    "frontend.verify_max_translation_m": POSITIVE,
+    "frontend.klt_min_distance_px": _in(1, 1000),
+    "frontend.klt_border_px": _nn(1000),
+    "frontend.loop_features": _in(1, MAX_POINTS),
+    "frontend.min_stereo_points": _in(6, MAX_POINTS),
+    "frontend.min_sharpness_ratio": _nn(100),
+    "frontend.ransac_seed": _nn(2**31 - 1),
+    "frontend.verify_max_translation_m": _pos(1e4),
     "frontend.verify_max_rotation_deg": ANGLE,
-    "frontend.sba_huber_px": POSITIVE,
-    "frontend.sba_outlier_px": POSITIVE,
-    "frontend.sba_keep_px": POSITIVE,
-    "frontend.sba_keep_below": NON_NEGATIVE,
-    "frontend.sba_iterations": AT_LEAST_1,
-    "frontend.lba_window": _ge(2),
-    "frontend.lba_iterations": AT_LEAST_1,
-    "frontend.lba_max_landmarks": _ge(10),
-    "frontend.lba_every": AT_LEAST_1,
-    "frontend.lba_keyframe_m": NON_NEGATIVE,
-    "frontend.klt_retry_features": AT_LEAST_1,
+    "frontend.sba_huber_px": _pos(100),
+    "frontend.sba_outlier_px": _pos(100),
+    "frontend.sba_keep_px": _pos(100),
+    "frontend.sba_keep_below": _nn(MAX_POINTS),
+    "frontend.sba_iterations": _in(1, MAX_ITERATIONS),
+    "frontend.lba_window": _in(2, 100),
+    "frontend.lba_iterations": _in(1, MAX_ITERATIONS),
+    "frontend.lba_max_landmarks": _in(10, MAX_POINTS),
+    "frontend.lba_every": _in(1, MAX_FRAMES),
+    "frontend.lba_keyframe_m": _nn(1000),
+    "frontend.klt_retry_features": _in(1, MAX_POINTS),
     "frontend.disparity_offset_px": Range(-10, 10),
-    "frontend.disparity_offset_prior_px": POSITIVE,
+    "frontend.disparity_offset_prior_px": _pos(10),
     "frontend.disparity_offset_max_px": Range(0, 10),
-    "frontend.disparity_offset_min_solves": AT_LEAST_1,
-    "frontend.disparity_offset_min_px": NON_NEGATIVE,
-    "frontend.disparity_offset_max_sd_px": POSITIVE,
-    "frontend.disparity_offset_min_z": NON_NEGATIVE,
-    "frontend.disparity_offset_memory_solves": NON_NEGATIVE,
-    "frontend.klt_bias_window_px": NON_NEGATIVE,
-    "frontend.klt_bias_max_px": POSITIVE,
-    "frontend.lba_chain_scale": POSITIVE,
-    "frontend.klt_weak_points": NON_NEGATIVE,
+    "frontend.disparity_offset_min_solves": _in(1, MAX_FRAMES),
+    "frontend.disparity_offset_min_px": _nn(10),
+    "frontend.disparity_offset_max_sd_px": _pos(10),
+    "frontend.disparity_offset_min_z": _nn(1e4),
+    "frontend.disparity_offset_memory_solves": _nn(MAX_FRAMES),
+    "frontend.klt_bias_window_px": _nn(MAX_WINDOW_PX),
+    "frontend.klt_bias_max_px": _pos(100),
+    "frontend.lba_chain_scale": _pos(1000),
+    "frontend.klt_weak_points": _nn(MAX_POINTS),
     "frontend.klt_weak_quality": FRACTION,
-    "frontend.lk_split_min": NON_NEGATIVE,
-    "frontend.loop_orb_features": AT_LEAST_1,
-    "frontend.loop_query_features": AT_LEAST_1,
+    "frontend.lk_split_min": _nn(MAX_POINTS),
+    "frontend.loop_orb_features": _in(1, MAX_POINTS),
+    "frontend.loop_query_features": _in(1, MAX_POINTS),
     "frontend.loop_orb_levels": Range(1, 16),
     "frontend.loop_orb_scale": Range(1, 2, lo_open=True),
     "frontend.loop_orb_fast_threshold": Range(1, 255),
-    "frontend.loop_reference_every": AT_LEAST_1,
+    "frontend.loop_reference_every": _in(1, MAX_FRAMES),
     "frontend.loop_ratio_test": FRACTION,
-    "frontend.loop_depth_check_px": NON_NEGATIVE,
+    "frontend.loop_depth_check_px": _nn(100),
     "frontend.loop_depth_min_ratio": Range(0, 1),
-    "frontend.loop_min_sigma_px": POSITIVE,
-    "frontend.loop_max_distance_m": POSITIVE,
-    "frontend.loop_subpixel_px": NON_NEGATIVE,
-    "loop.radius_m": POSITIVE,
-    "loop.search_sigmas": POSITIVE,
-    "loop.search_max_radius_m": POSITIVE,
+    "frontend.loop_min_sigma_px": _pos(100),
+    "frontend.loop_max_distance_m": _pos(1e4),
+    "frontend.loop_subpixel_px": _nn(100),
+    "loop.radius_m": _pos(1e4),
+    "loop.search_sigmas": _pos(100),
+    "loop.search_max_radius_m": _pos(1e4),
     "odometry.trans_drift_pct": Range(0, 50, lo_open=True),
     "odometry.rot_drift_deg_per_100m": Range(0, 90, lo_open=True),
-    "loop.frame_distance": AT_LEAST_1,
-    "loop.discount_length": NON_NEGATIVE,
+    "loop.frame_distance": _in(1, MAX_FRAMES),
+    "loop.discount_length": _nn(MAX_FRAMES),
     "loop.min_similarity": FRACTION,
-    "loop.inter_frame_pause": NON_NEGATIVE,
-    "loop.attempts": NON_NEGATIVE,
+    "loop.inter_frame_pause": _nn(MAX_FRAMES),
+    "loop.attempts": _nn(1000),
     "loop.max_yaw_deg": Range(0, 180),
     "loop.thumbnail_scale": FRACTION,
-    "loop.window": _ge(2),  # eq. 5 divides by N - 1
-    "loop.shift_px": NON_NEGATIVE,
-    "loop.shift_step_px": AT_LEAST_1,
-    "loop.discount_offset": POSITIVE,
-    "loop.discount_rate": NON_NEGATIVE,
-    "loop.verify_attempts": AT_LEAST_1,
-    "loop.stats_cache_frames": NON_NEGATIVE,
-    "loop.heading_drift_deg": NON_NEGATIVE,
-    "loop.verified_heading_sigma_deg": NON_NEGATIVE,
-    "loop.discount_span_factor": POSITIVE,
-    "loop.discount_length_max": NON_NEGATIVE,
+    "loop.window": _in(2, 256),  # eq. 5 divides by N - 1
+    "loop.shift_px": _nn(256),
+    "loop.shift_step_px": _in(1, 256),
+    "loop.discount_offset": _pos(1e6),
+    "loop.discount_rate": _nn(1000),
+    "loop.verify_attempts": _in(1, 1000),
+    "loop.stats_cache_frames": _nn(MAX_FRAMES),
+    "loop.heading_drift_deg": _nn(180),
+    "loop.verified_heading_sigma_deg": _nn(180),
+    "loop.discount_span_factor": _pos(1000),
+    "loop.discount_length_max": _nn(MAX_FRAMES),
     "loop.pause_closer_ratio": Range(0, 1, hi_open=True),
-    "graph.prior_sigma_rot_rad": POSITIVE,
-    "graph.prior_sigma_trans_m": POSITIVE,
-    "graph.odom_sigma_rot_rad": POSITIVE,
-    "graph.odom_sigma_trans_m": POSITIVE,
-    "graph.odom_ref_inliers": AT_LEAST_1,
-    "graph.odom_min_inliers": AT_LEAST_1,
-    "graph.odom_sigma_scale_min": POSITIVE,
-    "graph.odom_sigma_scale_max": POSITIVE,
-    "graph.flagged_sigma_scale": AT_LEAST_1,
-    "graph.loop_sigma_rot_rad": POSITIVE,
-    "graph.loop_sigma_trans_m": POSITIVE,
-    "graph.unverified_sigma_rot_rad": POSITIVE,
-    "graph.unverified_sigma_trans_m": POSITIVE,
+    "graph.prior_sigma_rot_rad": SIGMA_ROT,
+    "graph.prior_sigma_trans_m": SIGMA_TRANS,
+    "graph.odom_sigma_rot_rad": SIGMA_ROT,
+    "graph.odom_sigma_trans_m": SIGMA_TRANS,
+    "graph.odom_ref_inliers": _in(1, MAX_POINTS),
+    "graph.odom_min_inliers": _in(1, MAX_POINTS),
+    "graph.odom_sigma_scale_min": _pos(MAX_SCALE),
+    "graph.odom_sigma_scale_max": _pos(MAX_SCALE),
+    "graph.flagged_sigma_scale": _in(1, MAX_SCALE),
+    "graph.loop_sigma_rot_rad": SIGMA_ROT,
+    "graph.loop_sigma_trans_m": SIGMA_TRANS,
+    "graph.unverified_sigma_rot_rad": SIGMA_ROT,
+    "graph.unverified_sigma_trans_m": SIGMA_TRANS,
     "graph.loop_q_floor": Range(0, 1, hi_open=True),
-    "graph.loop_sigma_scale_max": AT_LEAST_1,
-    "graph.robust_param": POSITIVE,
-    "graph.isam2_relinearize_threshold": NON_NEGATIVE,
-    "graph.isam2_relinearize_skip": AT_LEAST_1,
-    "graph.isam2_loop_iterations": NON_NEGATIVE,
-    "graph.isam2_final_iterations": NON_NEGATIVE,
-    "graph.batch_max_iterations": AT_LEAST_1,
-    "graph.odom_cov_scale": POSITIVE,
-    "graph.odom_cov_floor_rot_rad": POSITIVE,
-    "graph.odom_cov_floor_trans_m": POSITIVE,
-    "graph.loop_cov_scale": POSITIVE,
-    "graph.loop_sigma_floor_rot_rad": NON_NEGATIVE,
-    "graph.loop_sigma_floor_trans_m": NON_NEGATIVE,
-    "map.keyframe_every": AT_LEAST_1,
-    "map.max_range_m": POSITIVE,
+    "graph.loop_sigma_scale_max": _in(1, MAX_SCALE),
+    "graph.robust_param": _pos(1000),
+    "graph.isam2_relinearize_threshold": _nn(10),
+    "graph.isam2_relinearize_skip": _in(1, 1000),
+    "graph.isam2_loop_iterations": _nn(MAX_ITERATIONS),
+    "graph.isam2_final_iterations": _nn(MAX_ITERATIONS),
+    "graph.batch_max_iterations": _in(1, MAX_ITERATIONS),
+    "graph.odom_cov_scale": _pos(MAX_SCALE),
+    "graph.odom_cov_floor_rot_rad": SIGMA_ROT,
+    "graph.odom_cov_floor_trans_m": SIGMA_TRANS,
+    "graph.loop_cov_scale": _pos(MAX_SCALE),
+    "graph.loop_sigma_floor_rot_rad": _nn(math.pi),
+    "graph.loop_sigma_floor_trans_m": _nn(1e4),
+    "map.keyframe_every": _in(1, MAX_FRAMES),
+    "map.max_range_m": _pos(1000),
     "map.depth_scale": Range(0.1, 1),
     "map.depth_block_size": Range(1, 255, odd=True),
-    "map.depth_texture_threshold": NON_NEGATIVE,
+    "map.depth_texture_threshold": _nn(100_000),
     "map.depth_uniqueness": Range(0, 100),
-    "map.depth_lr_check_px": NON_NEGATIVE,
+    "map.depth_lr_check_px": _nn(100),
     "map.depth_min_confidence": Range(0, 255),
-    "map.depth_edge_ratio": NON_NEGATIVE,
-    "map.depth_speckle_px": NON_NEGATIVE,
-    "map.depth_speckle_range_px": POSITIVE,
-    "map.tsdf_voxel_m": POSITIVE,
-    "map.tsdf_trunc_voxels": AT_LEAST_1,
-    "map.tsdf_max_blocks": _ge(1000),
-    "map.tsdf_min_weight": NON_NEGATIVE,
-    "map.tsdf_min_component": NON_NEGATIVE,
-    "map.accuracy_range_m": POSITIVE,
-    "map.accuracy_tolerance_m": POSITIVE,
-    "map.accuracy_samples": _ge(1000),
+    "map.depth_edge_ratio": _nn(100),
+    "map.depth_speckle_px": _nn(10**6),
+    "map.depth_speckle_range_px": _pos(1000),
+    "map.tsdf_voxel_m": _pos(10),
+    "map.tsdf_trunc_voxels": _in(1, 100),
+    "map.tsdf_max_blocks": _in(1000, 10**7),
+    "map.tsdf_min_weight": _nn(10**6),
+    "map.tsdf_min_component": _nn(10**8),
+    "map.accuracy_range_m": _pos(1e4),
+    "map.accuracy_tolerance_m": _pos(100),
+    "map.accuracy_samples": _in(1000, 10**8),
 }
+
+
+def _did_you_mean(name: str, obj: Any, prefix: str = "") -> str:
+    """ " (did you mean 'loop.min_similarity'?)" for a misspelled key, else ""."""
+    close = difflib.get_close_matches(name, [f.name for f in dataclasses.fields(obj)], n=1, cutoff=0.7)
+    return f" (did you mean '{prefix}{close[0]}'?)" if close else ""
 
 
 _HINTS: dict[type, dict[str, Any]] = {}

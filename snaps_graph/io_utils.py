@@ -4,9 +4,15 @@ background thread (``prefetch``)."""
 
 from __future__ import annotations
 
+import contextlib
+import fnmatch
+import glob
+import json
 import os
 import queue
 import shutil
+import signal
+import sys
 import tempfile
 import threading
 import tomllib
@@ -41,6 +47,7 @@ def atomic_output(path: str | Path, suffix: str = ".tmp") -> Iterator[Path]:
     try:
         yield tmp
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; results are ordinary files
+        fault_step()
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
@@ -62,24 +69,89 @@ def _umask() -> int:
     return _UMASK
 
 
-def read_text(path: str | Path, what: str) -> str:
-    """A text file's content; a one-line SnapsGraphError naming it when it is missing, a folder,
-    unreadable or not text (NUL bytes, not UTF-8)."""
+TOML_MAX_BYTES = 16 * 2**20  # a config or a plan is a few kB
+TEXT_MAX_BYTES = 512 * 2**20  # the largest text input read (a long ground-truth csv is ~100 MB)
+
+
+def read_text(path: str | Path, what: str, max_bytes: int = TEXT_MAX_BYTES) -> str:
+    """A text file's content (a UTF-8 byte-order mark dropped); a one-line SnapsGraphError naming
+    it when it is missing, a folder, larger than ``max_bytes``, unreadable or not text (NUL
+    bytes, not UTF-8)."""
     path = Path(path)
     if path.is_dir():
         raise SnapsGraphError(f"{path}: is a folder, expected a {what} file")
     if not path.is_file():
         raise SnapsGraphError(f"{path}: {what} file not found")
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise SnapsGraphError(f"{path}: cannot read the {what} file ({exc.strerror or exc})") from None
+    data = _read_capped(path, what, max_bytes)
     if b"\0" in data:
         raise SnapsGraphError(f"{path}: binary data, expected a text {what} file")
     try:
-        return data.decode("utf-8")
+        return data.decode("utf-8-sig")
     except UnicodeDecodeError:
         raise SnapsGraphError(f"{path}: not a text (UTF-8) file, expected a {what} file") from None
+
+
+MAX_IMAGE_PIXELS = 64 * 2**20  # 64 Mpixel: far above any stereo camera, far below a decoding bomb
+# OpenCV's own limit for the formats whose header is not read here (read when cv2 first decodes).
+os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", str(MAX_IMAGE_PIXELS))
+
+
+def check_image_file(path: str | Path) -> None:
+    """Before decoding: a PNG's or JPEG's size from its header (a small file can decode to
+    gigabytes), and a JPEG's end marker (libjpeg fills a truncated file with grey and goes
+    on). A one-line SnapsGraphError naming the file; other formats are left to the decoder."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(256 * 1024)
+            fh.seek(0, os.SEEK_END)
+            size = fh.tell()
+            fh.seek(max(0, size - 64))
+            tail = fh.read()
+    except OSError as exc:
+        raise SnapsGraphError(f"{path}: cannot read the image ({exc.strerror or exc})") from None
+    wh = None
+    if head.startswith(b"\x89PNG\r\n\x1a\n") and len(head) >= 24:
+        wh = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    elif head.startswith(b"\xff\xd8"):
+        if b"\xff\xd9" not in tail:
+            raise SnapsGraphError(f"{path}: truncated JPEG (no end marker)")
+        wh = _jpeg_size(head)
+    if wh is not None and wh[0] * wh[1] > MAX_IMAGE_PIXELS:
+        raise SnapsGraphError(f"{path}: image {wh[0]}x{wh[1]} is larger than {MAX_IMAGE_PIXELS / 2**20:g} Mpixel")
+
+
+def _jpeg_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from a JPEG's first start-of-frame segment, None when not in ``data``."""
+    i = 2
+    while i + 9 < len(data):
+        if data[i] != 0xFF:
+            return None
+        marker = data[i + 1]
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+            i += 2
+            continue
+        length = int.from_bytes(data[i + 2 : i + 4], "big")
+        if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+            return int.from_bytes(data[i + 7 : i + 9], "big"), int.from_bytes(data[i + 5 : i + 7], "big")
+        i += 2 + length
+    return None
+
+
+def _read_capped(path: Path, what: str, max_bytes: int) -> bytes:
+    """At most ``max_bytes`` of a file (a larger one is refused before it is read)."""
+    try:
+        with open(path, "rb") as fh:
+            if os.fstat(fh.fileno()).st_size > max_bytes:
+                raise SnapsGraphError(f"{path}: larger than {max_bytes / 2**20:g} MiB, too large for a {what} file")
+            data = fh.read(max_bytes + 1)  # never more, whatever the file (or a device) holds
+    except OSError as exc:
+        if isinstance(exc, (FileNotFoundError, IsADirectoryError)):
+            raise
+        raise SnapsGraphError(f"{path}: cannot read the {what} file ({exc.strerror or exc})") from None
+    if len(data) > max_bytes:
+        raise SnapsGraphError(f"{path}: larger than {max_bytes / 2**20:g} MiB, too large for a {what} file")
+    return data
 
 
 def read_toml(path: str | Path, what: str) -> dict:
@@ -87,7 +159,7 @@ def read_toml(path: str | Path, what: str) -> dict:
     unreadable, not UTF-8 text or malformed TOML. ``what`` names the file's role ("config")."""
     path = Path(path)
     try:
-        return tomllib.loads(path.read_bytes().decode("utf-8"))
+        return tomllib.loads(_read_capped(path, what, TOML_MAX_BYTES).decode("utf-8-sig"))
     except FileNotFoundError:
         raise SnapsGraphError(f"{path}: {what} file not found") from None
     except IsADirectoryError:
@@ -100,59 +172,295 @@ def read_toml(path: str | Path, what: str) -> dict:
         raise SnapsGraphError(f"{path}: malformed TOML ({exc})") from None
 
 
+# Written first into every folder ``output_folder`` makes: ``--overwrite`` replaces only a folder
+# that holds it (or an empty one), so it can never delete a folder the tool did not write.
+MARKER = ".snaps_graph_results"
+# Test-only: kill the process (``os._exit``, as kill -9 would) at the Nth filesystem step of a
+# results folder (``fault_step``); the fault-injection test checks the folder after each.
+FAULT_ENV = "SNAPS_GRAPH_FAULT_AT"
+_FAULT_COUNT = [0]
+_COMMITTED: list[Path] = []  # results folders this process completed (a Ctrl-C after them says so)
+
+
+def fault_step() -> None:
+    """One write or rename of a results folder; exits at the step FAULT_ENV names (tests only)."""
+    at = os.environ.get(FAULT_ENV)
+    if not at:
+        return
+    _FAULT_COUNT[0] += 1
+    if _FAULT_COUNT[0] == int(at):
+        os._exit(137)
+
+
+def committed_folders() -> list[Path]:
+    """Results folders this process has completed (renamed into place) so far."""
+    return list(_COMMITTED)
+
+
+def is_results_folder(folder: str | Path) -> bool:
+    """``folder`` is one this tool wrote (it holds MARKER) or is empty: ``--overwrite`` may replace it."""
+    folder = Path(folder)
+    try:
+        return (folder / MARKER).is_file() or not any(folder.iterdir())
+    except OSError:
+        return False
+
+
+# Files the tool's later commands add to a results folder (compare, loops, batch): its own too.
+ADDED_LATER = ("report.md", "*.png", "batch.json")
+
+
+def foreign_entries(folder: str | Path) -> list[str]:
+    """What in a results folder this tool did not write: entries neither listed in its MARKER
+    (the run's files) nor added by a later command (ADDED_LATER). ``--overwrite`` keeps them."""
+    folder = Path(folder)
+    try:
+        listed = json.loads((folder / MARKER).read_text()).get("files") or []
+    except (OSError, ValueError, AttributeError):
+        listed = []
+    own = {MARKER, *listed}
+    return sorted(
+        p.name for p in folder.iterdir() if p.name not in own and not any(fnmatch.fnmatch(p.name, pat) for pat in ADDED_LATER)
+    )
+
+
+def _write_marker(folder: Path, files: list[str] | None) -> None:
+    (folder / MARKER).write_text(json.dumps({"snaps_graph": _version(), "files": files}) + "\n")
+
+
+def _abs(path: str | Path) -> Path:
+    return Path(os.path.abspath(path))
+
+
 def check_output_folder(path: str | Path, overwrite: bool = False, reuse: bool = False) -> Path:
     """Refuse, with a one-line SnapsGraphError, an output folder a run could not replace whole:
-    a path that is a file or lies under a file, a folder whose parent cannot be written, or a
-    non-empty folder without ``overwrite`` (``reuse``: a non-empty folder is fine, as a resumed
-    batch wants). Call it before any work; returns the path."""
+    a path that is a file or lies under a file, a symbolic link, the current folder (or one
+    holding it), a folder whose parent cannot be written, a non-empty folder without
+    ``overwrite``, and with ``overwrite`` a non-empty folder this tool did not write (no MARKER)
+    (``reuse``: any folder is fine, as a resumed batch wants). Leftovers of a killed earlier
+    run are recovered first (``recover_leftovers``). Call it before any work; returns the path."""
     out = Path(path)
+    full = _abs(out)
+    if out.is_symlink():
+        raise SnapsGraphError(f"{out}: is a symbolic link (to {os.readlink(out)}); pass the folder itself")
     if out.exists() and not out.is_dir():
         raise SnapsGraphError(f"{out}: exists and is not a folder")
-    for parent in out.absolute().parents:
+    cwd = _abs(os.getcwd())
+    if not reuse and (full == cwd or full in cwd.parents):
+        raise SnapsGraphError(f"{out}: is the current folder (or holds it), which a run would replace whole; name a new folder")
+    for parent in full.parents:
         if parent.exists():
             if not parent.is_dir():
                 raise SnapsGraphError(f"{parent}: is a file, cannot create the folder {out} under it")
             if not os.access(parent, os.W_OK | os.X_OK):
                 raise SnapsGraphError(f"{parent}: not writable, cannot create {out}")
             break
-    if out.is_dir() and not (overwrite or reuse) and any(out.iterdir()):
-        raise SnapsGraphError(f"{out}: folder exists and is not empty (use --overwrite to replace it)")
+    for note in recover_leftovers(full):
+        print(f"note: {note}", file=sys.stderr)
+    if out.is_dir() and not reuse and any(out.iterdir()):
+        if not overwrite:
+            raise SnapsGraphError(f"{out}: folder exists and is not empty (use --overwrite to replace it)")
+        if not is_results_folder(out):
+            raise SnapsGraphError(
+                f"{out}: not a folder this tool wrote (no {MARKER} file), so --overwrite will not delete it; "
+                "choose another folder or empty it yourself"
+            )
+        foreign = foreign_entries(out)
+        if foreign:
+            shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
+            raise SnapsGraphError(
+                f"{out}: holds {shown}, which this tool did not write; move it out first (--overwrite replaces the folder whole)"
+            )
     return out
+
+
+def inside(path: str | Path, folder: str | Path) -> bool:
+    """``path`` is ``folder`` or lies under it (links resolved)."""
+    p, f = Path(path).resolve(), Path(folder).resolve()
+    return p == f or f in p.parents
+
+
+def check_inputs_outside(out: str | Path, inputs: Iterable[tuple[str, str | Path | None]]) -> None:
+    """No input (``(role, path)`` pairs; None skipped) is or lies inside the results folder
+    ``out``, which a run replaces whole: one line naming both, before the first frame."""
+    for role, given in inputs:
+        if given is None or str(given).startswith("live:"):
+            continue
+        if inside(given, out):
+            raise SnapsGraphError(f"{out}: --out would replace the input {role} {given}; choose another folder")
+
+
+RRD_MAGIC = b"RRF2"  # the first bytes of a rerun recording
+
+
+def check_recording_path(rrd: str | Path, out: str | Path) -> Path | None:
+    """Check ``--rrd`` before the first frame: a ``.rrd`` name, not a folder, an existing file
+    only when it is a rerun recording, not inside another results folder, a writable folder.
+    Returns its path relative to ``out`` when it lies inside the results folder (it is then
+    written with the results), else None."""
+    rrd = Path(rrd)
+    if rrd.is_dir():
+        raise SnapsGraphError(f"{rrd}: --rrd names a folder; give a file name ending in .rrd")
+    if rrd.suffix != ".rrd":
+        raise SnapsGraphError(f"{rrd}: --rrd must name a .rrd file")
+    if inside(rrd, out):
+        return rrd.resolve().relative_to(Path(out).resolve())
+    if rrd.exists():
+        try:
+            with open(rrd, "rb") as fh:
+                head = fh.read(len(RRD_MAGIC))
+        except OSError as exc:
+            raise SnapsGraphError(f"{rrd}: cannot read ({exc.strerror or exc})") from None
+        if head != RRD_MAGIC:
+            raise SnapsGraphError(f"{rrd}: exists and is not a rerun recording; --rrd replaces only a recording")
+    for parent in _abs(rrd).parents:
+        if (parent / MARKER).is_file():
+            raise SnapsGraphError(f"{rrd}: lies inside the results folder {parent} of another run")
+    for parent in _abs(rrd).parents:
+        if parent.exists():
+            if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+                raise SnapsGraphError(f"{parent}: not a writable folder, cannot write the recording {rrd}")
+            break
+    return None
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # another user's process: alive
+        return True
+    return True
+
+
+def recover_leftovers(out: str | Path, any_pid: bool = False) -> list[str]:
+    """Undo what a killed run left beside ``out``: its temporary ``.NAME.tmp-PID`` (unfinished,
+    deleted) and old ``.NAME.old-PID`` folders (moved back onto ``out`` when a replacement was
+    cut between its two renames, else deleted). Only folders of processes no longer running
+    (``any_pid``: of any other process, for a caller holding a lock) that this tool wrote
+    (MARKER or empty) are touched; returns one note per action."""
+    out = _abs(out)
+    parent = out.parent
+    if not parent.is_dir() or not out.name:
+        return []
+    found: dict[str, list[Path]] = {"old": [], "tmp": []}
+    for kind in found:
+        for p in parent.glob(f".{glob.escape(out.name)}.{kind}-*"):
+            pid = p.name.rsplit("-", 1)[1]
+            if not pid.isdigit() or not p.is_dir() or p.is_symlink() or not is_results_folder(p):
+                continue
+            if int(pid) == os.getpid() or (not any_pid and _alive(int(pid))):
+                continue
+            found[kind].append(p)
+    notes = []
+    olds = sorted(found["old"], key=lambda p: p.stat().st_mtime, reverse=True)
+    if olds and not out.exists():
+        os.replace(olds[0], out)
+        notes.append(f"{out}: restored the previous results from {olds[0].name} (a run was killed while replacing them)")
+        olds = olds[1:]
+    for p in olds:
+        remove_results_folder(p)
+        notes.append(f"{out}: removed {p.name}, old results a killed run had already replaced")
+    for p in found["tmp"]:
+        remove_results_folder(p)
+        notes.append(f"{out}: removed {p.name}, the unfinished results of a killed run")
+    return notes
+
+
+def remove_results_folder(folder: Path) -> None:
+    """Delete a folder this tool wrote, its MARKER last (a deletion cut short is still ours)."""
+    for child in folder.iterdir():
+        if child.name == MARKER:
+            continue
+        if child.is_dir() and not child.is_symlink():
+            shutil.rmtree(child)
+        else:
+            child.unlink()
+    (folder / MARKER).unlink(missing_ok=True)
+    folder.rmdir()
+
+
+@contextmanager
+def _no_sigint() -> Iterator[None]:
+    """Ctrl-C held back while the results folder is swapped in, then delivered to the handler
+    that was in place (a signal mask would not do: another thread may take the signal)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    pending: list[int] = []
+    old = signal.signal(signal.SIGINT, lambda signum, frame: pending.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+        if pending and callable(old):
+            old(signal.SIGINT, None)  # the CLI's raises, a batch driver's sets its flag
+        elif pending and old == signal.SIG_DFL:
+            raise KeyboardInterrupt
 
 
 @contextmanager
 def output_folder(path: str | Path, overwrite: bool = False) -> Iterator[Path]:
-    """A temporary sibling folder ``.NAME.tmp-PID`` to fill; on success it is renamed onto
-    ``path`` (an old folder, with ``overwrite``, is moved aside first and then deleted), on any
-    error or Ctrl-C it is deleted. So ``path`` is either the whole new result or untouched."""
+    """A temporary sibling folder ``.NAME.tmp-PID`` (MARKER written first) to fill; on success
+    it is renamed onto ``path`` (an old folder, with ``overwrite``, is moved aside to
+    ``.NAME.old-PID`` first and then deleted), on any error or Ctrl-C it is deleted. So ``path``
+    is either the whole new result or untouched; a kill -9 in between leaves the sibling
+    folders, which the next start recovers (``recover_leftovers``)."""
     out = check_output_folder(path, overwrite)
-    tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
+    full = _abs(out)
+    tmp = full.parent / f".{full.name}.tmp-{os.getpid()}"
     try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        shutil.rmtree(tmp, ignore_errors=True)
+        full.parent.mkdir(parents=True, exist_ok=True)
+        if tmp.is_dir() and is_results_folder(tmp):
+            remove_results_folder(tmp)
         tmp.mkdir()
+        fault_step()
+        _write_marker(tmp, None)  # in place: even a cut-short marker marks it
     except OSError as exc:
         raise SnapsGraphError(f"{exc.filename or tmp}: cannot create the results folder ({exc.strerror or exc})") from None
     old: Path | None = None
+    done = False
     try:
         yield tmp
         check_output_folder(out, overwrite)  # nothing appeared there meanwhile
-        if out.is_dir() and any(out.iterdir()):
-            old = out.parent / f".{out.name}.old-{os.getpid()}"
-            os.replace(out, old)
-        elif out.is_dir():
-            out.rmdir()
-        os.replace(tmp, out)
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+        fault_step()
+        _write_marker(tmp, sorted(p.name for p in tmp.iterdir() if p.name != MARKER))  # what --overwrite may replace
+        with _no_sigint():
+            if full.is_dir() and any(full.iterdir()):
+                old = full.parent / f".{full.name}.old-{os.getpid()}"
+                fault_step()
+                os.replace(full, old)
+            elif full.is_dir():
+                full.rmdir()
+            fault_step()
+            os.replace(tmp, full)
+            done = True
+            _COMMITTED.append(full)
+            if old is not None:
+                fault_step()
+                with contextlib.suppress(OSError):
+                    remove_results_folder(old)
+                fault_step()
     except BaseException as exc:
-        shutil.rmtree(tmp, ignore_errors=True)
-        if old is not None and not out.exists():  # the swap failed half-way: put the old one back
-            os.replace(old, out)
+        if not done:
+            if tmp.is_dir():
+                with contextlib.suppress(OSError):
+                    remove_results_folder(tmp)
+            if old is not None and not full.exists():  # the swap failed half-way: put the old one back
+                os.replace(old, full)
         if isinstance(exc, OSError):  # disk full, permissions: the user's to fix, not a crash
             where = exc.filename or out
             raise SnapsGraphError(f"{where}: cannot write the results ({exc.strerror or exc}); {out} left as it was") from None
         raise
+
+
+def _version() -> str:
+    from . import __version__
+
+    return __version__
 
 
 def parse_frame_range(text: str | None, n_total: int | None = None) -> tuple[int, int | None] | None:

@@ -143,6 +143,8 @@ class SlamPipeline:
     # ---- streaming ----
     def check_frame(self, frame: StereoFrame) -> None:
         """SnapsGraphError if ``frame`` cannot be processed next; changes nothing."""
+        if not isinstance(frame, StereoFrame):
+            raise SnapsGraphError(f"process() takes a StereoFrame, not {type(frame).__name__}")
         index = frame.index
         if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or index < 0:
             raise SnapsGraphError(f"frame {index!r}: the frame number must be a non-negative integer")
@@ -154,6 +156,8 @@ class SlamPipeline:
             raise SnapsGraphError(f"frame {index}: timestamp {frame.timestamp!r} is not a number") from None
         if not math.isfinite(t):
             raise SnapsGraphError(f"frame {index}: timestamp {t} is not finite")
+        if self._timestamps and t <= self._timestamps[-1]:  # as times.txt: time must increase
+            raise SnapsGraphError(f"frame {index}: timestamp {t} does not increase (previous {self._timestamps[-1]})")
         mono = is_monocular(frame)
         try:
             check_stereo_pair(frame.left, frame.left if mono else frame.right)

@@ -34,12 +34,12 @@ from pathlib import Path
 import numpy as np
 
 from .config import Config
-from .errors import SnapsGraphError
+from .errors import SnapsGraphError, interrupted
 from .evaluation.loops import write_candidates_csv
 from .evaluation.metrics import evaluate
 from .evaluation.report import latency_summary as _latency_summary
 from .evaluation.report import write_metrics_json
-from .io_utils import PREFETCH_FRAMES, atomic_write_text, check_output_folder, output_folder, prefetch
+from .io_utils import PREFETCH_FRAMES, atomic_write_text, output_folder, prefetch
 from .mapping.outputs import write_map_outputs
 from .pipeline import FrameOutput, RunResult, SlamPipeline, pose_file_frontend
 from .trajectory_io import read_pose_file, write_kitti_poses, write_tum_poses
@@ -62,39 +62,47 @@ def run_sequence(
     on_frame: Callable[[FrameOutput], None] | None = None,
     observer=None,
     prefetch_frames: int = PREFETCH_FRAMES,
+    before_commit: Callable[[Path], None] | None = None,
     odometry=None,
     odometry_format: str | None = None,
 ) -> tuple[RunResult, dict]:
     """Run a whole dataset (any reader of ``datasets.open.open_dataset``) and write the results
-    folder. ``observer``: see ``SlamPipeline.observer`` (the rerun logger). ``prefetch_frames``:
-    frames read ahead on a background thread (0: none; ``io_utils.prefetch``). ``odometry``: a
-    pose file (KITTI or TUM, ``odometry_format`` or detected; ``trajectory_io.read_pose_file``)
-    or a front end object, used instead of the stereo VO; every frame must have a pose.
+    folder. ``observer``: see ``SlamPipeline.observer`` (the rerun logger), or a function of the
+    temporary results folder that makes one (a recording inside the results folder).
+    ``prefetch_frames``: frames read ahead on a background thread (0: none; ``io_utils.prefetch``).
+    ``before_commit``: called with the temporary folder, whole, before it is renamed into place.
+    ``odometry``: a pose file (KITTI or TUM, ``odometry_format`` or detected;
+    ``trajectory_io.read_pose_file``) or a front end object, used instead of the stereo VO;
+    every frame must have a pose.
 
     Everything that can be checked before the first frame is: the configuration (with the
     overrides) and the output folder."""
     (cfg or Config()).resolved(loops=loops, refine=refine, build_map=build_map)
-    check_output_folder(out_dir, overwrite)
     frontend = odometry
-    if isinstance(odometry, (str, Path)):
+    if isinstance(odometry, (str, Path)):  # read before the folder opens: a bad file leaves nothing
         t0_ns = getattr(dataset, "t0_ns", None)
         track = read_pose_file(odometry, odometry_format)
         frontend = pose_file_frontend(track, cfg, dataset.indices, dataset.timestamps, None if t0_ns is None else t0_ns * 1e-9)
-    pipe = SlamPipeline(dataset.camera, cfg, loops=loops, refine=refine, build_map=build_map, frontend=frontend)
-    pipe.observer = observer
-    with contextlib.closing(prefetch(dataset, prefetch_frames)) as frames:  # the next frames are read meanwhile
-        for frame in frames:
-            try:
-                out = pipe.process(frame)
-            except SnapsGraphError as exc:  # name the frame's file where the dataset knows it
-                where = dataset.frame_source(frame.index) if hasattr(dataset, "frame_source") else None
-                if where is None:
-                    raise
-                raise SnapsGraphError(f"{where}: {exc}") from None
-            if on_frame is not None:
-                on_frame(out)
-    result = pipe.finish()
-    metrics = write_results(out_dir, pipe, result, dataset.gt_poses, overwrite=overwrite)
+    with output_folder(out_dir, overwrite) as tmp:
+        pipe = SlamPipeline(dataset.camera, cfg, loops=loops, refine=refine, build_map=build_map, frontend=frontend)
+        if callable(observer) and not hasattr(observer, "on_frame"):
+            observer = observer(tmp)
+        pipe.observer = observer
+        with contextlib.closing(prefetch(dataset, prefetch_frames)) as frames:  # the next frames are read meanwhile
+            for frame in frames:
+                try:
+                    out = pipe.process(frame)
+                except SnapsGraphError as exc:  # name the frame's file where the dataset knows it
+                    where = dataset.frame_source(frame.index) if hasattr(dataset, "frame_source") else None
+                    if where is None:
+                        raise
+                    raise SnapsGraphError(f"{where}: {exc}") from None
+                if on_frame is not None:
+                    on_frame(out)
+        result = pipe.finish()
+        metrics = _write_all(tmp, pipe, result, dataset.gt_poses)
+        if before_commit is not None:
+            before_commit(tmp)
     return result, metrics
 
 
@@ -125,12 +133,22 @@ def _write_all(out: Path, pipe: SlamPipeline, result: RunResult, gt_poses: np.nd
 
     metrics = run_metrics(result, gt_poses, failures)
     if pipe.map is not None:
-        map_metrics = write_map_outputs(out, pipe.map, result.trajectories, gt_poses, pipe.cfg.map)
+        try:
+            map_metrics = write_map_outputs(out, pipe.map, result.trajectories, gt_poses, pipe.cfg.map)
+        except Exception as exc:  # the map is built from the trajectories: never lose them for it
+            if interrupted():  # Ctrl-C cut an import or a call: the user stopped, the map did not fail
+                raise
+            map_metrics = {"error": _one_line(f"{type(exc).__name__}: {exc}")}
         if map_metrics is not None:
             metrics["map"] = map_metrics
     metrics["peak_rss_mb"] = peak_rss_mb()
     write_metrics_json(out / "metrics.json", metrics)
     return metrics
+
+
+def _one_line(text: str) -> str:
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    return (lines[0] if lines else "unknown error")[:300]
 
 
 def run_metrics(result: RunResult, gt_poses: np.ndarray | None, graph_failures: Iterable | None = None) -> dict:
@@ -148,7 +166,7 @@ def run_metrics(result: RunResult, gt_poses: np.ndarray | None, graph_failures: 
     metrics["peak_rss_mb"] = peak_rss_mb()
     failures = result.graph_failures if graph_failures is None else graph_failures
     metrics["graph_failures"] = [{"k": k, "reason": r} for k, r in failures]
-    metrics["graph"] = result.graph_stats  # factor counts, solve times, gravity directions
+    metrics["graph"] = result.graph_stats  # factor counts, solve times
     return metrics
 
 

@@ -148,7 +148,9 @@ def test_cli_bad_plan_is_one_line_error_before_anything_is_written(seqs, tmp_pat
     )
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith(f"error: {plan}: variants.x: graph.odom_sigma_rot_rad must be > 0, got -1")
+    assert len(lines) == 1 and lines[0].startswith(
+        f"error: {plan}: variants.x: graph.odom_sigma_rot_rad must be in (0, 3.14159], got -1"
+    )
     assert not out.exists()
 
 
@@ -293,7 +295,7 @@ def test_ctrl_c_cancels_the_cells_and_exits_130(cluster, seqs, tmp_path):
     )
     try:
         deadline = time.monotonic() + 60
-        while time.monotonic() < deadline and not _cell_running():
+        while time.monotonic() < deadline and not _cell_running(out):
             assert proc.poll() is None, proc.communicate()
             time.sleep(0.05)
         os.killpg(proc.pid, signal.SIGINT)  # what a terminal's Ctrl-C does
@@ -312,9 +314,11 @@ def test_ctrl_c_cancels_the_cells_and_exits_130(cluster, seqs, tmp_path):
         assert (p / "metrics.json").is_file() and (p / CELL_FILE).is_file()
 
 
-def _cell_running() -> bool:
-    ps = subprocess.run(["ps", "-eo", "args"], capture_output=True, text=True).stdout
-    return "ray::run_cell" in ps
+def _cell_running(out: Path) -> bool:
+    """A cell of this batch is running: its temporary results folder exists (made at its start).
+    Not a process listing: other batches on the machine run cells too."""
+    folder = out / "good"
+    return folder.is_dir() and any(p.name.startswith(".") and ".tmp-" in p.name for p in folder.iterdir())
 
 
 def test_an_address_nothing_answers_on_is_a_one_line_error(seqs, tmp_path):
@@ -323,3 +327,83 @@ def test_an_address_nothing_answers_on_is_a_one_line_error(seqs, tmp_path):
     with pytest.raises(SnapsGraphError, match=r"^--address 127\.0\.0\.1:1: no Ray cluster answers there"):
         run_batch(plan, out, address="127.0.0.1:1", progress=False)
     assert not (out / "summary.csv").exists()
+
+
+# ---------------------------------------------------------------- never stale, never on an input
+def test_resume_is_keyed_on_the_inputs_content_and_checks_the_folder_whole(seqs, tmp_path):
+    seq = tmp_path / "seq"
+    shutil.copytree(seqs["good"], seq)
+    body = {"sequences": [str(seq)], "frames": "0:6"}
+    cell = plan_from_dict(body).cells[0]
+    out = tmp_path / "out"
+    assert run_cell(cell, str(out), threads=1)["status"] == "ok"
+    assert completed(plan_from_dict(body).cells[0], out)["status"] == "skipped"
+    # another ground truth (same path): not the same run
+    poses = (seq / "poses.txt").read_text().splitlines()
+    (seq / "poses.txt").write_text("\n".join(poses[1:] + poses[:1]) + "\n")
+    assert completed(plan_from_dict(body).cells[0], out) is None
+    (seq / "poses.txt").write_text("\n".join(poses) + "\n")
+    # another calibration: not the same run either
+    calib = (seq / "calib.txt").read_text()
+    (seq / "calib.txt").write_text(calib.replace("P0:", "P0: ", 1))
+    assert completed(plan_from_dict(body).cells[0], out) is None
+    # the same inputs again, but a pose file of the folder deleted: re-run, not skipped
+    (seq / "calib.txt").write_text(calib)
+    fresh = plan_from_dict(body).cells[0]
+    assert run_cell(fresh, str(out), threads=1)["status"] == "ok"
+    assert completed(fresh, out) is not None
+    (fresh.folder(out) / "poses_vo.txt").unlink()
+    assert completed(fresh, out) is None
+
+
+def test_a_cell_folder_never_lands_on_an_input(seqs, tmp_path):
+    data = tmp_path / "data"
+    seq = data / "seq"
+    shutil.copytree(seqs["good"], seq)
+
+    def digest():
+        return {p: p.read_bytes() for p in sorted(data.rglob("*")) if p.is_file()}
+
+    before = digest()
+    plan = plan_from_dict({"sequences": [str(seq)], "frames": "0:4", "variants": {"image_0": {}}})
+    with pytest.raises(SnapsGraphError, match=r"cell seq/image_0: its folder .* lies inside the input sequence"):
+        run_batch(plan, data, progress=False)  # --out on the folder holding the data
+    with pytest.raises(SnapsGraphError, match=r"lies inside the input sequence"):
+        run_batch(plan_from_dict({"sequences": [str(seq)], "frames": "0:4"}), seq / "image_0", progress=False)
+    (data / "summary.csv").write_text("the user's own table\n")  # a folder a batch did not write
+    before = digest()
+    with pytest.raises(SnapsGraphError, match=r"not a folder this tool wrote"):
+        run_batch(plan_from_dict({"sequences": [{"path": str(seq), "name": "other"}], "frames": "0:4"}), data, progress=False)
+    assert digest() == before and not (data / ".batch.lock").exists()
+
+
+def test_cpus_per_task_above_the_machine_is_a_one_line_error(seqs, tmp_path):
+    plan = plan_from_dict({"sequences": [str(seqs["good"])], "frames": "0:4", "cpus_per_task": 1000})
+    with pytest.raises(SnapsGraphError, match=r"cpus_per_task = 1000, but this machine has \d+ CPUs"):
+        run_batch(plan, tmp_path / "out", progress=False)
+    assert not (tmp_path / "out").exists()
+
+
+def test_an_address_where_something_else_listens_fails_at_once_and_leaves_no_lock(seqs, tmp_path):
+    import socket
+    import threading
+
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(1)
+
+    def answer():  # an HTTP/1 server: reads a request, answers, closes
+        conn, _ = server.accept()
+        conn.recv(100)
+        conn.sendall(b"HTTP/1.1 400 Bad Request\r\n\r\n")
+        conn.close()
+
+    threading.Thread(target=answer, daemon=True).start()
+    address = f"127.0.0.1:{server.getsockname()[1]}"
+    plan = plan_from_dict({"sequences": [str(seqs["good"])], "frames": "0:4"})
+    t0 = time.monotonic()
+    with pytest.raises(SnapsGraphError, match=r"something answers there, but not a Ray cluster"):
+        run_batch(plan, tmp_path / "out", address=address, progress=False)
+    assert time.monotonic() - t0 < 10
+    assert not (tmp_path / "out" / ".batch.lock").exists()
+    server.close()

@@ -144,11 +144,14 @@ def test_synth_out_contract(tmp_path):
     out = tmp_path / "seq"
     ok = cli("synth", "--out", out, "--frames", "0:3", "--width", "64", "--height", "48")
     assert ok.returncode == 0, ok.stderr
-    (out / "stale.txt").write_text("old")
     assert_user_error(cli("synth", "--out", out, "--frames", "0:2", "--width", "64", "--height", "48"), out, "--overwrite")
+    (out / "mine.txt").write_text("a file the user put there")
+    refused = cli("synth", "--out", out, "--frames", "0:2", "--width", "64", "--height", "48", "--overwrite")
+    assert "mine.txt" in assert_user_error(refused, out) and (out / "mine.txt").read_text() == "a file the user put there"
+    (out / "mine.txt").unlink()
     again = cli("synth", "--out", out, "--frames", "0:2", "--width", "64", "--height", "48", "--overwrite")
     assert again.returncode == 0, again.stderr
-    assert not (out / "stale.txt").exists() and len(list((out / "image_0").glob("*.png"))) == 2
+    assert len(list((out / "image_0").glob("*.png"))) == 2 and len((out / "poses.txt").read_text().splitlines()) == 2
 
 
 # ------------------------------------------------------------------ binary / non-text files
@@ -263,10 +266,10 @@ def test_calibration_with_p0_offset_gives_the_true_baseline():
 
 # ------------------------------------------------------------------ configuration
 BAD_CONFIGS = [
-    ("[frontend]\nmax_step_m = -1.0\n", "frontend.max_step_m must be > 0, got -1"),
-    ("[graph]\nodom_sigma_trans_m = -1\n", "graph.odom_sigma_trans_m must be > 0, got -1"),
-    ("[graph]\nprior_sigma_rot_rad = 0.0\n", "graph.prior_sigma_rot_rad must be > 0"),
-    ("[graph]\nloop_sigma_trans_m = -0.1\n", "graph.loop_sigma_trans_m must be > 0"),
+    ("[frontend]\nmax_step_m = -1.0\n", "frontend.max_step_m must be in (0, 1000], got -1"),
+    ("[graph]\nodom_sigma_trans_m = -1\n", "graph.odom_sigma_trans_m must be in (0, 10000], got -1"),
+    ("[graph]\nprior_sigma_rot_rad = 0.0\n", "graph.prior_sigma_rot_rad must be in (0, 3.14159]"),
+    ("[graph]\nloop_sigma_trans_m = -0.1\n", "graph.loop_sigma_trans_m must be in (0, 10000]"),
     ('[frontend]\nmode = "fast"\n', "frontend.mode must be one of 'sift', 'orb', 'klt', got 'fast'"),
     ('[graph]\nrefine = "turbo"\n', "graph.refine must be one of"),
     ('[graph]\nrobust_kernel = "tukey"\n', "graph.robust_kernel must be one of"),
@@ -309,7 +312,7 @@ def test_cli_mode_options(seq, tmp_path, opt, value):
 def test_config_validated_at_construction_and_never_mutated():
     from snaps_graph.config import GraphConfig
 
-    with pytest.raises(SnapsGraphError, match=r"^config: graph.odom_sigma_trans_m must be > 0, got -1$"):
+    with pytest.raises(SnapsGraphError, match=r"^config: graph.odom_sigma_trans_m must be in \(0, 10000\], got -1$"):
         GraphConfig(odom_sigma_trans_m=-1.0)
     cfg = Config()
     before = copy.deepcopy(cfg)
@@ -339,6 +342,26 @@ def test_every_numeric_config_field_has_a_range():
             if hint in (int, float) and choices(hint) is None and f"{section}.{f.name}" not in RULES:
                 missing.append(f"{section}.{f.name}")
     assert not missing, f"add a range to config.RULES for {missing}"
+    unbounded = [k for k, r in RULES.items() if r.lo is None or r.hi is None]
+    assert not unbounded, f"give these config.RULES ranges both bounds (a value the checks accept must not crash): {unbounded}"
+
+
+@pytest.mark.parametrize(
+    "key,value",
+    [
+        ("frontend.klt_min_distance_px", 2147483647),
+        ("frontend.orb_features", 2**31),
+        ("frontend.ransac_seed", 2**31),
+        ("graph.batch_max_iterations", 2**62),
+        ("frontend.stereo_window_px", 10**6),
+        ("graph.odom_cov_scale", 1e300),
+        ("graph.gravity_rounds", 10**9),
+    ],
+)
+def test_values_that_crashed_or_hung_are_out_of_range(tmp_path, key, value):
+    section, field = key.split(".")
+    path = write_config(tmp_path / "c.toml", f"[{section}]\n{field} = {value}\n")
+    assert key in assert_user_error(cli("config", path), path)
 
 
 def test_dumped_config_loads_back(tmp_path):
@@ -581,3 +604,342 @@ def test_swapped_or_repeated_cameras_are_one_line_errors_and_leave_no_folder(seq
     assert ("swap the two inputs" in line) == (fault == "swapped"), line
     assert ("repeats the left" in line) == (fault == "same"), line
     assert not out.exists()
+
+
+# ------------------------------------------------------------------ never destroy a user's file
+def tree(path: Path) -> dict[str, str]:
+    """Every file under ``path`` (or the file itself) and its content hash: what must not change."""
+    import hashlib
+
+    files = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())
+    return {str(p): hashlib.sha256(p.read_bytes()).hexdigest() for p in files}
+
+
+def no_leftovers(folder: Path) -> list[str]:
+    return [p.name for p in folder.iterdir() if re.match(r"^\..*\.(tmp|old)-\d+$", p.name)]
+
+
+@pytest.fixture
+def done_run(seq, tmp_path) -> Path:
+    """A finished results folder of the tiny sequence (5 frames)."""
+    out = tmp_path / "done"
+    proc = cli("run", seq, "--out", out, "--frames", "0:5")
+    assert proc.returncode == 0, proc.stderr
+    return out
+
+
+def test_rrd_never_replaces_an_input_or_another_runs_file(seq, done_run, tmp_path):
+    before = tree(seq) | tree(done_run)
+    out = tmp_path / "new"
+    cases = [
+        (seq / "calib.txt", "must name a .rrd file"),
+        (done_run / "poses_vo.txt", "must name a .rrd file"),
+        (done_run / "rec.rrd", "inside the results folder"),
+        (seq, "names a folder"),
+    ]
+    for rrd, expect in cases:
+        assert_user_error(cli("run", seq, "--out", out, "--rrd", rrd), rrd, expect)
+    not_a_recording = tmp_path / "notes.rrd"
+    not_a_recording.write_text("my notes\n")
+    assert_user_error(cli("run", seq, "--out", out, "--rrd", not_a_recording), "not a rerun recording")
+    assert not_a_recording.read_text() == "my notes\n"
+    assert tree(seq) | tree(done_run) == before
+    assert not out.exists() and not no_leftovers(tmp_path)
+
+
+def test_rrd_inside_out_is_written_with_the_results(seq, tmp_path):
+    pytest.importorskip("rerun")
+    out = tmp_path / "run"
+    proc = cli("run", seq, "--out", out, "--frames", "0:3", "--rrd", out / "run.rrd")
+    assert proc.returncode == 0, proc.stderr
+    assert (out / "run.rrd").read_bytes()[:4] == b"RRF2" and (out / "metrics.json").is_file()
+    assert not no_leftovers(tmp_path)
+
+
+def test_overwrite_never_deletes_a_folder_this_tool_did_not_write(seq, tmp_path):
+    home = tmp_path / "home"
+    (home / "docs").mkdir(parents=True)
+    (home / "docs" / "thesis.tex").write_text("years of work\n")
+    (home / "notes.txt").write_text("x\n")
+    before = tree(home)
+    line = assert_user_error(cli("run", seq, "--out", home, "--overwrite"), home, "not a folder this tool wrote")
+    assert ".snaps_graph_results" in line
+    assert_user_error(cli("synth", "--out", home, "--frames", "0:2", "--width", "64", "--height", "48", "--overwrite"), home)
+    assert tree(home) == before and not no_leftovers(tmp_path)
+
+
+@pytest.mark.parametrize("option", ["--config", "--gt"])
+def test_an_input_inside_out_is_refused_before_anything_is_deleted(seq, done_run, option):
+    inner = done_run / ("my.toml" if option == "--config" else "my_gt.txt")
+    shutil.copy(seq / "poses.txt", inner) if option == "--gt" else inner.write_text("[loop]\nmin_similarity = 0.2\n")
+    before = tree(done_run)
+    assert_user_error(cli("run", seq, "--out", done_run, option, inner, "--overwrite"), inner, "would replace the input")
+    assert tree(done_run) == before
+
+
+def test_synth_world_mesh_inside_out_is_kept(tmp_path):
+    out = tmp_path / "seq"
+    args = ["synth", "--out", out, "--frames", "0:2", "--width", "64", "--height", "48", "--world-mesh", out / "world.ply"]
+    for extra in ([], ["--overwrite"]):
+        proc = cli(*args, *extra)
+        assert proc.returncode == 0, proc.stderr
+        assert (out / "world.ply").stat().st_size > 1000, proc.stdout
+        assert len(list((out / "image_0").glob("*.png"))) == 2
+    assert not no_leftovers(tmp_path)
+
+
+def test_leftovers_of_a_killed_replacement_are_restored_and_said(seq, done_run, tmp_path):
+    """kill -9 between the two renames: OUT absent, the old run in .OUT.old-PID, the new one in
+    .OUT.tmp-PID. The next start puts the old one back, removes the new one and says both."""
+    old = tree(done_run)
+    dead = 2**22 + 12345  # above Linux's pid_max default: no such process
+    shutil.copytree(done_run, tmp_path / f".done.tmp-{dead}")
+    done_run.rename(tmp_path / f".done.old-{dead}")
+    proc = cli("run", seq, "--out", done_run, "--frames", "0:3")
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert proc.returncode == 2 and len(lines) == 3 and "Traceback" not in proc.stderr, proc.stderr
+    assert lines[2].startswith("error: ") and "--overwrite" in lines[2]  # the old results are back: kept without it
+    notes = "\n".join(lines[:2])
+    assert all(line.startswith("note: ") for line in lines[:2])
+    assert f"restored the previous results from .done.old-{dead}" in notes and f"removed .done.tmp-{dead}" in notes
+    assert {k.replace(f".done.old-{dead}", "done"): v for k, v in old.items()} == tree(done_run)
+    assert not no_leftovers(tmp_path)
+
+
+@pytest.mark.parametrize("how", ["dot", "symlink"])
+def test_out_the_current_folder_or_a_symlink_is_refused_before_the_first_frame(seq, tmp_path, how):
+    (seq / "image_0" / "000003.png").write_bytes(b"corrupt")  # reached only if frames were read
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    env = dict(os.environ, PYTHONWARNINGS="ignore")
+    if how == "dot":
+        proc = subprocess.run(CLI + ["run", str(seq), "--out", "."], capture_output=True, text=True, env=env, cwd=empty)
+        assert_user_error(proc, "current folder")
+    else:
+        link = tmp_path / "link"
+        link.symlink_to(empty)
+        assert_user_error(cli("run", seq, "--out", link), link, "symbolic link")
+    assert list(empty.iterdir()) == []
+
+
+def test_ctrl_c_during_the_swap_says_the_results_are_complete(tiny_seq, tmp_path, monkeypatch):
+    """SIGINT while the folder is renamed into place is held back until the swap is done; the
+    results are then whole and the process knows it (the CLI's message says so)."""
+    import snaps_graph.io_utils as io_utils
+
+    seq = KittiSequence(tiny_seq, frames="0:3")
+    pipe = SlamPipeline(seq.camera, Config(), loops="none", refine="none")
+    for f in seq:
+        pipe.process(f)
+    result = pipe.finish()
+    out = tmp_path / "run"
+    real_replace = os.replace
+
+    def replace(src, dst):
+        if Path(dst) == out:
+            os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C at the final rename
+        real_replace(src, dst)
+
+    import threading
+
+    monkeypatch.setattr(io_utils.os, "replace", replace)
+    busy = threading.Event()
+    other = threading.Thread(target=busy.wait, args=(30,), daemon=True)  # a thread that could take the signal
+    other.start()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            write_results(out, pipe, result)
+    finally:
+        busy.set()
+    assert (out / "metrics.json").is_file() and out.resolve() in io_utils.committed_folders()
+    assert not no_leftovers(tmp_path)
+
+
+def test_a_failed_map_stage_keeps_the_trajectories(seq, tmp_path, monkeypatch):
+    import snaps_graph.runner as runner
+
+    def broken(*a, **k):
+        raise RuntimeError("[Open3D Error] (CreateFromDepthImage) something\nsecond line")
+
+    syn = KittiSequence(seq, frames="0:3")
+    cfg = Config()
+    cfg.map.enabled = True
+    monkeypatch.setattr(runner, "write_map_outputs", broken)
+    _, metrics = runner.run_sequence(syn, tmp_path / "run", cfg, loops="none", refine="none", build_map=True)
+    assert (tmp_path / "run" / "poses_vo.txt").is_file()
+    assert metrics["map"] == {"error": "RuntimeError: [Open3D Error] (CreateFromDepthImage) something"}
+
+
+# ------------------------------------------------------------------ bounded inputs, no crash
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full (Linux)")
+def test_stdout_on_a_full_device_after_the_results_is_a_note_and_exit_0(seq, tmp_path):
+    out = tmp_path / "run"
+    env = dict(os.environ, PYTHONWARNINGS="ignore")
+    with open("/dev/full", "w") as full:
+        proc = subprocess.run(
+            CLI + ["run", str(seq), "--out", str(out), "--frames", "0:3"], stdout=full, stderr=subprocess.PIPE, text=True, env=env
+        )
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert proc.returncode == 0 and len(lines) == 1 and lines[0].startswith("note: standard output not written"), proc.stderr
+    assert (out / "metrics.json").is_file()
+
+
+def test_the_api_refuses_what_the_readers_refuse(tiny_seq):
+    seq = KittiSequence(tiny_seq, frames="0:3")
+    frames = list(seq)
+    pipe = SlamPipeline(seq.camera, Config(), loops="none", refine="none")
+    with pytest.raises(SnapsGraphError, match="takes a StereoFrame, not NoneType"):
+        pipe.process(None)  # type: ignore[arg-type]
+    pipe.process(frames[0])
+    with pytest.raises(SnapsGraphError, match="timestamp -1.0 does not increase"):
+        pipe.process(StereoFrame(1, -1.0, frames[1].left, frames[1].right))
+    pipe.process(frames[1])  # still usable
+
+
+@pytest.mark.parametrize(
+    "p0,p1,expect",
+    [
+        (_p(180, 160, 48)[:10] + [0, 0], _p(180, 160, 48, -97.2)[:10] + [0, 0], "third row"),  # P[2,2] = 0
+        (_p(180, 160, 48)[:1] + [90] + _p(180, 160, 48)[2:], _p(180, 160, 48, -97.2), "skew"),
+        (_p(180, 160, 48), _p(180, 160, 48, -97.2)[:7] + [-20.0] + [0, 0, 1, 0], "vertical offset"),
+    ],
+)
+def test_degenerate_calibration_is_a_one_line_error(seq, tmp_path, p0, p1, expect):
+    _calib(seq, p0, p1)
+    assert expect in assert_user_error(cli("run", seq, "--out", tmp_path / "run"), seq / "calib.txt")
+
+
+def test_calibration_with_a_byte_order_mark_is_read(seq):
+    text = (seq / "calib.txt").read_text()
+    (seq / "calib.txt").write_bytes(b"\xef\xbb\xbf" + text.encode())
+    assert KittiSequence(seq).camera.fx > 0
+
+
+def test_a_huge_calibration_file_is_refused_without_reading_it(seq, tmp_path):
+    with open(seq / "calib.txt", "r+b") as fh:
+        fh.truncate(2**31)  # sparse: 2 GB that cost no disk
+    assert "larger than 1 MiB" in assert_user_error(cli("run", seq, "--out", tmp_path / "run"), seq / "calib.txt")
+
+
+def test_an_image_that_would_decode_to_gigabytes_is_refused_from_its_header(seq, tmp_path):
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    ihdr = struct.pack(">IIBBBBB", 32000, 32000, 8, 0, 0, 0, 0)
+    bomb = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b"\0" * 32001 * 8)) + chunk(b"IEND", b"")
+    (seq / "image_1" / "000000.png").write_bytes(bomb)
+    assert "32000x32000" in assert_user_error(cli("run", seq, "--out", tmp_path / "run"), seq / "image_1" / "000000.png")
+
+
+def test_a_truncated_jpeg_is_an_error_naming_it(tmp_path):
+    import cv2
+
+    from snaps_graph.datasets.kitti import read_grey
+
+    path = tmp_path / "000000.jpg"
+    ok, data = cv2.imencode(".jpg", (np.random.default_rng(0).random((96, 320)) * 255).astype(np.uint8))
+    path.write_bytes(data.tobytes()[: len(data) // 2])
+    with pytest.raises(SnapsGraphError, match=re.escape(f"{path}: truncated JPEG")):
+        read_grey(path)
+
+
+def test_numbered_and_named_images_mixed_are_refused(seq, tmp_path):
+    for side in ("image_0", "image_1"):
+        shutil.copy(seq / side / "000007.png", seq / side / "extra.png")
+        (seq / side / "000007.png").unlink()
+    assert "named image among numbered" in assert_user_error(cli("run", seq, "--out", tmp_path / "run"), "extra.png")
+
+
+def test_black_first_frames_are_not_taken_for_a_repeated_camera():
+    from snaps_graph.frontend.depth import stereo_order
+
+    black = np.zeros((96, 320), np.uint8)
+    assert stereo_order(black, black)[0] == "unknown"
+    textured = (np.random.default_rng(0).random((96, 320)) * 255).astype(np.uint8)
+    assert stereo_order(textured, textured)[0] == "same"
+
+
+def test_synth_size_is_bounded_by_memory(tmp_path):
+    out = tmp_path / "big"
+    assert "too large" in assert_user_error(cli("synth", "--out", out, "--width", "20000", "--height", "20000"))
+    assert not out.exists()
+
+
+# ------------------------------------------------------------------ the command line's habits
+def test_help_version_and_short_options(seq, tmp_path):
+    from snaps_graph import __version__
+
+    for args in (["-h"], ["run", "-h"], ["batch", "-h"]):
+        proc = cli(*args)
+        assert proc.returncode == 0 and "Usage:" in proc.stdout, (args, proc.stderr)
+    version = cli("--version")
+    assert version.returncode == 0 and version.stdout.strip() == f"snaps-graph {__version__}"
+    config = write_config(tmp_path / "c.toml", "[loop]\nmin_similarity = 0.2\n")
+    proc = cli("run", seq, "-o", tmp_path / "run", "-c", config, "--frames", "0:3")
+    assert proc.returncode == 0, proc.stderr
+    assert "min_similarity = 0.2" in (tmp_path / "run" / "config.toml").read_text()
+
+
+def test_eval_accepts_evos_order_reference_first(tiny_seq, tmp_path):
+    gt = tiny_seq / "poses.txt"
+    est = tmp_path / "est.txt"
+    rows = [line.split() for line in gt.read_text().splitlines()]
+    est.write_text("".join(" ".join(r[:3] + [str(float(r[3]) + 0.1)] + r[4:]) + "\n" for r in rows))
+    ours = cli("eval", est, "--gt", gt, "--json")
+    evo = cli("eval", gt, est, "--json")
+    assert ours.returncode == 0 and evo.returncode == 0, ours.stderr + evo.stderr
+    assert json.loads(ours.stdout) == json.loads(evo.stdout)
+    assert "evo's order" in assert_user_error(cli("eval", est))
+    assert_user_error(cli("eval", gt, est, "--gt", gt), "once")
+
+
+@pytest.mark.parametrize(
+    "text,expect",
+    [
+        ("[loop]\nmin_similarty = 0.2\n", "did you mean 'loop.min_similarity'?"),
+        ("[loops]\nmin_similarity = 0.2\n", "[loops] is not a section (did you mean [loop]?)"),
+        ("[frontnd]\nmode = 'klt'\n", "did you mean 'frontend'?"),
+    ],
+)
+def test_a_misspelled_config_key_or_section_gets_did_you_mean(tmp_path, text, expect):
+    path = write_config(tmp_path / "c.toml", text)
+    assert expect in assert_user_error(cli("config", path), path)
+
+
+def test_a_frame_range_past_the_end_runs_to_the_end_and_says_so(seq, tmp_path):
+    proc = cli("run", seq, "--out", tmp_path / "run", "--frames", "2:500")
+    assert proc.returncode == 0, proc.stderr
+    assert f"note: --frames 2:500: the sequence has {N_FRAMES} frames; running 2:{N_FRAMES}" in proc.stderr
+    assert len((tmp_path / "run" / "poses_vo.txt").read_text().splitlines()) == N_FRAMES - 2
+    assert "only 8 frames" in assert_user_error(cli("run", seq, "--out", tmp_path / "r2", "--frames", "100:200"))
+
+
+@pytest.mark.parametrize("args", [["run", "NOPE", "-o", "x"], ["eval", "NOPE", "--gt", "NOPE2"], ["compare", "NOPE"]])
+def test_a_mistyped_path_fails_before_the_heavy_imports(tmp_path, args):
+    """Checked by what the process imported, not by a clock: no OpenCV, gtsam or open3d."""
+    code = (
+        "import sys, runpy\n"
+        f"sys.argv = ['snaps-graph', *{args!r}]\n"
+        "try:\n    runpy.run_module('snaps_graph.cli', run_name='__main__')\n"
+        "except SystemExit as e:\n"
+        "    heavy = [m for m in ('cv2', 'gtsam', 'open3d', 'matplotlib') if m in sys.modules]\n"
+        "    print('heavy:', heavy, 'exit:', e.code)\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path)
+    assert "heavy: [] exit: 2" in proc.stdout, proc.stdout + proc.stderr
+    assert "NOPE" in proc.stderr and "not found" in proc.stderr
+
+
+def test_overwrite_keeps_a_file_the_user_added_to_a_results_folder(seq, done_run):
+    assert cli("compare", done_run).returncode == 0  # report.md and pictures: the tool's own
+    (done_run / "my_notes.txt").write_text("mine\n")
+    before = tree(done_run)
+    line = assert_user_error(cli("run", seq, "--out", done_run, "--frames", "0:3", "--overwrite"), "my_notes.txt")
+    assert "did not write" in line and tree(done_run) == before
+    (done_run / "my_notes.txt").unlink()
+    proc = cli("run", seq, "--out", done_run, "--frames", "0:3", "--overwrite")
+    assert proc.returncode == 0, proc.stderr
+    assert len((done_run / "poses_vo.txt").read_text().splitlines()) == 3 and not (done_run / "report.md").exists()

@@ -29,7 +29,7 @@ import numpy as np
 
 from ..camera import StereoCamera
 from ..errors import SnapsGraphError
-from ..io_utils import parse_frame_range
+from ..io_utils import check_image_file, parse_frame_range
 from ..trajectory_io import read_kitti_poses, read_times
 from ..types import StereoFrame
 from ._selection import FrameSelection
@@ -47,7 +47,10 @@ def _list_images(folder: Path) -> list[Path]:
 def _frame_numbers(files: list[Path]) -> np.ndarray:
     """The frames' numbers: the files' numbers when every stem is a whole number (KITTI's
     000000.png), else positions 0, 1, 2, ... A number used twice (1.png, 01.png) is an error."""
-    if not all(p.stem.isdigit() for p in files):
+    named = [p for p in files if not p.stem.isdigit()]
+    if named and len(named) < len(files):  # the order between the two kinds is a guess: times and poses would slip
+        raise SnapsGraphError(f"{named[0]}: a named image among numbered ones (name them all 000000.png, 000001.png, ...)")
+    if named:
         return np.arange(len(files))
     numbers = np.array([int(p.stem) for p in files])
     dup = np.flatnonzero(np.diff(numbers) == 0)
@@ -59,6 +62,7 @@ def _frame_numbers(files: list[Path]) -> np.ndarray:
 
 def read_grey(path: Path) -> np.ndarray:
     """Read an image as 8-bit grey; a one-line error if it cannot be read."""
+    check_image_file(path)
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise SnapsGraphError(f"{path}: unreadable image")

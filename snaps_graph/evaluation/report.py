@@ -486,8 +486,8 @@ def map_section_lines(run_dir: str | Path, map_entry: dict | None) -> list[str]:
     if not map_entry:
         return []
     md = ["## Map", ""]
-    if map_entry.get("empty"):
-        return md + [f"No map: {map_entry['empty']}.", ""]
+    if map_entry.get("empty") or map_entry.get("error"):
+        return md + [f"No map: {map_entry.get('empty') or 'the map stage failed: ' + map_entry['error']}.", ""]
     surf = map_entry.get("surfaces", {}).get(map_entry.get("trajectory"), {})
     md.append(
         f"Fused under **{map_entry.get('trajectory')}** from {map_entry.get('keyframes')} keyframes "

@@ -80,6 +80,8 @@ def stereo_order(left: np.ndarray, right: np.ndarray) -> tuple[str, str]:
     cameras give the opposite sign, a right image that repeats the left gives none. ORB matches
     (cross-checked, same row within 1.5 px) decide where ``ORDER_MIN_MATCHES`` have |d| >= 1 px;
     textureless or far-only pairs are "unknown"."""
+    if max(float(left.std()), float(right.std())) < 2.0:  # black or flat (a camera warming up): no verdict
+        return "unknown", "textureless images"
     if np.abs(left.astype(np.int16) - right.astype(np.int16)).mean() < 0.5:
         return "same", "the right image repeats the left one (no disparity)"
     orb = cv2.ORB_create(1000)
