@@ -276,7 +276,7 @@ def test_missing_or_bad_inputs_name_the_file(tmp_path):
         compare_run(tmp_path)
 
 
-def test_latency_box_keeps_a_slot_for_a_stage_without_positive_samples(tmp_path):
+def test_latency_box_draws_no_column_for_a_stage_without_positive_samples(tmp_path):
     from snaps_graph.evaluation.plots import plot_latency_box
 
     path = plot_latency_box(tmp_path / "lat.png", {"graph": np.array([]), "loop": np.array([0.0, -1.0])})
@@ -296,3 +296,15 @@ def test_snaps_step_uses_the_weight_eq6_applied(run07, tmp_path, kitti_gt_dir):
     (row,) = table_rows((run / "report.md").read_text(), "frame")
     assert row["SNAPS step [m]"] == f"{GAMMA0 * np.linalg.norm(run07['delta']):.3f}"
     assert row["Q"] == "0.8000"
+
+
+def test_top_view_scale_shows_lateral_drift_and_never_magnifies_jitter(tmp_path):
+    from snaps_graph.evaluation.plots import plot_trajectories, top_view_scale
+
+    assert top_view_scale(0.004, 0.009) == "stationary"  # centimetres of jitter: a fixed 1 m window
+    assert top_view_scale(0.5, 60.0) == "stretched"  # a straight drive: lateral drift visible
+    assert top_view_scale(40.0, 60.0) == "equal"
+    poses = np.tile(np.eye(4), (20, 1, 1))
+    poses[:, 2, 3] = np.linspace(0.0, 60.0, 20)
+    path = plot_trajectories(tmp_path / "t.png", {"gt": poses, "vo": poses}, loops=[(19, 0)])
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -64,55 +64,118 @@ def _colour(name: str, index: int) -> str:
     return TRAJECTORY_COLOURS.get(name.lower(), f"C{(index + 4) % 10}")
 
 
+# A path whose extent is below this is drawn in a window of at least this size, so millimetres of
+# jitter of a standing camera are not auto-scaled into what looks like a drive.
+STATIONARY_EXTENT_M = 1.0
+MIN_HEIGHT_SPAN_M = 0.2
+# Equal axes hide a lateral drift on a long straight drive: past this aspect the narrow axis is stretched.
+MAX_EQUAL_ASPECT = 8.0
+
+
+def _distance_along(p: np.ndarray) -> np.ndarray:
+    """Cumulative distance travelled at each row of an (N, 3) position array, metres."""
+    steps = np.linalg.norm(np.diff(p, axis=0), axis=1) if len(p) > 1 else np.zeros(0)
+    return np.concatenate([[0.0], np.cumsum(steps)])
+
+
+def top_view_scale(ext_x: float, ext_z: float) -> str:
+    """How the top view is scaled: "stationary" (a fixed window), "stretched" or "equal" axes."""
+    if max(ext_x, ext_z) < STATIONARY_EXTENT_M:
+        return "stationary"
+    if max(ext_x, ext_z) > MAX_EQUAL_ASPECT * max(min(ext_x, ext_z), 1e-9):
+        return "stretched"
+    return "equal"
+
+
 def plot_trajectories(
     path_png: str | Path,
     trajs: Mapping[str, np.ndarray],
     loops: Sequence[tuple[int, int]] | None = None,
-    title: str = "Trajectories (top-down)",
+    title: str = "Trajectories",
 ) -> Path:
-    """Top-down view: x (right) against z (forward) in KITTI camera axes, equal aspect.
+    """Top view (x right against z forward, KITTI camera axes) beside height over distance.
 
     ``trajs`` maps a name to an (N, 4, 4) pose stack; ``loops`` are (frame, reference) *row*
-    indices into those stacks, drawn as thin lines between the two positions on the SNAPS
-    trajectory (the one whose positions the loop moved). Returns the path written.
+    indices into those stacks, drawn between the two positions on the SNAPS trajectory (the one
+    whose positions the loop moved) and marked at the frame that closed them. Height is -y (KITTI's
+    y points down) against the distance along the ground truth (else the first estimate), which
+    shows the vertical drift the top view cannot. Returns the path written.
     """
     if not trajs:
         raise SnapsGraphError(f"{path_png}: no trajectory to plot")
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(7, 7))
+    fig, (ax, axh) = plt.subplots(1, 2, figsize=(12, 5.5), gridspec_kw={"width_ratios": [1.15, 1]})
     names = list(trajs)
     estimates = [n for n in names if n.lower() not in GT_NAMES]
+    gt_name = next((n for n in names if n.lower() in GT_NAMES), None)
+    ref = np.asarray(trajs[gt_name if gt_name is not None else names[0]])[:, :3, 3]
+    dist = _distance_along(ref)
     for i, name in enumerate(names):
         # Earlier estimates are drawn wider, so VO stays visible where SNAPS left it unchanged.
         rank = estimates.index(name) if name in estimates else 0
         p = np.asarray(trajs[name])[:, :3, 3]
         is_gt = name.lower() in GT_NAMES
-        ax.plot(
-            p[:, 0],
-            p[:, 2],
+        style = dict(
             color=_colour(name, i),
             lw=1.6 if is_gt else 1.1 + 0.6 * (len(estimates) - 1 - rank),
             ls="--" if is_gt else "-",
             label=name,
             zorder=1 if is_gt else 2,
         )
+        ax.plot(p[:, 0], p[:, 2], **style)
+        if len(p) == len(dist):
+            axh.plot(dist, -p[:, 1], **style)
     ax.plot([0.0], [0.0], "ko", ms=4, zorder=4)
-    if loops:
+    if loops and names:
         on = next((n for n in estimates if n.lower() == "snaps"), estimates[0] if estimates else names[0])
         p = np.asarray(trajs[on])[:, :3, 3]
         pairs = np.asarray(loops, dtype=int).reshape(-1, 2)
         pairs = pairs[(pairs >= 0).all(axis=1) & (pairs < len(p)).all(axis=1)]
         for k, (a, b) in enumerate(pairs):
+            ax.plot([p[a, 0], p[b, 0]], [p[a, 2], p[b, 2]], color="orange", lw=0.8, zorder=3)
             ax.plot(
-                [p[a, 0], p[b, 0]],
-                [p[a, 2], p[b, 2]],
+                p[a, 0],
+                p[a, 2],
+                "o",
                 color="orange",
-                lw=0.8,
+                ms=5,
+                mfc="none",
                 zorder=3,
-                label=f"loops on {on}" if k == 0 else None,
+                label=f"loops ({len(pairs)})" if k == 0 else None,
             )
-    ax.set_aspect("equal", adjustable="datalim")
-    return _finish(fig, ax, path_png, title, "x [m] (right)", "z [m] (forward)")
+            if len(p) == len(dist):
+                axh.axvline(dist[a], color="orange", lw=0.6, zorder=0)
+    allp = np.concatenate([np.asarray(t)[:, :3, 3] for t in trajs.values()])
+    lo, hi = allp.min(axis=0), allp.max(axis=0)
+    ext_x, ext_z = float(hi[0] - lo[0]), float(hi[2] - lo[2])
+    note = ""
+    scale = top_view_scale(ext_x, ext_z)
+    if scale == "stationary":
+        cx, cz = (lo[0] + hi[0]) / 2, (lo[2] + hi[2]) / 2
+        half = STATIONARY_EXTENT_M / 2
+        ax.set_xlim(cx - half, cx + half)
+        ax.set_ylim(cz - half, cz + half)
+        ax.set_aspect("equal", adjustable="box")
+        note = f" - near-stationary: the path spans {max(ext_x, ext_z) * 100:.1f} cm"
+    elif scale == "stretched":
+        note = f" - {'x' if ext_x < ext_z else 'z'} axis stretched (not to scale)"
+    else:
+        ax.set_aspect("equal", adjustable="datalim")
+    ax.set_title("top view" + note, fontsize=10)
+    ax.set_xlabel("x [m] (right)")
+    ax.set_ylabel("z [m] (forward)")
+    ax.grid(True, lw=0.3)
+    ax.legend(loc="best", fontsize=8)
+    ylo, yhi = axh.get_ylim()
+    if yhi - ylo < MIN_HEIGHT_SPAN_M:  # a flat drive's height noise is not auto-scaled into a slope
+        mid = (ylo + yhi) / 2
+        axh.set_ylim(mid - MIN_HEIGHT_SPAN_M / 2, mid + MIN_HEIGHT_SPAN_M / 2)
+    axh.set_title("height over distance", fontsize=10)
+    axh.set_xlabel(f"distance along {'the ground truth' if gt_name is not None else names[0]} [m]")
+    axh.set_ylabel("height -y [m]")
+    axh.grid(True, lw=0.3)
+    fig.suptitle(title)
+    return _save(fig, path_png)
 
 
 def plot_errors(
@@ -143,25 +206,30 @@ def plot_latency_box(
 
     A log axis because the stages span five decades (SNAPS without candidates: microseconds;
     a frame: hundreds of milliseconds). Non-positive and non-finite samples cannot sit on a log
-    axis and are left out; a series with no sample left is drawn as an empty, labelled slot.
+    axis and are left out; a series with no sample left gets no empty column, only a note in a corner.
     """
     if not samples:
         raise SnapsGraphError(f"{path_png}: no latency series to plot")
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(max(5.0, 1.6 * len(samples)), 4.5))
-    data, labels = [], []
+    fig, ax = plt.subplots(figsize=(max(5.0, 1.5 * len(samples)), 4.5))
+    data, labels, empty = [], [], []
     for name, values in samples.items():
         v = np.asarray(values, dtype=float).reshape(-1)
-        data.append(v[np.isfinite(v) & (v > 0)])
-        labels.append(f"{name}\n(n={data[-1].size})")
-    positions = [i + 1 for i, v in enumerate(data) if v.size]
-    if positions:
-        ax.boxplot([data[i - 1] for i in positions], positions=positions, showfliers=True, whis=(5, 95))
-    ax.set_xlim(0.5, len(labels) + 0.5)
-    ax.set_xticks(np.arange(1, len(labels) + 1), labels, fontsize=8)
+        v = v[np.isfinite(v) & (v > 0)]
+        if v.size:
+            data.append(v)
+            labels.append(name.replace(", ", ",\n") + f"\n(n={v.size})")  # wrapped: long labels overlap
+        else:
+            empty.append(name)
     ax.set_yscale("log")
-    if not positions:  # a log axis needs a range even with nothing on it
+    if data:
+        ax.boxplot(data, positions=np.arange(1, len(data) + 1), showfliers=True, whis=(5, 95))
+        ax.set_xticks(np.arange(1, len(data) + 1), labels, fontsize=8)
+    else:  # a log axis needs a range even with nothing on it
         ax.set_ylim(1e-3, 1e3)
+        ax.set_xticks([])
+    if empty:
+        ax.text(0.99, 0.98, "no sample: " + ", ".join(empty), transform=ax.transAxes, ha="right", va="top", fontsize=7)
     ax.set_ylabel("time per frame [ms] (log)")
     ax.set_title(title + " (whiskers: 5th-95th percentile)")
     ax.grid(True, which="both", axis="y", lw=0.3)

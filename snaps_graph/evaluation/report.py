@@ -585,7 +585,7 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accu
         run / "trajectories.png",
         ({"gt": gt} if gt is not None else {}) | trajs,
         loops=[(lp["row"], lp["reference_row"]) for lp in loops],
-        title=f"{run.name}: top-down (x right, z forward)",
+        title=f"{run.name}: trajectories",
     )
     figures.append("trajectories.png")
     if gt is not None:

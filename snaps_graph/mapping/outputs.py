@@ -117,6 +117,7 @@ def write_map_outputs(
                 out / "map.png",
                 surf.points,
                 trajs,
+                grey=surf.point_grey,
                 title=f"fused map ({chosen}), top-down: {len(surf.points)} surface points, voxel {cfg.tsdf_voxel_m:g} m",
             )
             perspective_png(

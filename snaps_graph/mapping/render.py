@@ -13,6 +13,7 @@ from ..errors import SnapsGraphError
 from ..io_utils import atomic_output
 
 _GROUND_CELL_M = 5.0  # heights are shown above the lowest map point in this x-z cell
+_GROUND_BAND_M = 0.25  # points this close above the local ground are the ground (road, kerb)
 
 
 def _local_height(ref: np.ndarray, query: np.ndarray | None = None, cell: float = _GROUND_CELL_M) -> np.ndarray:
@@ -101,13 +102,17 @@ def topdown_png(
     points: np.ndarray,
     trajectories: dict[str, np.ndarray],
     *,
+    grey: np.ndarray | None = None,
     title: str = "",
     max_points: int = 300_000,
     dpi: int = 150,
 ) -> None:
     """Top-down view (x across, z up the page) of surface ``points`` coloured by height above the
-    local ground (``_local_height``),
-    with each trajectory ((N, 4, 4) or (N, 3)) drawn over it."""
+    local ground (``_local_height``), with each trajectory ((N, 4, 4) or (N, 3)) drawn over it.
+
+    With ``grey`` (the points' image intensity), the ground itself is drawn in contrast-stretched
+    grey: its height is nearly constant, so a height colour shows one flat tone where the image
+    shows lane marks, kerbs and shadows."""
     path = Path(path)
     if len(points) == 0:
         raise SnapsGraphError(f"{path}: the map is empty, nothing to draw")
@@ -115,18 +120,27 @@ def topdown_png(
     hi = max(float(np.percentile(h, 98)), 1e-3)
     fig = _figure(8, 8)
     ax = fig.add_subplot(1, 1, 1)
-    sc = _topdown_axes(
-        ax,
-        points,
-        h,
-        trajectories,
-        cmap="viridis",
-        vmin=0.0,
-        vmax=hi,
-        max_points=max_points,
-        title=title or f"fused map, top-down: {len(points)} surface points",
-    )
-    fig.colorbar(sc, ax=ax, shrink=0.7, label=f"height above the local ground (m; lowest point in {_GROUND_CELL_M:g} m cells)")
+    title = title or f"fused map, top-down: {len(points)} surface points"
+    if grey is not None and len(grey) == len(points):
+        ground = h < _GROUND_BAND_M
+        g = np.asarray(grey, dtype=np.float64).reshape(-1)
+        glo, ghi = np.percentile(g[ground], [2, 98]) if ground.any() else (0.0, 255.0)
+        stride = max(1, int(np.ceil(len(points) / max_points)))
+        pg = points[::stride][ground[::stride]]
+        ax.scatter(
+            pg[:, 0], pg[:, 2], c=g[::stride][ground[::stride]], s=0.2, cmap="gray", vmin=glo, vmax=max(ghi, glo + 1),
+            linewidths=0, rasterized=True,
+        )  # fmt: skip
+        raised = ~ground
+        sc = _topdown_axes(
+            ax, points[raised], h[raised], trajectories, cmap="viridis", vmin=_GROUND_BAND_M, vmax=max(hi, _GROUND_BAND_M + 1e-3),
+            max_points=max_points, title=title,
+        )  # fmt: skip
+        label = f"height above the local ground (m); ground below {_GROUND_BAND_M:g} m in image grey"
+    else:
+        sc = _topdown_axes(ax, points, h, trajectories, cmap="viridis", vmin=0.0, vmax=hi, max_points=max_points, title=title)
+        label = f"height above the local ground (m; lowest point in {_GROUND_CELL_M:g} m cells)"
+    fig.colorbar(sc, ax=ax, shrink=0.7, label=label)
     fig.tight_layout()
     _save(fig, path, dpi)
 
@@ -247,9 +261,21 @@ def perspective_png(
     import cv2
 
     bgr = np.ascontiguousarray((img[..., ::-1] * 255).astype(np.uint8))
-    bar = np.full((28, width, 3), 255, np.uint8)
+    if hit.any():  # framed on the mesh: the rays that missed it are only margin
+        rows, cols = np.nonzero(hit.any(axis=1))[0], np.nonzero(hit.any(axis=0))[0]
+        m = 10
+        bgr = bgr[max(rows[0] - m, 0) : rows[-1] + m + 1, max(cols[0] - m, 0) : cols[-1] + m + 1]
+    w = max(bgr.shape[1], 560)
+    if bgr.shape[1] < w:
+        bgr = np.hstack([bgr, np.full((bgr.shape[0], w - bgr.shape[1], 3), 255, np.uint8)])
+    bar = np.full((52, w, 3), 255, np.uint8)
     text = title or f"fused mesh, perspective: {n_triangles} triangles (CPU ray casting)"
     cv2.putText(bar, text, (8, 19), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
+    # colour legend: height above the local ground, 0 to the 98th percentile
+    ramp = colormaps["viridis"](np.linspace(0.0, 1.0, 200))[:, :3][:, ::-1]
+    bar[30:44, 60:260] = (ramp[None, :, :] * 255).astype(np.uint8)
+    cv2.putText(bar, "0 m", (28, 42), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(bar, f"{hhi:.1f} m above the local ground", (266, 42), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
     ok, buf = cv2.imencode(".png", np.vstack([bar, bgr]))
     if not ok:  # pragma: no cover
         raise SnapsGraphError(f"{path}: could not encode the picture")
