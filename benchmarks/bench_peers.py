@@ -172,6 +172,33 @@ def fmt(x: float, spec: str = ".1f") -> str:
     return "n/a" if not np.isfinite(x) else format(x, spec)
 
 
+def print_targets(rows: list[dict]) -> None:
+    """Each target with what this run measured."""
+    print("targets:")
+    for r in rows:
+        if not r["system"].startswith("ours"):
+            continue
+        checks = []
+        if "ratio_wall" in r:
+            checks += [
+                (f"wall <= 0.5x ORB-SLAM3's: {r['ratio_wall']:.2f}x", r["ratio_wall"] <= 0.5),
+                (
+                    f"CPU <= 0.5x ORB-SLAM3's: {r['ratio_cpu']:.2f}x (median), {r['ratio_cpu_run']:.2f}x (whole loop)",
+                    r["ratio_cpu"] <= 0.5,
+                ),
+            ]
+        if r["seq"] == "kitti06":
+            fps = 1000.0 / r["wall"]
+            checks += [
+                (f">= 30 frames/s: {fps:.1f}", fps >= 30.0),
+                (f"ATE <= 0.045 m: {fmt(r['ate'], '.3f')}", r["ate"] <= 0.045),
+                (f"end drift <= 0.85 %: {fmt(r['drift'], '.2f')}", r["drift"] <= 0.85),
+            ]
+        checks.append(("poses bit-identical between runs", r["identical"]))
+        for text, ok in checks:
+            print(f"  {r['seq']:9} {'met    ' if ok else 'NOT met'}  {text}")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seqs", default="kitti06,euroc", help=f"comma-separated, of {', '.join(SEQUENCES)}")
@@ -205,12 +232,12 @@ def main() -> int:
             continue
         seq = kitti_folder(name, src, args.work)
         runs: dict[str, list[dict]] = {"ours": [], "orb": []}
-        for r in range(args.repeats):
-            runs["ours"].append(ours_subprocess(seq, args.work / name / f"ours_{r}"))
+        for rep in range(args.repeats):
+            runs["ours"].append(ours_subprocess(seq, args.work / name / f"ours_{rep}"))
             if not why:
-                runs["orb"].append(peer_subprocess(args, seq, preset, args.work / name / f"orb_{r}"))
+                runs["orb"].append(peer_subprocess(args, seq, preset, args.work / name / f"orb_{rep}"))
             print(
-                f"{name} run {r}: ours median {np.median(runs['ours'][-1]['wall_ms']):.1f} ms"
+                f"{name} run {rep}: ours median {np.median(runs['ours'][-1]['wall_ms']):.1f} ms"
                 + (f", ORB-SLAM3 {np.median(runs['orb'][-1]['wall_ms']):.1f} ms" if runs["orb"] else "")
                 + f"; our poses sha256 {runs['ours'][-1]['digest'][:16]}",
                 flush=True,
@@ -245,6 +272,7 @@ def main() -> int:
             if system == "ours":
                 digests = {x["digest"] for x in rs}
                 row["identical"] = len(digests) == 1
+                row["digests"] = [x["digest"] for x in rs]
             else:
                 online = [accuracy(x["poses_online"], gt) for x in rs]
                 row["ate_online"] = float(np.median([a[0] for a in online]))
@@ -275,9 +303,13 @@ def main() -> int:
         )
     for r in rows:
         if "identical" in r:
-            print(f"{r['seq']}: our poses bit-identical across {args.repeats} runs: {'yes' if r['identical'] else 'NO'}")
+            shown = " ".join(d[:16] for d in r["digests"])
+            print(
+                f"{r['seq']}: our poses bit-identical across {args.repeats} runs: {'yes' if r['identical'] else 'NO'} ({shown})"
+            )
         if "ate_online" in r:
             print(f"{r['seq']}: ORB-SLAM3 online (tracking) ATE {fmt(r['ate_online'], '.3f')} m; frames lost {r['lost']}")
+    print_targets(rows)
     print(
         f"{os.cpu_count()} cores; ms/frame and CPU ms: medians over frames (median over runs); CPU mean: per-frame "
         "CPU summed / frames; CPU run: the whole loop's process CPU / frames (ORB-SLAM3's with its mapping "
