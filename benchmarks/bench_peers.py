@@ -22,7 +22,7 @@ rectified images. Our poses' SHA-256 is printed per run: the runs must agree bit
 
     python benchmarks/bench_peers.py [--seqs kitti06,euroc] [--repeats 3]
         [--peer-venv results/orb-venv] [--vocab results/ORBvoc.txt]
-        [--peer-script ../shared/peers/peer_orbslam3.py] [--work results/peers]
+        [--peer-script ../shared/peers/peer_orbslam3.py] [--work results/peers] [--config ours.toml]
 """
 
 from __future__ import annotations
@@ -63,15 +63,17 @@ def kitti_folder(name: str, path: Path, work: Path) -> Path:
     return out
 
 
-def run_ours(seq: Path, out: Path) -> dict:
-    """One run of our pipeline in this process (called in a fresh interpreter per run)."""
+def run_ours(seq: Path, out: Path, config: str | None = None) -> dict:
+    """One run of our pipeline in this process (called in a fresh interpreter per run);
+    ``config``: a TOML file (default: the default configuration)."""
     from snaps_graph.config import Config
     from snaps_graph.datasets.kitti import KittiSequence
     from snaps_graph.pipeline import SlamPipeline
 
     ds = KittiSequence(seq)
     frames = [ds[i] for i in range(len(ds))]
-    pipe = SlamPipeline(ds.camera, Config(), loops="snaps", refine="isam2", build_map=False)
+    cfg = Config.load(config) if config else Config()
+    pipe = SlamPipeline(ds.camera, cfg, loops="snaps", refine="isam2", build_map=False)
     wall, cpu = [], []
     c_run, t_run = time.process_time(), time.perf_counter()
     for f in frames:
@@ -93,10 +95,11 @@ def run_ours(seq: Path, out: Path) -> dict:
     }
 
 
-def ours_subprocess(seq: Path, out: Path) -> dict:
+def ours_subprocess(seq: Path, out: Path, config: str | None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    subprocess.run([sys.executable, __file__, "--ours-run", str(seq), str(out)], check=True, env=env)
+    extra = ["--config", str(config)] if config else []
+    subprocess.run([sys.executable, __file__, "--ours-run", str(seq), str(out), *extra], check=True, env=env)
     d = json.loads((out / "ours.json").read_text())
     d["poses"] = np.load(out / "poses.npy")
     return d
@@ -210,11 +213,12 @@ def main() -> int:
     ap.add_argument("--vocab", type=Path, default=ROOT / "results" / "ORBvoc.txt")
     ap.add_argument("--peer-script", type=Path, default=ROOT.parent / "shared" / "peers" / "peer_orbslam3.py")
     ap.add_argument("--work", type=Path, default=ROOT / "results" / "peers")
+    ap.add_argument("--config", default=None, help="TOML config for our runs (default: the defaults)")
     ap.add_argument("--ours-run", nargs=2, metavar=("SEQ", "OUT"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.ours_run:
         seq, out = Path(args.ours_run[0]), Path(args.ours_run[1])
-        (out / "ours.json").write_text(json.dumps(run_ours(seq, out)))
+        (out / "ours.json").write_text(json.dumps(run_ours(seq, out, args.config)))
         return 0
     args.peer_python = args.peer_venv / "bin" / "python"
     why = peer_missing(args)
@@ -236,7 +240,7 @@ def main() -> int:
         seq = kitti_folder(name, src, args.work)
         runs: dict[str, list[dict]] = {"ours": [], "orb": []}
         for rep in range(args.repeats):
-            runs["ours"].append(ours_subprocess(seq, args.work / name / f"ours_{rep}"))
+            runs["ours"].append(ours_subprocess(seq, args.work / name / f"ours_{rep}", args.config))
             if not why:
                 runs["orb"].append(peer_subprocess(args, seq, preset, args.work / name / f"orb_{rep}"))
             print(
