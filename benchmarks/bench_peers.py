@@ -66,10 +66,12 @@ def kitti_folder(name: str, path: Path, work: Path) -> Path:
 def run_ours(seq: Path, out: Path, config: str | None = None) -> dict:
     """One run of our pipeline in this process (called in a fresh interpreter per run);
     ``config``: a TOML file (default: the default configuration)."""
+    from snaps_graph._malloc import set_malloc_thresholds
     from snaps_graph.config import Config
     from snaps_graph.datasets.kitti import KittiSequence
     from snaps_graph.pipeline import SlamPipeline
 
+    set_malloc_thresholds()  # as `snaps-graph run` has them (idempotent)
     ds = KittiSequence(seq)
     frames = [ds[i] for i in range(len(ds))]
     cfg = Config.load(config) if config else Config()
