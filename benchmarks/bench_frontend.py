@@ -13,7 +13,7 @@ pipeline, flagged frames, ATE RMSE after SE(3) Umeyama alignment, end-point drif
 lengths / sum of ground-truth step lengths - 1: a scale error of the translation).
 
     python benchmarks/bench_frontend.py [--seq ../shared/data/kitti/sequences/06] [--frames 0:51]
-        [--modes naive,default,klt_pnp,sift,sift_sba,sift_sparse,orb] [--config extra.toml]
+        [--modes naive,default,klt_pnp,sift,sift_sba,sift_sparse,orb] [--config extra.toml] [--repeats N]
 """
 
 from __future__ import annotations
@@ -104,6 +104,12 @@ def main() -> None:
     ap.add_argument("--modes", default="naive,default,klt_pnp,sift")
     ap.add_argument("--config", default=None, help="TOML whose [frontend] section is the base of every mode")
     ap.add_argument(
+        "--repeats",
+        type=int,
+        default=1,
+        help="runs of every mode, interleaved (mode order repeated): the times are the median over runs of each run's median",
+    )
+    ap.add_argument(
         "--eval-from",
         type=int,
         default=0,
@@ -132,12 +138,24 @@ def main() -> None:
     medians = {}
     stages = ("depth", "features", "match", "pnp", "sba", "lba", "total")
     print(
-        f"{'mode':12s} " + " ".join(f"{s:>9s}" for s in stages) + "   frames/s  ratio/naive  flagged  ATE_m  drift_%  step_bias_%"
+        f"{'mode':12s} "
+        + " ".join(f"{s:>9s}" for s in stages)
+        + "   frames/s  ratio/naive  CPU_ms  flagged  ATE_m  drift_%  step_bias_%"
     )
+    runs: dict[str, list] = {name: [] for name in names}
+    for _ in range(max(1, args.repeats)):
+        for name in names:
+            c0 = time.process_time()
+            out = run(name, seq, frames, base)
+            runs[name].append((*out, (time.process_time() - c0) * 1000.0 / len(frames)))
     for name in names:
-        poses, flagged, timings = run(name, seq, frames, base)
-        steady = timings[1:] if len(timings) > 1 else timings  # frame 0 has no matching
-        med = {s: float(np.median([t.get(s, 0.0) for t in steady])) for s in stages}
+        poses, flagged, timings, _ = runs[name][-1]
+        per_run = []
+        for _, _, tr, _ in runs[name]:
+            steady = tr[1:] if len(tr) > 1 else tr  # frame 0 has no matching
+            per_run.append({s: float(np.median([t.get(s, 0.0) for t in steady])) for s in stages})
+        med = {s: float(np.median([m[s] for m in per_run])) for s in stages}
+        cpu = float(np.median([r[3] for r in runs[name]]))
         medians[name] = med["total"]
         ratio = med["total"] / medians["naive"] if "naive" in medians else float("nan")
         if gt is not None and len(gt) >= 3:
@@ -147,7 +165,7 @@ def main() -> None:
         print(
             f"{name:12s} "
             + " ".join(f"{med[s]:9.1f}" for s in stages)
-            + f"   {1000.0 / med['total']:8.1f}  {ratio:11.3f}  {flagged:7d}  {ate:5.3f}  {drift:7.2f}  {sbias:+11.2f}"
+            + f"   {1000.0 / med['total']:8.1f}  {ratio:11.3f}  {cpu:6.1f}  {flagged:7d}  {ate:5.3f}  {drift:7.2f}  {sbias:+11.2f}"
         )
         spans = [("", 0)] if gt is not None and len(gt) >= 3 else []
         if gt is not None and 0 < args.eval_from < len(gt) - 2:
@@ -169,7 +187,14 @@ def main() -> None:
         kf_ms = [t["lba"] for t in timings if "lba" in t]
         if kf_ms:
             print(f"{'':12s} local BA on {len(kf_ms)} keyframes: median {np.median(kf_ms):.1f} ms, max {np.max(kf_ms):.1f} ms")
-    print("(ms are medians over frames 1..N; stages of our modes overlap in two threads, so they need not add up to total)")
+    print(
+        "(ms are medians over frames 1..N; stages of our modes overlap in two threads, so they need not add up to total; "
+        "CPU_ms: process CPU per frame, all threads)"
+    )
+    if args.repeats > 1:
+        for name in names:
+            totals = [float(np.median([t.get("total", 0.0) for t in r[2][1:]])) for r in runs[name]]
+            print(f"{name:12s} per-run median ms: {' '.join(f'{x:.1f}' for x in totals)}")
 
 
 if __name__ == "__main__":

@@ -3,8 +3,9 @@ timestamp pairing and conversion of any 8/16-bit image to 8-bit grey.
 
 Rectification uses OpenCV: ``stereoRectify`` from both cameras' intrinsics, distortion and the
 right camera's pose in the left camera (EuRoC, live), or the rectification ``R``/``P`` a ROS
-``CameraInfo`` already carries. The remap tables are computed once (fixed-point ``CV_16SC2``,
-the fast form of ``cv2.remap``); each frame then costs two remaps.
+``CameraInfo`` already carries. The remap tables are computed once, as float maps (``CV_32FC1``:
+less CPU per frame than fixed-point ``CV_16SC2`` tables with the OpenCV we use, and no
+1/32-pixel rounding; docs/performance.md); each frame then costs two remaps.
 """
 
 from __future__ import annotations
@@ -85,7 +86,7 @@ class StereoRectifier:
                     np.asarray(R, float).reshape(3, 3),
                     P[:3, :3],
                     (w, h),
-                    cv2.CV_16SC2,
+                    cv2.CV_32FC1,
                 )
             )
         rect = cls(maps[0], maps[1], camera, np.asarray(R0, float).reshape(3, 3))
