@@ -38,10 +38,9 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from snaps_graph.evaluation.metrics import evaluate
 
-from snaps_graph.evaluation.metrics import evaluate  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 SEQUENCES = {  # name -> (path from the project root, the peer's settings preset)
     "kitti06": ("../shared/data/kitti/sequences/06", "kitti"),
