@@ -54,6 +54,7 @@ from ._malloc import set_malloc_thresholds
 from .config import Config, FrontendMode, LoopMode, RefineMode, choices
 from .datasets.open import open_dataset
 from .errors import SnapsGraphError
+from .evaluation.results_io import read_metrics_json
 from .io_utils import (
     MARKER,
     atomic_write_text,
@@ -364,10 +365,12 @@ def inputs_digest(paths) -> str:
 def completed(cell: Cell, out_dir: str | Path) -> dict | None:
     """The record of a finished run of ``cell`` with the same config hash, else None."""
     folder = cell.folder(out_dir)
+    if not (folder / "metrics.json").is_file():
+        return None
     try:
         rec = json.loads((folder / CELL_FILE).read_text())
-        metrics = json.loads((folder / "metrics.json").read_text())
-    except (OSError, ValueError):
+        metrics = read_metrics_json(folder / "metrics.json")
+    except (OSError, ValueError, SnapsGraphError):
         return None
     if not isinstance(rec, dict) or rec.get("config_hash") != cell.config_hash:
         return None

@@ -436,7 +436,7 @@ def eval_(
         raise_user(f"{est}: {len(est_poses)} poses, but {gt} has {len(gt_poses)} (one pose per frame in both)")
     m = evaluate(est_poses, gt_poses)
     if as_json:
-        from .evaluation.report import json_clean
+        from .evaluation.results_io import json_clean
 
         typer.echo(json.dumps(json_clean(m)))  # a metric that cannot be computed is null
         return

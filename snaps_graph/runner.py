@@ -23,10 +23,6 @@ folder; ``overwrite`` replaces an old folder whole). One writer per file, metric
 from __future__ import annotations
 
 import contextlib
-import csv
-import dataclasses
-import io
-import json
 import resource
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -35,15 +31,20 @@ import numpy as np
 
 from .config import Config
 from .errors import SnapsGraphError, interrupted
-from .evaluation.loops import write_candidates_csv
+from .evaluation.latency import records_latency_summary as latency_summary
 from .evaluation.metrics import evaluate
-from .evaluation.report import latency_summary as _latency_summary
-from .evaluation.report import write_metrics_json
-from .io_utils import PREFETCH_FRAMES, atomic_write_text, output_folder, prefetch
+from .evaluation.results_io import (
+    write_candidates_csv,
+    write_frames_csv,
+    write_gt,
+    write_loops_jsonl,
+    write_metrics_json,
+    write_trajectories,
+)
+from .io_utils import PREFETCH_FRAMES, output_folder, prefetch
 from .mapping.outputs import write_map_outputs
 from .pipeline import FrameOutput, RunResult, SlamPipeline, pose_file_frontend
-from .trajectory_io import read_pose_file, write_kitti_poses, write_tum_poses
-from .types import FRAME_COLUMNS, FrameRecord, LoopEvent
+from .trajectory_io import read_pose_file
 
 # Exit status of `snaps-graph run` when more than this fraction of the frames was flagged by the
 # front end (the results are written; the run is suspect). See cli.EXIT_MOSTLY_FLAGGED.
@@ -115,11 +116,9 @@ def write_results(
 
 
 def _write_all(out: Path, pipe: SlamPipeline, result: RunResult, gt_poses: np.ndarray | None) -> dict:
-    for name, poses in result.trajectories.items():
-        write_kitti_poses(out / f"poses_{name}.txt", poses)
-        write_tum_poses(out / f"poses_{name}.tum", poses, result.timestamps)
+    write_trajectories(out, result.trajectories, result.timestamps)
     if gt_poses is not None:
-        write_kitti_poses(out / "poses_gt.txt", gt_poses)
+        write_gt(out, gt_poses)
     write_frames_csv(out / "frames.csv", result.records)
     write_loops_jsonl(out / "loops.jsonl", result.loops)
     if pipe.snaps is not None:  # every similarity SNAPS computed (types.CandidateRecord)
@@ -178,30 +177,6 @@ def mostly_flagged(metrics: dict) -> bool:
 def peak_rss_mb() -> float:
     """Peak resident memory of this process so far, MiB (Linux reports ru_maxrss in KiB)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
-def latency_summary(records: list[FrameRecord]) -> dict:
-    """metrics.json's ``latency_ms`` from the per-frame records (one implementation: the report's)."""
-    cols = ("t_total_ms", "t_vo_ms", "t_loop_ms", "loop_candidates", "loop_closed", "t_graph_ms")
-    return _latency_summary({c: np.array([getattr(r, c) for r in records], float) for c in cols})
-
-
-def frames_csv_text(records: list[FrameRecord]) -> str:
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(FRAME_COLUMNS)
-    for r in records:
-        row = dataclasses.astuple(r)
-        w.writerow([f"{v:.4f}" if isinstance(v, float) and c != "timestamp" else v for c, v in zip(FRAME_COLUMNS, row)])
-    return buf.getvalue()
-
-
-def write_frames_csv(path: str | Path, records: list[FrameRecord]) -> None:
-    atomic_write_text(path, frames_csv_text(records))
-
-
-def write_loops_jsonl(path: str | Path, loops: list[LoopEvent]) -> None:
-    atomic_write_text(path, "".join(json.dumps(lp.to_json()) + "\n" for lp in loops))
 
 
 __all__ = [

@@ -257,3 +257,62 @@ def test_atomic_output_gives_ordinary_files_and_cleans_up(tmp_path):
             tmp.write_bytes(b"half")
             raise RuntimeError("writer failed")
     assert sorted(p.name for p in (tmp_path / "a").iterdir()) == ["m.ply", "x.txt"]  # nothing half-written
+
+
+# ---- package layout ----
+def _module_graph() -> dict[str, set[str]]:
+    """snaps_graph module -> the package modules it imports (anywhere in the file, lazy ones too)."""
+    import ast
+
+    root = Path(__file__).resolve().parents[1] / "snaps_graph"
+    files = {}
+    for f in root.rglob("*.py"):
+        parts = ["snaps_graph", *f.relative_to(root).with_suffix("").parts]
+        files[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = f
+
+    def resolve(name: str) -> str:
+        while name and name not in files:
+            name = name.rpartition(".")[0]
+        return name
+
+    graph: dict[str, set[str]] = {}
+    for mod, f in files.items():
+        pkg = mod.split(".") if f.name == "__init__.py" else mod.split(".")[:-1]
+        deps = set()
+        for node in ast.walk(ast.parse(f.read_text())):
+            if isinstance(node, ast.ImportFrom):
+                if node.level:
+                    full = ".".join(pkg[: len(pkg) - node.level + 1] + ([node.module] if node.module else []))
+                elif node.module and node.module.startswith("snaps_graph"):
+                    full = node.module
+                else:
+                    continue
+                deps |= {resolve(f"{full}.{a.name}") if f"{full}.{a.name}" in files else resolve(full) for a in node.names}
+            elif isinstance(node, ast.Import):
+                deps |= {resolve(a.name) for a in node.names if a.name.startswith("snaps_graph")}
+        graph[mod] = deps - {mod, ""}
+    return graph
+
+
+def test_module_graph_sees_imports():
+    graph = _module_graph()
+    assert "snaps_graph.evaluation.results_io" in graph["snaps_graph.evaluation.report"]
+    assert "snaps_graph.pipeline" in graph["snaps_graph.runner"]
+
+
+def test_no_import_circle_in_the_package():
+    """No module reaches itself through the package's imports (lazy imports count: a circle is one
+    idea split over two files)."""
+    graph = _module_graph()
+    circles = []
+    for start in sorted(graph):
+        seen, stack = set(), [(start, [start])]
+        while stack:
+            mod, path = stack.pop()
+            for dep in sorted(graph.get(mod, ())):
+                if dep == start:
+                    circles.append(" -> ".join([*path, start]))
+                elif dep not in seen:
+                    seen.add(dep)
+                    stack.append((dep, [*path, dep]))
+    assert not circles, circles[:5]

@@ -23,10 +23,9 @@ from snaps_graph.evaluation.loops import (
     evaluate_loops,
     label_pairs,
     pr_curve,
-    read_candidates_csv,
     segments,
-    write_candidates_csv,
 )
+from snaps_graph.evaluation.results_io import read_candidates_csv, write_candidates_csv
 from snaps_graph.types import CANDIDATE_COLUMNS, CandidateRecord
 
 

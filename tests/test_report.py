@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 
 from snaps_graph.errors import SnapsGraphError
+from snaps_graph.evaluation.latency import latency_summary
 from snaps_graph.evaluation.metrics import ate_rmse, kitti_relative_errors, mean_deviation
-from snaps_graph.evaluation.report import compare_run, latency_summary
+from snaps_graph.evaluation.report import compare_run
 from snaps_graph.geometry import inv
 from snaps_graph.trajectory_io import read_kitti_poses, write_kitti_poses
 

@@ -74,6 +74,7 @@ def open_dataset(
 def open_live(spec: str, frames: str | None = None, calib: str | Path | None = None, capture_factory=None):
     """``live:DEV`` (side by side) or ``live:DEV,DEV`` (left, right); ``frames`` ``A:B`` reads
     B - A frames (``:`` alone or None: until the device stops)."""
+    from .euroc import load_calibration
     from .live import LiveStereo, open_capture
 
     devices = [d for d in spec[len("live:") :].split(",") if d.strip()]
@@ -89,18 +90,3 @@ def open_live(spec: str, frames: str | None = None, calib: str | Path | None = N
     return LiveStereo(
         caps[0], caps[1] if len(caps) == 2 else None, camera=camera, rectifier=rectifier, max_frames=max_frames, source=spec
     )
-
-
-def load_calibration(calib: str | Path):
-    """(camera, None) from a calib.txt of rectified cameras; (None, rectifier) from a folder with
-    EuRoC-style cam0/ and cam1/ sensor.yaml (raw cameras, rectified on the fly)."""
-    from ..camera import StereoCamera
-    from .euroc import find_mav0, stereo_rectifier
-
-    p = Path(calib)
-    if p.is_file():
-        return StereoCamera.from_calib_file(p), None
-    mav0 = find_mav0(p) if p.is_dir() else None
-    if mav0 is None:
-        raise SnapsGraphError(f"{p}: not a calib.txt nor a folder with cam0/sensor.yaml and cam1/sensor.yaml")
-    return None, stereo_rectifier(mav0)[0]
