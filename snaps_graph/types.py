@@ -148,7 +148,7 @@ FRAME_COLUMNS: tuple[str, ...] = tuple(f.name for f in dataclasses.fields(FrameR
 @dataclass(frozen=True)
 class CandidateRecord:
     """One similarity SNAPS computed: a row of ``candidates.csv`` (columns in field order; the
-    writer and reader are in evaluation/loops.py)."""
+    writer and reader are in evaluation/results_io.py)."""
 
     frame: int  # dataset frame index of the current frame
     reference: int  # ... of the earlier candidate

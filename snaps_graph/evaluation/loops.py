@@ -340,13 +340,20 @@ def summary_lines(ev: dict) -> list[str]:
         return "n/a" if v is None else f"{v:.{nd}f}"
 
     cov = ev["verification_coverage"]
+    if ev["true_pairs"]:
+        recall = (
+            f"max recall at 100% precision: Q alone {f(ev['max_recall_at_100_precision'])} "
+            f"(threshold {f(ev['threshold_at_100_precision'], 4)}, highest false Q {f(ev['q_max_false'], 4)}); "
+            f"Q + verification {f(ev['max_recall_at_100_precision_verified'])} "
+            f"(threshold {f(ev['threshold_at_100_precision_verified'], 4)}, highest verified false Q {f(ev['q_max_false_verified'], 4)})"
+        )
+    else:  # recall has no denominator: a 0 would read as a detector that missed every revisit
+        why = "no revisit in this run" if not ev["revisit_frames"] else "no true pair compared"
+        recall = f"max recall at 100% precision: n/a ({why})"
     return [
         f"pairs compared {ev['pairs']} (true <= {s['true_m']:g} m: {ev['true_pairs']}, false > {s['false_m']:g} m: "
         f"{ev['false_pairs']}, ignored: {ev['ignored_pairs']}) at {ev['frames_compared']} frames",
-        f"max recall at 100% precision: Q alone {f(ev['max_recall_at_100_precision'])} "
-        f"(threshold {f(ev['threshold_at_100_precision'], 4)}, highest false Q {f(ev['q_max_false'], 4)}); "
-        f"Q + verification {f(ev['max_recall_at_100_precision_verified'])} "
-        f"(threshold {f(ev['threshold_at_100_precision_verified'], 4)}, highest verified false Q {f(ev['q_max_false_verified'], 4)})",
+        recall,
         *(
             [
                 f"at the run's min_similarity {ev['min_similarity']:g}: precision {f(ev.get('precision_at_min_similarity'))}, "

@@ -436,11 +436,10 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accu
             "precision-recall over the Q threshold for Q alone and for Q + geometric verification "
             "(`snaps-graph loops RUN_DIR --json` prints the curve).",
             "",
-            "![loop precision-recall](loops_pr.png)",
-            "",
         ]
-        if "plot" in loop_eval:
+        if "plot" in loop_eval:  # no compared pair: no picture, so no link
             figures.append(Path(loop_eval["plot"]).name)
+            md += [f"![loop precision-recall]({figures[-1]})", ""]
     md += ["", "## Latency", ""]
     if samples:
         md += _latency_lines(latency)
