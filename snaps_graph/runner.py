@@ -45,6 +45,7 @@ from .io_utils import PREFETCH_FRAMES, output_folder, prefetch
 from .mapping.outputs import write_map_outputs
 from .pipeline import FrameOutput, RunResult, SlamPipeline, pose_file_frontend
 from .trajectory_io import read_pose_file
+from .types import StereoSource
 
 # Exit status of `snaps-graph run` when more than this fraction of the frames was flagged by the
 # front end (the results are written; the run is suspect). See cli.EXIT_MOSTLY_FLAGGED.
@@ -52,7 +53,7 @@ FLAGGED_FRACTION_LIMIT = 0.5
 
 
 def run_sequence(
-    dataset,
+    dataset: StereoSource,
     out_dir: str | Path,
     cfg: Config | None = None,
     *,
@@ -81,7 +82,7 @@ def run_sequence(
     (cfg or Config()).resolved(loops=loops, refine=refine, build_map=build_map)
     frontend = odometry
     if isinstance(odometry, (str, Path)):  # read before the folder opens: a bad file leaves nothing
-        t0_ns = getattr(dataset, "t0_ns", None)
+        t0_ns = dataset.t0_ns
         track = read_pose_file(odometry, odometry_format)
         frontend = pose_file_frontend(track, cfg, dataset.indices, dataset.timestamps, None if t0_ns is None else t0_ns * 1e-9)
     with output_folder(out_dir, overwrite) as tmp:
@@ -94,7 +95,7 @@ def run_sequence(
                 try:
                     out = pipe.process(frame)
                 except SnapsGraphError as exc:  # name the frame's file where the dataset knows it
-                    where = dataset.frame_source(frame.index) if hasattr(dataset, "frame_source") else None
+                    where = dataset.frame_source(frame.index)
                     if where is None:
                         raise
                     raise SnapsGraphError(f"{where}: {exc}") from None

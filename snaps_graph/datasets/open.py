@@ -15,6 +15,7 @@ from pathlib import Path
 
 from ..errors import SnapsGraphError
 from ..io_utils import parse_frame_range
+from ..types import StereoSource
 
 
 def dataset_kind(path: str | Path) -> str:
@@ -46,7 +47,7 @@ def open_dataset(
     left_topic: str | None = None,
     right_topic: str | None = None,
     calib: str | Path | None = None,
-):
+) -> StereoSource:
     """A dataset (``camera``, ``len``, iteration of ``StereoFrame``, ``timestamps``, ``gt_poses``)
     for a KITTI folder, a EuRoC sequence, a ROS 1/2 bag or a live device (``live:DEV[,DEV]``).
     ``calib`` (live sources; bags without CameraInfo): a calib.txt of rectified cameras or a folder
