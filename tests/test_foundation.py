@@ -24,6 +24,8 @@ from snaps_graph.trajectory_io import (
     write_tum_poses,
 )
 
+ROOT = Path(__file__).resolve().parents[1]
+
 
 # ---- config ----
 def test_config_roundtrip(tmp_path):
@@ -316,3 +318,32 @@ def test_no_import_circle_in_the_package():
                     seen.add(dep)
                     stack.append((dep, [*path, dep]))
     assert not circles, circles[:5]
+
+
+def test_every_reader_shares_the_stereo_source_defaults():
+    """Each reader subclasses SequenceBase, so the optional StereoSource members exist on all."""
+    from snaps_graph.datasets.euroc import EurocSequence
+    from snaps_graph.datasets.live import LiveStereo
+    from snaps_graph.datasets.rosbag import RosbagSequence
+    from snaps_graph.datasets.synthetic import SyntheticSequence
+    from snaps_graph.types import SequenceBase
+
+    for reader in (KittiSequence, EurocSequence, RosbagSequence, LiveStereo, SyntheticSequence):
+        assert issubclass(reader, SequenceBase), reader
+    base = SequenceBase()
+    assert (base.gt_path, base.stereo, base.t0_ns, tuple(base.notes), base.frame_source(3)) == (None, True, None, (), None)
+    base.close()
+
+
+def test_no_probing_of_a_dataset():
+    """The StereoSource members are read directly: no getattr/hasattr on a dataset in the package."""
+    import re
+
+    probe = re.compile(r"\b(getattr|hasattr)\((seq|dataset|ds|source|sequence)\b")
+    hits = [
+        f"{f.relative_to(ROOT)}:{i}"
+        for f in sorted((ROOT / "snaps_graph").rglob("*.py"))
+        for i, line in enumerate(f.read_text().splitlines(), 1)
+        if probe.search(line)
+    ]
+    assert not hits, hits
