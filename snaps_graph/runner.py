@@ -4,7 +4,8 @@ The folder contract: the output folder is checked before the first frame (a file
 a file, or a non-empty folder without ``overwrite`` is a one-line error at once); the files are
 written into a temporary sibling folder ``.NAME.tmp-PID`` that is renamed onto the output folder
 at the end, so a results folder is whole or absent (Ctrl-C or an error deletes the temporary
-folder; ``overwrite`` replaces an old folder whole). One writer per file, metrics.json last::
+folder; ``overwrite`` replaces an old folder whole). One writer per file (``evaluation.results_io``),
+metrics.json last::
 
     poses_vo.txt / .tum        pure VO chain
     poses_snaps.txt / .tum     SNAPS heuristic trajectory (loops = snaps)

@@ -8,8 +8,8 @@ Reads what the pipeline wrote into a run folder and writes, into the same folder
   to the figures;
 - ``trajectories.png`` (top-down, loops drawn on the SNAPS trajectory), ``errors.png`` (position
   error over frames; only with ground truth), ``latency.png`` (box plots, paper Fig. 5);
-  ``loops_pr.png`` and a loop-closure section (evaluation/loops.py) with ground truth and a
-  ``candidates.csv``;
+  a loop-closure section (evaluation/loops.py) with ground truth and a ``candidates.csv``, and
+  ``loops_pr.png`` when SNAPS compared a pair (report.md links only the pictures written);
 - ``metrics.json``, updated atomically: existing keys are kept; ``trajectories`` (name ->
   ``metrics.evaluate`` dict, with ground truth), ``paths`` (frames and path length per
   trajectory), ``latency_ms`` (same shape as the pipeline's: per stage n / median / mean / p95 /
