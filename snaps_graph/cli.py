@@ -47,6 +47,7 @@ from .io_utils import (  # noqa: E402
     parse_frame_range,
 )
 from .trajectory_io import ODOMETRY_FORMATS  # noqa: E402
+from .types import StereoSource  # noqa: E402
 
 # Heavy modules (OpenCV, gtsam, open3d, matplotlib) are imported inside the commands that use
 # them, after the cheap checks, so `config`, `--help` and a bad option answer at once.
@@ -266,8 +267,8 @@ def run(
     from .runner import mostly_flagged, run_sequence
 
     seq = open_dataset(seq_dir, frames=frames, gt=gt, left_topic=left_topic, right_topic=right_topic, calib=calib)
-    check_inputs_outside(out, [("ground truth", getattr(seq, "gt_path", None))])
-    if not getattr(seq, "stereo", True):
+    check_inputs_outside(out, [("ground truth", seq.gt_path)])
+    if not seq.stereo:
         if odometry is None:
             raise_user(f"{seq_dir}: no right images: the stereo VO needs them (give odometry from elsewhere: --odometry POSES)")
         if cfg.resolved(loops=loops, refine=refine, build_map=map_).map.enabled:
@@ -401,9 +402,9 @@ def _note_clipped_range(frames: str | None, n: int) -> None:
         typer.echo(f"note: --frames {frames}: the sequence has {rng[0] + n} frames; running {rng[0]}:{rng[0] + n}", err=True)
 
 
-def _print_notes(seq) -> None:
+def _print_notes(seq: StereoSource) -> None:
     """What a reader dropped or assumed (unpaired images, frames without ground truth)."""
-    for note in getattr(seq, "notes", ()):
+    for note in seq.notes:
         typer.echo(f"note: {note}", err=True)
 
 
@@ -436,7 +437,7 @@ def eval_(
         raise_user(f"{est}: {len(est_poses)} poses, but {gt} has {len(gt_poses)} (one pose per frame in both)")
     m = evaluate(est_poses, gt_poses)
     if as_json:
-        from .evaluation.report import json_clean
+        from .evaluation.results_io import json_clean
 
         typer.echo(json.dumps(json_clean(m)))  # a metric that cannot be computed is null
         return

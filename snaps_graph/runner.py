@@ -4,7 +4,8 @@ The folder contract: the output folder is checked before the first frame (a file
 a file, or a non-empty folder without ``overwrite`` is a one-line error at once); the files are
 written into a temporary sibling folder ``.NAME.tmp-PID`` that is renamed onto the output folder
 at the end, so a results folder is whole or absent (Ctrl-C or an error deletes the temporary
-folder; ``overwrite`` replaces an old folder whole). One writer per file, metrics.json last::
+folder; ``overwrite`` replaces an old folder whole). One writer per file (``evaluation.results_io``),
+metrics.json last::
 
     poses_vo.txt / .tum        pure VO chain
     poses_snaps.txt / .tum     SNAPS heuristic trajectory (loops = snaps)
@@ -23,10 +24,6 @@ folder; ``overwrite`` replaces an old folder whole). One writer per file, metric
 from __future__ import annotations
 
 import contextlib
-import csv
-import dataclasses
-import io
-import json
 import resource
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -35,15 +32,21 @@ import numpy as np
 
 from .config import Config
 from .errors import SnapsGraphError, interrupted
-from .evaluation.loops import write_candidates_csv
+from .evaluation.latency import records_latency_summary as latency_summary
 from .evaluation.metrics import evaluate
-from .evaluation.report import latency_summary as _latency_summary
-from .evaluation.report import write_metrics_json
-from .io_utils import PREFETCH_FRAMES, atomic_write_text, output_folder, prefetch
+from .evaluation.results_io import (
+    write_candidates_csv,
+    write_frames_csv,
+    write_gt,
+    write_loops_jsonl,
+    write_metrics_json,
+    write_trajectories,
+)
+from .io_utils import PREFETCH_FRAMES, output_folder, prefetch
 from .mapping.outputs import write_map_outputs
 from .pipeline import FrameOutput, RunResult, SlamPipeline, pose_file_frontend
-from .trajectory_io import read_pose_file, write_kitti_poses, write_tum_poses
-from .types import FRAME_COLUMNS, FrameRecord, LoopEvent
+from .trajectory_io import read_pose_file
+from .types import StereoSource
 
 # Exit status of `snaps-graph run` when more than this fraction of the frames was flagged by the
 # front end (the results are written; the run is suspect). See cli.EXIT_MOSTLY_FLAGGED.
@@ -51,7 +54,7 @@ FLAGGED_FRACTION_LIMIT = 0.5
 
 
 def run_sequence(
-    dataset,
+    dataset: StereoSource,
     out_dir: str | Path,
     cfg: Config | None = None,
     *,
@@ -80,7 +83,7 @@ def run_sequence(
     (cfg or Config()).resolved(loops=loops, refine=refine, build_map=build_map)
     frontend = odometry
     if isinstance(odometry, (str, Path)):  # read before the folder opens: a bad file leaves nothing
-        t0_ns = getattr(dataset, "t0_ns", None)
+        t0_ns = dataset.t0_ns
         track = read_pose_file(odometry, odometry_format)
         frontend = pose_file_frontend(track, cfg, dataset.indices, dataset.timestamps, None if t0_ns is None else t0_ns * 1e-9)
     with output_folder(out_dir, overwrite) as tmp:
@@ -93,7 +96,7 @@ def run_sequence(
                 try:
                     out = pipe.process(frame)
                 except SnapsGraphError as exc:  # name the frame's file where the dataset knows it
-                    where = dataset.frame_source(frame.index) if hasattr(dataset, "frame_source") else None
+                    where = dataset.frame_source(frame.index)
                     if where is None:
                         raise
                     raise SnapsGraphError(f"{where}: {exc}") from None
@@ -115,11 +118,9 @@ def write_results(
 
 
 def _write_all(out: Path, pipe: SlamPipeline, result: RunResult, gt_poses: np.ndarray | None) -> dict:
-    for name, poses in result.trajectories.items():
-        write_kitti_poses(out / f"poses_{name}.txt", poses)
-        write_tum_poses(out / f"poses_{name}.tum", poses, result.timestamps)
+    write_trajectories(out, result.trajectories, result.timestamps)
     if gt_poses is not None:
-        write_kitti_poses(out / "poses_gt.txt", gt_poses)
+        write_gt(out, gt_poses)
     write_frames_csv(out / "frames.csv", result.records)
     write_loops_jsonl(out / "loops.jsonl", result.loops)
     if pipe.snaps is not None:  # every similarity SNAPS computed (types.CandidateRecord)
@@ -178,30 +179,6 @@ def mostly_flagged(metrics: dict) -> bool:
 def peak_rss_mb() -> float:
     """Peak resident memory of this process so far, MiB (Linux reports ru_maxrss in KiB)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
-def latency_summary(records: list[FrameRecord]) -> dict:
-    """metrics.json's ``latency_ms`` from the per-frame records (one implementation: the report's)."""
-    cols = ("t_total_ms", "t_vo_ms", "t_loop_ms", "loop_candidates", "loop_closed", "t_graph_ms")
-    return _latency_summary({c: np.array([getattr(r, c) for r in records], float) for c in cols})
-
-
-def frames_csv_text(records: list[FrameRecord]) -> str:
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(FRAME_COLUMNS)
-    for r in records:
-        row = dataclasses.astuple(r)
-        w.writerow([f"{v:.4f}" if isinstance(v, float) and c != "timestamp" else v for c, v in zip(FRAME_COLUMNS, row)])
-    return buf.getvalue()
-
-
-def write_frames_csv(path: str | Path, records: list[FrameRecord]) -> None:
-    atomic_write_text(path, frames_csv_text(records))
-
-
-def write_loops_jsonl(path: str | Path, loops: list[LoopEvent]) -> None:
-    atomic_write_text(path, "".join(json.dumps(lp.to_json()) + "\n" for lp in loops))
 
 
 __all__ = [

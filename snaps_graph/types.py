@@ -1,16 +1,21 @@
 """Data passed between stages (images -> front end -> SNAPS -> graph -> map/evaluation).
 
-Plain dataclasses with numpy fields (and the front end's Protocol); no stage imports another
-stage's internals, only these.
+Plain dataclasses with numpy fields (and the Protocols of the front end and of a stereo
+source); no stage imports another stage's internals, only these.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import Protocol
+from pathlib import Path
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from .camera import StereoCamera
 
 
 @dataclass
@@ -21,6 +26,66 @@ class StereoFrame:
     timestamp: float  # seconds
     left: np.ndarray  # uint8 grey, H x W
     right: np.ndarray  # uint8 grey, H x W
+
+
+class StereoSource(Protocol):
+    """What a run reads from: every reader of ``datasets.open.open_dataset`` and the renderer.
+
+    The first six members are each reader's own; the rest have defaults in ``SequenceBase``,
+    which every reader subclasses, so callers read them without probing."""
+
+    camera: StereoCamera
+
+    @property
+    def indices(self) -> np.ndarray:
+        """The dataset frame number of each frame, in stream order."""
+        ...
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        """Seconds from the first frame, one per frame."""
+        ...
+
+    @property
+    def gt_poses(self) -> np.ndarray | None:
+        """Ground truth of the frames (4x4 each, the first re-based to the identity), or None."""
+        ...
+
+    def __len__(self) -> int: ...
+
+    def __iter__(self) -> Iterator[StereoFrame]: ...
+
+    @property
+    def gt_path(self) -> Path | None: ...
+
+    @property
+    def stereo(self) -> bool: ...
+
+    @property
+    def t0_ns(self) -> int | None: ...
+
+    @property
+    def notes(self) -> Sequence[str]: ...
+
+    def frame_source(self, number: int) -> str | None: ...
+
+    def close(self) -> None: ...
+
+
+class SequenceBase:
+    """The optional members of ``StereoSource`` with their defaults (a reader overrides what it knows)."""
+
+    gt_path: Path | None = None  # the ground-truth file read (an input a run must never write)
+    stereo: bool = True  # False: left images only (the VO needs odometry from elsewhere)
+    t0_ns: int | None = None  # absolute time of timestamp 0 (pose files with absolute stamps)
+    notes: Sequence[str] = ()  # what the reader dropped or assumed, one line each
+
+    def frame_source(self, number: int) -> str | None:
+        """The file frame ``number`` was read from (for error messages); None when unknown."""
+        return None
+
+    def close(self) -> None:
+        """Release what the reader holds open (bag files, devices)."""
 
 
 @dataclass
@@ -148,7 +213,7 @@ FRAME_COLUMNS: tuple[str, ...] = tuple(f.name for f in dataclasses.fields(FrameR
 @dataclass(frozen=True)
 class CandidateRecord:
     """One similarity SNAPS computed: a row of ``candidates.csv`` (columns in field order; the
-    writer and reader are in evaluation/loops.py)."""
+    writer and reader are in evaluation/results_io.py)."""
 
     frame: int  # dataset frame index of the current frame
     reference: int  # ... of the earlier candidate

@@ -24,6 +24,8 @@ from snaps_graph.trajectory_io import (
     write_tum_poses,
 )
 
+ROOT = Path(__file__).resolve().parents[1]
+
 
 # ---- config ----
 def test_config_roundtrip(tmp_path):
@@ -257,3 +259,91 @@ def test_atomic_output_gives_ordinary_files_and_cleans_up(tmp_path):
             tmp.write_bytes(b"half")
             raise RuntimeError("writer failed")
     assert sorted(p.name for p in (tmp_path / "a").iterdir()) == ["m.ply", "x.txt"]  # nothing half-written
+
+
+# ---- package layout ----
+def _module_graph() -> dict[str, set[str]]:
+    """snaps_graph module -> the package modules it imports (anywhere in the file, lazy ones too)."""
+    import ast
+
+    root = Path(__file__).resolve().parents[1] / "snaps_graph"
+    files = {}
+    for f in root.rglob("*.py"):
+        parts = ["snaps_graph", *f.relative_to(root).with_suffix("").parts]
+        files[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = f
+
+    def resolve(name: str) -> str:
+        while name and name not in files:
+            name = name.rpartition(".")[0]
+        return name
+
+    graph: dict[str, set[str]] = {}
+    for mod, f in files.items():
+        pkg = mod.split(".") if f.name == "__init__.py" else mod.split(".")[:-1]
+        deps = set()
+        for node in ast.walk(ast.parse(f.read_text())):
+            if isinstance(node, ast.ImportFrom):
+                if node.level:
+                    full = ".".join(pkg[: len(pkg) - node.level + 1] + ([node.module] if node.module else []))
+                elif node.module and node.module.startswith("snaps_graph"):
+                    full = node.module
+                else:
+                    continue
+                deps |= {resolve(f"{full}.{a.name}") if f"{full}.{a.name}" in files else resolve(full) for a in node.names}
+            elif isinstance(node, ast.Import):
+                deps |= {resolve(a.name) for a in node.names if a.name.startswith("snaps_graph")}
+        graph[mod] = deps - {mod, ""}
+    return graph
+
+
+def test_module_graph_sees_imports():
+    graph = _module_graph()
+    assert "snaps_graph.evaluation.results_io" in graph["snaps_graph.evaluation.report"]
+    assert "snaps_graph.pipeline" in graph["snaps_graph.runner"]
+
+
+def test_no_import_circle_in_the_package():
+    """No module reaches itself through the package's imports (lazy imports count: a circle is one
+    idea split over two files)."""
+    graph = _module_graph()
+    circles = []
+    for start in sorted(graph):
+        seen, stack = set(), [(start, [start])]
+        while stack:
+            mod, path = stack.pop()
+            for dep in sorted(graph.get(mod, ())):
+                if dep == start:
+                    circles.append(" -> ".join([*path, start]))
+                elif dep not in seen:
+                    seen.add(dep)
+                    stack.append((dep, [*path, dep]))
+    assert not circles, circles[:5]
+
+
+def test_every_reader_shares_the_stereo_source_defaults():
+    """Each reader subclasses SequenceBase, so the optional StereoSource members exist on all."""
+    from snaps_graph.datasets.euroc import EurocSequence
+    from snaps_graph.datasets.live import LiveStereo
+    from snaps_graph.datasets.rosbag import RosbagSequence
+    from snaps_graph.datasets.synthetic import SyntheticSequence
+    from snaps_graph.types import SequenceBase
+
+    for reader in (KittiSequence, EurocSequence, RosbagSequence, LiveStereo, SyntheticSequence):
+        assert issubclass(reader, SequenceBase), reader
+    base = SequenceBase()
+    assert (base.gt_path, base.stereo, base.t0_ns, tuple(base.notes), base.frame_source(3)) == (None, True, None, (), None)
+    base.close()
+
+
+def test_no_probing_of_a_dataset():
+    """The StereoSource members are read directly: no getattr/hasattr on a dataset in the package."""
+    import re
+
+    probe = re.compile(r"\b(getattr|hasattr)\((seq|dataset|ds|source|sequence)\b")
+    hits = [
+        f"{f.relative_to(ROOT)}:{i}"
+        for f in sorted((ROOT / "snaps_graph").rglob("*.py"))
+        for i, line in enumerate(f.read_text().splitlines(), 1)
+        if probe.search(line)
+    ]
+    assert not hits, hits

@@ -23,10 +23,9 @@ from snaps_graph.evaluation.loops import (
     evaluate_loops,
     label_pairs,
     pr_curve,
-    read_candidates_csv,
     segments,
-    write_candidates_csv,
 )
+from snaps_graph.evaluation.results_io import read_candidates_csv, write_candidates_csv
 from snaps_graph.types import CANDIDATE_COLUMNS, CandidateRecord
 
 
@@ -203,3 +202,43 @@ def test_tiny_run_writes_candidates_and_loops_cli(tmp_path):
         timeout=120,
     )
     assert bad.returncode == 2 and bad.stderr.startswith("error:")
+
+
+def _straight_run(folder, n: int = 40):
+    """A results folder of a straight 1 m-per-frame drive (no revisit) whose SNAPS compared nothing."""
+    from snaps_graph.evaluation.results_io import write_frames_csv, write_loops_jsonl
+    from snaps_graph.trajectory_io import write_kitti_poses
+    from snaps_graph.types import FrameRecord
+
+    folder.mkdir()
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    poses[:, 2, 3] = np.arange(n, dtype=float)
+    write_kitti_poses(folder / "poses_vo.txt", poses)
+    write_kitti_poses(folder / "poses_gt.txt", poses)
+    rows = [FrameRecord(i, 0.1 * i, 5.0, 4.0, 1, 100, "", 0.01, 0, 0, 0.0, 0.5, 1, 0.0) for i in range(n)]
+    write_frames_csv(folder / "frames.csv", rows)
+    write_loops_jsonl(folder / "loops.jsonl", [])
+    write_candidates_csv(folder / "candidates.csv", [])
+    return folder
+
+
+def test_loops_without_a_compared_pair_say_na(tmp_path):
+    """No pair compared on a drive without a revisit: the recall is n/a with the reason, not 0.000,
+    both in the text `snaps-graph loops` prints and in report.md."""
+    from snaps_graph.evaluation.loops import loops_run, summary_lines
+    from snaps_graph.evaluation.report import compare_run
+
+    run = _straight_run(tmp_path / "run")
+    ev = loops_run(run)
+    assert ev["pairs"] == 0 and ev["revisit_frames"] == 0 and "plot" not in ev
+    lines = summary_lines(ev)
+    assert "max recall at 100% precision: n/a (no revisit in this run)" in lines
+    assert not any("0.000" in line for line in lines if "recall" in line)
+    out = subprocess.run(
+        [sys.executable, "-m", "snaps_graph.cli", "loops", str(run)], capture_output=True, text=True, timeout=120
+    )
+    assert out.returncode == 0, out.stderr
+    assert "n/a (no revisit in this run)" in out.stdout
+    compare_run(run)
+    assert "n/a (no revisit in this run)" in (run / "report.md").read_text()
+    assert not (run / "loops_pr.png").exists()

@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 
 from snaps_graph.errors import SnapsGraphError
+from snaps_graph.evaluation.latency import latency_summary
 from snaps_graph.evaluation.metrics import ate_rmse, kitti_relative_errors, mean_deviation
-from snaps_graph.evaluation.report import compare_run, latency_summary
+from snaps_graph.evaluation.report import compare_run
 from snaps_graph.geometry import inv
 from snaps_graph.trajectory_io import read_kitti_poses, write_kitti_poses
 
@@ -308,3 +309,37 @@ def test_top_view_scale_shows_lateral_drift_and_never_magnifies_jitter(tmp_path)
     poses[:, 2, 3] = np.linspace(0.0, 60.0, 20)
     path = plot_trajectories(tmp_path / "t.png", {"gt": poses, "vo": poses}, loops=[(19, 0)])
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def linked_files(md: str) -> list[str]:
+    """Relative targets of the markdown links and pictures in ``md``."""
+    import re
+
+    return [t for t in re.findall(r"\]\(([^)\s]+)\)", md) if "://" not in t and not t.startswith("#")]
+
+
+@pytest.mark.parametrize("candidates", [False, True])
+def test_every_file_report_md_links_exists(tmp_path, candidates):
+    """With ground truth, no loop and (optionally) a SNAPS that compared no pair: the report links
+    only pictures it wrote (no loops_pr.png without a compared pair)."""
+    from snaps_graph.evaluation.results_io import write_candidates_csv
+
+    gt = np.tile(np.eye(4), (60, 1, 1))
+    gt[:, 2, 3] = np.arange(60) * 1.0
+    write_kitti_poses(tmp_path / "poses_vo.txt", gt)
+    write_kitti_poses(tmp_path / "poses_gt.txt", gt)
+    write_frames_csv(tmp_path / "frames.csv", np.arange(60), None)
+    if candidates:
+        write_candidates_csv(tmp_path / "candidates.csv", [])
+    compare_run(tmp_path)
+    md = (tmp_path / "report.md").read_text()
+    links = linked_files(md)
+    assert "trajectories.png" in links and "errors.png" in links
+    assert ("## Loop closure against ground truth" in md) is candidates
+    missing = [t for t in links if not (tmp_path / t).is_file()]
+    assert not missing, missing
+
+
+def test_every_file_report_md_links_exists_with_a_loop(run07):
+    links = linked_files((run07["run"] / "report.md").read_text())
+    assert links and not [t for t in links if not (run07["run"] / t).is_file()]

@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..types import SequenceBase
 
-class FrameSelection:
+
+class FrameSelection(SequenceBase):
     start: int
     stop: int
     _times_all: np.ndarray

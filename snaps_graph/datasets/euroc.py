@@ -160,6 +160,18 @@ def stereo_rectifier(mav0: Path) -> tuple[StereoRectifier, np.ndarray]:
     return rect, c0["T_BS"]
 
 
+def load_calibration(calib: str | Path):
+    """(camera, None) from a calib.txt of rectified cameras; (None, rectifier) from a folder with
+    EuRoC-style cam0/ and cam1/ sensor.yaml (raw cameras, rectified on the fly)."""
+    p = Path(calib)
+    if p.is_file():
+        return StereoCamera.from_calib_file(p), None
+    mav0 = find_mav0(p) if p.is_dir() else None
+    if mav0 is None:
+        raise SnapsGraphError(f"{p}: not a calib.txt nor a folder with cam0/sensor.yaml and cam1/sensor.yaml")
+    return None, stereo_rectifier(mav0)[0]
+
+
 class MonoUndistorter:
     """cam0 alone: undistorted into a pinhole camera of the same orientation (the rectifier's
     interface, for a monocular sequence: ``rectify`` keeps the empty right image)."""

@@ -20,7 +20,7 @@ import numpy as np
 
 from ..camera import StereoCamera
 from ..errors import SnapsGraphError
-from ..types import StereoFrame
+from ..types import SequenceBase, StereoFrame
 from .rectify import StereoRectifier, to_grey
 
 
@@ -34,7 +34,7 @@ def open_capture(device: str | int):
     return cap
 
 
-class LiveStereo:
+class LiveStereo(SequenceBase):
     """Stereo frames from ``left`` and ``right`` capture objects (anything with ``grab()``,
     ``retrieve()``, ``release()``, like ``cv2.VideoCapture``), or from one side-by-side
     ``left`` when ``right`` is None."""
@@ -70,6 +70,18 @@ class LiveStereo:
 
     def __len__(self) -> int:
         return self.max_frames or 0
+
+    @property
+    def indices(self) -> np.ndarray:
+        raise SnapsGraphError(
+            f"{self.source}: a live source has no frame list before the run (a pose file needs a recorded sequence)"
+        )
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        raise SnapsGraphError(
+            f"{self.source}: a live source has no timestamps before the run (a pose file needs a recorded sequence)"
+        )
 
     def read(self) -> StereoFrame | None:
         """The next stereo frame, or None when a device has no more frames."""

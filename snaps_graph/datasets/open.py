@@ -15,6 +15,7 @@ from pathlib import Path
 
 from ..errors import SnapsGraphError
 from ..io_utils import parse_frame_range
+from ..types import StereoSource
 
 
 def dataset_kind(path: str | Path) -> str:
@@ -46,7 +47,7 @@ def open_dataset(
     left_topic: str | None = None,
     right_topic: str | None = None,
     calib: str | Path | None = None,
-):
+) -> StereoSource:
     """A dataset (``camera``, ``len``, iteration of ``StereoFrame``, ``timestamps``, ``gt_poses``)
     for a KITTI folder, a EuRoC sequence, a ROS 1/2 bag or a live device (``live:DEV[,DEV]``).
     ``calib`` (live sources; bags without CameraInfo): a calib.txt of rectified cameras or a folder
@@ -74,6 +75,7 @@ def open_dataset(
 def open_live(spec: str, frames: str | None = None, calib: str | Path | None = None, capture_factory=None):
     """``live:DEV`` (side by side) or ``live:DEV,DEV`` (left, right); ``frames`` ``A:B`` reads
     B - A frames (``:`` alone or None: until the device stops)."""
+    from .euroc import load_calibration
     from .live import LiveStereo, open_capture
 
     devices = [d for d in spec[len("live:") :].split(",") if d.strip()]
@@ -89,18 +91,3 @@ def open_live(spec: str, frames: str | None = None, calib: str | Path | None = N
     return LiveStereo(
         caps[0], caps[1] if len(caps) == 2 else None, camera=camera, rectifier=rectifier, max_frames=max_frames, source=spec
     )
-
-
-def load_calibration(calib: str | Path):
-    """(camera, None) from a calib.txt of rectified cameras; (None, rectifier) from a folder with
-    EuRoC-style cam0/ and cam1/ sensor.yaml (raw cameras, rectified on the fly)."""
-    from ..camera import StereoCamera
-    from .euroc import find_mav0, stereo_rectifier
-
-    p = Path(calib)
-    if p.is_file():
-        return StereoCamera.from_calib_file(p), None
-    mav0 = find_mav0(p) if p.is_dir() else None
-    if mav0 is None:
-        raise SnapsGraphError(f"{p}: not a calib.txt nor a folder with cam0/sensor.yaml and cam1/sensor.yaml")
-    return None, stereo_rectifier(mav0)[0]

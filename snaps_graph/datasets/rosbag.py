@@ -209,7 +209,7 @@ class RosbagSequence(FrameSelection):
             assert right_topic is not None
             self.rectifier, self.camera = self._make_camera(infos[left_topic], infos[right_topic])
         else:  # the bag's CameraInfo (if any) is ignored
-            from .open import load_calibration
+            from .euroc import load_calibration
 
             camera, self.rectifier = load_calibration(calib)
             self.camera = camera if camera is not None else self.rectifier.camera

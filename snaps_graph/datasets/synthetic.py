@@ -54,7 +54,7 @@ from ..camera import StereoCamera, kitti00_camera
 from ..errors import SnapsGraphError
 from ..io_utils import atomic_output, atomic_write_bytes, parse_frame_range
 from ..trajectory_io import read_kitti_poses, read_times, write_kitti_poses, write_times
-from ..types import StereoFrame
+from ..types import SequenceBase, StereoFrame
 from ._shade import Renderer, sun_direction
 from ._world import SCENES, World, WorldConfig
 
@@ -85,7 +85,7 @@ class RenderedFrame:
     timings_ms: dict[str, float] = field(default_factory=dict)  # "cast", "shade"
 
 
-class SyntheticSequence:
+class SyntheticSequence(SequenceBase):
     """A stereo sequence rendered from a procedural world along ``poses`` (T_world_cam, KITTI axes)."""
 
     def __init__(

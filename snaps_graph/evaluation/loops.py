@@ -1,7 +1,7 @@
 """Loop-closure evaluation as the field reports it (``snaps-graph loops RUN_DIR --gt GT``).
 
-Input: the run's ``candidates.csv`` (every similarity SNAPS computed; its one writer and reader
-are below, its columns ``types.CANDIDATE_COLUMNS``), its
+Input: the run's ``candidates.csv`` (every similarity SNAPS computed; read and written by
+``results_io``, its columns ``types.CANDIDATE_COLUMNS``), its
 ``loops.jsonl`` (the loops accepted) and ground truth. Definitions:
 
 - A compared pair (frame, reference) is **true** when their ground-truth positions lie within
@@ -29,63 +29,17 @@ the PR plot and returns the same dict.
 
 from __future__ import annotations
 
-import csv
-import io
 import json
-from dataclasses import astuple, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import SnapsGraphError
 from ..geometry import wrap_deg, yaw_deg
-from ..io_utils import atomic_write_text
-from ..types import CANDIDATE_COLUMNS, CandidateRecord
-
-# ---------------------------------------------------------------------------------------------
-# candidates.csv: the one writer and reader (columns: types.CANDIDATE_COLUMNS, in field order)
-# ---------------------------------------------------------------------------------------------
-_FLOATS = {"distance_m", "yaw_diff_deg", "q", "correlation", "luminance", "contrast"}
-_BOOLS = {"above_threshold", "verify_tried", "verify_passed", "accepted"}
-
-
-def candidates_csv_text(records: list[CandidateRecord]) -> str:
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(CANDIDATE_COLUMNS)
-    for r in records:
-        w.writerow(
-            f"{v:.6f}" if name in _FLOATS else (int(v) if name in _BOOLS else v) for name, v in zip(CANDIDATE_COLUMNS, astuple(r))
-        )
-    return buf.getvalue()
-
-
-def write_candidates_csv(path: str | Path, records: list[CandidateRecord]) -> None:
-    """Write ``candidates.csv`` atomically (a header only when there are no records)."""
-    atomic_write_text(path, candidates_csv_text(records))
-
-
-def read_candidates_csv(path: str | Path) -> list[CandidateRecord]:
-    """Read a ``candidates.csv``; a missing file, column or malformed cell is a SnapsGraphError."""
-    path = Path(path)
-    if not path.is_file():
-        raise SnapsGraphError(f"{path}: not found (runs with SNAPS write candidates.csv)")
-    with path.open(newline="") as fh:
-        reader = csv.DictReader(fh)
-        missing = [c for c in CANDIDATE_COLUMNS if c not in (reader.fieldnames or [])]
-        if missing:
-            raise SnapsGraphError(f"{path}: missing column(s) {', '.join(missing)}")
-        out = []
-        for lineno, row in enumerate(reader, 2):
-            try:
-                vals: dict = {}
-                for c in CANDIDATE_COLUMNS:
-                    cell = row[c].strip()
-                    vals[c] = float(cell) if c in _FLOATS else (bool(int(cell)) if c in _BOOLS else int(cell))
-            except (ValueError, TypeError, AttributeError):
-                raise SnapsGraphError(f"{path}:{lineno}: malformed row") from None
-            out.append(CandidateRecord(**vals))
-    return out
+from ..types import CandidateRecord
+from .results_io import frame_ids as frame_ids_of
+from .results_io import json_clean, load_gt, read_candidates_csv, read_frames_csv, read_loops
 
 
 @dataclass(frozen=True)
@@ -344,23 +298,21 @@ def loops_run(
 ) -> dict:
     """Evaluate a run folder's loop closure against ground truth; writes the PR plot (default
     RUN_DIR/loops_pr.png) and returns :func:`evaluate_loops`'s dict (with ``plot``)."""
-    from .report import _frame_ids, _load_gt, _read_frames_csv, _read_loops
-
     run = Path(run_dir)
     if not run.is_dir():
         raise SnapsGraphError(f"{run}: run folder not found")
     if not 0 < true_m <= false_m:
         raise SnapsGraphError(f"need 0 < true distance <= false distance, got {true_m} and {false_m}")
     csv_path = run / "frames.csv"
-    cols = _read_frames_csv(csv_path)
+    cols = read_frames_csv(csv_path)
     n = len(next(iter(cols.values())))
-    frame_ids = _frame_ids(cols, n, csv_path)
-    gt, _ = _load_gt(run, gt_path, frame_ids)
+    frame_ids = frame_ids_of(cols, n, csv_path)
+    gt, _ = load_gt(run, gt_path, frame_ids)
     if gt is None:
         raise SnapsGraphError(f"{run}: no ground truth (no poses_gt.txt; pass --gt)")
     records = read_candidates_csv(run / "candidates.csv")
     row_of = {int(f): i for i, f in enumerate(frame_ids)}
-    loops = [(int(lp["frame"]), int(lp["reference"])) for lp in _read_loops(run / "loops.jsonl", row_of)]
+    loops = [(int(lp["frame"]), int(lp["reference"])) for lp in read_loops(run / "loops.jsonl", row_of)]
     loop_cfg, min_sim = _run_loop_settings(run)
     settings = LoopEvalSettings(
         true_m=true_m,
@@ -388,13 +340,20 @@ def summary_lines(ev: dict) -> list[str]:
         return "n/a" if v is None else f"{v:.{nd}f}"
 
     cov = ev["verification_coverage"]
+    if ev["true_pairs"]:
+        recall = (
+            f"max recall at 100% precision: Q alone {f(ev['max_recall_at_100_precision'])} "
+            f"(threshold {f(ev['threshold_at_100_precision'], 4)}, highest false Q {f(ev['q_max_false'], 4)}); "
+            f"Q + verification {f(ev['max_recall_at_100_precision_verified'])} "
+            f"(threshold {f(ev['threshold_at_100_precision_verified'], 4)}, highest verified false Q {f(ev['q_max_false_verified'], 4)})"
+        )
+    else:  # recall has no denominator: a 0 would read as a detector that missed every revisit
+        why = "no revisit in this run" if not ev["revisit_frames"] else "no true pair compared"
+        recall = f"max recall at 100% precision: n/a ({why})"
     return [
         f"pairs compared {ev['pairs']} (true <= {s['true_m']:g} m: {ev['true_pairs']}, false > {s['false_m']:g} m: "
         f"{ev['false_pairs']}, ignored: {ev['ignored_pairs']}) at {ev['frames_compared']} frames",
-        f"max recall at 100% precision: Q alone {f(ev['max_recall_at_100_precision'])} "
-        f"(threshold {f(ev['threshold_at_100_precision'], 4)}, highest false Q {f(ev['q_max_false'], 4)}); "
-        f"Q + verification {f(ev['max_recall_at_100_precision_verified'])} "
-        f"(threshold {f(ev['threshold_at_100_precision_verified'], 4)}, highest verified false Q {f(ev['q_max_false_verified'], 4)})",
+        recall,
         *(
             [
                 f"at the run's min_similarity {ev['min_similarity']:g}: precision {f(ev.get('precision_at_min_similarity'))}, "
@@ -421,16 +380,12 @@ def summary_lines(ev: dict) -> list[str]:
 
 
 def json_text(ev: dict, with_curve: bool = True) -> str:
-    from .report import json_clean
-
     out = dict(ev) if with_curve else {k: v for k, v in ev.items() if k != "curve"}
     return json.dumps(json_clean(out), indent=2)
 
 
 __all__ = [
     "LoopEvalSettings",
-    "read_candidates_csv",
-    "write_candidates_csv",
     "evaluate_loops",
     "label_pairs",
     "loops_run",

@@ -8,8 +8,8 @@ Reads what the pipeline wrote into a run folder and writes, into the same folder
   to the figures;
 - ``trajectories.png`` (top-down, loops drawn on the SNAPS trajectory), ``errors.png`` (position
   error over frames; only with ground truth), ``latency.png`` (box plots, paper Fig. 5);
-  ``loops_pr.png`` and a loop-closure section (evaluation/loops.py) with ground truth and a
-  ``candidates.csv``;
+  a loop-closure section (evaluation/loops.py) with ground truth and a ``candidates.csv``, and
+  ``loops_pr.png`` when SNAPS compared a pair (report.md links only the pictures written);
 - ``metrics.json``, updated atomically: existing keys are kept; ``trajectories`` (name ->
   ``metrics.evaluate`` dict, with ground truth), ``paths`` (frames and path length per
   trajectory), ``latency_ms`` (same shape as the pipeline's: per stage n / median / mean / p95 /
@@ -48,9 +48,6 @@ correction landed closer to the truth.
 
 from __future__ import annotations
 
-import csv
-import io
-import json
 import math
 import tomllib
 from collections.abc import Callable
@@ -61,12 +58,20 @@ import numpy as np
 
 from ..config import LoopConfig
 from ..errors import SnapsGraphError
-from ..geometry import inv
 from ..io_utils import atomic_write_text, read_text
-from ..trajectory_io import read_kitti_poses, read_poses
+from .latency import LATENCY_LABELS, latency_samples, summarise_samples
+from .loops import loops_run, summary_lines
 from .metrics import evaluate, path_length, position_errors
+from .results_io import frame_ids as frame_ids_of
+from .results_io import (
+    load_gt,
+    read_frames_csv,
+    read_loops,
+    read_metrics_json,
+    read_trajectories,
+    write_metrics_json,
+)
 
-TRAJECTORY_NAMES = ("vo", "snaps", "isam2", "batch")  # report order: raw -> heuristic -> optimised
 REFINED_NAMES = ("isam2", "batch")
 TRAJECTORY_LABELS = {
     "vo": "pure visual odometry",
@@ -74,119 +79,11 @@ TRAJECTORY_LABELS = {
     "isam2": "iSAM2 (online) refinement",
     "batch": "batch (offline) refinement",
 }
-BOOL_WORDS = {"true": 1.0, "yes": 1.0, "false": 0.0, "no": 0.0}  # csv cells written from bools
 
 
 # ---------------------------------------------------------------------------------------------
-# Reading the run folder
+# Summaries
 # ---------------------------------------------------------------------------------------------
-def _read_frames_csv(path: Path) -> dict[str, np.ndarray]:
-    """Columns of frames.csv as float arrays (empty or unparsable cells -> NaN, booleans -> 0/1)."""
-    if not path.is_file():
-        raise SnapsGraphError(f"{path}: not found (every run writes frames.csv)")
-    reader = csv.DictReader(io.StringIO(read_text(path, "frames.csv"), newline=""))
-    if not reader.fieldnames:
-        raise SnapsGraphError(f"{path}: empty file, expected a header row")
-    names = [n.strip() for n in reader.fieldnames]
-    cells: dict[str, list[str]] = {n: [] for n in names}
-    try:
-        for row in reader:
-            for raw_name, n in zip(reader.fieldnames, names):
-                cells[n].append((row.get(raw_name) or "").strip())
-    except csv.Error as exc:
-        raise SnapsGraphError(f"{path}: malformed CSV ({exc})") from None
-    return {n: _column(v) for n, v in cells.items()}
-
-
-def _column(values: list[str]) -> np.ndarray:
-    out = np.full(len(values), np.nan)
-    for i, v in enumerate(values):
-        low = v.lower()
-        if low in BOOL_WORDS:
-            out[i] = BOOL_WORDS[low]
-        else:
-            try:
-                out[i] = float(v)
-            except ValueError:
-                pass
-    return out
-
-
-def _frame_ids(cols: dict[str, np.ndarray], n_rows: int, path: Path) -> np.ndarray:
-    if "frame" not in cols:
-        return np.arange(n_rows)
-    f = cols["frame"]
-    if not np.all(np.isfinite(f)) or np.any(f != np.round(f)) or np.any(f < 0):
-        raise SnapsGraphError(f"{path}: the 'frame' column must hold non-negative whole numbers")
-    ids = f.astype(int)
-    if len(np.unique(ids)) != len(ids):
-        raise SnapsGraphError(f"{path}: the 'frame' column repeats a frame index")
-    return ids
-
-
-def _read_trajectories(run: Path) -> dict[str, np.ndarray]:
-    vo_path = run / "poses_vo.txt"
-    if not vo_path.is_file():
-        raise SnapsGraphError(f"{vo_path}: not found (every run writes the VO trajectory)")
-    trajs = {}
-    for name in TRAJECTORY_NAMES:
-        p = run / f"poses_{name}.txt"
-        if p.is_file():
-            trajs[name] = read_kitti_poses(p)
-    n = len(trajs["vo"])
-    for name, poses in trajs.items():
-        if len(poses) != n:
-            raise SnapsGraphError(f"{run / f'poses_{name}.txt'}: {len(poses)} poses, but poses_vo.txt has {n}")
-    return trajs
-
-
-def _rebase(poses: np.ndarray) -> np.ndarray:
-    return np.einsum("ij,njk->nik", inv(poses[0]), poses)
-
-
-def _load_gt(run: Path, gt_path: str | Path | None, frame_ids: np.ndarray) -> tuple[np.ndarray | None, Path | None]:
-    if gt_path is None:
-        p = run / "poses_gt.txt"
-        if not p.is_file():
-            return None, None
-    else:
-        p = Path(gt_path)
-        if not p.is_file():
-            raise SnapsGraphError(f"{p}: ground-truth file not found")
-    gt = read_poses(p)
-    n = len(frame_ids)
-    if len(gt) == n:
-        selected = gt
-    elif frame_ids.max() < len(gt):
-        selected = gt[frame_ids]  # a whole-sequence file: pick the processed frames
-    else:
-        raise SnapsGraphError(
-            f"{p}: {len(gt)} poses cover neither the run's {n} rows nor its dataset frames {frame_ids.min()}..{frame_ids.max()}"
-        )
-    return _rebase(selected), p
-
-
-def _read_loops(path: Path, row_of_frame: dict[int, int]) -> list[dict]:
-    if not path.is_file():
-        return []
-    loops = []
-    for lineno, line in enumerate(read_text(path, "loops.jsonl").splitlines(), 1):
-        if not line.strip():
-            continue
-        try:
-            obj = json.loads(line)
-            frame, ref = int(obj["frame"]), int(obj["reference"])
-        except (json.JSONDecodeError, KeyError, TypeError, ValueError):
-            raise SnapsGraphError(f"{path}:{lineno}: not a loop object with integer 'frame' and 'reference'") from None
-        for key, value in (("frame", frame), ("reference", ref)):
-            if value not in row_of_frame:
-                raise SnapsGraphError(f"{path}:{lineno}: {key} {value} is not a frame of this run (frames.csv)")
-        obj["row"] = row_of_frame[frame]
-        obj["reference_row"] = row_of_frame[ref]
-        loops.append(obj)
-    return loops
-
-
 def _discount_offset(run: Path) -> float:
     """eq. 6's offset (the 3 in gamma = 1 - exp(-(3 - alpha 0.01 s'))) this run used."""
     default = LoopConfig().discount_offset
@@ -201,93 +98,6 @@ def _discount_offset(run: Path) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
         raise SnapsGraphError(f"{p}: loop.discount_offset must be a finite number, got {value!r}")
     return float(value)
-
-
-def _read_metrics_json(path: Path) -> dict:
-    if not path.is_file():
-        return {}
-    try:
-        data = json.loads(read_text(path, "metrics.json"))
-    except json.JSONDecodeError as exc:
-        raise SnapsGraphError(f"{path}: malformed JSON ({exc.msg} at line {exc.lineno})") from None
-    if not isinstance(data, dict):
-        raise SnapsGraphError(f"{path}: expected a JSON object")
-    return data
-
-
-# ---------------------------------------------------------------------------------------------
-# Summaries
-# ---------------------------------------------------------------------------------------------
-def latency_stats(values: np.ndarray) -> dict:
-    """n / median / mean / p95 / max of the finite samples (ms); ``{"n": 0}`` when there is none.
-
-    The shape of every stage in metrics.json's ``latency_ms`` (the pipeline's too, so one reader
-    serves both).
-    """
-    v = np.asarray(values, float)
-    v = v[np.isfinite(v)]
-    if v.size == 0:
-        return {"n": 0}
-    return {
-        "n": int(v.size),
-        "median": float(np.median(v)),
-        "mean": float(v.mean()),
-        "p95": float(np.percentile(v, 95)),
-        "max": float(v.max()),
-    }
-
-
-def _latency_samples(cols: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Latency samples (ms) per stage, keyed as the pipeline's ``latency_ms``; absent columns absent."""
-    out: dict[str, np.ndarray] = {}
-    if "t_total_ms" in cols:
-        out["total"] = cols["t_total_ms"]
-    if "t_vo_ms" in cols:
-        out["vo"] = cols["t_vo_ms"]
-    if "t_loop_ms" in cols:
-        t = cols["t_loop_ms"]
-        if "loop_candidates" in cols:
-            cand = cols["loop_candidates"]
-            out["loop_no_candidate"] = t[cand == 0]
-            out["loop_with_candidates"] = t[cand > 0]
-        else:
-            out["loop_all"] = t
-        if "loop_closed" in cols:
-            out["loop_closed"] = t[cols["loop_closed"] > 0]
-    if "t_graph_ms" in cols:
-        out["graph"] = cols["t_graph_ms"]
-    return out
-
-
-LATENCY_LABELS = {
-    "total": "total per frame",
-    "vo": "front end (VO)",
-    "loop_no_candidate": "SNAPS, no candidate",
-    "loop_with_candidates": "SNAPS, with candidates",
-    "loop_closed": "SNAPS, loop closed",
-    "loop_all": "SNAPS, all frames",
-    "graph": "graph update",
-}
-
-
-def _latency_summary(samples: dict[str, np.ndarray]) -> dict:
-    out: dict[str, Any] = {k: latency_stats(v) for k, v in samples.items()}
-    total = samples.get("total")
-    if total is not None:
-        t = total[np.isfinite(total)]
-        if t.size and t.sum() > 0:
-            out["frames_per_s"] = float(t.size / (t.sum() / 1e3))
-    return out
-
-
-def latency_summary(columns: dict[str, np.ndarray]) -> dict:
-    """metrics.json's ``latency_ms`` from frames.csv-named columns (t_total_ms, t_vo_ms, t_loop_ms,
-    loop_candidates, loop_closed, t_graph_ms; any may be absent): per stage (total, vo,
-    loop_no_candidate, loop_with_candidates, loop_closed, graph) ``latency_stats``, plus
-    frames_per_s from the total. SNAPS is split by candidates because the paper's Fig. 5 is:
-    microseconds without a candidate, tens of milliseconds with one.
-    """
-    return _latency_summary(_latency_samples({k: np.asarray(v, float) for k, v in columns.items()}))
 
 
 def _loop_corrections(loops: list[dict], trajs: dict[str, np.ndarray], gt: np.ndarray | None, gamma0: float) -> list[dict]:
@@ -455,31 +265,6 @@ def _summary_lines(metrics: dict | None, corrections: list[dict], trajs: dict) -
     return lines
 
 
-def json_clean(obj: Any) -> Any:
-    """NaN/inf -> None and numpy scalars -> Python, so metrics.json is strict JSON."""
-    if isinstance(obj, dict):
-        return {str(k): json_clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [json_clean(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return json_clean(obj.tolist())
-    if isinstance(obj, (bool, np.bool_)):
-        return bool(obj)
-    if isinstance(obj, (int, np.integer)):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        return float(obj) if math.isfinite(obj) else None
-    return obj
-
-
-def write_metrics_json(path: str | Path, metrics: dict) -> dict:
-    """The one writer of metrics.json (the runner's and this report's): strict JSON, atomic.
-    Returns what was written (NaN -> null)."""
-    clean = json_clean(metrics)
-    atomic_write_text(path, json.dumps(clean, indent=2) + "\n")
-    return clean
-
-
 def map_section_lines(run_dir: str | Path, map_entry: dict | None) -> list[str]:
     """The ``## Map`` section of report.md from metrics.json's ``map`` entry and the pictures."""
     run = Path(run_dir)
@@ -559,24 +344,24 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accu
     run = Path(run_dir)
     if not run.is_dir():
         raise SnapsGraphError(f"{run}: run folder not found")
-    trajs = _read_trajectories(run)
+    trajs = read_trajectories(run)
     n = len(trajs["vo"])
     csv_path = run / "frames.csv"
-    cols = _read_frames_csv(csv_path)
+    cols = read_frames_csv(csv_path)
     n_rows = len(next(iter(cols.values())))
     if n_rows != n:
         raise SnapsGraphError(f"{csv_path}: {n_rows} rows, but poses_vo.txt has {n} poses")
-    frame_ids = _frame_ids(cols, n, csv_path)
+    frame_ids = frame_ids_of(cols, n, csv_path)
     row_of_frame = {int(f): i for i, f in enumerate(frame_ids)}
-    gt, gt_file = _load_gt(run, gt_path, frame_ids)
-    loops = _read_loops(run / "loops.jsonl", row_of_frame)
+    gt, gt_file = load_gt(run, gt_path, frame_ids)
+    loops = read_loops(run / "loops.jsonl", row_of_frame)
     offset = _discount_offset(run)
     gamma0 = 1.0 - math.exp(-offset)  # eq. 6 at s' = 0
 
     per_traj = {name: evaluate(p, gt) for name, p in trajs.items()} if gt is not None else None
     paths = {name: {"frames": n, "path_length_m": path_length(p)} for name, p in trajs.items()}
-    samples = _latency_samples(cols)
-    latency = _latency_summary(samples)  # = latency_summary(cols), samples kept for the box plot
+    samples = latency_samples(cols)
+    latency = summarise_samples(samples)  # = latency_summary(cols), samples kept for the box plot
     corrections = _loop_corrections(loops, trajs, gt, gamma0)
 
     # Figures
@@ -642,8 +427,6 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accu
         md.append("No loop closed in this run" + ("" if (run / "loops.jsonl").is_file() else " (no loops.jsonl)") + ".")
     loop_eval = None
     if gt is not None and (run / "candidates.csv").is_file():
-        from .loops import loops_run, summary_lines
-
         loop_eval = loops_run(run, gt_path)
         md += ["", "## Loop closure against ground truth", ""]
         md += [f"- {line}" for line in summary_lines(loop_eval)]
@@ -653,11 +436,10 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accu
             "precision-recall over the Q threshold for Q alone and for Q + geometric verification "
             "(`snaps-graph loops RUN_DIR --json` prints the curve).",
             "",
-            "![loop precision-recall](loops_pr.png)",
-            "",
         ]
-        if "plot" in loop_eval:
+        if "plot" in loop_eval:  # no compared pair: no picture, so no link
             figures.append(Path(loop_eval["plot"]).name)
+            md += [f"![loop precision-recall]({figures[-1]})", ""]
     md += ["", "## Latency", ""]
     if samples:
         md += _latency_lines(latency)
@@ -669,7 +451,7 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accu
 
     # metrics.json: keep what is there, (re)write our keys
     metrics_path = run / "metrics.json"
-    metrics = _read_metrics_json(metrics_path)
+    metrics = read_metrics_json(metrics_path)
     map_entry = metrics.get("map") if isinstance(metrics.get("map"), dict) else None
     if map_accuracy is not None:
         from ..config import Config, MapConfig
