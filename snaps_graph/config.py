@@ -1,7 +1,8 @@
 """Typed configuration, one section per stage, loadable from and dumped to TOML.
 
-Every number a user may want to change lives here with its unit in the field name or comment.
-The SNAPS section uses the paper's Table I names (radius, frame distance, discount length,
+Every setting a user may want to change lives here, its one-line help (meaning, unit) and range
+beside it as field metadata (``snaps-graph config`` prints them); settings no user needs to change
+are constants in the module that uses them. The SNAPS section uses the paper's Table I names (radius, frame distance, discount length,
 minimum similarity, inter-frame pause, attempts). A run dumps the full configuration it used to
 ``config.toml`` in its results folder, and ``Config.load`` reads such a file back (unknown keys
 are a one-line error, so a typo never passes silently).

@@ -117,7 +117,7 @@ def dense_disparity(left: np.ndarray, right: np.ndarray, cfg: FrontendConfig, me
     ``method`` defaults to ``cfg.disparity`` when that is a dense method, else "bm_wls":
     - "bm_wls" (the paper's): StereoBM on the left image, a right matcher
       (``cv2.ximgproc.createRightMatcher``) for the right-to-left map, and the WLS filter
-      (``createDisparityWLSFilter``, lambda ``wls_lambda``, sigma ``wls_sigma``) that fuses both
+      (``createDisparityWLSFilter``, lambda ``WLS_LAMBDA``, sigma ``WLS_SIGMA``) that fuses both
       with the left image as guide. WLS fills occlusions along edges, which is why the paper uses
       it: keypoints sit on edges.
     - "sgbm": semi-global matching (``StereoSGBM``, 3-way), no post-filter.
