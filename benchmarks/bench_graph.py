@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from snaps_graph.backend import PoseGraph
+from snaps_graph.backend.noise import ODOM_REF_INLIERS
 from snaps_graph.config import GraphConfig
 from snaps_graph.evaluation.metrics import ate_rmse, kitti_relative_errors, mean_deviation
 from snaps_graph.evaluation.oracle import true_revisit_pairs
@@ -86,7 +87,7 @@ def build(mode: str, cfg: GraphConfig, rel, chain, loops, online: bool) -> tuple
         by_cur.setdefault(j, []).append((i, q, T))
     frame_ms, loop_ms = [], []
     for k in range(len(chain)):
-        g.add_frame(k, chain[k], None if k == 0 else rel[k], inliers=cfg.odom_ref_inliers, ok=True)
+        g.add_frame(k, chain[k], None if k == 0 else rel[k], inliers=ODOM_REF_INLIERS, ok=True)
         for i, q, T in by_cur.get(k, []):
             g.add_loop(i, k, q, T)
         if online:

@@ -19,6 +19,7 @@ import numpy as np
 
 from snaps_graph.config import Config
 from snaps_graph.datasets.kitti import KittiSequence
+from snaps_graph.frontend.loop_features import LOOP_ORB_FEATURES, LOOP_QUERY_FEATURES
 from snaps_graph.frontend.two_view import DETECTOR, _sampson, _skew, two_view_features, two_view_pose
 from snaps_graph.geometry import log_so3, rotation_angle_deg
 
@@ -40,8 +41,8 @@ def control(fe, detector: str) -> None:
         res = []
         for k in range(0, len(seq) - j, 5):
             T = np.linalg.solve(seq._gt_all[k], seq._gt_all[k + j]) @ T_lr
-            a = two_view_features(seq[k].left, fe, fe.loop_orb_features, detector)
-            b = two_view_features(seq[k + j].right, fe, fe.loop_query_features, detector)
+            a = two_view_features(seq[k].left, fe, LOOP_ORB_FEATURES, detector)
+            b = two_view_features(seq[k + j].right, fe, LOOP_QUERY_FEATURES, detector)
             m = two_view_pose(a, b, seq.camera, fe)
             if m is not None:
                 res.append(errors(T, m.R_ref_cur, m.direction))
@@ -83,11 +84,10 @@ def main() -> None:
     ref_frames = [f for f in range(127, 191) if f in number]
     pairs = [(r, c) for c in cur_frames for r in ref_frames if np.linalg.norm(gt[r][:3, 3] - gt[c][:3, 3]) <= args.radius]
     refs = {
-        r: two_view_features(seq[number[r]].left, fe, fe.loop_orb_features, args.detector) for r in sorted({r for r, _ in pairs})
+        r: two_view_features(seq[number[r]].left, fe, LOOP_ORB_FEATURES, args.detector) for r in sorted({r for r, _ in pairs})
     }
     curs = {
-        c: two_view_features(seq[number[c]].left, fe, fe.loop_query_features, args.detector)
-        for c in sorted({c for _, c in pairs})
+        c: two_view_features(seq[number[c]].left, fe, LOOP_QUERY_FEATURES, args.detector) for c in sorted({c for _, c in pairs})
     }
     rot, dirn, base, t_ms = [], [], [], []
     ok_pairs, ok_match, est = [], [], []

@@ -9,6 +9,8 @@ import cv2
 import numpy as np
 
 from snaps_graph.config import FrontendConfig
+from snaps_graph.frontend.depth import WLS_LAMBDA, WLS_SIGMA
+from snaps_graph.frontend.motion import PNP_CONFIDENCE, PNP_ITERATIONS
 from snaps_graph.geometry import inv
 
 
@@ -20,8 +22,8 @@ class NaiveVO:
         self.bm = cv2.StereoBM.create(cfg.num_disparities, cfg.block_size)
         self.rbm = cv2.ximgproc.createRightMatcher(self.bm)
         self.wls = cv2.ximgproc.createDisparityWLSFilter(self.bm)
-        self.wls.setLambda(cfg.wls_lambda)
-        self.wls.setSigmaColor(cfg.wls_sigma)
+        self.wls.setLambda(WLS_LAMBDA)
+        self.wls.setSigmaColor(WLS_SIGMA)
         self.sift = cv2.SIFT.create(cfg.sift_features)
         self.bf = cv2.BFMatcher(cv2.NORM_L2)
         self.prev = None
@@ -63,9 +65,9 @@ class NaiveVO:
                 uv[b[v]],
                 self.cam.K,
                 None,
-                iterationsCount=self.cfg.pnp_iterations,
+                iterationsCount=PNP_ITERATIONS,
                 reprojectionError=self.cfg.pnp_reprojection_px,
-                confidence=self.cfg.pnp_confidence,
+                confidence=PNP_CONFIDENCE,
             )
             ok = bool(res[0])
             if ok:

@@ -514,9 +514,10 @@ def demo(
 def config_cmd(
     path: Optional[Path] = typer.Argument(None, help="A TOML config to check; default: print the defaults."),
 ) -> None:
-    """Print the default configuration (or a checked, completed copy of PATH) as TOML."""
+    """Print the default configuration (or a checked, completed copy of PATH) as TOML, every key
+    with its meaning, unit and range as a comment (the output loads back with -c)."""
     cfg = Config.load(path) if path else Config()
-    typer.echo(cfg.dumps(), nl=False)
+    typer.echo(cfg.dumps(comments=True), nl=False)
 
 
 def raise_user(msg: str) -> None:

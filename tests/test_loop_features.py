@@ -8,6 +8,7 @@ import pytest
 from snaps_graph.backend.pose_graph import PoseGraph, loop_covariance
 from snaps_graph.config import Config, FrontendConfig, GraphConfig
 from snaps_graph.datasets.kitti import KittiSequence
+from snaps_graph.frontend.keyframe import MIN_STEREO_POINTS
 from snaps_graph.frontend.loop_features import LoopFeatureBank, pose_covariance, verify_features
 from snaps_graph.geometry import inv, rotation_angle_deg
 from snaps_graph.pipeline import SlamPipeline
@@ -27,7 +28,7 @@ def test_verify_features_recovers_relative_pose(kitti_pair, detector):
     bank = LoopFeatureBank(seq.camera, cfg)
     bank.add(0, f0)
     ref = bank.reference(0)
-    assert ref is not None and len(ref.uv) >= cfg.min_stereo_points
+    assert ref is not None and len(ref.uv) >= MIN_STEREO_POINTS
     m = verify_features(ref, bank.query(3, f3), f3, seq.camera, cfg)
     assert m is not None and m.inliers >= cfg.min_inliers
     G = inv(seq.gt_poses[0]) @ seq.gt_poses[3]  # 3.6 m forward

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from snaps_graph.backend import PoseGraph, loop_sigma_scale, loop_sigmas, odometry_covariance, odometry_sigmas
+from snaps_graph.backend.noise import LOOP_SIGMA_SCALE_MAX
 from snaps_graph.config import GraphConfig
 from snaps_graph.errors import SnapsGraphError
 
@@ -104,7 +105,7 @@ def test_loop_noise_tightens_with_q():
     qs = np.linspace(0.05, 1.0, 96)
     scales = np.array([loop_sigma_scale(cfg, q) for q in qs])
     assert np.all(np.diff(scales) <= 0)  # monotone: higher Q, tighter (or equal) noise
-    assert scales[-1] == 1.0 and scales[0] == cfg.loop_sigma_scale_max
+    assert scales[-1] == 1.0 and scales[0] == LOOP_SIGMA_SCALE_MAX
     assert loop_sigma_scale(cfg, 0.5) == pytest.approx(2.0)  # default floor 0: sigma = base / Q
     assert loop_sigma_scale(cfg, 0.25) == pytest.approx(4.0)
     # 1 / 0.5 = 2: verified base sigmas (0.01 rad, 0.1 m) doubled, rotation first.

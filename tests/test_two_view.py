@@ -13,6 +13,7 @@ from conftest import SHARED_DATA
 from snaps_graph.camera import kitti00_camera
 from snaps_graph.config import Config
 from snaps_graph.datasets.kitti import KittiSequence
+from snaps_graph.frontend.loop_features import LOOP_QUERY_FEATURES
 from snaps_graph.frontend.two_view import SAME_PLACE_M, loop_measurement, two_view_features, two_view_pose
 from snaps_graph.geometry import log_so3, rotation_angle_deg
 from snaps_graph.types import FrameFeatures
@@ -91,7 +92,7 @@ def test_known_rig_on_real_images():
     seq = KittiSequence(KITTI06, frames="0:1")
     cfg = Config().frontend
     f = seq[0]
-    m = two_view_pose(two_view_features(f.left, cfg), two_view_features(f.right, cfg, cfg.loop_query_features), seq.camera, cfg)
+    m = two_view_pose(two_view_features(f.left, cfg), two_view_features(f.right, cfg, LOOP_QUERY_FEATURES), seq.camera, cfg)
     assert m is not None and m.inliers >= 100
     assert rotation_angle_deg(m.R_ref_cur) < 1.0
     assert _angle_deg(m.direction, np.array([1.0, 0, 0])) < 2.0
@@ -106,7 +107,7 @@ def test_real_revisit_pair():
     idx = {int(f): i for i, f in enumerate(seq.indices)}
     assert seq._gt_all is not None
     cfg = Config().frontend
-    cur = two_view_features(seq[idx[1600]].left, cfg, cfg.loop_query_features)
+    cur = two_view_features(seq[idx[1600]].left, cfg, LOOP_QUERY_FEATURES)
     for r, sign in ((154, 1.0), (158, -1.0)):
         m = two_view_pose(two_view_features(seq[idx[r]].left, cfg), cur, seq.camera, cfg)
         assert m is not None and m.inliers >= 100

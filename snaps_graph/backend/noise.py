@@ -2,10 +2,10 @@
 
 **Odometry noise** (SPEC: "a noise model that reflects the VO quality"). A PnP pose estimated
 from n independent inliers has a covariance that shrinks like 1/n, so its sigmas shrink like
-1/sqrt(n): ``sigma = odom_sigma * clip(sqrt(odom_ref_inliers / max(n, odom_min_inliers)),
-odom_sigma_scale_min, odom_sigma_scale_max)``. ``inliers <= 0`` means "not reported" and gives
+1/sqrt(n): ``sigma = odom_sigma * clip(sqrt(ODOM_REF_INLIERS / max(n, ODOM_MIN_INLIERS)),
+ODOM_SIGMA_SCALE_MIN, ODOM_SIGMA_SCALE_MAX)``. ``inliers <= 0`` means "not reported" and gives
 the reference sigmas. A flagged step (``ok=False``: the front end fell back on a
-constant-velocity guess) is multiplied by ``flagged_sigma_scale`` so loops can bend it freely.
+constant-velocity guess) is multiplied by ``FLAGGED_SIGMA_SCALE`` so loops can bend it freely.
 A step that carries the front end's stereo-BA covariance (``VOResult.cov``)
 uses it instead, scaled by ``odom_cov_scale`` and floored by ``odom_cov_floor_*`` (:func:`odometry_covariance`).
 
@@ -14,7 +14,7 @@ similarity, not a calibrated probability; what it tells us is how far the match 
 acceptance threshold. We take the margin above a floor ``q0 = loop_q_floor`` and let the
 information 1/sigma^2 grow with the square of that margin, full weight at Q = 1::
 
-    scale(Q) = clip((1 - q0) / (Q - q0), 1, loop_sigma_scale_max)   (scale_max when Q <= q0)
+    scale(Q) = clip((1 - q0) / (Q - q0), 1, LOOP_SIGMA_SCALE_MAX)   (scale_max when Q <= q0)
     sigma(Q) = base_sigma * scale(Q)
 
 The default q0 = 0 suits the exact UIQI, where true revisits score 0.15-0.6: sigma = base / Q,
@@ -31,21 +31,29 @@ import numpy as np
 
 from ..config import GraphConfig
 
+ODOM_MIN_INLIERS = 20  # inlier counts below this count as this many
+UNVERIFIED_SIGMA_ROT_RAD = 0.5  # rotation sigma of an unverified loop (same-place assumption), rad
+ODOM_REF_INLIERS = 200  # a VO step's sigmas are odom_sigma_* at this many inliers
+ODOM_SIGMA_SCALE_MIN = 0.5  # clamp of the inlier scale sqrt(ODOM_REF_INLIERS / inliers)
+ODOM_SIGMA_SCALE_MAX = 4.0
+FLAGGED_SIGMA_SCALE = 100.0  # a flagged VO step's sigmas are this much looser
+LOOP_SIGMA_SCALE_MAX = 10.0  # clip of a loop's Q scale (1 - q0) / (Q - q0)
+
 
 def odometry_sigmas(cfg: GraphConfig, inliers: int, ok: bool) -> np.ndarray:
     """Sigmas (rot rad x3, trans m x3) of one VO step: see the module docstring.
 
-    ``sqrt(odom_ref_inliers / max(inliers, odom_min_inliers))`` clamped to
-    ``[odom_sigma_scale_min, odom_sigma_scale_max]``; ``inliers <= 0`` (not reported) -> 1;
-    a flagged step is further multiplied by ``flagged_sigma_scale``.
+    ``sqrt(ODOM_REF_INLIERS / max(inliers, ODOM_MIN_INLIERS))`` clamped to
+    ``[ODOM_SIGMA_SCALE_MIN, ODOM_SIGMA_SCALE_MAX]``; ``inliers <= 0`` (not reported) -> 1;
+    a flagged step is further multiplied by ``FLAGGED_SIGMA_SCALE``.
     """
     if inliers > 0:
-        scale = math.sqrt(cfg.odom_ref_inliers / max(inliers, cfg.odom_min_inliers, 1))
-        scale = min(max(scale, cfg.odom_sigma_scale_min), cfg.odom_sigma_scale_max)
+        scale = math.sqrt(ODOM_REF_INLIERS / max(inliers, ODOM_MIN_INLIERS, 1))
+        scale = min(max(scale, ODOM_SIGMA_SCALE_MIN), ODOM_SIGMA_SCALE_MAX)
     else:
         scale = 1.0
     if not ok:
-        scale *= cfg.flagged_sigma_scale
+        scale *= FLAGGED_SIGMA_SCALE
     return scale * np.array([cfg.odom_sigma_rot_rad] * 3 + [cfg.odom_sigma_trans_m] * 3)
 
 
@@ -66,13 +74,13 @@ def odometry_covariance(cfg: GraphConfig, cov: np.ndarray | None) -> np.ndarray 
 
 
 def loop_sigma_scale(cfg: GraphConfig, q: float) -> float:
-    """UIQI-to-noise mapping: ``clip((1 - q0) / (Q - q0), 1, loop_sigma_scale_max)``, q0 =
+    """UIQI-to-noise mapping: ``clip((1 - q0) / (Q - q0), 1, LOOP_SIGMA_SCALE_MAX)``, q0 =
     ``loop_q_floor``. 1 at Q = 1, growing as Q falls toward q0 (information ~ (Q - q0)^2)."""
     q0 = cfg.loop_q_floor
     margin = min(float(q), 1.0) - q0
     if margin <= 0.0:
-        return float(cfg.loop_sigma_scale_max)
-    return float(min(max((1.0 - q0) / margin, 1.0), cfg.loop_sigma_scale_max))
+        return float(LOOP_SIGMA_SCALE_MAX)
+    return float(min(max((1.0 - q0) / margin, 1.0), LOOP_SIGMA_SCALE_MAX))
 
 
 def loop_sigmas(cfg: GraphConfig, q: float, verified: bool) -> np.ndarray:
@@ -80,7 +88,7 @@ def loop_sigmas(cfg: GraphConfig, q: float, verified: bool) -> np.ndarray:
     if verified:
         base = [cfg.loop_sigma_rot_rad] * 3 + [cfg.loop_sigma_trans_m] * 3
     else:
-        base = [cfg.unverified_sigma_rot_rad] * 3 + [cfg.unverified_sigma_trans_m] * 3
+        base = [UNVERIFIED_SIGMA_ROT_RAD] * 3 + [cfg.unverified_sigma_trans_m] * 3
     return loop_sigma_scale(cfg, q) * np.array(base)
 
 

@@ -21,7 +21,7 @@ Decisions, and why:
 * **Robust kernel.** Loop factors (never odometry) sit under ``noiseModel.Robust`` with a Cauchy
   or Huber m-estimator, so one false SNAPS match cannot tear the trajectory. GTSAM applies the
   kernel to the norm of the whole whitened 6-vector, and a perfect inlier's norm is already
-  ~sqrt(6) = 2.4, so the width ``robust_param`` is 3 (k = 1 cut true loops to ~15% weight and
+  ~sqrt(6) = 2.4, so the width ``ROBUST_PARAM`` is 3 (k = 1 cut true loops to ~15% weight and
   left a square test loop unclosed). Cauchy is the default: its influence falls off for large
   residuals, whereas Huber's stays constant (on the square test a false loop moved the
   result 0.006 m under Cauchy, 0.5 m under Huber, 9.9 m without a kernel).
@@ -32,7 +32,7 @@ Decisions, and why:
   iSAM2 takes one Gauss-Newton step per update, and a robust loop is an IRLS problem, so a fresh
   loop is only partly applied; later frames' updates finish it (on KITTI 00, extra iterations at
   loop time cost 4-10x the loop update and changed the final ATE by < 1 mm), so they are off by
-  default (``isam2_loop_iterations``) and :meth:`PoseGraph.converge` iterates once at the end of
+  default (``ISAM2_LOOP_ITERATIONS``) and :meth:`PoseGraph.converge` iterates once at the end of
   a run. The full estimate is O(N), so :meth:`PoseGraph.estimates` computes it lazily and caches
   it until the next update; :meth:`update` checks only the newest pose for finiteness.
 * **Failures never raise.** gtsam's C++ exceptions (IndeterminantLinearSystemException, ...)
@@ -64,6 +64,15 @@ from ._values import array_to_values as _array_to_values
 from ._values import to_pose3 as _to_pose3
 from ._values import values_to_array as _values_to_array
 from .noise import loop_covariance, loop_sigmas, odometry_covariance, odometry_sigmas
+
+PRIOR_SIGMA_ROT_RAD = 1e-4  # sigma of the first pose's prior, rad
+PRIOR_SIGMA_TRANS_M = 1e-3  # sigma of the first pose's prior, m
+ROBUST_PARAM = 3.0  # robust kernel width on a loop's whitened 6-vector norm (an inlier's is ~2.4)
+ISAM2_RELINEARIZE_THRESHOLD = 0.01  # iSAM2 relinearisation threshold
+ISAM2_RELINEARIZE_SKIP = 1  # iSAM2 relinearises every this many updates
+ISAM2_LOOP_ITERATIONS = 0  # extra iSAM2 steps after an update with a loop (later updates converge it; converge() finishes)
+ISAM2_FINAL_ITERATIONS = 10  # PoseGraph.converge(): at most this many extra iSAM2 steps
+BATCH_MAX_ITERATIONS = 100  # batch Levenberg-Marquardt iterations
 
 MODES = ("none", "isam2", "batch")  # graph.refine's values but "both" (= isam2 here + optimize_batch)
 
@@ -220,7 +229,7 @@ class PoseGraph:
         T = _check_pose(initial_pose, f"graph frame {k} initial pose")
         pose = _to_pose3(T)
         if k == 0:
-            sig = np.array([self.cfg.prior_sigma_rot_rad] * 3 + [self.cfg.prior_sigma_trans_m] * 3)
+            sig = np.array([PRIOR_SIGMA_ROT_RAD] * 3 + [PRIOR_SIGMA_TRANS_M] * 3)
             factor = gtsam.PriorFactorPose3(0, pose, gtsam.noiseModel.Diagonal.Sigmas(sig))
             self.stats.n_prior_factors += 1
         else:
@@ -305,9 +314,9 @@ class PoseGraph:
             noise = gtsam.noiseModel.Diagonal.Sigmas(loop.sigmas)
         if robust and self.cfg.robust_kernel != "none":
             if self.cfg.robust_kernel == "cauchy":
-                m = gtsam.noiseModel.mEstimator.Cauchy.Create(self.cfg.robust_param)
+                m = gtsam.noiseModel.mEstimator.Cauchy.Create(ROBUST_PARAM)
             else:
-                m = gtsam.noiseModel.mEstimator.Huber.Create(self.cfg.robust_param)
+                m = gtsam.noiseModel.mEstimator.Huber.Create(ROBUST_PARAM)
             noise = gtsam.noiseModel.Robust.Create(m, noise)
         return gtsam.BetweenFactorPose3(loop.ref, loop.cur, loop.measurement, noise)
 
@@ -324,8 +333,8 @@ class PoseGraph:
     def _new_isam2(self) -> gtsam.ISAM2:
         p = gtsam.ISAM2Params()
         p.setFactorization("QR")
-        p.setRelinearizeThreshold(self.cfg.isam2_relinearize_threshold)
-        p.relinearizeSkip = self.cfg.isam2_relinearize_skip
+        p.setRelinearizeThreshold(ISAM2_RELINEARIZE_THRESHOLD)
+        p.relinearizeSkip = ISAM2_RELINEARIZE_SKIP
         return gtsam.ISAM2(p)
 
     def update(self) -> float:
@@ -340,7 +349,7 @@ class PoseGraph:
         try:
             self._isam.update(self._pending_factors, self._pending_values)
             if has_loop:
-                self._iterate(self.cfg.isam2_loop_iterations)
+                self._iterate(ISAM2_LOOP_ITERATIONS)
             newest = self._isam.calculateEstimatePose3(k).matrix()
             if not np.all(np.isfinite(newest)):
                 raise RuntimeError("non-finite estimate after update")
@@ -369,7 +378,7 @@ class PoseGraph:
 
     def converge(self, max_iterations: int | None = None) -> float:
         """isam2 mode: flush pending factors, then iterate to convergence (at most
-        ``max_iterations``, default ``isam2_final_iterations``); returns the time in ms. Call it
+        ``max_iterations``, default ``ISAM2_FINAL_ITERATIONS``); returns the time in ms. Call it
         once at the end of a run: online, later frames' updates converge earlier loops anyway,
         but a loop near the last frame would otherwise stay half-applied. No-op in other modes."""
         if self._isam is None:
@@ -378,7 +387,7 @@ class PoseGraph:
         self.update()
         if self._isam is None:  # the flush failed and switched iSAM2 off
             return (time.perf_counter() - t0) * 1e3
-        n = self.cfg.isam2_final_iterations if max_iterations is None else max_iterations
+        n = ISAM2_FINAL_ITERATIONS if max_iterations is None else max_iterations
         try:
             self._iterate(n)
             newest = self._isam.calculateEstimatePose3(self._n_in_isam - 1).matrix()
@@ -440,7 +449,7 @@ class PoseGraph:
         k = len(self._initial) - 1
         try:
             lm = gtsam.LevenbergMarquardtParams()
-            lm.setMaxIterations(self.cfg.batch_max_iterations)
+            lm.setMaxIterations(BATCH_MAX_ITERATIONS)
             graph, _ = self._graph(robust=True)
             opt = gtsam.LevenbergMarquardtOptimizer(graph, self._initial_values, lm)
             result = opt.optimize()

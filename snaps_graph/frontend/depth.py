@@ -23,6 +23,16 @@ from ..camera import StereoCamera
 from ..config import FrontendConfig, MapConfig
 from ..errors import SnapsGraphError
 
+STEREO_WINDOW_PX = 11  # sparse stereo LK window, pixels
+STEREO_LEVELS = 4  # sparse stereo LK pyramid levels (disparities up to ~100 px near the car)
+STEREO_MAX_DY_PX = 1.0  # a stereo match may leave its row by at most this (rectified pair)
+STEREO_LR_CHECK_PX = 0.5  # the right-to-left re-track must land this close
+SGBM_BLOCK_SIZE = 5  # front-end SGBM block size, pixels (odd)
+WLS_LAMBDA = 8000.0  # WLS filter smoothness
+WLS_SIGMA = 1.5  # WLS filter colour sensitivity
+DEPTH_TEXTURE_THRESHOLD = 10  # map StereoBM: minimum local texture (prefiltered sum)
+DEPTH_SPECKLE_RANGE_PX = 1.0  # map speckle filter: neighbours within this disparity form one region
+
 DENSE_METHODS = ("bm_wls", "sgbm")  # the dense values of FrontendConfig.disparity
 MAP_DEPTH_METHODS = ("bm", "sgbm")  # MapConfig.depth_method
 
@@ -107,7 +117,7 @@ def dense_disparity(left: np.ndarray, right: np.ndarray, cfg: FrontendConfig, me
     ``method`` defaults to ``cfg.disparity`` when that is a dense method, else "bm_wls":
     - "bm_wls" (the paper's): StereoBM on the left image, a right matcher
       (``cv2.ximgproc.createRightMatcher``) for the right-to-left map, and the WLS filter
-      (``createDisparityWLSFilter``, lambda ``wls_lambda``, sigma ``wls_sigma``) that fuses both
+      (``createDisparityWLSFilter``, lambda ``WLS_LAMBDA``, sigma ``WLS_SIGMA``) that fuses both
       with the left image as guide. WLS fills occlusions along edges, which is why the paper uses
       it: keypoints sit on edges.
     - "sgbm": semi-global matching (``StereoSGBM``, 3-way), no post-filter.
@@ -120,13 +130,13 @@ def dense_disparity(left: np.ndarray, right: np.ndarray, cfg: FrontendConfig, me
         bm = cv2.StereoBM.create(cfg.num_disparities, cfg.block_size)
         right_matcher = cv2.ximgproc.createRightMatcher(bm)
         wls = cv2.ximgproc.createDisparityWLSFilter(bm)
-        wls.setLambda(cfg.wls_lambda)
-        wls.setSigmaColor(cfg.wls_sigma)
+        wls.setLambda(WLS_LAMBDA)
+        wls.setSigmaColor(WLS_SIGMA)
         disp_l = bm.compute(left, right)
         disp_r = right_matcher.compute(right, left)
         disp16 = wls.filter(disp_l, left, disparity_map_right=disp_r)
     elif method == "sgbm":
-        b = cfg.sgbm_block_size
+        b = SGBM_BLOCK_SIZE
         sgbm = cv2.StereoSGBM.create(
             minDisparity=0,
             numDisparities=cfg.num_disparities,
@@ -203,7 +213,7 @@ def map_depth(
     b = mcfg.depth_block_size
     if mcfg.depth_method == "bm":
         matcher = cv2.StereoBM.create(ndisp, b)
-        matcher.setTextureThreshold(int(mcfg.depth_texture_threshold))
+        matcher.setTextureThreshold(int(DEPTH_TEXTURE_THRESHOLD))
         matcher.setUniquenessRatio(int(mcfg.depth_uniqueness))
     else:
         # SGBM's own left-right check (disp12MaxDiff) reuses its cost volume: no second match
@@ -242,7 +252,7 @@ def map_depth(
         valid &= (hi - lo) <= mcfg.depth_edge_ratio * d
     if mcfg.depth_speckle_px > 0:
         d16 = np.where(valid, disp_l, np.int16(-16)).astype(np.int16)
-        cv2.filterSpeckles(d16, -16, int(mcfg.depth_speckle_px), int(round(16 * mcfg.depth_speckle_range_px)))
+        cv2.filterSpeckles(d16, -16, int(mcfg.depth_speckle_px), int(round(16 * DEPTH_SPECKLE_RANGE_PX)))
         valid &= d16 > 0
     if offset_px != 0.0:  # the offset at the working size, each pixel's gain at its right column
         vv, uu = np.nonzero(valid)
@@ -275,19 +285,19 @@ def sparse_disparity(
 ) -> np.ndarray:
     """Disparity (float32 pixels, 0 = no match) of left-image points ``uv`` (N, 2).
 
-    Each point is tracked into the right image with pyramidal LK (window ``stereo_window_px``,
-    ``stereo_levels`` pyramid levels), starting from ``u - guess_px`` when a disparity guess is
+    Each point is tracked into the right image with pyramidal LK (window ``STEREO_WINDOW_PX``,
+    ``STEREO_LEVELS`` pyramid levels), starting from ``u - guess_px`` when a disparity guess is
     given (the previous frame's disparity of a tracked point: it changes little between frames,
     so LK starts next to the answer), then with ``stereo_guess_levels`` pyramid levels. A match
-    is kept when LK converged, it stays within ``stereo_max_dy_px`` of the same row (rectified
-    pair), the disparity is positive, and, if ``stereo_lr_check_px`` > 0, tracking the right
+    is kept when LK converged, it stays within ``STEREO_MAX_DY_PX`` of the same row (rectified
+    pair), the disparity is positive, and, if ``STEREO_LR_CHECK_PX`` > 0, tracking the right
     point back lands within that many pixels of the left point.
     """
     uv = np.ascontiguousarray(uv, dtype=np.float32).reshape(-1, 2)
     n = len(uv)
     if n == 0:
         return np.zeros(0, np.float32)
-    win = (cfg.stereo_window_px, cfg.stereo_window_px)
+    win = (STEREO_WINDOW_PX, STEREO_WINDOW_PX)
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
     flags = 0
     init = None
@@ -302,16 +312,16 @@ def sparse_disparity(
         uv.reshape(-1, 1, 2),
         None if init is None else init.reshape(-1, 1, 2),
         winSize=win,
-        maxLevel=cfg.stereo_levels if init is None else min(cfg.stereo_levels, cfg.stereo_guess_levels),
+        maxLevel=STEREO_LEVELS if init is None else min(STEREO_LEVELS, cfg.stereo_guess_levels),
         criteria=crit,
         flags=flags,
     )
     p1 = p1.reshape(-1, 2)
     d = uv[:, 0] - p1[:, 0]
     ok = (st.reshape(-1) == 1) & np.all(np.isfinite(p1), axis=1)
-    ok &= np.abs(p1[:, 1] - uv[:, 1]) <= cfg.stereo_max_dy_px
+    ok &= np.abs(p1[:, 1] - uv[:, 1]) <= STEREO_MAX_DY_PX
     ok &= d > 0
-    if cfg.stereo_lr_check_px > 0 and np.any(ok):
+    if STEREO_LR_CHECK_PX > 0 and np.any(ok):
         idx = np.flatnonzero(ok)
         back, st2, _ = cv2.calcOpticalFlowPyrLK(
             right,
@@ -324,7 +334,7 @@ def sparse_disparity(
             flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
         )
         err = np.linalg.norm(back.reshape(-1, 2) - uv[idx], axis=1)
-        bad = (st2.reshape(-1) != 1) | ~(err <= cfg.stereo_lr_check_px)
+        bad = (st2.reshape(-1) != 1) | ~(err <= STEREO_LR_CHECK_PX)
         ok[idx[bad]] = False
     return np.where(ok, d, 0.0).astype(np.float32)
 

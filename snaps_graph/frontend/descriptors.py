@@ -13,7 +13,7 @@ from ..config import FrontendConfig
 from ..types import StereoFrame
 from . import depth as depth_mod
 from . import features as feat
-from .keyframe import Keyframe, Stereo, conclude, make_keyframe, reject
+from .keyframe import MIN_STEREO_POINTS, Keyframe, Stereo, conclude, make_keyframe, reject
 from .motion import Flag, pnp_ransac, refine_motion
 from .threads import Workers
 from .tracking import Estimate
@@ -70,7 +70,7 @@ class DescriptorMatcher:
         z, disp, timings["depth"] = depth_task() if depth_future is None else depth_future.result()
         kf = make_keyframe(frame, uv, z, disp, desc, sharp, cam, cfg, timings)
         if first:
-            if len(kf.uv) < cfg.min_stereo_points:
+            if len(kf.uv) < MIN_STEREO_POINTS:
                 raise Flag("too few keypoints with stereo depth")
             return kf, np.eye(4), 0, 0, None
         if ref is None:

@@ -20,6 +20,9 @@ import numpy as np
 
 from ..config import FrontendConfig
 
+KLT_LEVELS = 3  # KLT pyramid levels
+KLT_BIAS_MAX_PX = 0.5  # a window-bias re-fit that moves a track farther than this keeps the plain position
+
 
 def _kp_arrays(kps, desc) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Keypoints as (uv float32 (N,2), response float32 (N,)) plus descriptors, in a fixed order.
@@ -183,7 +186,7 @@ def track_klt(
         uv.reshape(-1, 1, 2),
         init,
         winSize=(cfg.klt_window_px, cfg.klt_window_px),
-        maxLevel=cfg.klt_levels,
+        maxLevel=KLT_LEVELS,
         criteria=crit,
         flags=flags,
     )
@@ -226,7 +229,7 @@ def _window_extrapolated(
         flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
     )
     diff = p1[sel] - p2.reshape(-1, 2)
-    good = (st.reshape(-1) == 1) & np.all(np.abs(diff) <= cfg.klt_bias_max_px, axis=1)
+    good = (st.reshape(-1) == 1) & np.all(np.abs(diff) <= KLT_BIAS_MAX_PX, axis=1)
     m1, m2 = window_moment(w1), window_moment(w2)
     out = p1.copy()
     out[sel[good]] -= m1 / (m1 - m2) * diff[good]

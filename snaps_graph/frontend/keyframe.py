@@ -19,6 +19,8 @@ from .depth import correct_disparity
 from .motion import Flag, check_motion
 from .threads import Workers
 
+MIN_STEREO_POINTS = 40  # a frame with fewer keypoints with depth cannot be a reference
+
 
 @dataclass
 class Keyframe:
@@ -103,14 +105,14 @@ def make_keyframe(
 
 def reject(kf: Keyframe, failure: str, cfg: FrontendConfig) -> NoReturn:
     """Flag the frame; its keyframe may still be the next reference when it has enough depth."""
-    raise Flag(failure, kf if len(kf.uv) >= cfg.min_stereo_points else None)
+    raise Flag(failure, kf if len(kf.uv) >= MIN_STEREO_POINTS else None)
 
 
 def conclude(kf: Keyframe, T_cur_ref: np.ndarray | None, n_inl: int, gap: int, failure: str, cfg: FrontendConfig) -> np.ndarray:
     """T_ref_cur of an accepted frame, else Flag. Motion problems are reported first; a frame whose
     own stereo failed (a swapped or broken pair) is flagged even when PnP succeeded, since its
     depth, and so its next step, cannot be trusted."""
-    usable = len(kf.uv) >= cfg.min_stereo_points
+    usable = len(kf.uv) >= MIN_STEREO_POINTS
     if T_cur_ref is None:
         reject(kf, failure, cfg)
     try:
@@ -118,5 +120,5 @@ def conclude(kf: Keyframe, T_cur_ref: np.ndarray | None, n_inl: int, gap: int, f
     except Flag as flag:
         raise Flag(flag.reason, kf if usable else None) from None
     if not usable:
-        raise Flag(f"too few keypoints with stereo depth ({len(kf.uv)} < {cfg.min_stereo_points})")
+        raise Flag(f"too few keypoints with stereo depth ({len(kf.uv)} < {MIN_STEREO_POINTS})")
     return T_ref_cur

@@ -21,6 +21,8 @@ from .keyframe import Keyframe
 from .local_ba import LocalBundleAdjuster
 from .offset import DisparityOffsetEstimator
 
+LBA_CHAIN_SCALE = 1.0  # multiplier of the chain step's covariance in the local-BA window
+
 
 def chain_information(cov: np.ndarray, axes: str) -> np.ndarray:
     """Information (6x6, [rotation, translation]) of the chain's step between keyframes for
@@ -75,7 +77,7 @@ class LocalBAScheduler:
         chain = None
         if self._chain_cov is not None and self._prev_pose is not None and self.cfg.lba_chain != "off":
             N = np.linalg.solve(pose, self._prev_pose)  # T_cur_prevkf along the chain
-            chain = (N, chain_information(self._chain_cov * self.cfg.lba_chain_scale, self.cfg.lba_chain))
+            chain = (N, chain_information(self._chain_cov * LBA_CHAIN_SCALE, self.cfg.lba_chain))
         self._chain_cov = np.zeros((6, 6))
         pose = self.lba.add_keyframe(index, pose, kf.ids, kf.uv, kf.disp, chain)
         timings["lba"] = (time.perf_counter() - t0) * 1000.0

@@ -29,7 +29,20 @@ from ..geometry import inv, rotation_angle_deg
 from ..types import FrameFeatures, StereoFrame
 from .depth import correct_disparity, sparse_disparity
 from .features import match_descriptors
+from .keyframe import MIN_STEREO_POINTS
 from .motion import pnp_ransac, pose_from_rvec
+
+LOOP_ORB_LEVELS = 8  # ORB pyramid levels of the loop keypoints
+LOOP_ORB_SCALE = 1.2  # ORB pyramid ratio between levels
+LOOP_ORB_FAST_THRESHOLD = 20  # ORB FAST threshold
+LOOP_ORB_UPRIGHT = True  # descriptors at angle 0 (the cameras do not roll)
+LOOP_RATIO_TEST = 0.8  # Lowe's ratio for loop matches
+LOOP_DEPTH_MIN_RATIO = 0.5  # at least this fraction of the inliers with a current disparity must agree with the predicted one
+LOOP_MIN_SIGMA_PX = 0.5  # floor of the reprojection sigma in a loop's covariance, pixels
+VERIFY_MAX_TRANSLATION_M = 30.0  # a verified relative pose farther than this is implausible
+VERIFY_MAX_ROTATION_DEG = 90.0  # a verified relative pose turned more than this is implausible
+LOOP_ORB_FEATURES = 1000  # loop keypoints per reference frame (before the stereo check)
+LOOP_QUERY_FEATURES = 1500  # loop keypoints of the current frame when verifying
 
 
 @dataclass
@@ -47,12 +60,12 @@ def detect_loop_keypoints(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Multi-scale keypoints for loops: (uv float32 (N,2), descriptors, size float32 (N,)).
 
-    ``loop_detector`` "orb": ORB's own pyramid (``loop_orb_levels`` levels, ratio
-    ``loop_orb_scale``), descriptors computed upright (angle 0: the cameras do not roll, and
+    ``loop_detector`` "orb": ORB's own pyramid (``LOOP_ORB_LEVELS`` levels, ratio
+    ``LOOP_ORB_SCALE``), descriptors computed upright (angle 0: the cameras do not roll, and
     skipping the orientation makes descriptors of a place seen again more alike); "sift": SIFT
     from the image's own resolution. Strongest first, ties by position (deterministic).
     """
-    n = cfg.loop_orb_features if n is None else n
+    n = LOOP_ORB_FEATURES if n is None else n
     if cfg.loop_detector == "sift":
         sift = cv2.SIFT.create(n)
         half = cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2), interpolation=cv2.INTER_AREA)
@@ -64,13 +77,11 @@ def detect_loop_keypoints(
         resp = np.array([k.response for k in kps], np.float32)
         order = np.lexsort((uv[:, 1], uv[:, 0], -resp))
         return uv[order], np.ascontiguousarray(desc[order], np.float32), size[order]
-    orb = cv2.ORB.create(
-        nfeatures=n, scaleFactor=cfg.loop_orb_scale, nlevels=cfg.loop_orb_levels, fastThreshold=cfg.loop_orb_fast_threshold
-    )
+    orb = cv2.ORB.create(nfeatures=n, scaleFactor=LOOP_ORB_SCALE, nlevels=LOOP_ORB_LEVELS, fastThreshold=LOOP_ORB_FAST_THRESHOLD)
     kps = orb.detect(img, None)
     if not kps:
         return np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8), np.zeros(0, np.float32)
-    if cfg.loop_orb_upright:
+    if LOOP_ORB_UPRIGHT:
         kps = [cv2.KeyPoint(k.pt[0], k.pt[1], k.size, 0.0, k.response, k.octave, i) for i, k in enumerate(kps)]
     else:
         for i, k in enumerate(kps):
@@ -89,14 +100,14 @@ def detect_loop_keypoints(
 
 def _subpixel(img: np.ndarray, uv: np.ndarray, octave: np.ndarray, cfg: FrontendConfig) -> np.ndarray:
     """FAST corners found on a pyramid level sit on that level's pixel grid (up to
-    ``loop_orb_scale``^octave px off at full resolution): refine each at full resolution by
+    ``LOOP_ORB_SCALE``^octave px off at full resolution): refine each at full resolution by
     ``cv2.cornerSubPix`` with a half-window of ``loop_subpixel_px`` x scale^octave, and keep the
     original where the refinement moved farther than that half-window."""
     out = uv.copy()
     crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 20, 0.01)
     for o in np.unique(octave):
         sel = np.flatnonzero(octave == o)
-        half = max(2, int(round(cfg.loop_subpixel_px * cfg.loop_orb_scale ** int(o))))
+        half = max(2, int(round(cfg.loop_subpixel_px * LOOP_ORB_SCALE ** int(o))))
         pts = uv[sel].reshape(-1, 1, 2).copy()
         ref = cv2.cornerSubPix(img, pts, (half, half), (-1, -1), crit).reshape(-1, 2)
         ok = np.all(np.isfinite(ref), 1) & (np.abs(ref - uv[sel]).max(1) <= half)
@@ -181,12 +192,12 @@ def match_and_pnp(
 
 
 def plausible(T_cur_ref: np.ndarray, cfg: FrontendConfig) -> np.ndarray | None:
-    """T_ref_cur, or None when more than ``verify_max_translation_m`` apart or rotated by more
-    than ``verify_max_rotation_deg``: a wrong loop is worse than a missed one."""
+    """T_ref_cur, or None when more than ``VERIFY_MAX_TRANSLATION_M`` apart or rotated by more
+    than ``VERIFY_MAX_ROTATION_DEG``: a wrong loop is worse than a missed one."""
     T_ref_cur = inv(T_cur_ref)
-    if np.linalg.norm(T_ref_cur[:3, 3]) > cfg.verify_max_translation_m:
+    if np.linalg.norm(T_ref_cur[:3, 3]) > VERIFY_MAX_TRANSLATION_M:
         return None
-    if rotation_angle_deg(T_ref_cur[:3, :3]) > cfg.verify_max_rotation_deg:
+    if rotation_angle_deg(T_ref_cur[:3, :3]) > VERIFY_MAX_ROTATION_DEG:
         return None
     return T_ref_cur
 
@@ -204,10 +215,10 @@ def verify_features(
     Ratio-test matches, PnP RANSAC (``pnp_ransac``), then, with ``cur_frame`` and
     ``loop_depth_check_px`` > 0, the inliers' stereo disparity in the current frame must agree
     with their predicted one within that many pixels; at least ``min_inliers`` must pass both
-    and at least ``loop_depth_min_ratio`` of the inliers that have a current disparity. The pose
+    and at least ``LOOP_DEPTH_MIN_RATIO`` of the inliers that have a current disparity. The pose
     must be :func:`plausible`. None if anything fails.
     """
-    found = match_and_pnp(ref, cur, camera, cfg, cfg.loop_ratio_test)
+    found = match_and_pnp(ref, cur, camera, cfg, LOOP_RATIO_TEST)
     if found is None:
         return None
     T_cur_ref, ia, ib, inl = found
@@ -219,7 +230,7 @@ def verify_features(
         d_meas = correct_disparity(d_raw, uv[:, 0], offset_px, camera)
         has = d_meas > 0
         agree = has & (np.abs(d_meas - d_pred) <= cfg.loop_depth_check_px)
-        if int(agree.sum()) < cfg.min_inliers or agree.sum() < cfg.loop_depth_min_ratio * max(int(has.sum()), 1):
+        if int(agree.sum()) < cfg.min_inliers or agree.sum() < LOOP_DEPTH_MIN_RATIO * max(int(has.sum()), 1):
             return None
         pts, uv = pts[agree], uv[agree]
         # Re-estimate on the points that passed both tests (LM from the RANSAC pose).
@@ -233,7 +244,7 @@ def verify_features(
     T_ref_cur = plausible(T_cur_ref, cfg)
     if T_ref_cur is None:
         return None
-    cov, rms = pose_covariance(T_cur_ref, pts, uv, camera, cfg.loop_min_sigma_px)
+    cov, rms = pose_covariance(T_cur_ref, pts, uv, camera, LOOP_MIN_SIGMA_PX)
     if not np.all(np.isfinite(cov)):
         return None
     return LoopMatch(T_ref_cur, int(len(pts)), cov, rms)
@@ -283,7 +294,7 @@ class LoopFeatureBank:
         uv, desc, _ = detect_loop_keypoints(left, self.cfg)
         idx, pts = stereo_points(left, right, uv, self.camera, self.cfg, offset_px)
         self.t_reference_ms += (time.perf_counter() - t0) * 1000.0
-        if len(idx) < self.cfg.min_stereo_points:
+        if len(idx) < MIN_STEREO_POINTS:
             return None
         return FrameFeatures(np.ascontiguousarray(uv[idx]), pts, np.ascontiguousarray(desc[idx]))
 
@@ -323,7 +334,7 @@ class LoopFeatureBank:
     def query(self, k: int, frame: StereoFrame) -> FrameFeatures:
         """The current frame's keypoints and descriptors (no depth), computed once per ``k``."""
         if self._query_k != k or self._query is None:
-            uv, desc, _ = detect_loop_keypoints(frame.left, self.cfg, self.cfg.loop_query_features)
+            uv, desc, _ = detect_loop_keypoints(frame.left, self.cfg, LOOP_QUERY_FEATURES)
             self._query = FrameFeatures(uv, np.zeros((len(uv), 3), np.float32), desc)
             self._query_k = k
         return self._query

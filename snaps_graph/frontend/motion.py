@@ -15,6 +15,11 @@ from ..config import FrontendConfig
 from ..geometry import inv, rotation_angle_deg
 from .stereo_ba import stereo_two_view_ba
 
+PNP_ITERATIONS = 200  # PnP RANSAC iterations
+PNP_CONFIDENCE = 0.999  # PnP RANSAC confidence
+SBA_KEEP_BELOW = 100  # below this many stereo-BA inliers, tracks near its pose are kept too (a small image)
+RANSAC_SEED = 0  # cv2.setRNGSeed before every RANSAC: the same input gives the same output
+
 
 class Flag(Exception):
     """This frame is flagged for ``reason``; ``keyframe`` (usable features) may still be a reference."""
@@ -39,7 +44,7 @@ def pnp_ransac(
 
     Returns (T_cur_ref 4x4: maps points given in the reference camera frame into the current
     camera frame, inlier indices) or None when there are too few points, RANSAC fails or the
-    result is not finite. The RNG is seeded here (``ransac_seed``), in the calling thread,
+    result is not finite. The RNG is seeded here (``RANSAC_SEED``), in the calling thread,
     because OpenCV's RNG is per thread.
     """
     n = len(pts3d)
@@ -48,15 +53,15 @@ def pnp_ransac(
     obj = np.ascontiguousarray(pts3d, np.float64).reshape(-1, 3)
     img = np.ascontiguousarray(uv, np.float64).reshape(-1, 2)
     K = camera.K
-    cv2.setRNGSeed(cfg.ransac_seed)
+    cv2.setRNGSeed(RANSAC_SEED)
     ok, rvec, tvec, inl = cv2.solvePnPRansac(
         obj,
         img,
         K,
         None,
-        iterationsCount=cfg.pnp_iterations,
+        iterationsCount=PNP_ITERATIONS,
         reprojectionError=cfg.pnp_reprojection_px,
-        confidence=cfg.pnp_confidence,
+        confidence=PNP_CONFIDENCE,
         flags=cv2.SOLVEPNP_ITERATIVE,
     )
     if not ok or inl is None or len(inl) < 6:
@@ -116,7 +121,7 @@ def refine_motion(
     """Stereo BA on PnP's inliers ``inl`` (``motion = "stereo_ba"``): (T_cur_ref, inlier indices,
     the pose covariance or None). ``true(uv, d)`` corrects disparities for the offset. The BA's
     own outliers are dropped from ``inl``; a small image's tracks within ``sba_keep_px`` are kept
-    (below ``sba_keep_below`` inliers). A degenerate BA leaves PnP's answer (``timings['sba_fallback']``)."""
+    (below ``SBA_KEEP_BELOW`` inliers). A degenerate BA leaves PnP's answer (``timings['sba_fallback']``)."""
     if cfg.motion != "stereo_ba" or len(inl) == 0:
         return T_cur_ref, inl, None
     t0 = time.perf_counter()
@@ -133,6 +138,6 @@ def refine_motion(
     if not r.ok:
         timings["sba_fallback"] = 1.0
         return T_cur_ref, inl, None
-    if r.kept is not None and np.count_nonzero(r.inliers) < cfg.sba_keep_below:  # a small image: keep its tracks
+    if r.kept is not None and np.count_nonzero(r.inliers) < SBA_KEEP_BELOW:  # a small image: keep its tracks
         return r.T_cur_ref, inl[r.kept], r.cov
     return r.T_cur_ref, inl[r.inliers], r.cov

@@ -38,6 +38,9 @@ from .motion import Flag, pnp_ransac
 from .threads import Workers
 from .tracking import Estimate, KltTracker
 
+MIN_FRAME_STD = 3.0  # a frame whose grey std is below this is black or flat
+MIN_SHARPNESS_RATIO = 0.35  # mean |Laplacian| below this x the reference's: blurred
+
 __all__ = ["StereoOdometry", "pnp_ransac"]
 
 
@@ -113,15 +116,14 @@ class StereoOdometry:
 
     def _estimate(self, frame: StereoFrame, first: bool, timings: dict[str, float]) -> Estimate:
         """The image checks, then the mode's correspondences and motion; raises Flag to flag."""
-        cfg = self.cfg
         t0 = time.perf_counter()
         std = float(cv2.meanStdDev(frame.left)[1][0, 0])
         sharp = sharpness(frame.left)
         timings["quality"] = (time.perf_counter() - t0) * 1000.0
-        if not std >= cfg.min_frame_std:
-            raise Flag(f"flat or black image (grey std {std:.2f} < {cfg.min_frame_std})")
-        if self._ref is not None and sharp < cfg.min_sharpness_ratio * self._ref.sharpness:
-            raise Flag(f"blurred image (sharpness {sharp:.2f} < {cfg.min_sharpness_ratio} x reference {self._ref.sharpness:.2f})")
+        if not std >= MIN_FRAME_STD:
+            raise Flag(f"flat or black image (grey std {std:.2f} < {MIN_FRAME_STD})")
+        if self._ref is not None and sharp < MIN_SHARPNESS_RATIO * self._ref.sharpness:
+            raise Flag(f"blurred image (sharpness {sharp:.2f} < {MIN_SHARPNESS_RATIO} x reference {self._ref.sharpness:.2f})")
         if self._klt is not None:
             return self._klt.estimate(frame, self._ref, first, self._prediction, sharp, timings)
         return self._matcher.estimate(frame, self._ref, first, sharp, timings)

@@ -6,7 +6,7 @@ when PnP on the tracks still fails, it retries once on ORB matches detected
 afresh plus the tracks. Weak texture: goodFeaturesToTrack's quality threshold is relative to the
 image's strongest corner, which on an open road is a far tree line against the sky; when tracked
 plus new points with depth are fewer than ``klt_weak_points`` and most new corners are out of
-range, corners are detected once more at ``klt_weak_quality``. Stereo of the tracked points runs
+range, corners are detected once more at ``KLT_WEAK_QUALITY``. Stereo of the tracked points runs
 beside PnP, re-detection (and its stereo) beside the stereo BA.
 """
 
@@ -24,9 +24,13 @@ from ..types import StereoFrame
 from . import depth as depth_mod
 from . import features as feat
 from .depth import offset_gain
-from .keyframe import Keyframe, Stereo, conclude, make_keyframe, reject
+from .keyframe import MIN_STEREO_POINTS, Keyframe, Stereo, conclude, make_keyframe, reject
 from .motion import Flag, pnp_ransac, project, refine_motion
 from .threads import Workers
+
+KLT_MIN_TRACKS = 600  # re-detect corners when fewer tracks with depth than this survive
+KLT_RETRY_FEATURES = 4000  # ORB keypoints per image when a failed KLT frame is retried on ORB matches
+KLT_WEAK_QUALITY = 0.001  # goodFeaturesToTrack quality of the weak-texture re-detection
 
 # (keyframe of this frame, T_ref_cur, inliers, matches, the stereo BA's covariance of the step)
 Estimate = tuple[Keyframe, np.ndarray, int, int, np.ndarray | None]
@@ -56,7 +60,7 @@ class KltTracker:
             kf = make_keyframe(frame, new_uv, z2, d2, None, sharp, cam, cfg, timings, ids=self._new_ids(len(new_uv)))
             if not first:
                 reject(kf, "no reference frame to track from", cfg)
-            elif len(kf.uv) < cfg.min_stereo_points:
+            elif len(kf.uv) < MIN_STEREO_POINTS:
                 raise Flag("too few keypoints with stereo depth")
             return kf, np.eye(4), 0, 0, None
         gap = max(1, frame.index - ref.index)
@@ -67,7 +71,7 @@ class KltTracker:
         if pred is not None:
             guess, zp = project(pred, ref.pts3d, cam)
             guess = np.where((zp > 0)[:, None], guess, ref.uv)
-            if cfg.stereo_guess_levels < cfg.stereo_levels:  # predict the disparity too
+            if cfg.stereo_guess_levels < depth_mod.STEREO_LEVELS:  # predict the disparity too
                 dp = cam.fx * cam.baseline_m / np.maximum(zp, 1e-6)
                 gain = offset_gain(guess[:, 0], dp, cam)
                 dguess = np.where(zp > 0, dp + self.stereo.offset() * gain, ref.disp)
@@ -122,9 +126,9 @@ class KltTracker:
         return z, d
 
     def _detect_new(self, frame: StereoFrame, uv: np.ndarray, z: np.ndarray, timings: dict[str, float]):
-        """If fewer tracked points ``uv`` than ``klt_min_tracks`` have depth ``z``: new corners
+        """If fewer tracked points ``uv`` than ``KLT_MIN_TRACKS`` have depth ``z``: new corners
         away from them, with their stereo (new uv, depth, disparity); once more at
-        ``klt_weak_quality`` in weak texture under a far field."""
+        ``KLT_WEAK_QUALITY`` in weak texture under a far field."""
         cfg = self.cfg
         n_valid = int(np.count_nonzero(z > 0))
         new_uv = np.zeros((0, 2), np.float32)
@@ -144,20 +148,20 @@ class KltTracker:
             ms["features"] += (t_det - t) * 1000.0
             ms["depth"] += (time.perf_counter() - t_det) * 1000.0
 
-        if n_valid < cfg.klt_min_tracks:
+        if n_valid < KLT_MIN_TRACKS:
             add_corners(cfg.klt_quality)
             # Only where the far field took the ranking: most new corners lie beyond max_depth_m
             # (a valid disparity); where stereo failed on them, more corners would not help.
             far = int(np.count_nonzero((d2 > 0) & (z2 <= 0)))
             weak = n_valid + int(np.count_nonzero(z2 > 0)) < cfg.klt_weak_points and 2 * far > len(new_uv)
-            if weak and cfg.klt_weak_quality < cfg.klt_quality:
-                add_corners(cfg.klt_weak_quality)
+            if weak and KLT_WEAK_QUALITY < cfg.klt_quality:
+                add_corners(KLT_WEAK_QUALITY)
         timings["depth"] = timings.get("depth", 0.0) + ms["depth"]
         timings["features"] = ms["features"]
         return new_uv, z2, d2
 
     def _orb_retry(self, ref: Keyframe, frame: StereoFrame, klt: tuple, timings: dict[str, float]):
-        """Motion from ``klt_retry_features`` ORB keypoints detected afresh in the reference and
+        """Motion from ``KLT_RETRY_FEATURES`` ORB keypoints detected afresh in the reference and
         this frame, matched by descriptor (scale-invariant, so they survive the looming and the
         large flow of a fast drive that KLT does not), together with the KLT correspondences
         ``klt`` = (ref points 3D, ref uv, ref disparity, cur uv, cur disparity): PnP RANSAC on
@@ -166,7 +170,7 @@ class KltTracker:
         cfg, cam = self.cfg, self.camera
         assert ref.right is not None
         t0 = time.perf_counter()
-        ocfg = dataclasses.replace(cfg, orb_features=cfg.klt_retry_features)
+        ocfg = dataclasses.replace(cfg, orb_features=KLT_RETRY_FEATURES)
         uv_r, desc_r = feat.detect_orb(ref.left, ocfg)
         z_r, d_r = self.stereo.depth(ref.left, ref.right, uv_r)
         has_depth = np.flatnonzero(z_r > 0)

@@ -25,7 +25,8 @@ from ..config import FrontendConfig
 from ..geometry import rotation_angle_deg
 from ..types import FrameFeatures, StereoFrame
 from .features import match_descriptors
-from .loop_features import LoopFeatureBank, detect_loop_keypoints
+from .loop_features import LOOP_QUERY_FEATURES, LOOP_RATIO_TEST, VERIFY_MAX_ROTATION_DEG, LoopFeatureBank, detect_loop_keypoints
+from .motion import RANSAC_SEED
 
 SAME_PLACE_M = 1.0  # a loop's distance is at most this, and as uncertain (1 sigma along its direction)
 RANSAC_PROB = 0.999
@@ -66,7 +67,7 @@ class MonoFeatureBank(LoopFeatureBank):
 
     def query(self, k: int, frame: StereoFrame) -> FrameFeatures:
         if self._query_k != k or self._query is None:
-            self._query = two_view_features(frame.left, self.cfg, self.cfg.loop_query_features)
+            self._query = two_view_features(frame.left, self.cfg, LOOP_QUERY_FEATURES)
             self._query_k = k
         return self._query
 
@@ -126,18 +127,18 @@ def two_view_pose(
 ) -> TwoViewMatch | None:
     """The relative rotation and translation direction of ``cur`` in ``ref``'s camera frame, or
     None when the descriptors differ in kind, too few matches or inliers survive, the fit is not
-    finite, or the rotation is implausible (``verify_max_rotation_deg``)."""
+    finite, or the rotation is implausible (``VERIFY_MAX_ROTATION_DEG``)."""
     if ref is None or cur is None or len(ref.desc) < cfg.min_inliers or len(cur.desc) < 2:
         return None
     if ref.desc.dtype != cur.desc.dtype or ref.desc.shape[1] != cur.desc.shape[1]:
         return None
-    ia, ib = match_descriptors(ref.desc, cur.desc, cfg.loop_ratio_test)
+    ia, ib = match_descriptors(ref.desc, cur.desc, LOOP_RATIO_TEST)
     if len(ia) < cfg.min_inliers:
         return None
     p_ref = ref.uv[ia].astype(np.float64)
     p_cur = cur.uv[ib].astype(np.float64)
     K = camera.K
-    cv2.setRNGSeed(int(cfg.ransac_seed))
+    cv2.setRNGSeed(RANSAC_SEED)
     E, mask = cv2.findEssentialMat(p_cur, p_ref, K, cv2.USAC_ACCURATE, RANSAC_PROB, cfg.pnp_reprojection_px)
     if E is None or E.shape != (3, 3) or mask is None:
         return None
@@ -149,7 +150,7 @@ def two_view_pose(
     d = t.reshape(3) / max(float(np.linalg.norm(t)), 1e-12)
     if not (np.all(np.isfinite(R)) and np.all(np.isfinite(d))):
         return None
-    if rotation_angle_deg(R) > cfg.verify_max_rotation_deg:
+    if rotation_angle_deg(R) > VERIFY_MAX_ROTATION_DEG:
         return None
     Kinv = np.linalg.inv(K)
     x_cur = np.c_[p_cur[inl], np.ones(len(inl))] @ Kinv.T
