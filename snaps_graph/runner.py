@@ -4,13 +4,14 @@ The folder contract: the output folder is checked before the first frame (a file
 a file, or a non-empty folder without ``overwrite`` is a one-line error at once); the files are
 written into a temporary sibling folder ``.NAME.tmp-PID`` that is renamed onto the output folder
 at the end, so a results folder is whole or absent (Ctrl-C or an error deletes the temporary
-folder; ``overwrite`` replaces an old folder whole). One writer per file, metrics.json last::
+folder; ``overwrite`` replaces an old folder whole). One writer per file, metrics.json last; the
+.tum stamps are the sequence's own clock (EuRoC and bag stamps, KITTI's times.txt)::
 
     poses_vo.txt / .tum        pure VO chain
     poses_snaps.txt / .tum     SNAPS heuristic trajectory (loops = snaps)
     poses_isam2.txt / .tum     iSAM2 estimate after the last frame (refine = isam2 or both)
     poses_batch.txt / .tum     batch optimisation (refine = batch or both)
-    poses_gt.txt               ground truth of the processed frames, re-based (when known)
+    poses_gt.txt / .tum        ground truth of the processed frames, re-based (when known)
     frames.csv                 one row per frame (``types.FrameRecord``): timings, VO quality, loops
     loops.jsonl                one JSON object per closed loop
     candidates.csv             every similarity SNAPS computed (types.CandidateRecord; loops = snaps)
@@ -100,7 +101,8 @@ def run_sequence(
                 if on_frame is not None:
                     on_frame(out)
         result = pipe.finish()
-        metrics = _write_all(tmp, pipe, result, dataset.gt_poses)
+        t0_ns = getattr(dataset, "t0_ns", None)  # .tum keeps the sequence's own clock (evo matches stamps)
+        metrics = _write_all(tmp, pipe, result, dataset.gt_poses, 0.0 if t0_ns is None else t0_ns * 1e-9)
         if before_commit is not None:
             before_commit(tmp)
     return result, metrics
@@ -114,12 +116,14 @@ def write_results(
         return _write_all(tmp, pipe, result, gt_poses)
 
 
-def _write_all(out: Path, pipe: SlamPipeline, result: RunResult, gt_poses: np.ndarray | None) -> dict:
+def _write_all(out: Path, pipe: SlamPipeline, result: RunResult, gt_poses: np.ndarray | None, t0_s: float = 0.0) -> dict:
+    stamps = result.timestamps + t0_s
     for name, poses in result.trajectories.items():
         write_kitti_poses(out / f"poses_{name}.txt", poses)
-        write_tum_poses(out / f"poses_{name}.tum", poses, result.timestamps)
+        write_tum_poses(out / f"poses_{name}.tum", poses, stamps)
     if gt_poses is not None:
         write_kitti_poses(out / "poses_gt.txt", gt_poses)
+        write_tum_poses(out / "poses_gt.tum", gt_poses, stamps)
     write_frames_csv(out / "frames.csv", result.records)
     write_loops_jsonl(out / "loops.jsonl", result.loops)
     if pipe.snaps is not None:  # every similarity SNAPS computed (types.CandidateRecord)
