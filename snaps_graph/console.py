@@ -21,7 +21,9 @@ EXIT_MOSTLY_FLAGGED = 3
 EXIT_CELLS_FAILED = 4
 EXIT_INTERRUPTED = 130
 
-LOG_EVERY_S = 5.0  # a progress line this often when stderr is not a terminal (logs, CI)
+# A progress line this often when stderr is not a terminal (logs, CI); a shorter run prints none,
+# so its stderr holds only notes, warnings and errors.
+LOG_EVERY_S = 10.0
 
 
 def _clock(seconds: float) -> str:
@@ -31,7 +33,7 @@ def _clock(seconds: float) -> str:
 
 class Progress:
     """Frames done, rate and ETA on stderr: a tqdm bar on a terminal, else one plain line every
-    ``LOG_EVERY_S`` seconds. ``phase`` names what runs after the last frame (the bar closes at the
+    ``LOG_EVERY_S`` seconds (and one at the end). ``phase`` names what runs after the last frame (the bar closes at the
     last frame, so its rate is the one the summary prints: :attr:`rate`)."""
 
     def __init__(self, total: int | None, desc: str, stream=None):
@@ -42,6 +44,8 @@ class Progress:
         self._logged = self.t0
         self._postfix: dict = {}
         self._done = False
+        self._printed_n = -1
+        self._printed = False  # a plain line was printed: the run is long, its end is reported too
         self._bar = None
         if self.stream.isatty():
             from tqdm import tqdm
@@ -75,8 +79,10 @@ class Progress:
 
     def phase(self, label: str) -> None:
         """Work after the frames (optimisation, map, pictures): one line naming it."""
+        tty = self._bar is not None
         self._close_bar()
-        print(f"{self.desc}: {label} ...", file=self.stream, flush=True)
+        if tty or self._printed:
+            print(f"{self.desc}: {label} ...", file=self.stream, flush=True)
 
     def _line(self) -> None:
         rate = self.rate
@@ -84,6 +90,7 @@ class Progress:
         eta = f", ETA {_clock((self.total - self.n) / rate)}" if rate and self.total and self.n < self.total else ""
         extra = "".join(f", {k} {v}" for k, v in self._postfix.items())
         print(f"{self.desc}: {done} frames, {rate or 0:.1f} frames/s{eta}{extra}", file=self.stream, flush=True)
+        self._printed, self._printed_n = True, self.n
 
     def _close_bar(self) -> None:
         if self._done:
@@ -92,7 +99,7 @@ class Progress:
         if self._bar is not None:
             self._bar.close()
             self._bar = None
-        elif self.n:
+        elif self._printed and self._printed_n != self.n:
             self._line()  # the final rate, as the summary gives it
 
     def close(self) -> None:

@@ -171,3 +171,28 @@ def test_config_every_key_has_a_comment(bin_dir, tmp_path):
             if "#" not in line.split("=", 1)[1] and not above.startswith("#"):
                 bare.append(line.split("=")[0].strip())
     assert not bare, f"config keys without a comment: {bare[:10]}{' ...' if len(bare) > 10 else ''}"
+
+
+def test_progress_in_a_log_has_rate_eta_and_the_phase(monkeypatch):
+    """Without a terminal: a line every LOG_EVERY_S with rate and ETA, the final rate (the one the
+    summary prints), and the phase after the last frame; a short run prints nothing."""
+    import io
+
+    from snaps_graph import console
+
+    quiet = io.StringIO()
+    with console.Progress(3, "slam", stream=quiet) as bar:
+        for _ in range(3):
+            bar.update(1)
+        bar.phase("writing")
+    assert quiet.getvalue() == ""
+    monkeypatch.setattr(console, "LOG_EVERY_S", 0.0)
+    log = io.StringIO()
+    with console.Progress(4, "slam", stream=log) as bar:
+        for _ in range(4):
+            bar.update(1)
+        bar.phase("writing the map")
+    lines = log.getvalue().splitlines()
+    assert lines[0].startswith("slam: 1/4 frames, ") and "frames/s, ETA " in lines[0]
+    assert len(lines) == 5 and lines[-1] == "slam: writing the map ..."
+    assert lines[-2] == f"slam: 4/4 frames, {bar.rate:.1f} frames/s"  # once, with the summary's rate
