@@ -42,9 +42,11 @@ from .console import (  # noqa: E402  # progress, summary, Ctrl-C
     exit_interrupted,
     metrics_table,
     on_sigint,
+    print_input_notes,
     print_summary,
     progress,
     stdout_failed,
+    warn_mostly_flagged,
 )
 from .errors import SnapsGraphError, interrupted  # noqa: E402
 from .io_utils import (  # noqa: E402
@@ -54,7 +56,6 @@ from .io_utils import (  # noqa: E402
     check_recording_path,
     inside,
     output_folder,
-    parse_frame_range,
 )
 from .trajectory_io import ODOMETRY_FORMATS  # noqa: E402
 
@@ -272,8 +273,7 @@ def run(
             raise_user(f"{seq_dir}: no right images: the stereo VO needs them (give odometry from elsewhere: --odometry POSES)")
         if cfg.resolved(loops=loops, refine=refine, build_map=map_).map.enabled:
             raise_user(f"{seq_dir}: no right images: the map needs stereo depth (run without --map)")
-    _print_notes(seq)
-    _note_clipped_range(frames, len(seq))
+    print_input_notes(seq, frames, topics_given=left_topic is not None)
     loggers: list = []
 
     def make_observer(tmp: Path):
@@ -322,11 +322,7 @@ def run(
         typer.echo(f"rerun recording in {rrd}")
     print_summary(metrics, out, bar.rate, partial=frames is not None)
     if mostly_flagged(metrics):
-        print(
-            f"warning: the front end flagged {metrics['flagged_frames']} of {metrics['frames']} frames "
-            f"(their poses are constant-velocity guesses); exit status {EXIT_MOSTLY_FLAGGED}",
-            file=sys.stderr,
-        )
+        warn_mostly_flagged(metrics)
         raise typer.Exit(EXIT_MOSTLY_FLAGGED)
 
 
@@ -390,23 +386,10 @@ def convert(
     from .datasets.open import open_dataset
 
     seq = open_dataset(src, frames=frames, gt=gt, left_topic=left_topic, right_topic=right_topic, calib=calib)
-    _print_notes(seq)
+    print_input_notes(seq, None, topics_given=left_topic is not None)
     with progress(len(seq) or None, "convert") as bar, output_folder(out, overwrite) as tmp:  # whole or absent
         n = write_kitti_folder(seq, tmp, progress=lambda: bar.update(1), overwrite=True)
     typer.echo(f"wrote {n} stereo pairs to {out}" + (" with poses.txt" if seq.gt_poses is not None else ""))
-
-
-def _note_clipped_range(frames: str | None, n: int) -> None:
-    """A range beyond the sequence's end runs to the end (one start past it is an error): say so."""
-    rng = parse_frame_range(frames)
-    if rng is not None and rng[1] is not None and rng[1] - rng[0] > n:
-        typer.echo(f"note: --frames {frames}: the sequence has {rng[0] + n} frames; running {rng[0]}:{rng[0] + n}", err=True)
-
-
-def _print_notes(seq) -> None:
-    """What a reader dropped or assumed (unpaired images, frames without ground truth)."""
-    for note in getattr(seq, "notes", ()):
-        typer.echo(f"note: {note}", err=True)
 
 
 @app.command("eval")

@@ -14,7 +14,7 @@ from pathlib import Path
 import typer
 
 from .errors import note_interrupt
-from .io_utils import committed_folders
+from .io_utils import committed_folders, parse_frame_range
 
 EXIT_USER_ERROR = 2
 EXIT_MOSTLY_FLAGGED = 3
@@ -167,6 +167,29 @@ def print_summary(metrics: dict, out: Path, wall_rate: float | None = None, part
         typer.echo(f"  evo: evo_ape kitti {out / 'poses_gt.txt'} {out / 'poses_vo.txt'} -a   ({which})")
     if not (out / "report.md").is_file():
         typer.echo(f"  report and pictures: snaps-graph compare {out}")
+
+
+def print_input_notes(seq, frames: str | None, topics_given: bool = False) -> None:
+    """What a reader dropped or assumed (unpaired images, frames without ground truth), a range
+    beyond the sequence's end (it runs to the end; a start past it is an error), and a bag's
+    stereo topics when they were found by name."""
+    for note in getattr(seq, "notes", ()):
+        typer.echo(f"note: {note}", err=True)
+    rng = parse_frame_range(frames)
+    n = len(seq)
+    if rng is not None and rng[1] is not None and rng[1] - rng[0] > n:
+        typer.echo(f"note: --frames {frames}: the sequence has {rng[0] + n} frames; running {rng[0]}:{rng[0] + n}", err=True)
+    if getattr(seq, "left_topic", None) and not topics_given:
+        right = f", right {seq.right_topic}" if getattr(seq, "right_topic", None) else ""
+        typer.echo(f"topics: left {seq.left_topic}{right} (found by name; --left-topic / --right-topic choose others)")
+
+
+def warn_mostly_flagged(metrics: dict) -> None:
+    print(
+        f"warning: the front end flagged {metrics['flagged_frames']} of {metrics['frames']} frames "
+        f"(their poses are constant-velocity guesses); exit status {EXIT_MOSTLY_FLAGGED}",
+        file=sys.stderr,
+    )
 
 
 class Interrupted(BaseException):

@@ -102,7 +102,8 @@ def run_sequence(
                     on_frame(out)
         result = pipe.finish()
         t0_ns = getattr(dataset, "t0_ns", None)  # .tum keeps the sequence's own clock (evo matches stamps)
-        metrics = _write_all(tmp, pipe, result, dataset.gt_poses, 0.0 if t0_ns is None else t0_ns * 1e-9)
+        topics = {k: v for k in ("left_topic", "right_topic") if (v := getattr(dataset, k, None))}  # a bag's
+        metrics = _write_all(tmp, pipe, result, dataset.gt_poses, 0.0 if t0_ns is None else t0_ns * 1e-9, topics)
         if before_commit is not None:
             before_commit(tmp)
     return result, metrics
@@ -116,7 +117,9 @@ def write_results(
         return _write_all(tmp, pipe, result, gt_poses)
 
 
-def _write_all(out: Path, pipe: SlamPipeline, result: RunResult, gt_poses: np.ndarray | None, t0_s: float = 0.0) -> dict:
+def _write_all(
+    out: Path, pipe: SlamPipeline, result: RunResult, gt_poses: np.ndarray | None, t0_s: float = 0.0, topics: dict | None = None
+) -> dict:
     stamps = result.timestamps + t0_s
     for name, poses in result.trajectories.items():
         write_kitti_poses(out / f"poses_{name}.txt", poses)
@@ -145,6 +148,8 @@ def _write_all(out: Path, pipe: SlamPipeline, result: RunResult, gt_poses: np.nd
             map_metrics = {"error": _one_line(f"{type(exc).__name__}: {exc}")}
         if map_metrics is not None:
             metrics["map"] = map_metrics
+    if topics:
+        metrics["topics"] = topics  # the image topics that ran (a bag's, found by name or given)
     metrics["peak_rss_mb"] = peak_rss_mb()
     write_metrics_json(out / "metrics.json", metrics)
     return metrics

@@ -10,6 +10,7 @@ test within seconds. Lines naming data the test cannot stand in for are skipped 
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shlex
@@ -196,3 +197,11 @@ def test_progress_in_a_log_has_rate_eta_and_the_phase(monkeypatch):
     assert lines[0].startswith("slam: 1/4 frames, ") and "frames/s, ETA " in lines[0]
     assert len(lines) == 5 and lines[-1] == "slam: writing the map ..."
     assert lines[-2] == f"slam: 4/4 frames, {bar.rate:.1f} frames/s"  # once, with the summary's rate
+
+
+def test_bag_topics_found_by_name_are_printed_and_recorded(quickstart):
+    work, done, _ = quickstart
+    line = next(k for k in done if "recording.bag" in k)
+    assert "topics: left /stereo/left/image_raw, right /stereo/right/image_raw" in done[line].stdout
+    metrics = json.loads((work / "results" / "bag" / "metrics.json").read_text())
+    assert metrics["topics"] == {"left_topic": "/stereo/left/image_raw", "right_topic": "/stereo/right/image_raw"}
