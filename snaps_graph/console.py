@@ -33,15 +33,12 @@ def _clock(seconds: float) -> str:
 
 class Progress:
     """Frames done, rate and ETA on stderr: a tqdm bar on a terminal, else one plain line every
-    ``LOG_EVERY_S`` seconds (and one at the end). ``phase`` names what runs after the last frame (the bar closes at the
-    last frame, so its rate is the one the summary prints: :attr:`rate`)."""
+    ``LOG_EVERY_S`` seconds (and one at the end). ``phase`` names what runs after the last frame
+    (the bar closes at the last frame, so its rate is the one the summary prints: :attr:`rate`)."""
 
     def __init__(self, total: int | None, desc: str, stream=None):
         self.total, self.desc, self.n = total, desc, 0
         self.stream = stream if stream is not None else sys.stderr
-        self.t0 = time.perf_counter()
-        self.t_last = self.t0
-        self._logged = self.t0
         self._postfix: dict = {}
         self._done = False
         self._printed_n = -1
@@ -54,6 +51,9 @@ class Progress:
             self._bar = tqdm(
                 total=total, desc=desc, unit="frame", dynamic_ncols=True, file=self.stream, mininterval=0.5, smoothing=0
             )
+        self._tty = self._bar is not None
+        self.t0 = time.perf_counter()  # after the bar is made: both rates count from here
+        self.t_last = self._logged = self.t0
 
     @property
     def rate(self) -> float | None:
@@ -79,9 +79,8 @@ class Progress:
 
     def phase(self, label: str) -> None:
         """Work after the frames (optimisation, map, pictures): one line naming it."""
-        tty = self._bar is not None
         self._close_bar()
-        if tty or self._printed:
+        if self._tty or self._printed:
             print(f"{self.desc}: {label} ...", file=self.stream, flush=True)
 
     def _line(self) -> None:

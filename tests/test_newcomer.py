@@ -205,3 +205,25 @@ def test_bag_topics_found_by_name_are_printed_and_recorded(quickstart):
     assert "topics: left /stereo/left/image_raw, right /stereo/right/image_raw" in done[line].stdout
     metrics = json.loads((work / "results" / "bag" / "metrics.json").read_text())
     assert metrics["topics"] == {"left_topic": "/stereo/left/image_raw", "right_topic": "/stereo/right/image_raw"}
+
+
+def test_progress_on_a_terminal_closes_at_the_last_frame_and_names_the_phase():
+    import io
+    import time
+
+    from snaps_graph import console
+
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    term = Terminal()
+    with console.Progress(3, "slam", stream=term) as bar:
+        for _ in range(3):
+            time.sleep(0.05)
+            bar.update(1)
+        bar.phase("writing the map")
+    text = term.getvalue()
+    assert "3/3" in text and text.endswith("slam: writing the map ...\n")
+    shown = float(re.findall(r"([\d.]+)frame/s", text)[-1])
+    assert abs(shown - bar.rate) <= 0.05 * bar.rate  # the bar's final rate is the summary's
