@@ -52,6 +52,7 @@ def run_demo(
         lambda cb: run_sequence(
             seq, run_dir, cfg, loops="snaps", refine=refine, build_map=True, overwrite=overwrite, on_frame=cb
         ),
+        after="all frames done; refining, writing the map, the report and pictures",
     )
     t_run = time.perf_counter() - t1
     compare_run(run_dir)
@@ -67,8 +68,15 @@ def run_demo(
     return metrics
 
 
-def _with_bar(progress, total, desc, fn):
+def _with_bar(progress, total, desc, fn, after: str | None = None):
+    """``fn(step)`` with a bar from ``progress``; ``after``: the phase named once the last step is done."""
     if progress is None:
         return fn(None)
     with progress(total, desc) as bar:
-        return fn(lambda *_: bar.update(1))
+
+        def step(*_):
+            bar.update(1)
+            if after is not None and bar.n == total and hasattr(bar, "phase"):
+                bar.phase(after)
+
+        return fn(step)
