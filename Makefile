@@ -23,7 +23,7 @@ $(STAMP): pyproject.toml
 	@touch $(STAMP)
 
 demo: setup
-	$(BIN)/snaps-graph demo --out results/demo
+	$(BIN)/snaps-graph demo --out results/demo --overwrite
 
 lint: setup
 	$(BIN)/ruff check snaps_graph tests benchmarks experiments

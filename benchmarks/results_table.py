@@ -4,10 +4,14 @@ Runs the command-line tool on each input it has data for and writes the table (m
 ``--out`` and to stdout. Every row is one ``snaps-graph`` command, printed under the table:
 
 * ``kitti06``: the real KITTI 06 clip (frames 0-50, 59.9 m, no revisit), ``run --refine isam2 --map``;
-* ``demo``: the built-in 300-frame synthetic loop, ``snaps-graph demo`` (VO + SNAPS + iSAM2 + map).
+* ``demo``: the built-in 300-frame synthetic loop, ``snaps-graph demo`` (VO + SNAPS + iSAM2 + map);
+* ``revisit``: the real KITTI 00 revisit (left images of frames 100-230 and 1540-1660) with
+  odometry from ``snaps-graph drift`` (the ground truth with 1 % end drift, seed 0) and
+  ``run --odometry DRIFTED --refine batch``; below the table, the mean deviation over frames
+  1560-1660 (the revisit, as ``benchmarks/bench_revisit.py`` measures it) and the loops.
 
-Rows whose input or command is not available yet (the real KITTI 00 revisit from pose-file
-odometry, the rendered KITTI paths) are printed as "not yet measured", never estimated.
+Rows whose input or command is not available yet (the rendered KITTI paths) are printed as
+"not yet measured", never estimated.
 
     python benchmarks/results_table.py                          # data from ../shared/data
     python benchmarks/results_table.py --kitti06 DATA/kitti/sequences/06 --out docs/results/README-table.md
@@ -33,7 +37,6 @@ SHARED = ROOT.parent / "shared" / "data"
 
 # Rows not measured by this script yet: (input, why). They stay in the table so a reader sees the gap.
 PENDING = [
-    ("real KITTI 00 revisit (left camera, pose-file odometry)", "not yet measured"),
     ("rendered KITTI 00 path (4541 frames)", "not yet measured"),
     ("rendered KITTI 07 path (1101 frames)", "not yet measured"),
 ]
@@ -66,8 +69,8 @@ BEGIN, END = "<!-- results_table.py: begin -->", "<!-- results_table.py: end -->
 LOADS: list[float] = []  # the 1-minute load average after each command ran: speed depends on it
 
 
-def _run(cmd: list[str], metrics: Path, reuse: bool) -> dict:
-    if not (reuse and metrics.is_file()):
+def _run(cmd: list[str], metrics: Path | None, reuse: bool) -> dict:
+    if metrics is None or not (reuse and metrics.is_file()):
         env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
         print(f"running: {_shown(cmd)}", file=sys.stderr, flush=True)
         rc = subprocess.call(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL)
@@ -75,7 +78,7 @@ def _run(cmd: list[str], metrics: Path, reuse: bool) -> dict:
             raise SystemExit(f"error: {_shown(cmd)} exited with {rc}")
         if hasattr(os, "getloadavg"):
             LOADS.append(os.getloadavg()[0])
-    return json.loads(metrics.read_text())
+    return json.loads(metrics.read_text()) if metrics is not None else {}
 
 
 def _f(v: float | None, nd: int = 3) -> str:
@@ -101,6 +104,13 @@ def main() -> int:
         default=SHARED / "kitti" / "sequences" / "06",
         help="KITTI 06 sequence folder (image_0/, image_1/, calib.txt; poses in ../../poses/06.txt) "
         "(default: ../shared/data/kitti/sequences/06; the row is skipped when absent)",
+    )
+    ap.add_argument(
+        "--revisit",
+        type=Path,
+        default=SHARED / "kitti00_loop",
+        help="the KITTI 00 revisit folder (sequences/00/image_0, poses/00.txt) "
+        "(default: ../shared/data/kitti00_loop; the row is skipped when absent)",
     )
     ap.add_argument(
         "--work",
@@ -143,6 +153,23 @@ def main() -> int:
     rows.append(_row("built-in synthetic loop (`demo`)", _run(cmd, demo_dir / "run" / "metrics.json", args.reuse)))
     commands.append(_shown(cmd))
 
+    notes: list[str] = []
+    seq00, gt00 = args.revisit / "sequences" / "00", args.revisit / "poses" / "00.txt"
+    if (seq00 / "image_0").is_dir() and gt00.is_file():
+        drifted, run_dir = args.work / "revisit_drifted.txt", args.work / "revisit"
+        drift_cmd = _cli("drift", str(gt00), "--out", str(drifted), "--seed", "0", "--pct", "1", "--overwrite")
+        cmd = _cli("run", str(seq00), "--odometry", str(drifted), "--out", str(run_dir), "--refine", "batch", "--overwrite")
+        if not args.reuse:
+            _run(drift_cmd, None, False)
+        rows.append(
+            _row("real KITTI 00 revisit (left camera, drifted odometry)", _run(cmd, run_dir / "metrics.json", args.reuse))
+        )
+        names = {str(gt00): "KITTI00LOOP/poses/00.txt", str(seq00): "KITTI00LOOP/sequences/00"}
+        commands += [_shown(drift_cmd, names), _shown(cmd, names)]
+        notes.append(_revisit_note(run_dir, seq00))
+    else:
+        rows.append("| real KITTI 00 revisit (left camera, drifted odometry) | not measured: no data at --revisit | | | | | | |")
+
     for name, why in PENDING:
         rows.append(f"| {name} | {why} | | | | | | |")
 
@@ -153,11 +180,16 @@ def main() -> int:
         "|---|---|---|---|---|---|---|---|",
         *rows,
         "",
-        f"Refined = iSAM2. {os.cpu_count()} CPU cores, {load}. Commands:",
+        f"Refined = iSAM2 (batch for the revisit). {os.cpu_count()} CPU cores, {load}.",
+        *(["", *notes] if notes else []),
+        "",
+        "Commands:",
         "",
         *(f"    {c}" for c in commands),
         "",
         "KITTI06 = the `--kitti06` folder: KITTI odometry sequence 06, frames 0-50, stereo, with its ground truth.",
+        "KITTI00LOOP = the `--revisit` folder: KITTI 00's left images of frames 100-230 and 1540-1660, "
+        "whose frames 1560-1641 drive again through the street of frames 109-210.",
         "",
         "Regenerate: `python benchmarks/results_table.py --readme README.md` (writes this table here and in docs/results/).",
     ]
@@ -170,6 +202,23 @@ def main() -> int:
         _splice(args.readme, text)
     print(text, end="")
     return 0
+
+
+def _revisit_note(run_dir: Path, seq: Path) -> str:
+    """The revisit's figures: mean deviation over bench_revisit's window, and the loops."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from bench_revisit import WINDOW, _frame_ids, _window_dev
+
+    from snaps_graph.trajectory_io import read_kitti_poses
+
+    frames, gt = _frame_ids(seq), read_kitti_poses(run_dir / "poses_gt.txt")
+    dev = {t: _window_dev(read_kitti_poses(run_dir / f"poses_{t}.txt"), gt, frames) for t in ("vo", "snaps", "batch")}
+    loops = [json.loads(line) for line in (run_dir / "loops.jsonl").read_text().splitlines() if line.strip()]
+    shown = ", ".join(f"{lp['frame']} -> {lp['reference']}" for lp in loops) or "none"
+    return (
+        f"Revisit: mean deviation over frames {WINDOW[0]}-{WINDOW[1]}, odometry / SNAPS / batch: "
+        f"{dev['vo']:.2f} / {dev['snaps']:.2f} / {dev['batch']:.2f} m; loops (frame -> reference): {shown}."
+    )
 
 
 def _splice(path: Path, text: str) -> None:

@@ -23,31 +23,41 @@ def _sigint_while_starting(signum, frame) -> None:
 
 _SIGINT_BEFORE = signal.signal(signal.SIGINT, _sigint_while_starting)
 
-import contextlib  # noqa: E402
-import errno  # noqa: E402
 import json  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Optional  # noqa: E402
 
 import typer  # noqa: E402
-from tqdm import tqdm  # noqa: E402
 
 from ._malloc import set_malloc_thresholds  # noqa: E402
 from .config import Config, FrontendMode, LoopMode, RefineMode, choices  # noqa: E402
-from .errors import SnapsGraphError, interrupted, note_interrupt  # noqa: E402
+from .console import (  # noqa: E402  # progress, summary, Ctrl-C
+    EXIT_CELLS_FAILED,
+    EXIT_INTERRUPTED,
+    EXIT_MOSTLY_FLAGGED,
+    EXIT_USER_ERROR,
+    STDOUT_ERRNOS,
+    Interrupted,
+    exit_interrupted,
+    metrics_table,
+    on_sigint,
+    print_input_notes,
+    print_summary,
+    progress,
+    stdout_failed,
+    warn_mostly_flagged,
+)
+from .errors import SnapsGraphError, interrupted  # noqa: E402
 from .io_utils import (  # noqa: E402
     PREFETCH_FRAMES,
     check_inputs_outside,
     check_output_folder,
     check_recording_path,
-    committed_folders,
     inside,
     output_folder,
-    parse_frame_range,
 )
 from .trajectory_io import ODOMETRY_FORMATS  # noqa: E402
-from .types import StereoSource  # noqa: E402
 
 # Heavy modules (OpenCV, gtsam, open3d, matplotlib) are imported inside the commands that use
 # them, after the cheap checks, so `config`, `--help` and a bad option answer at once.
@@ -78,16 +88,6 @@ def _main_options(
 
 # The renderer holds about a hundred bytes per pixel: 16 Mpixel is about 2 GB.
 SYNTH_MAX_SIDE, SYNTH_MAX_PIXELS = 8192, 16 * 2**20
-
-EXIT_USER_ERROR = 2
-EXIT_MOSTLY_FLAGGED = 3
-EXIT_CELLS_FAILED = 4
-EXIT_INTERRUPTED = 130
-
-
-def _progress(total: int | None, desc: str):
-    # disable=None: no bar when stderr is not a terminal (logs and pipes get only the summary)
-    return tqdm(total=total, desc=desc, unit="frame", dynamic_ncols=True, file=sys.stderr, mininterval=0.5, disable=None)
 
 
 @app.command()
@@ -182,7 +182,7 @@ def synth(
         typer.echo(f"wrote the world mesh ({len(seq.world.triangles)} triangles) to {world_mesh}")
         if mesh_only:
             return
-    with _progress(len(seq), "render") as bar, output_folder(out, overwrite) as tmp:
+    with progress(len(seq), "render") as bar, output_folder(out, overwrite) as tmp:
         render_to_folder(seq, tmp, progress=lambda *_: bar.update(1), write_depth=depth, overwrite=True)
         if mesh_inside is not None:
             seq.write_world_mesh(tmp / mesh_inside)
@@ -273,8 +273,7 @@ def run(
             raise_user(f"{seq_dir}: no right images: the stereo VO needs them (give odometry from elsewhere: --odometry POSES)")
         if cfg.resolved(loops=loops, refine=refine, build_map=map_).map.enabled:
             raise_user(f"{seq_dir}: no right images: the map needs stereo depth (run without --map)")
-    _print_notes(seq)
-    _note_clipped_range(frames, len(seq))
+    print_input_notes(seq, frames, topics_given=left_topic is not None)
     loggers: list = []
 
     def make_observer(tmp: Path):
@@ -289,13 +288,15 @@ def run(
             loggers[0].close()  # the recording whole before the results folder is renamed into place
 
     n_loops = 0
-    with _progress(len(seq) or None, "slam") as bar:
+    with progress(len(seq) or None, "slam") as bar:
 
         def on_frame(o):
             nonlocal n_loops
             n_loops += o.loop is not None
             bar.set_postfix(loops=n_loops, refresh=False)
             bar.update(1)
+            if bar.n == len(seq):  # the graph, map and files take a while after the last frame
+                bar.phase("all frames done; refining, writing the map and files")
 
         try:
             result, metrics = run_sequence(
@@ -319,13 +320,9 @@ def run(
             raise
     if rrd is not None:
         typer.echo(f"rerun recording in {rrd}")
-    _print_summary(metrics, out)
+    print_summary(metrics, out, bar.rate, partial=frames is not None)
     if mostly_flagged(metrics):
-        print(
-            f"warning: the front end flagged {metrics['flagged_frames']} of {metrics['frames']} frames "
-            f"(their poses are constant-velocity guesses); exit status {EXIT_MOSTLY_FLAGGED}",
-            file=sys.stderr,
-        )
+        warn_mostly_flagged(metrics)
         raise typer.Exit(EXIT_MOSTLY_FLAGGED)
 
 
@@ -389,23 +386,10 @@ def convert(
     from .datasets.open import open_dataset
 
     seq = open_dataset(src, frames=frames, gt=gt, left_topic=left_topic, right_topic=right_topic, calib=calib)
-    _print_notes(seq)
-    with _progress(len(seq) or None, "convert") as bar, output_folder(out, overwrite) as tmp:  # whole or absent
+    print_input_notes(seq, None, topics_given=left_topic is not None)
+    with progress(len(seq) or None, "convert") as bar, output_folder(out, overwrite) as tmp:  # whole or absent
         n = write_kitti_folder(seq, tmp, progress=lambda: bar.update(1), overwrite=True)
     typer.echo(f"wrote {n} stereo pairs to {out}" + (" with poses.txt" if seq.gt_poses is not None else ""))
-
-
-def _note_clipped_range(frames: str | None, n: int) -> None:
-    """A range beyond the sequence's end runs to the end (one start past it is an error): say so."""
-    rng = parse_frame_range(frames)
-    if rng is not None and rng[1] is not None and rng[1] - rng[0] > n:
-        typer.echo(f"note: --frames {frames}: the sequence has {rng[0] + n} frames; running {rng[0]}:{rng[0] + n}", err=True)
-
-
-def _print_notes(seq: StereoSource) -> None:
-    """What a reader dropped or assumed (unpaired images, frames without ground truth)."""
-    for note in seq.notes:
-        typer.echo(f"note: {note}", err=True)
 
 
 @app.command("eval")
@@ -441,7 +425,7 @@ def eval_(
 
         typer.echo(json.dumps(json_clean(m)))  # a metric that cannot be computed is null
         return
-    typer.echo(_metrics_table({est.name: m}))
+    typer.echo(metrics_table({est.name: m}))
 
 
 @app.command()
@@ -501,13 +485,14 @@ def demo(
     frames: int = typer.Option(300, "--frames", help="Length of the built-in loop, frames."),
     width: int = typer.Option(1241, "--width"),
     height: int = typer.Option(376, "--height"),
-    refine: str = typer.Option("isam2", "--refine", help="none | isam2 | batch."),
+    refine: str = typer.Option("isam2", "--refine", help="none | isam2 | batch | both."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an earlier demo's OUT/sequence and OUT/run (whole)."),
 ) -> None:
     """Render the built-in loop, run VO + SNAPS + refinement + map, compare, print a summary."""
     _check_choice("--refine", refine, RefineMode)
     from .demo import run_demo
 
-    run_demo(out, frames=frames, width=width, height=height, refine=refine, progress=_progress)
+    run_demo(out, frames=frames, width=width, height=height, refine=refine, progress=progress, overwrite=overwrite)
 
 
 @app.command("config")
@@ -530,86 +515,29 @@ def _check_choice(option: str, value: str | None, literal) -> None:
         raise_user(f"{option} must be one of {', '.join(allowed)}, not '{value}'")
 
 
-def _fmt(v, nd=3) -> str:
-    if v is None or (isinstance(v, float) and v != v):
-        return "n/a"
-    if isinstance(v, float):
-        return f"{v:.{nd}f}"
-    return str(v)
-
-
-def _metrics_table(per_traj: dict[str, dict]) -> str:
-    head = (
-        f"{'trajectory':<14}{'frames':>8}{'mean dev m':>12}{'horiz':>8}{'vert':>8}{'ATE m':>10}{'t_rel %':>9}"
-        f"{'r_rel °/100m':>14}{'end drift %':>13}"
-    )
-    lines = [head, "-" * len(head)]
-    for name, m in per_traj.items():
-        lines.append(
-            f"{name:<14}{m.get('frames', ''):>8}{_fmt(m.get('mean_deviation')):>12}"
-            f"{_fmt(m.get('mean_deviation_horizontal')):>8}{_fmt(m.get('mean_deviation_vertical')):>8}{_fmt(m.get('ate_rmse')):>10}"
-            f"{_fmt(m.get('t_rel'), 2):>9}{_fmt(m.get('r_rel'), 3):>14}{_fmt(m.get('end_drift_percent'), 2):>13}"
-        )
-    return "\n".join(lines)
-
-
-def _print_summary(metrics: dict, out: Path) -> None:
-    lat = metrics.get("latency_ms", {})
-    fps = lat.get("frames_per_s")
-    typer.echo(
-        f"{metrics['frames']} frames ({metrics.get('flagged_frames', 0)} flagged), {metrics['loops']} loops, "
-        f"median {_fmt(lat.get('total', {}).get('median'), 1)} ms/frame"
-        + (f" ({fps:.1f} frames/s)" if fps else "")
-        + (f", wall {metrics['frames'] / metrics['wall_s']:.1f} frames/s" if metrics.get("wall_s") else "")
-    )
-    if "trajectories" in metrics:
-        typer.echo(_metrics_table(metrics["trajectories"]))
-    if "map" in metrics and "error" in metrics["map"]:
-        typer.echo(f"warning: no map (the map stage failed: {metrics['map']['error']}); the trajectories are written", err=True)
-    elif "map" in metrics:
-        typer.echo(
-            f"map: {metrics['map']['keyframes']} keyframes, {metrics['map']['bytes'] / 2**20:.0f} MiB of stored depth, fused under {metrics['map']['trajectory']}"
-        )
-    typer.echo(f"peak memory {metrics.get('peak_rss_mb', 0):.0f} MiB")
-    if metrics.get("graph_failures"):
-        typer.echo(f"graph: {len(metrics['graph_failures'])} flagged updates (see metrics.json)")
-    typer.echo(f"results in {out}")
-
-
-class Interrupted(BaseException):
-    """Ctrl-C, raised by our SIGINT handler: click turns a KeyboardInterrupt into "Aborted!", so
-    SIGINT raises this instead, which passes through click (and through every
-    ``except Exception``) to :func:`main`; cleanup handlers (``except BaseException``) still run."""
-
-
-def _on_sigint(signum, frame) -> None:
-    note_interrupt()
-    raise Interrupted()
-
-
 def main() -> None:
-    signal.signal(signal.SIGINT, _on_sigint)
+    signal.signal(signal.SIGINT, on_sigint)
     set_malloc_thresholds()  # the process is ours: large frames stop costing page faults
     try:
         rc = app(standalone_mode=False)
         sys.stdout.flush()
     except OSError as exc:
-        if exc.filename is not None or exc.errno not in _STDOUT_ERRNOS:
+        if exc.filename is not None or exc.errno not in STDOUT_ERRNOS:
             raise
-        _stdout_failed(exc)
+        stdout_failed(exc)
     except (Interrupted, KeyboardInterrupt):
-        _interrupted()
+        exit_interrupted()
     except SnapsGraphError as exc:
         if interrupted():
-            _interrupted()
+            exit_interrupted()
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(EXIT_USER_ERROR)
     except Exception as exc:
         if interrupted():  # an import or a call cut by Ctrl-C reports its own error
-            _interrupted()
+            exit_interrupted()
         # click's exceptions (typer >= 0.16 vendors its own click, so matched by their interface)
         if type(exc).__name__ == "Abort":
-            _interrupted()
+            exit_interrupted()
         code = getattr(exc, "exit_code", None)
         if hasattr(exc, "format_message") and isinstance(code, int):
             if type(exc).__name__ == "NoArgsIsHelpError" or not code:
@@ -622,40 +550,6 @@ def main() -> None:
             sys.exit(code)
         raise
     sys.exit(rc if isinstance(rc, int) else 0)
-
-
-_STDOUT_ERRNOS = (errno.ENOSPC, errno.EPIPE, errno.EIO, errno.EDQUOT, errno.EFBIG)
-
-
-def _stdout_failed(exc: OSError) -> None:
-    """Standard output cannot be written (a full device, a closed pipe): say so on stderr; the
-    results folder, when it was completed, stands (exit 0)."""
-    with contextlib.suppress(OSError):  # no second failure at the interpreter's final flush
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-    done = committed_folders()
-    if done:
-        print(
-            f"note: standard output not written ({exc.strerror}); the results are complete in {', '.join(map(str, done))}",
-            file=sys.stderr,
-        )
-        sys.exit(0)
-    print(f"error: cannot write to standard output ({exc.strerror or exc})", file=sys.stderr)
-    sys.exit(EXIT_USER_ERROR)
-
-
-def _interrupted() -> None:
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not interrupt the exit
-    done = committed_folders()
-    if done:
-        print(f"interrupted after the results were written: {', '.join(map(str, done))} complete", file=sys.stderr)
-    else:
-        print("interrupted: no results written", file=sys.stderr)
-    with contextlib.suppress(Exception):
-        sys.stdout.flush()
-        sys.stderr.flush()
-    # Cleanup ran on the way here; exit now: the finalizers of a library whose import the
-    # Ctrl-C cut (open3d) would print pages and change the status.
-    os._exit(EXIT_INTERRUPTED)
 
 
 @app.command()

@@ -2,7 +2,9 @@
 
 Renders the built-in closed loop (a synthetic street world, no download needed), reads it back
 with the KITTI reader, runs VO + SNAPS + the chosen refinement + the map, writes the comparison
-report, and prints a short summary.
+report, and prints a short summary. The demo keeps the run contract: OUT/sequence and OUT/run
+are checked before anything is rendered, and an earlier folder is replaced only with ``overwrite``
+(and only when this tool wrote it).
 """
 
 from __future__ import annotations
@@ -14,20 +16,28 @@ from .config import Config
 from .datasets.kitti import KittiSequence
 from .datasets.synthetic import SyntheticSequence, builtin_loop_trajectory, render_to_folder
 from .evaluation.report import compare_run
-from .io_utils import output_folder
+from .io_utils import check_output_folder, output_folder
 from .runner import run_sequence
 
 
 def run_demo(
-    out: str | Path, frames: int = 300, width: int = 1241, height: int = 376, refine: str = "isam2", progress=None
+    out: str | Path,
+    frames: int = 300,
+    width: int = 1241,
+    height: int = 376,
+    refine: str = "isam2",
+    progress=None,
+    overwrite: bool = False,
 ) -> dict:
     out = Path(out)
     seq_dir = out / "sequence"
     run_dir = out / "run"
+    for folder in (seq_dir, run_dir):  # both before the render: a refused run wastes nothing
+        check_output_folder(folder, overwrite)
     t0 = time.perf_counter()
     poses = builtin_loop_trajectory(frames)
     synth = SyntheticSequence(poses, width=width, height=height, seed=0)
-    with output_folder(seq_dir, overwrite=True) as tmp:  # the demo's own folders: replaced whole
+    with output_folder(seq_dir, overwrite) as tmp:
         _with_bar(progress, len(synth), "render", lambda cb: render_to_folder(synth, tmp, progress=cb))
     t_render = time.perf_counter() - t0
 
@@ -39,7 +49,10 @@ def run_demo(
         progress,
         len(seq),
         "slam",
-        lambda cb: run_sequence(seq, run_dir, cfg, loops="snaps", refine=refine, build_map=True, overwrite=True, on_frame=cb),
+        lambda cb: run_sequence(
+            seq, run_dir, cfg, loops="snaps", refine=refine, build_map=True, overwrite=overwrite, on_frame=cb
+        ),
+        after="all frames done; refining, writing the map, the report and pictures",
     )
     t_run = time.perf_counter() - t1
     compare_run(run_dir)
@@ -47,7 +60,7 @@ def run_demo(
     lat = metrics["latency_ms"]
     print(
         f"demo: rendered {len(synth)} stereo pairs in {t_render:.1f} s; SLAM at {lat['frames_per_s']:.1f} frames/s "
-        f"({t_run:.1f} s), {metrics['loops']} loops closed"
+        f"({t_run:.1f} s), {metrics['frames']} frames ({metrics['flagged_frames']} flagged), {metrics['loops']} loops closed"
     )
     for name, m in metrics.get("trajectories", {}).items():
         print(f"  {name:<6} mean deviation {m['mean_deviation']:.3f} m   ATE {m['ate_rmse']:.3f} m")
@@ -55,8 +68,15 @@ def run_demo(
     return metrics
 
 
-def _with_bar(progress, total, desc, fn):
+def _with_bar(progress, total, desc, fn, after: str | None = None):
+    """``fn(step)`` with a bar from ``progress``; ``after``: the phase named once the last step is done."""
     if progress is None:
         return fn(None)
     with progress(total, desc) as bar:
-        return fn(lambda *_: bar.update(1))
+
+        def step(*_):
+            bar.update(1)
+            if after is not None and bar.n == total and hasattr(bar, "phase"):
+                bar.phase(after)
+
+        return fn(step)

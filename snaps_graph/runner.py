@@ -5,13 +5,14 @@ a file, or a non-empty folder without ``overwrite`` is a one-line error at once)
 written into a temporary sibling folder ``.NAME.tmp-PID`` that is renamed onto the output folder
 at the end, so a results folder is whole or absent (Ctrl-C or an error deletes the temporary
 folder; ``overwrite`` replaces an old folder whole). One writer per file (``evaluation.results_io``),
-metrics.json last::
+metrics.json last; the .tum stamps are the sequence's own clock (EuRoC and bag stamps, KITTI's
+times.txt)::
 
     poses_vo.txt / .tum        pure VO chain
     poses_snaps.txt / .tum     SNAPS heuristic trajectory (loops = snaps)
     poses_isam2.txt / .tum     iSAM2 estimate after the last frame (refine = isam2 or both)
     poses_batch.txt / .tum     batch optimisation (refine = batch or both)
-    poses_gt.txt               ground truth of the processed frames, re-based (when known)
+    poses_gt.txt / .tum        ground truth of the processed frames, re-based (when known)
     frames.csv                 one row per frame (``types.FrameRecord``): timings, VO quality, loops
     loops.jsonl                one JSON object per closed loop
     candidates.csv             every similarity SNAPS computed (types.CandidateRecord; loops = snaps)
@@ -103,7 +104,9 @@ def run_sequence(
                 if on_frame is not None:
                     on_frame(out)
         result = pipe.finish()
-        metrics = _write_all(tmp, pipe, result, dataset.gt_poses)
+        t0_ns = dataset.t0_ns  # .tum keeps the sequence's own clock (evo matches stamps)
+        topics = {k: v for k, v in (("left_topic", dataset.left_topic), ("right_topic", dataset.right_topic)) if v}  # a bag's
+        metrics = _write_all(tmp, pipe, result, dataset.gt_poses, 0.0 if t0_ns is None else t0_ns * 1e-9, topics)
         if before_commit is not None:
             before_commit(tmp)
     return result, metrics
@@ -117,10 +120,13 @@ def write_results(
         return _write_all(tmp, pipe, result, gt_poses)
 
 
-def _write_all(out: Path, pipe: SlamPipeline, result: RunResult, gt_poses: np.ndarray | None) -> dict:
-    write_trajectories(out, result.trajectories, result.timestamps)
+def _write_all(
+    out: Path, pipe: SlamPipeline, result: RunResult, gt_poses: np.ndarray | None, t0_s: float = 0.0, topics: dict | None = None
+) -> dict:
+    stamps = result.timestamps + t0_s
+    write_trajectories(out, result.trajectories, stamps)
     if gt_poses is not None:
-        write_gt(out, gt_poses)
+        write_gt(out, gt_poses, stamps)
     write_frames_csv(out / "frames.csv", result.records)
     write_loops_jsonl(out / "loops.jsonl", result.loops)
     if pipe.snaps is not None:  # every similarity SNAPS computed (types.CandidateRecord)
@@ -142,6 +148,8 @@ def _write_all(out: Path, pipe: SlamPipeline, result: RunResult, gt_poses: np.nd
             map_metrics = {"error": _one_line(f"{type(exc).__name__}: {exc}")}
         if map_metrics is not None:
             metrics["map"] = map_metrics
+    if topics:
+        metrics["topics"] = topics  # the image topics that ran (a bag's, found by name or given)
     metrics["peak_rss_mb"] = peak_rss_mb()
     write_metrics_json(out / "metrics.json", metrics)
     return metrics

@@ -67,6 +67,12 @@ class StereoSource(Protocol):
     @property
     def notes(self) -> Sequence[str]: ...
 
+    @property
+    def left_topic(self) -> str | None: ...
+
+    @property
+    def right_topic(self) -> str | None: ...
+
     def frame_source(self, number: int) -> str | None: ...
 
     def close(self) -> None: ...
@@ -79,6 +85,8 @@ class SequenceBase:
     stereo: bool = True  # False: left images only (the VO needs odometry from elsewhere)
     t0_ns: int | None = None  # absolute time of timestamp 0 (pose files with absolute stamps)
     notes: Sequence[str] = ()  # what the reader dropped or assumed, one line each
+    left_topic: str | None = None  # a bag's image topics (None for folders)
+    right_topic: str | None = None
 
     def frame_source(self, number: int) -> str | None:
         """The file frame ``number`` was read from (for error messages); None when unknown."""

@@ -941,3 +941,20 @@ def test_overwrite_keeps_a_file_the_user_added_to_a_results_folder(seq, done_run
     proc = cli("run", seq, "--out", done_run, "--frames", "0:3", "--overwrite")
     assert proc.returncode == 0, proc.stderr
     assert len((done_run / "poses_vo.txt").read_text().splitlines()) == 3 and not (done_run / "report.md").exists()
+
+
+def test_demo_keeps_the_run_contract(tmp_path, done_run):
+    """An earlier demo's folders are replaced only with --overwrite, a folder the tool did not write
+    never; both refused before anything is rendered."""
+    demo = tmp_path / "demo"
+    (demo / "sequence").mkdir(parents=True)
+    (demo / "sequence" / "mine.txt").write_text("mine\n")
+    before = tree(demo)
+    for extra in ([], ["--overwrite"]):
+        assert_user_error(cli("demo", "--out", demo, "--frames", "20", *extra), demo / "sequence")
+        assert tree(demo) == before
+    shutil.rmtree(demo / "sequence")
+    shutil.copytree(done_run, demo / "run")  # an earlier demo's results folder: ours
+    before = tree(demo)
+    line = assert_user_error(cli("demo", "--out", demo, "--frames", "20"), demo / "run")
+    assert "--overwrite" in line and tree(demo) == before and not (demo / "sequence").exists()

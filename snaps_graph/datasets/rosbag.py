@@ -340,6 +340,7 @@ class RosbagSequence(FrameSelection):
     def _stream(self, k0: int, k1: int) -> Iterator[StereoFrame]:
         """Pairs k0..k1-1 in order, from one sweep over the bag's messages in that time range."""
         lt, rt = self.left_topic, self.right_topic
+        assert lt is not None  # every opened bag has a left topic
         want = {lt: {int(s): k for k, s in enumerate(self._pair_stamps[k0:k1, 0], k0)}}
         if rt is not None:
             want[rt] = {int(s): k for k, s in enumerate(self._pair_stamps[k0:k1, 1], k0)}

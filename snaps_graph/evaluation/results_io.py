@@ -39,8 +39,11 @@ def write_trajectories(out: Path, trajectories: dict[str, np.ndarray], timestamp
         write_tum_poses(out / f"poses_{name}.tum", poses, timestamps)
 
 
-def write_gt(out: Path, gt_poses: np.ndarray) -> None:
+def write_gt(out: Path, gt_poses: np.ndarray, timestamps: np.ndarray | None = None) -> None:
+    """``poses_gt.txt`` (and ``poses_gt.tum`` with ``timestamps``): the ground truth of the run's frames."""
     write_kitti_poses(out / "poses_gt.txt", gt_poses)
+    if timestamps is not None:
+        write_tum_poses(out / "poses_gt.tum", gt_poses, timestamps)
 
 
 def read_trajectories(run: Path) -> dict[str, np.ndarray]:
