@@ -36,7 +36,7 @@ if a.run:
 if a.write_world:
     import open3d as o3d
 
-    from snaps_graph.datasets.synthetic import SyntheticSequence, load_trajectory
+    from snaps_graph.synth import SyntheticSequence, load_trajectory
 
     poses, times = load_trajectory(a.path)
     w = SyntheticSequence(poses, seed=0, times=times).world

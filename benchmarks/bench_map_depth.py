@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 
 from snaps_graph.config import Config
-from snaps_graph.datasets.synthetic import SyntheticSequence, load_trajectory
 from snaps_graph.frontend.depth import dense_depth, map_depth
+from snaps_graph.synth import SyntheticSequence, load_trajectory
 
 ap = argparse.ArgumentParser()
 ap.add_argument("--path", default=str(Path(__file__).resolve().parents[1].parent / "shared/data/kitti_gt/00.txt"))

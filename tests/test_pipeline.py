@@ -15,11 +15,11 @@ import pytest
 
 from snaps_graph.config import Config
 from snaps_graph.datasets.kitti import KittiSequence
-from snaps_graph.datasets.synthetic import SyntheticSequence, builtin_loop_trajectory
 from snaps_graph.errors import SnapsGraphError
 from snaps_graph.evaluation.metrics import mean_deviation
 from snaps_graph.pipeline import SlamPipeline
 from snaps_graph.runner import run_sequence
+from snaps_graph.synth import SyntheticSequence, builtin_loop_trajectory
 from snaps_graph.trajectory_io import read_kitti_poses
 from snaps_graph.types import StereoFrame
 

@@ -11,8 +11,8 @@ import sys
 import numpy as np
 import pytest
 
-from snaps_graph.datasets.synthetic import SyntheticSequence, WorldConfig, builtin_loop_trajectory, load_trajectory
 from snaps_graph.errors import SnapsGraphError
+from snaps_graph.synth import SyntheticSequence, WorldConfig, builtin_loop_trajectory, load_trajectory
 from snaps_graph.trajectory_io import read_kitti_poses
 
 W, H = 320, 96
