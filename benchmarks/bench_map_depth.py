@@ -24,7 +24,7 @@ a = ap.parse_args()
 
 poses, times = load_trajectory(a.path)
 t0 = time.perf_counter()
-seq = SyntheticSequence(poses, seed=0, times=times)  # the world /work/data/seq00_street shows
+seq = SyntheticSequence(poses, seed=0, times=times)  # the world of the street00 recipes (docs/datasets.md)
 print(f"world built in {time.perf_counter() - t0:.1f} s")
 A, B, S = (int(x) for x in a.frames.split(":"))
 frames = [seq.render(i) for i in range(A, B, S)]

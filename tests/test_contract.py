@@ -1,4 +1,4 @@
-"""The run contract (issue 10): every bad input is one line ``error: <file>: ...`` with exit 2 (or
+"""The run contract: every bad input is one line ``error: <file>: ...`` with exit 2 (or
 a documented fallback), a results folder is whole or absent, the streaming pipeline survives a
 rejected frame, frame numbers are the files' numbers, a mostly flagged run says so (exit 3).
 
