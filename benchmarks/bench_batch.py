@@ -31,8 +31,8 @@ os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")  # local Ray on 
 os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
 
 from snaps_graph.batch import plan_from_dict, run_batch  # noqa: E402
-from snaps_graph.datasets.synthetic import SyntheticSequence, load_trajectory, render_to_folder  # noqa: E402
 from snaps_graph.runner import run_sequence  # noqa: E402
+from snaps_graph.synth import SyntheticSequence, load_trajectory, render_to_folder  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 KITTI00 = ROOT.parent / "shared" / "data" / "kitti_gt" / "00.txt"

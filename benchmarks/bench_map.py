@@ -2,7 +2,7 @@
 accuracy per trajectory against the true world (when the run had --world-mesh), the share of
 map points farther than 30 m from the path (radial streaks), map time as a share of the run, and
 peak memory. With --write-world it first writes the exact world mesh of the synthetic street
-rendering of a KITTI path (seed 0: the world /work/data/seq00_street shows), for --world-mesh.
+rendering of a KITTI path (seed 0: the world of the street00 recipes in docs/datasets.md), for --world-mesh.
 
   python benchmarks/bench_map.py --write-world results/world00.ply
   python benchmarks/bench_map.py RUN_DIR [RUN_DIR ...]
@@ -36,7 +36,7 @@ if a.run:
 if a.write_world:
     import open3d as o3d
 
-    from snaps_graph.datasets.synthetic import SyntheticSequence, load_trajectory
+    from snaps_graph.synth import SyntheticSequence, load_trajectory
 
     poses, times = load_trajectory(a.path)
     w = SyntheticSequence(poses, seed=0, times=times).world

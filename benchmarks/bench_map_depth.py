@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 
 from snaps_graph.config import Config
-from snaps_graph.datasets.synthetic import SyntheticSequence, load_trajectory
 from snaps_graph.frontend.depth import dense_depth, map_depth
+from snaps_graph.synth import SyntheticSequence, load_trajectory
 
 ap = argparse.ArgumentParser()
 ap.add_argument("--path", default=str(Path(__file__).resolve().parents[1].parent / "shared/data/kitti_gt/00.txt"))
@@ -24,7 +24,7 @@ a = ap.parse_args()
 
 poses, times = load_trajectory(a.path)
 t0 = time.perf_counter()
-seq = SyntheticSequence(poses, seed=0, times=times)  # the world /work/data/seq00_street shows
+seq = SyntheticSequence(poses, seed=0, times=times)  # the world of the street00 recipes (docs/datasets.md)
 print(f"world built in {time.perf_counter() - t0:.1f} s")
 A, B, S = (int(x) for x in a.frames.split(":"))
 frames = [seq.render(i) for i in range(A, B, S)]

@@ -13,10 +13,10 @@ import cv2
 import numpy as np
 
 from snaps_graph.config import Config
-from snaps_graph.datasets.synthetic import SyntheticSequence, load_trajectory
 from snaps_graph.frontend.depth import map_depth
 from snaps_graph.mapping.accuracy import WorldSurface, map_accuracy
 from snaps_graph.mapping.tsdf import FusedMap
+from snaps_graph.synth import SyntheticSequence, load_trajectory
 
 ap = argparse.ArgumentParser()
 ap.add_argument("--path", default=str(Path(__file__).resolve().parents[1].parent / "shared/data/kitti_gt/00.txt"))

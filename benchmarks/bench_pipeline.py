@@ -36,7 +36,7 @@ def ensure_sequence(args) -> Path:
         return seq  # an existing sequence (rendered before, or real KITTI)
     from tqdm import tqdm
 
-    from snaps_graph.datasets.synthetic import SyntheticSequence, load_trajectory, render_to_folder
+    from snaps_graph.synth import SyntheticSequence, load_trajectory, render_to_folder
 
     poses, times = load_trajectory(args.trajectory, args.frames)
     synth = SyntheticSequence(poses, width=args.width, height=args.height, seed=args.seed, noise_std=args.noise, times=times)

@@ -11,7 +11,7 @@ the frames and prints
 * the disparity offset the front end applied at the end (px, measured - true; the default
   estimates it online, mode "no_offset" does not).
 
-    python benchmarks/bench_scale_bias.py /work/data/seq00_street /work/data/seq00_open --frames 0:1000
+    python benchmarks/bench_scale_bias.py results/data/street00_1000 results/data/open00_1000
     python benchmarks/bench_scale_bias.py SEQ --modes default,sift,orb
     python benchmarks/bench_scale_bias.py SEQ --stride 2     # every 2nd frame: twice the speed
     python benchmarks/bench_scale_bias.py SEQ --stride 3 --gaps   # same, original indices (gaps of 3)

@@ -10,7 +10,7 @@ call split in two halves (``lk_split_min``) runs its second half on another thre
 stereo stages then count only their own thread's half, "sparse stereo, all calls" both.
 Also prints minor page faults and process CPU per frame, and the load average.
 
-    python benchmarks/bench_stages.py [--seq /work/data/frontend_street1000] [--frames 0:500]
+    python benchmarks/bench_stages.py [--seq results/data/street00_1000] [--frames 0:500]
         [--loops snaps] [--refine isam2]
 """
 
@@ -57,7 +57,7 @@ def _wrap(owner, name: str, label: str) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--seq", default="/work/data/frontend_street1000")
+    ap.add_argument("--seq", default="results/data/street00_1000")
     ap.add_argument("--frames", default="0:500")
     ap.add_argument("--loops", default="snaps")
     ap.add_argument("--refine", default="isam2")

@@ -19,7 +19,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from snaps_graph.datasets.synthetic import SCENES, SyntheticSequence, WorldConfig, load_trajectory, render_to_folder
+from snaps_graph.synth import SCENES, SyntheticSequence, WorldConfig, load_trajectory, render_to_folder
 
 ROOT = Path(__file__).resolve().parents[1]
 KITTI00 = ROOT.parent / "shared" / "data" / "kitti_gt" / "00.txt"

@@ -80,7 +80,7 @@ def synthetic_dir(path: str, width: int = 1241, height: int = 376, seed: int = 0
     """Render a synthetic sequence along a KITTI path (or the built-in loop) once; reuse it after."""
     from tqdm import tqdm
 
-    from snaps_graph.datasets.synthetic import SyntheticSequence, load_trajectory, render_to_folder
+    from snaps_graph.synth import SyntheticSequence, load_trajectory, render_to_folder
 
     tag = f"{path}_{width}x{height}_s{seed}" + (f"_{frames.replace(':', '-')}" if frames else "")
     out = RESULTS / "data" / tag

@@ -9,7 +9,7 @@ handed out, and (b) the second keyframe relative to the gauge, the step the next
 translation in mm. It also prints how the factor's yaw change moves the other components
 (slope and correlation over the solves).
 
-    python experiments/chain_ab.py /work/data/frontend_street1000 [--frames A:B] [--set frontend.key=value ...]
+    python experiments/chain_ab.py results/data/street00_1000 [--frames A:B] [--set frontend.key=value ...]
 """
 
 from __future__ import annotations

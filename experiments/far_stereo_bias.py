@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 
 from snaps_graph.config import Config
-from snaps_graph.datasets.synthetic import SCENES, SyntheticSequence, WorldConfig, load_trajectory
 from snaps_graph.frontend import depth as depth_mod
 from snaps_graph.frontend import features as feat
+from snaps_graph.synth import SCENES, SyntheticSequence, WorldConfig, load_trajectory
 
 ROOT = Path(__file__).resolve().parents[1]
 BANDS = ((0, 10), (10, 20), (20, 30), (30, 50), (50, 80), (80, 1e9))

@@ -15,9 +15,9 @@ import cv2
 import numpy as np
 
 from snaps_graph.config import Config
-from snaps_graph.datasets.synthetic import SyntheticSequence, load_trajectory
 from snaps_graph.frontend import depth as depth_mod
 from snaps_graph.frontend import features as feat
+from snaps_graph.synth import SyntheticSequence, load_trajectory
 
 BANDS = ((0, 180), (180, 220), (220, 280), (280, 400))
 

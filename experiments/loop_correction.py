@@ -14,7 +14,7 @@ horizontal and vertical mean deviation and ATE of the heuristic trajectory again
 false loops, the loop evaluation of the run (max recall at 100 % precision with and without
 verification), and with ``--batch`` the batch refinement and the loop oracle beside it.
 
-    python experiments/loop_correction.py --seq /work/data/seq07_street /work/data/seq00_street \
+    python experiments/loop_correction.py --seq results/data/street07 results/data/street00 \
         [--variants xyz ground ground_yaw] [--batch] [--verify-all]
 """
 

@@ -1,4 +1,4 @@
-"""Loop verification, loop-factor noise and eq. 6's window, measured end to end (issue 12).
+"""Loop verification, loop-factor noise and eq. 6's window, measured end to end.
 
 Runs the front end once per sequence (cached on disk without its per-frame features,
 ``results/experiments/vo_cache_lv``), then replays the real pipeline over the cached VO with the
@@ -9,7 +9,7 @@ with and without verification, revisit frames searched, loops, false loops), VO 
 mean deviation (3D, horizontal, vertical) and ATE, the verification time, and with ``--batch``
 the loop oracle beside the batch.
 
-    python experiments/loop_verification.py --seq /work/data/seq07_street \\
+    python experiments/loop_verification.py --seq results/data/street07 \\
         --variant base "k300:loop.discount_length=300" [--batch] [--verify-all] [--pause 0]
 
 The VO cache is keyed by the front-end settings and source files, so a replay reproduces a

@@ -30,10 +30,10 @@ from pathlib import Path
 import numpy as np
 
 from snaps_graph.config import Config
-from snaps_graph.datasets.synthetic import SyntheticSequence, load_trajectory
 from snaps_graph.frontend import depth as depth_mod
 from snaps_graph.frontend import features as feat
 from snaps_graph.geometry import log_so3
+from snaps_graph.synth import SyntheticSequence, load_trajectory
 from snaps_graph.trajectory_io import read_poses
 
 ROOT = Path(__file__).resolve().parents[1]

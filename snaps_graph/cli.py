@@ -136,7 +136,7 @@ def synth(
     ),
 ) -> None:
     """Render a synthetic stereo sequence along a trajectory, in KITTI layout."""
-    from .datasets.synthetic import SCENES, SyntheticSequence, WorldConfig, load_trajectory, render_to_folder
+    from .synth import SCENES, SyntheticSequence, WorldConfig, load_trajectory, render_to_folder
 
     if width < 32 or height < 32:
         raise_user(f"--width/--height too small: {width}x{height}")

@@ -14,10 +14,10 @@ from pathlib import Path
 
 from .config import Config
 from .datasets.kitti import KittiSequence
-from .datasets.synthetic import SyntheticSequence, builtin_loop_trajectory, render_to_folder
 from .evaluation.report import compare_run
 from .io_utils import check_output_folder, output_folder
 from .runner import run_sequence
+from .synth import SyntheticSequence, builtin_loop_trajectory, render_to_folder
 
 
 def run_demo(

@@ -57,6 +57,19 @@ def exp_so3(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + np.sin(th) / th * W + (1 - np.cos(th)) / th**2 * (W @ W)
 
 
+def exp_so3_scaled(rotvec: np.ndarray, scales: np.ndarray) -> np.ndarray:
+    """Rodrigues, batched along one axis: (len(scales), 3, 3) rotations Exp(scale·rotvec)."""
+    theta = float(np.linalg.norm(rotvec))
+    out = np.broadcast_to(np.eye(3), (len(scales), 3, 3)).copy()
+    if theta == 0.0:
+        return out
+    k = rotvec / theta
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    t = np.asarray(scales, float) * theta
+    out += np.sin(t)[:, None, None] * K + (1.0 - np.cos(t))[:, None, None] * (K @ K)
+    return out
+
+
 def log_so3(R: np.ndarray) -> np.ndarray:
     """Rotation vector (axis times angle, radians) of a rotation matrix; not unique near 180°."""
     c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)

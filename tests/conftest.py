@@ -20,7 +20,7 @@ def _need(path: Path) -> Path:
 def tiny_seq(tmp_path_factory) -> Path:
     """8 stereo pairs of the built-in loop at 320x96 rendered by the package (KITTI layout, with
     poses.txt and times.txt): stands in for real data where a test needs any valid sequence."""
-    from snaps_graph.datasets.synthetic import SyntheticSequence, load_trajectory, render_to_folder
+    from snaps_graph.synth import SyntheticSequence, load_trajectory, render_to_folder
 
     out = tmp_path_factory.mktemp("tiny") / "seq"
     poses, times = load_trajectory("loop", "0:8")

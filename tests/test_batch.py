@@ -31,7 +31,7 @@ N_FRAMES, W, H = 24, 320, 96
 @pytest.fixture(scope="module")
 def seqs(tmp_path_factory) -> dict[str, Path]:
     """A 24-frame 320x96 rendering of the built-in loop, and a copy whose frame 5 is unreadable."""
-    from snaps_graph.datasets.synthetic import SyntheticSequence, load_trajectory, render_to_folder
+    from snaps_graph.synth import SyntheticSequence, load_trajectory, render_to_folder
 
     root = tmp_path_factory.mktemp("seqs")
     poses, times = load_trajectory("loop", f"0:{N_FRAMES}")

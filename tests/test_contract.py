@@ -1,4 +1,4 @@
-"""The run contract (issue 10): every bad input is one line ``error: <file>: ...`` with exit 2 (or
+"""The run contract: every bad input is one line ``error: <file>: ...`` with exit 2 (or
 a documented fallback), a results folder is whole or absent, the streaming pipeline survives a
 rejected frame, frame numbers are the files' numbers, a mostly flagged run says so (exit 3).
 
@@ -24,10 +24,10 @@ import pytest
 
 from snaps_graph.config import Config
 from snaps_graph.datasets.kitti import KittiSequence
-from snaps_graph.datasets.synthetic import SyntheticSequence, load_trajectory
 from snaps_graph.errors import SnapsGraphError
 from snaps_graph.pipeline import SlamPipeline
 from snaps_graph.runner import write_results
+from snaps_graph.synth import SyntheticSequence, load_trajectory
 from snaps_graph.types import StereoFrame
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -509,6 +509,7 @@ def test_images_too_small_for_snaps_name_the_image(tmp_path):
 BASE = {"errors", "types", "config", "io_utils", "geometry", "camera", "trajectory_io"}
 ALLOWED = {
     "datasets": BASE | {"datasets"},
+    "synth": BASE | {"synth"},
     "frontend": BASE | {"frontend"},
     "loop": BASE | {"loop"},
     "backend": BASE | {"backend"},

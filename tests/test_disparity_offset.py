@@ -106,7 +106,7 @@ def test_bad_offset_settings_are_one_line_errors(bad):
 
 
 def _rendering(rect_px: float, n: int = 36):
-    from snaps_graph.datasets.synthetic import SyntheticSequence, builtin_loop_trajectory
+    from snaps_graph.synth import SyntheticSequence, builtin_loop_trajectory
 
     seq = SyntheticSequence(builtin_loop_trajectory(300)[:n], width=620, height=188, seed=0, rectification_error_px=rect_px)
     return seq, [seq[i] for i in range(len(seq))]

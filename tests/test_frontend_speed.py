@@ -74,7 +74,7 @@ def test_stereo_ba_covariance_is_the_inverse_schur_complement_of_numeric_jacobia
 @pytest.fixture(scope="module")
 def small_rendering():
     """16 frames of the built-in loop at 620x188, rendered once."""
-    from snaps_graph.datasets.synthetic import SyntheticSequence, builtin_loop_trajectory
+    from snaps_graph.synth import SyntheticSequence, builtin_loop_trajectory
 
     seq = SyntheticSequence(builtin_loop_trajectory(300)[:16], width=620, height=188, seed=0)
     return seq, [seq[i] for i in range(len(seq))]

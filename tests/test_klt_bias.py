@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from snaps_graph.config import Config, FrontendConfig
-from snaps_graph.datasets.synthetic import SyntheticSequence, builtin_loop_trajectory
 from snaps_graph.errors import SnapsGraphError
 from snaps_graph.frontend import depth as depth_mod
 from snaps_graph.frontend import features as feat
+from snaps_graph.synth import SyntheticSequence, builtin_loop_trajectory
 
 
 def _road_row_errors(cfgs: list[FrontendConfig], pairs: int = 20) -> list[np.ndarray]:

@@ -144,8 +144,8 @@ def test_tiny_run_writes_candidates_and_loops_cli(tmp_path):
     """A 90-frame built-in loop at 320x96 (its last 15 frames re-drive the start): candidates.csv
     holds one row per similarity computed, with the one column list, and `snaps-graph loops`
     evaluates it (no false loop on this path)."""
-    from snaps_graph.datasets.synthetic import SyntheticSequence, builtin_loop_trajectory
     from snaps_graph.runner import run_sequence
+    from snaps_graph.synth import SyntheticSequence, builtin_loop_trajectory
 
     seq = SyntheticSequence(builtin_loop_trajectory(90), width=320, height=96, seed=0)
     cfg = Config()

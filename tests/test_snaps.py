@@ -17,7 +17,7 @@ from snaps_graph.config import LoopConfig
 from snaps_graph.errors import SnapsGraphError
 from snaps_graph.geometry import inv, wrap_deg, yaw_deg
 from snaps_graph.loop import SnapsLoopCloser
-from snaps_graph.loop.snaps import _NEIGHBOUR_OFFSETS
+from snaps_graph.loop.search import _NEIGHBOUR_OFFSETS
 
 SHAPE = (16, 20)
 

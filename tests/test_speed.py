@@ -36,7 +36,7 @@ def test_scale_motion_of_bad_input_is_the_identity():
 @pytest.fixture(scope="module")
 def fast_drive():
     """Every 6th frame of the built-in loop (6 m per step) at 620x188, 16 frames."""
-    from snaps_graph.datasets.synthetic import SyntheticSequence, builtin_loop_trajectory
+    from snaps_graph.synth import SyntheticSequence, builtin_loop_trajectory
 
     seq = SyntheticSequence(builtin_loop_trajectory(300)[: 16 * 6 : 6], width=620, height=188, seed=0)
     return seq, [seq[i] for i in range(len(seq))]

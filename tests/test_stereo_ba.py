@@ -178,7 +178,7 @@ def test_bad_new_frontend_settings_are_one_line_errors(bad):
 @pytest.fixture(scope="module")
 def small_rendering():
     """16 frames of the built-in loop at 620x188, rendered once, and the PnP chain's ATE on them."""
-    from snaps_graph.datasets.synthetic import SyntheticSequence, builtin_loop_trajectory
+    from snaps_graph.synth import SyntheticSequence, builtin_loop_trajectory
 
     seq = SyntheticSequence(builtin_loop_trajectory(300)[:16], width=620, height=188, seed=0)
     frames = [seq[i] for i in range(len(seq))]

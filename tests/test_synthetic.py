@@ -7,14 +7,14 @@ import numpy as np
 import pytest
 
 from snaps_graph.datasets.kitti import KittiSequence
-from snaps_graph.datasets.synthetic import (
+from snaps_graph.errors import SnapsGraphError
+from snaps_graph.geometry import rotation_angle_deg, wrap_deg, yaw_deg
+from snaps_graph.synth import (
     SyntheticSequence,
     builtin_loop_trajectory,
     load_trajectory,
     render_to_folder,
 )
-from snaps_graph.errors import SnapsGraphError
-from snaps_graph.geometry import rotation_angle_deg, wrap_deg, yaw_deg
 from snaps_graph.trajectory_io import read_kitti_poses
 
 W, H = 320, 96

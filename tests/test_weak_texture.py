@@ -18,7 +18,7 @@ from snaps_graph.frontend import StereoOdometry
 def open_turn(kitti_gt_dir):
     """KITTI 00 frames 90-115 (a right turn of about 3 degrees per frame) through the open scene,
     620x188: a far tree line against the sky, weakly textured fields and road."""
-    from snaps_graph.datasets.synthetic import SyntheticSequence, WorldConfig, load_trajectory
+    from snaps_graph.synth import SyntheticSequence, WorldConfig, load_trajectory
 
     poses, times = load_trajectory(str(kitti_gt_dir / "00.txt"), "90:116")
     seq = SyntheticSequence(poses, width=620, height=188, seed=0, times=times, world_config=WorldConfig(scene="open"))

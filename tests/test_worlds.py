@@ -11,8 +11,8 @@ import sys
 import numpy as np
 import pytest
 
-from snaps_graph.datasets.synthetic import SyntheticSequence, WorldConfig, builtin_loop_trajectory, load_trajectory
 from snaps_graph.errors import SnapsGraphError
+from snaps_graph.synth import SyntheticSequence, WorldConfig, builtin_loop_trajectory, load_trajectory
 from snaps_graph.trajectory_io import read_kitti_poses
 
 W, H = 320, 96
@@ -46,7 +46,7 @@ def median_depth(seq: SyntheticSequence, frames, above_horizon: bool = False) ->
     return float(np.median(d[d > 0]))
 
 
-# ---------------------------------------------------------------- street is today's world
+# ---------------------------------------------------------------- street is the original world
 def test_street_renders_bit_identical_to_before_the_scenes():
     """Digests of frames rendered by the code before scenes and hard worlds existed."""
     seq = SyntheticSequence(builtin_loop_trajectory(120), width=W, height=H, seed=3)

@@ -372,6 +372,8 @@ class PoseGraph:
         """Extra empty iSAM2 updates until nothing is relinearised. iSAM2 takes one Gauss-Newton
         step per update, but a robust loop factor is an IRLS problem whose weight is re-evaluated
         at each relinearisation, so right after a loop the estimate is not yet converged."""
+        if self._isam is None:  # batch mode: nothing incremental to iterate
+            return
         for _ in range(max_iterations):
             if self._isam.update().getVariablesRelinearized() == 0:
                 break

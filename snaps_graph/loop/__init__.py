@@ -1,4 +1,5 @@
-"""Loop closure: UIQI similarity (uiqi.py) and the SNAPS loop closer (snaps.py)."""
+"""Loop closure: UIQI similarity (uiqi.py), the SNAPS loop closer (snaps.py) with its candidate
+search (search.py) and eq. 6 correction (correction.py)."""
 
 from .snaps import SnapsLoopCloser, SnapsStep, discount
 from .uiqi import UIQI, WindowStats, make_thumbnail, similarity, similarity_q, uiqi, window_stats

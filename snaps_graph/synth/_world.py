@@ -189,7 +189,7 @@ class World:
         self.samples, self.tangents, self.sample_ground_y = _resample_path(
             positions, ground_pts[:, 1], cfg.path_step_m, cfg.extend_m
         )
-        # Per path sample: does it lie in an open stretch? (None: all street, today's world.)
+        # Per path sample: does it lie in an open stretch? (None: all street, the world before scenes existed.)
         self.sample_open = self._stretches()
         self.ground_dist = self.open_map = None  # open scenes: rasters the ground shader reads
 

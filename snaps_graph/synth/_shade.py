@@ -85,8 +85,8 @@ class NoiseBank:
     @staticmethod
     def sample(tile: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Bilinear periodic lookup at tile coordinates (x, y): flat arrays of < 32767 values."""
-        # Wrap into [0, TILE) first: remap's own border handling is 10x slower far outside the
-        # tile, and np.mod on floats is slower still; x - floor(x / T) * T is three cheap passes.
+        # Wrap into [0, TILE) first: remap's border handling and np.mod on floats are both slow
+        # far outside the tile; x - floor(x / T) * T is three cheap passes.
         inv, T = np.float32(1.0 / TILE), np.float32(TILE)
         mx = (x - np.floor(x * inv) * T).reshape(1, -1)  # remap takes 2-D maps: one row
         my = (y - np.floor(y * inv) * T).reshape(1, -1)
@@ -132,15 +132,10 @@ def _edge(dist_inside: np.ndarray, inv_fp: np.ndarray) -> np.ndarray:
 class Renderer:
     """Casts a camera's rays into a ``World`` and shades them into grey images.
 
-    Performance decisions (measured on the 2-core target machine):
-
-    * Shading runs on **chunks of ``CHUNK`` pixels** of flat, contiguous float32 arrays. A
-      full-image temporary (1.8 MB) is above glibc's mmap threshold, so each one costs ~450
-      page faults (~1 ms here, more than the arithmetic); 96 KB chunks are recycled by the
-      allocator and stay in cache: a chain of 40 operations fell from 46 ms to 3 ms.
-    * No large matrix product: BLAS threads stall on a shared, busy CPU (a (N, 3) @ (3, 3)
-      product varied from 2 to 80 ms), while nine multiply-adds on rows cost ~1 ms.
-    * The ray buffer is reused per thread and handed to open3d without a copy.
+    Speed (docs/decisions.md, "Speed"): shading runs on chunks of ``CHUNK`` pixels of flat
+    float32 arrays, which the allocator recycles instead of page-faulting; nine multiply-adds on
+    rows instead of a matrix product, whose BLAS threads stall on a busy CPU; the ray buffer is
+    reused per thread and handed to open3d without a copy.
     """
 
     def __init__(self, world: World, fx: float, fy: float, cx: float, cy: float, width: int, height: int, seed: int):

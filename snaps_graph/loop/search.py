@@ -1,0 +1,316 @@
+"""SNAPS candidate search (paper §III-B): which earlier frames may be the place the car is at now.
+
+Earlier frames j qualify with ‖p_j − p_N‖ within the gate (current, corrected positions;
+``search = "radius"``: the paper's fixed radius; ``"drift"``: n sigma of the drift model's
+uncertainty accrued between j and N), N − j ≥ frame distance M and |wrap(yaw_j − yaw_N)| ≤ max yaw
+difference (widened by the heading drift); nearest first, ties by the older frame.
+
+Spatial look-up: a uniform grid hash with cell = radius maps a cell to the frames inside it, so a
+query reads the 9 ground-plane (x, z) cells around p_N and checks exact distances only there: the
+cost grows with the local density of frames, not with the trajectory. Frame N − M enters the grid
+when frame N arrives (younger frames can never be candidates), and a correction re-files the moved
+frames, so the index always holds the corrected positions. The drift search adds levels of cells
+radius·2^k for frames whose gate has grown past the level below.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..config import LoopConfig, OdometryConfig
+from ..geometry import wrap_deg
+
+# Grid cell keys pack (x, z) cell numbers into one Python int: unique while every cell
+# coordinate stays within ±2^30 cells.
+_RADIX = 1 << 32
+# The grid hashes the ground plane (x, z; KITTI's y points down): a query reads 9 cells instead
+# of 27, and height differences are left to the exact distance test.
+_NEIGHBOUR_OFFSETS = tuple(dx * _RADIX + dz for dx in (-1, 0, 1) for dz in (-1, 0, 1))
+
+
+def _cell_key(c) -> int:
+    return int(c[0]) * _RADIX + int(c[2])
+
+
+# What a search with no candidate returns (read-only, shared: the no-candidate path allocates nothing).
+_NO_IDS = np.empty(0, dtype=np.int64)
+_NO_IDS.flags.writeable = False
+_NO_DISTS = np.empty(0)
+_NO_DISTS.flags.writeable = False
+
+
+class CandidateSearch:
+    """The grid index and the gates of :class:`~snaps_graph.loop.snaps.SnapsLoopCloser` (a mixin:
+    it reads the closer's trajectory arrays, which the closer owns and grows)."""
+
+    cfg: LoopConfig
+    odometry: OdometryConfig
+    _p: np.ndarray  # (cap, 3) positions
+    _yaw: np.ndarray  # (cap,) headings, degrees
+    _s: np.ndarray  # (cap,) distance driven up to each frame, m
+    _last_loop: tuple[int, int] | None
+
+    def _init_search(self) -> None:
+        # Drift model of the search gate: sigma(D)^2 = (a D)^2 + (b D^2 / 2)^2 for D metres driven.
+        self._drift_a = self.odometry.trans_drift_pct / 100.0
+        self._drift_b = math.radians(self.odometry.rot_drift_deg_per_100m) / 100.0
+        r = self.cfg.radius_m
+        # Grid levels (drift search): cell sizes radius * 2^k up to the largest gate.
+        self._levels = [r * 2.0**k for k in range(1 + max(0, math.ceil(math.log2(max(1.0, self.cfg.search_max_radius_m / r)))))]
+        if self.cfg.search != "drift":
+            self._levels = self._levels[:1]
+        self._grids: list[dict[int, list[int]]] = [{} for _ in self._levels]
+        self._nears: list[dict[int, int]] = [{} for _ in self._levels]
+        self._cells = [np.empty((1024, 3), dtype=np.int64) for _ in self._levels]
+        # A frame enters level k >= 1 once the distance driven since it makes its gate wider than
+        # level k-1's cell: recent frames (the common neighbours) stay in level 0 only.
+        self._level_driven = [0.0] + [self._driven_for_gate(size) for size in self._levels[:-1]]
+        self._filed = [0] * len(self._levels)  # frames 0 .. _filed[k]-1 are in level k
+        self._phase = 0  # rotates the sampled candidates across a wide gate (see _pick)
+        self._n_indexed = 0  # frames 0 .. _n_indexed-1 are in the grid
+        # Level 0 is the paper's grid (cell = radius). _near: key -> how many non-empty grid cells
+        # lie in its 3x3 neighbourhood; most frames have no indexed frame nearby, and one look-up
+        # there answers that instead of nine in _grid.
+        self._grid = self._grids[0]
+        self._near = self._nears[0]
+        self._cell = self._cells[0]
+
+    def search(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """Candidates of stream frame ``n`` by the position gate, frame distance and yaw.
+
+        ``search = "radius"``: within ``radius_m`` (the paper), nearest first. ``"drift"``: within
+        ``search_sigmas`` standard deviations of the drift accrued between j and n (never less
+        than ``radius_m``, at most ``search_max_radius_m``), nearest in sigmas first. Ignores the
+        inter-frame pause and the attempts limit (``step`` applies those). Returns (stream
+        positions, distances in metres), ties by older frame.
+        """
+        if self.cfg.search == "drift":
+            return self._search_drift(n)
+        cfg = self.cfg
+        p = self._p[n]
+        r = cfg.radius_m
+        x, y, z = p.tolist()  # plain floats: numpy's per-call overhead dominates at this size
+        base = math.floor(x / r) * _RADIX + math.floor(z / r)
+        if base not in self._near:  # no indexed frame in the 9 cells: the common case
+            return _NO_IDS, _NO_DISTS
+        grid = self._grid
+        found: list[int] = []
+        for off in _NEIGHBOUR_OFFSETS:
+            members = grid.get(base + off)
+            if members:
+                found.extend(members)
+        if not found:
+            return _NO_IDS, _NO_DISTS
+        if len(found) <= 32:  # few neighbours (most frames): scalar Python beats numpy's call overhead
+            return self._search_small(n, found)
+        ids = np.array(found, dtype=np.int64)
+        ids = ids[ids <= n - cfg.frame_distance]  # the grid holds only these, unless n is in the past
+        d = np.linalg.norm(self._p[ids] - p, axis=1)
+        ok = (d <= cfg.radius_m) & (np.abs(wrap_deg(self._yaw[ids] - self._yaw[n])) <= cfg.max_yaw_deg)
+        ids, d = ids[ok], d[ok]
+        order = np.lexsort((ids, d))
+        return ids[order], d[order]
+
+    def driven_since(self, n: int, ids: np.ndarray) -> np.ndarray:
+        """Metres of odometry between each frame of ``ids`` and frame ``n``: along the path, or
+        through the last verified loop (its frame and reference are tied by a measurement)."""
+        s = self._s
+        d = s[n] - s[ids]
+        if self._last_loop is not None:
+            frame, ref = self._last_loop
+            d = np.minimum(d, s[n] - s[frame] + np.abs(s[ids] - s[ref]))
+        return d
+
+    def drift_sigma(self, driven: np.ndarray | float) -> np.ndarray:
+        """1-sigma position error (m) after ``driven`` metres: translation drift plus the lateral
+        error of a heading error that grows linearly with the distance."""
+        D = np.asarray(driven, dtype=float)
+        return np.hypot(self._drift_a * D, 0.5 * self._drift_b * D * D)
+
+    def _gate(self, driven: np.ndarray | float) -> np.ndarray:
+        cfg = self.cfg
+        return np.clip(cfg.search_sigmas * self.drift_sigma(driven), cfg.radius_m, cfg.search_max_radius_m)
+
+    def _search_drift(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        cfg = self.cfg
+        last = n - cfg.frame_distance
+        if last < 0 or self._n_indexed == 0:
+            return _NO_IDS, _NO_DISTS
+        # Each level holds the frames whose gate fits its 3x3 cells (see _promote).
+        x, _, z = self._p[n].tolist()
+        found: list[int] = []
+        for lvl, size in enumerate(self._levels):
+            base = math.floor(x / size) * _RADIX + math.floor(z / size)
+            if base not in self._nears[lvl]:  # no indexed frame anywhere near: the common case
+                continue
+            grid = self._grids[lvl]
+            for off in _NEIGHBOUR_OFFSETS:
+                members = grid.get(base + off)
+                if members:
+                    found.extend(members)
+        if not found:
+            return _NO_IDS, _NO_DISTS
+        if len(found) > 48:  # many neighbours: one vector test drops those beyond the widest gate
+            ids = np.array(found, dtype=np.int64)
+            d2 = np.sum((self._p[ids] - self._p[n]) ** 2, axis=1)
+            found = ids[(d2 <= cfg.search_max_radius_m**2) & (ids <= last)].tolist()
+        if len(found) <= 48:  # few left (most frames): scalar Python beats numpy's call overhead
+            return self._search_drift_small(n, found)
+        ids = np.unique(np.array(found, dtype=np.int64))
+        d = np.linalg.norm(self._p[ids] - self._p[n], axis=1)
+        driven = self.driven_since(n, ids)
+        sigma = np.maximum(self.drift_sigma(driven), cfg.radius_m / cfg.search_sigmas)
+        gates = np.minimum(cfg.search_sigmas * sigma, cfg.search_max_radius_m)
+        # The yaw gate widens by the heading drift too (n sigma of b*D, degrees).
+        yaw_gate = cfg.max_yaw_deg + cfg.search_sigmas * np.degrees(self._drift_b * driven)
+        ok = (d <= gates) & (np.abs(wrap_deg(self._yaw[ids] - self._yaw[n])) <= yaw_gate)
+        if not ok.any():
+            return _NO_IDS, _NO_DISTS
+        ids, d, m = ids[ok], d[ok], d[ok] / sigma[ok]
+        order = np.lexsort((ids, m))
+        return ids[order], d[order]
+
+    def _search_drift_small(self, n: int, found: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`_search_drift`'s rules for a short member list, without numpy arrays."""
+        cfg = self.cfg
+        last = n - cfg.frame_distance
+        px, py, pz = self._p[n].tolist()
+        yaw_n = float(self._yaw[n])
+        s_n = float(self._s[n])
+        loop = self._last_loop
+        if loop is not None:
+            via, s_ref = s_n - float(self._s[loop[0]]), float(self._s[loop[1]])
+        a2, hb = self._drift_a**2, 0.5 * self._drift_b
+        k, floor, cap = cfg.search_sigmas, cfg.radius_m / cfg.search_sigmas, cfg.search_max_radius_m
+        yaw_k = k * math.degrees(self._drift_b)
+        hits = []
+        for j in set(found):
+            if j > last:
+                continue
+            x, y, z = self._p[j].tolist()
+            d2 = (x - px) ** 2 + (y - py) ** 2 + (z - pz) ** 2
+            if d2 > cap * cap:
+                continue
+            s_j = float(self._s[j])
+            D = s_n - s_j
+            if loop is not None:
+                D = min(D, via + abs(s_j - s_ref))
+            sigma = max(math.sqrt(a2 * D * D + (hb * D * D) ** 2), floor)
+            gate = min(k * sigma, cap)
+            if d2 > gate * gate:
+                continue
+            dyaw = (float(self._yaw[j]) - yaw_n + 180.0) % 360.0 - 180.0
+            if abs(dyaw) <= cfg.max_yaw_deg + yaw_k * D:
+                d = math.sqrt(d2)
+                hits.append((d / sigma, j, d))
+        if not hits:
+            return _NO_IDS, _NO_DISTS
+        hits.sort()  # nearest in sigmas first, ties by older frame
+        return np.array([j for _, j, _ in hits], dtype=np.int64), np.array([d for _, _, d in hits])
+
+    def _pick(self, n_found: int) -> np.ndarray:
+        """Which of ``n_found`` candidates (nearest first) are compared: all up to ``attempts``;
+        beyond that the nearest and, with the drift search, ``attempts`` - 1 spread evenly over
+        the rest, shifted each frame, so a true match a drift's length away is reached within a
+        few frames instead of never (the estimated nearest is not the true one under drift)."""
+        a = self.cfg.attempts
+        if n_found <= a or a <= 1 or self.cfg.search != "drift":
+            return np.arange(min(a, n_found))
+        rest = n_found - 1
+        stride = rest / (a - 1)
+        self._phase = (self._phase + 1) % max(1, math.ceil(stride))
+        offs = (self._phase + np.arange(a - 1) * stride).astype(np.int64) % rest
+        return np.concatenate([[0], 1 + np.unique(offs)])
+
+    def _search_small(self, n: int, found: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`search`'s rules for a short member list, without numpy arrays."""
+        cfg = self.cfg
+        px, py, pz = self._p[n].tolist()
+        yaw_n = float(self._yaw[n])
+        r2 = cfg.radius_m * cfg.radius_m
+        last = n - cfg.frame_distance
+        hits = []
+        for j in found:
+            if j > last:
+                continue
+            x, y, z = self._p[j].tolist()
+            d2 = (x - px) ** 2 + (y - py) ** 2 + (z - pz) ** 2
+            if d2 > r2:
+                continue
+            dyaw = (float(self._yaw[j]) - yaw_n + 180.0) % 360.0 - 180.0  # wrap to [-180, 180)
+            if abs(dyaw) <= cfg.max_yaw_deg or (dyaw == -180.0 and cfg.max_yaw_deg >= 180.0):
+                hits.append((math.sqrt(d2), j))
+        if not hits:
+            return _NO_IDS, _NO_DISTS
+        hits.sort()  # nearest first, ties by older frame
+        return np.array([j for _, j in hits], dtype=np.int64), np.array([d for d, _ in hits])
+
+    def _insert(self, j: int) -> None:
+        r = self.cfg.radius_m
+        c = [math.floor(v / r) for v in self._p[j].tolist()]
+        self._cell[j] = c
+        self._file(_cell_key(c), j)
+        self._n_indexed = self._filed[0] = j + 1
+
+    def _promote(self, n: int, lvl: int) -> None:
+        """File into level ``lvl`` the indexed frames driven far enough from (see __init__)."""
+        j, s, need, size = self._filed[lvl], self._s, self._level_driven[lvl], self._levels[lvl]
+        cells = self._cells[lvl]
+        while j < self._n_indexed and s[n] - s[j] >= need:
+            c = [math.floor(v / size) for v in self._p[j].tolist()]
+            cells[j] = c
+            self._file(_cell_key(c), j, lvl)
+            j += 1
+        self._filed[lvl] = j
+
+    def _driven_for_gate(self, gate: float) -> float:
+        """The distance driven at which the drift gate first exceeds ``gate`` metres."""
+        if self.cfg.search_sigmas * float(self.drift_sigma(1e7)) <= gate:
+            return math.inf
+        lo, hi = 0.0, 1e7
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            if self.cfg.search_sigmas * float(self.drift_sigma(mid)) > gate:
+                hi = mid
+            else:
+                lo = mid
+        return lo
+
+    def _file(self, key: int, j: int, lvl: int = 0) -> None:
+        grid = self._grids[lvl]
+        members = grid.get(key)
+        if members is None:
+            grid[key] = [j]
+            self._count_near(key, +1, lvl)
+        else:
+            members.append(j)
+
+    def _count_near(self, key: int, step: int, lvl: int = 0) -> None:
+        """A cell became non-empty (+1) or empty (-1): update its 3x3 neighbourhood's counts."""
+        near = self._nears[lvl]
+        for off in _NEIGHBOUR_OFFSETS:
+            c = near.get(key + off, 0) + step
+            if c:
+                near[key + off] = c
+            else:
+                del near[key + off]
+
+    def _refile(self, lo: int, stop: int) -> None:
+        """Re-file frames lo .. stop-1 that a correction moved and that are already in the grids."""
+        for lvl, size in enumerate(self._levels):
+            hi = min(stop, self._filed[lvl])
+            if hi > lo:
+                cells, grid = self._cells[lvl], self._grids[lvl]
+                new = np.floor(self._p[lo:hi] / size).astype(np.int64)
+                for k in np.flatnonzero(np.any(new != cells[lo:hi], axis=1)):
+                    j = lo + int(k)
+                    old_key = _cell_key(cells[j])
+                    members = grid[old_key]
+                    members.remove(j)
+                    if not members:
+                        del grid[old_key]
+                        self._count_near(old_key, -1, lvl)
+                    cells[j] = new[k]
+                    self._file(_cell_key(new[k]), j, lvl)
