@@ -325,7 +325,7 @@ def test_every_reader_shares_the_stereo_source_defaults():
     from snaps_graph.datasets.euroc import EurocSequence
     from snaps_graph.datasets.live import LiveStereo
     from snaps_graph.datasets.rosbag import RosbagSequence
-    from snaps_graph.datasets.synthetic import SyntheticSequence
+    from snaps_graph.synth import SyntheticSequence
     from snaps_graph.types import SequenceBase
 
     for reader in (KittiSequence, EurocSequence, RosbagSequence, LiveStereo, SyntheticSequence):
