@@ -736,7 +736,7 @@ def test_ctrl_c_during_the_swap_says_the_results_are_complete(tiny_seq, tmp_path
 
     def replace(src, dst):
         if Path(dst) == out:
-            os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C at the final rename
+            signal.raise_signal(signal.SIGINT)  # Ctrl-C at the final rename (to this thread: no delivery race)
         real_replace(src, dst)
 
     import threading
