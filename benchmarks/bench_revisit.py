@@ -13,8 +13,8 @@ the revisit subset (frames 100-230, 1540-1660: ../shared/data/kitti00_loop). Per
   (batch) trajectory, and the two ratios against the odometry.
 
 ``--search radius`` runs the paper's fixed radius instead of the drift-aware gate; ``--verify-all``
-verifies every compared pair, so the recall covers every threshold; ``--loop KEY=VALUE`` sets
-another ``[loop]`` key for every run. Results go to
+verifies every compared pair, so the recall covers every threshold; ``--set SECTION.KEY=VALUE``
+sets another config key for every run. Results go to
 ``--work`` (default: a temporary folder, removed at the end).
 
     python benchmarks/bench_revisit.py [--data ../shared/data/kitti00_loop] [--pct 1 2] [--seeds 0 1 2]
@@ -60,8 +60,14 @@ def one_run(seq: Path, gt_all: np.ndarray, pct: float, seed: int, work: Path, ar
     write_kitti_poses(odo, drifted)
     out = work / name
     cfg = work / f"{name}.toml"
-    extra = "".join(f"{kv}\n" for kv in args.loop)
-    cfg.write_text(f'[loop]\nsearch = "{args.search}"\nverify_all_candidates = {"true" if args.verify_all else "false"}\n{extra}')
+    sections: dict[str, list[str]] = {
+        "loop": [f'search = "{args.search}"', f"verify_all_candidates = {str(args.verify_all).lower()}"]
+    }
+    for kv in args.set:
+        key, _, value = kv.partition("=")
+        section, _, name = key.strip().partition(".")
+        sections.setdefault(section, []).append(f"{name} = {value.strip()}")
+    cfg.write_text("".join(f"[{sec}]\n" + "".join(f"{line}\n" for line in lines) for sec, lines in sections.items()))
     cmd = [sys.executable, "-m", "snaps_graph.cli", "run", str(seq), "--odometry", str(odo), "--out", str(out)]
     cmd += ["--refine", "batch", "--config", str(cfg), "--overwrite"]
     proc = subprocess.run(cmd, capture_output=True, text=True)
@@ -122,11 +128,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--false-m", type=float, default=10.0, help="a loop between frames farther apart is false, m")
     ap.add_argument("--verify-all", action="store_true", help="verify every compared pair (the recall's full curve; same loops)")
     ap.add_argument(
-        "--loop",
+        "--set",
         action="append",
         default=[],
-        metavar="KEY=VALUE",
-        help="another [loop] setting (TOML), e.g. inter_frame_pause=10",
+        metavar="SECTION.KEY=VALUE",
+        help="another config setting (TOML value), e.g. loop.inter_frame_pause=10",
     )
     ap.add_argument(
         "--inlier-floor",
