@@ -13,7 +13,8 @@ the revisit subset (frames 100-230, 1540-1660: ../shared/data/kitti00_loop). Per
   (batch) trajectory, and the two ratios against the odometry.
 
 ``--search radius`` runs the paper's fixed radius instead of the drift-aware gate; ``--verify-all``
-verifies every compared pair, so the recall covers every threshold. Results go to
+verifies every compared pair, so the recall covers every threshold; ``--set SECTION.KEY=VALUE``
+sets another config key for every run. Results go to
 ``--work`` (default: a temporary folder, removed at the end).
 
     python benchmarks/bench_revisit.py [--data ../shared/data/kitti00_loop] [--pct 1 2] [--seeds 0 1 2]
@@ -31,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from snaps_graph.evaluation.drift import drift_trajectory
-from snaps_graph.evaluation.loops import loops_run
+from snaps_graph.evaluation.loops import label_pairs, loops_run, pr_curve, read_candidates_csv
 from snaps_graph.trajectory_io import read_kitti_poses, write_kitti_poses
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -59,7 +60,14 @@ def one_run(seq: Path, gt_all: np.ndarray, pct: float, seed: int, work: Path, ar
     write_kitti_poses(odo, drifted)
     out = work / name
     cfg = work / f"{name}.toml"
-    cfg.write_text(f'[loop]\nsearch = "{args.search}"\nverify_all_candidates = {"true" if args.verify_all else "false"}\n')
+    sections: dict[str, list[str]] = {
+        "loop": [f'search = "{args.search}"', f"verify_all_candidates = {str(args.verify_all).lower()}"]
+    }
+    for kv in args.set:
+        key, _, value = kv.partition("=")
+        section, _, name = key.strip().partition(".")
+        sections.setdefault(section, []).append(f"{name} = {value.strip()}")
+    cfg.write_text("".join(f"[{sec}]\n" + "".join(f"{line}\n" for line in lines) for sec, lines in sections.items()))
     cmd = [sys.executable, "-m", "snaps_graph.cli", "run", str(seq), "--odometry", str(odo), "--out", str(out)]
     cmd += ["--refine", "batch", "--config", str(cfg), "--overwrite"]
     proc = subprocess.run(cmd, capture_output=True, text=True)
@@ -70,6 +78,29 @@ def one_run(seq: Path, gt_all: np.ndarray, pct: float, seed: int, work: Path, ar
     in_revisit = [lp for lp in loops if lp.get("verified") and REVISIT[0] <= lp["frame"] <= REVISIT[1]]
     false = [lp for lp in loops if np.linalg.norm(gt[lp["frame"], :3, 3] - gt[lp["reference"], :3, 3]) > args.false_m]
     run_gt = read_kitti_poses(out / "poses_gt.txt")
+    # Why true pairs are missed: never verified because Q < min_similarity, or above it but not
+    # tried (an earlier candidate at that frame verified first), or tried and failed.
+    recs = read_candidates_csv(out / "candidates.csv")
+    fr = np.array([[r.frame, r.reference] for r in recs], int).reshape(-1, 2)
+    lab = label_pairs(np.linalg.norm(gt[fr[:, 0], :3, 3] - gt[fr[:, 1], :3, 3], axis=1), args.true_m, args.false_m)
+    true = lab == 1
+    above = np.array([r.above_threshold for r in recs], bool)
+    tried = np.array([r.verify_tried for r in recs], bool)
+    passed = np.array([r.verify_passed for r in recs], bool)
+    inl = np.array([r.inliers for r in recs], int)
+    q = np.array([r.q for r in recs], float)
+    breakdown = {
+        "frames_compared": len(set(fr[:, 0].tolist())),
+        "true": int(true.sum()),
+        "below": int((true & ~above).sum()),
+        "untried": int((true & above & ~tried).sum()),
+        "failed": int((true & tried & ~passed).sum()),
+        "verified": int((true & passed).sum()),
+        "false_verified": int(((lab == 0) & passed).sum()),
+        "false_inliers_max": int(inl[(lab == 0) & passed].max()) if ((lab == 0) & passed).any() else 0,
+        "true_inliers_min": int(inl[true & passed].min()) if (true & passed).any() else 0,
+        "recall_floor": {fl: pr_curve(q, lab, passed & (inl >= fl))["max_recall_at_100_precision"] for fl in args.inlier_floor},
+    }
     est = {}
     for traj in ("vo", "snaps", "batch"):
         f = out / f"poses_{traj}.txt"
@@ -83,6 +114,7 @@ def one_run(seq: Path, gt_all: np.ndarray, pct: float, seed: int, work: Path, ar
         "false_loops": len(false),
         "recall_p1": ev.get("max_recall_at_100_precision_verified"),
         "dev": est,
+        "breakdown": breakdown,
     }
 
 
@@ -95,6 +127,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--true-m", type=float, default=2.0, help="a compared pair within this is a true loop, m")
     ap.add_argument("--false-m", type=float, default=10.0, help="a loop between frames farther apart is false, m")
     ap.add_argument("--verify-all", action="store_true", help="verify every compared pair (the recall's full curve; same loops)")
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help="another config setting (TOML value), e.g. loop.inter_frame_pause=10",
+    )
+    ap.add_argument(
+        "--inlier-floor",
+        type=int,
+        nargs="*",
+        default=[],
+        help="also the recall counting only verifications with at least this many inliers",
+    )
     ap.add_argument("--work", type=Path, default=None, help="keep the drifted files and runs here")
     args = ap.parse_args(argv)
     seq, gt_file = args.data / "sequences" / "00", args.data / "poses" / "00.txt"
@@ -126,6 +172,14 @@ def main(argv: list[str] | None = None) -> int:
                 print(
                     f"{pct:4g} {seed:4d} {'yes' if r['closed_in_revisit'] else 'NO':>7} {r['false_loops']:5d} "
                     f"{rec if rec is not None else float('nan'):5.2f} {odo:7.2f} {sn:7.2f} {ba:7.2f} {sn / odo:9.2f} {ba / odo:9.2f}  {loops}",
+                    flush=True,
+                )
+                b = r["breakdown"]
+                floors = " ".join(f"R@P1(inliers>={fl}) {v:.2f}" for fl, v in b["recall_floor"].items())
+                print(
+                    f"{'':9} frames compared {b['frames_compared']}; true pairs {b['true']}: Q < min_similarity {b['below']}, "
+                    f"above but not tried {b['untried']}, failed {b['failed']}, verified {b['verified']} (inliers >= {b['true_inliers_min']}); "
+                    f"false pairs verified {b['false_verified']} (inliers <= {b['false_inliers_max']}) {floors}",
                     flush=True,
                 )
     finally:
