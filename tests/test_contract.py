@@ -961,3 +961,20 @@ def test_demo_keeps_the_run_contract(tmp_path, done_run):
     before = tree(demo)
     line = assert_user_error(cli("demo", "--out", demo, "--frames", "20"), demo / "run")
     assert "--overwrite" in line and tree(demo) == before and not (demo / "sequence").exists()
+
+
+def test_wrong_folder_mistakes_name_the_fix(tmp_path):
+    """A EuRoC camera folder or a folder of sequences: the error says which folder to pass."""
+    cam0 = tmp_path / "V1" / "mav0" / "cam0"
+    (cam0 / "data").mkdir(parents=True)
+    (cam0 / "data.csv").write_text("#timestamp [ns],filename\n")
+    proc = cli("run", str(cam0), "--out", str(tmp_path / "r1"))
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1
+    assert f"a EuRoC camera folder; pass the folder holding mav0/ ({tmp_path / 'V1'})" in proc.stderr
+    for name in ("06", "00"):
+        (tmp_path / "kitti" / "sequences" / name / "image_0").mkdir(parents=True)
+    for where in (tmp_path / "kitti", tmp_path / "kitti" / "sequences"):
+        proc = cli("run", str(where), "--out", str(tmp_path / "r2"))
+        assert proc.returncode == 2 and proc.stderr.count("\n") == 1
+        assert f"holds sequences 00, 06: pass one of them (e.g. {tmp_path / 'kitti' / 'sequences' / '00'})" in proc.stderr
+    assert not (tmp_path / "r1").exists() and not (tmp_path / "r2").exists()

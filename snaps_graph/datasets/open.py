@@ -33,11 +33,30 @@ def dataset_kind(path: str | Path) -> str:
     if p.is_dir() and find_mav0(p) is not None:
         return "euroc"
     if p.is_dir():
+        _wrong_folder(p)
         return "kitti"  # KittiSequence says what is missing
     raise SnapsGraphError(
         f"{p}: not a readable sequence (expected a KITTI folder with image_0/ and image_1/, a EuRoC mav0/ folder, "
         "a ROS 1 .bag, a ROS 2 bag folder or a .mcap/.db3 file)"
     )
+
+
+def _wrong_folder(p: Path) -> None:
+    """A one-line error naming the fix for the usual wrong folder: a EuRoC camera folder, or a
+    KITTI root that holds sequences instead of being one."""
+    if (p / "image_0").is_dir():
+        return
+    if p.name in ("cam0", "cam1") and ((p / "data.csv").is_file() or (p / "sensor.yaml").is_file()):
+        mav0 = p.parent
+        holder = mav0.parent if mav0.name == "mav0" else mav0
+        raise SnapsGraphError(f"{p}: a EuRoC camera folder; pass the folder holding mav0/ ({holder})")
+    for root in (p, p / "sequences"):
+        seqs = (
+            sorted(c.name for c in root.iterdir() if (c / "image_0").is_dir() or (c / "mav0").is_dir()) if root.is_dir() else []
+        )
+        if seqs:
+            shown = ", ".join(seqs[:8]) + (", ..." if len(seqs) > 8 else "")
+            raise SnapsGraphError(f"{p}: holds sequences {shown}: pass one of them (e.g. {root / seqs[0]})")
 
 
 def open_dataset(
