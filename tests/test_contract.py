@@ -736,14 +736,15 @@ def test_ctrl_c_during_the_swap_says_the_results_are_complete(tiny_seq, tmp_path
 
     def replace(src, dst):
         if Path(dst) == out:
-            # Ctrl-C at the final rename: the handler in place then is called as the interpreter
-            # would call it (a real signal's delivery time varies with the machine's load).
-            signal.getsignal(signal.SIGINT)(signal.SIGINT, None)
+            signal.raise_signal(signal.SIGINT)  # Ctrl-C at the final rename
         real_replace(src, dst)
 
     import threading
 
     monkeypatch.setattr(io_utils.os, "replace", replace)
+    # Python's own Ctrl-C handler in place, as in a program started from a terminal (a runner
+    # started in the background inherits SIGINT ignored, and Python then installs none).
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     busy = threading.Event()
     other = threading.Thread(target=busy.wait, args=(30,), daemon=True)  # a thread that could take the signal
     other.start()
@@ -752,6 +753,7 @@ def test_ctrl_c_during_the_swap_says_the_results_are_complete(tiny_seq, tmp_path
             write_results(out, pipe, result)
     finally:
         busy.set()
+        signal.signal(signal.SIGINT, previous)
     assert (out / "metrics.json").is_file() and out.resolve() in io_utils.committed_folders()
     assert not no_leftovers(tmp_path)
 
