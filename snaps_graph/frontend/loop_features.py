@@ -169,12 +169,11 @@ def pose_covariance(
     return cov, float(np.sqrt(s2))
 
 
-def match_and_pnp(
-    ref: FrameFeatures | None, cur: FrameFeatures | None, camera: StereoCamera, cfg: FrontendConfig, ratio: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
-    """Ratio-test matches of ``ref``'s descriptors to ``cur``'s, then PnP RANSAC of ``ref``'s 3D
-    points on ``cur``'s pixels: (T_cur_ref, ref indices, cur indices, inlier positions among the
-    matches), or None when the descriptor kinds differ or fewer than ``min_inliers`` survive."""
+def ratio_matches(
+    ref: FrameFeatures | None, cur: FrameFeatures | None, cfg: FrontendConfig, ratio: float
+) -> tuple[FrameFeatures, FrameFeatures, tuple[np.ndarray, np.ndarray]] | None:
+    """``(ref, cur, (ref indices, cur indices))`` of ratio-test matches, or None when either side
+    is missing, the descriptor kinds differ, or fewer than ``min_inliers`` matches survive."""
     if ref is None or cur is None or len(ref.desc) < cfg.min_inliers or len(cur.desc) < 2:
         return None
     if ref.desc.dtype != cur.desc.dtype or ref.desc.shape[1] != cur.desc.shape[1]:
@@ -182,6 +181,19 @@ def match_and_pnp(
     ia, ib = match_descriptors(ref.desc, cur.desc, ratio)
     if len(ia) < cfg.min_inliers:
         return None
+    return ref, cur, (ia, ib)
+
+
+def match_and_pnp(
+    ref: FrameFeatures | None, cur: FrameFeatures | None, camera: StereoCamera, cfg: FrontendConfig, ratio: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """Ratio-test matches of ``ref``'s descriptors to ``cur``'s, then PnP RANSAC of ``ref``'s 3D
+    points on ``cur``'s pixels: (T_cur_ref, ref indices, cur indices, inlier positions among the
+    matches), or None when the descriptor kinds differ or fewer than ``min_inliers`` survive."""
+    m = ratio_matches(ref, cur, cfg, ratio)
+    if m is None:
+        return None
+    ref, cur, (ia, ib) = m
     res = pnp_ransac(ref.pts3d[ia], cur.uv[ib], camera, cfg)
     if res is None:
         return None

@@ -24,8 +24,14 @@ from ..camera import StereoCamera
 from ..config import FrontendConfig
 from ..geometry import rotation_angle_deg
 from ..types import FrameFeatures, StereoFrame
-from .features import match_descriptors
-from .loop_features import LOOP_QUERY_FEATURES, LOOP_RATIO_TEST, VERIFY_MAX_ROTATION_DEG, LoopFeatureBank, detect_loop_keypoints
+from .loop_features import (
+    LOOP_QUERY_FEATURES,
+    LOOP_RATIO_TEST,
+    VERIFY_MAX_ROTATION_DEG,
+    LoopFeatureBank,
+    detect_loop_keypoints,
+    ratio_matches,
+)
 from .motion import RANSAC_SEED
 
 SAME_PLACE_M = 1.0  # a loop's distance is at most this, and as uncertain (1 sigma along its direction)
@@ -128,13 +134,10 @@ def two_view_pose(
     """The relative rotation and translation direction of ``cur`` in ``ref``'s camera frame, or
     None when the descriptors differ in kind, too few matches or inliers survive, the fit is not
     finite, or the rotation is implausible (``VERIFY_MAX_ROTATION_DEG``)."""
-    if ref is None or cur is None or len(ref.desc) < cfg.min_inliers or len(cur.desc) < 2:
+    m = ratio_matches(ref, cur, cfg, LOOP_RATIO_TEST)
+    if m is None:
         return None
-    if ref.desc.dtype != cur.desc.dtype or ref.desc.shape[1] != cur.desc.shape[1]:
-        return None
-    ia, ib = match_descriptors(ref.desc, cur.desc, LOOP_RATIO_TEST)
-    if len(ia) < cfg.min_inliers:
-        return None
+    ref, cur, (ia, ib) = m
     p_ref = ref.uv[ia].astype(np.float64)
     p_cur = cur.uv[ib].astype(np.float64)
     K = camera.K
