@@ -30,6 +30,14 @@ _RADIX = 1 << 32
 _NEIGHBOUR_OFFSETS = tuple(dx * _RADIX + dz for dx in (-1, 0, 1) for dz in (-1, 0, 1))
 
 
+def _gather(grid: dict, base: int, found: list[int]) -> None:
+    """Append the frames filed in the 9 cells around cell key ``base`` to ``found``."""
+    for off in _NEIGHBOUR_OFFSETS:
+        members = grid.get(base + off)
+        if members:
+            found.extend(members)
+
+
 def _cell_key(c) -> int:
     return int(c[0]) * _RADIX + int(c[2])
 
@@ -95,12 +103,8 @@ class CandidateSearch:
         base = math.floor(x / r) * _RADIX + math.floor(z / r)
         if base not in self._near:  # no indexed frame in the 9 cells: the common case
             return _NO_IDS, _NO_DISTS
-        grid = self._grid
         found: list[int] = []
-        for off in _NEIGHBOUR_OFFSETS:
-            members = grid.get(base + off)
-            if members:
-                found.extend(members)
+        _gather(self._grid, base, found)
         if not found:
             return _NO_IDS, _NO_DISTS
         if len(found) <= 32:  # few neighbours (most frames): scalar Python beats numpy's call overhead
@@ -145,11 +149,7 @@ class CandidateSearch:
             base = math.floor(x / size) * _RADIX + math.floor(z / size)
             if base not in self._nears[lvl]:  # no indexed frame anywhere near: the common case
                 continue
-            grid = self._grids[lvl]
-            for off in _NEIGHBOUR_OFFSETS:
-                members = grid.get(base + off)
-                if members:
-                    found.extend(members)
+            _gather(self._grids[lvl], base, found)
         if not found:
             return _NO_IDS, _NO_DISTS
         if len(found) > 48:  # many neighbours: one vector test drops those beyond the widest gate
