@@ -11,8 +11,9 @@ keyframes); the dataset's own frame number is kept beside them (``FrameRecord.fr
 ``LoopEvent.frame``/``reference``), so a run over ``--frames 100:200`` reports file numbers.
 
 Monocular frames (an empty or None right image) need a front end other than the stereo VO (a
-pose file: ``frontend.external.PoseFileOdometry``); SNAPS then verifies loops by two-view
-geometry (``frontend.two_view``), there is no map and no stereo-order check.
+pose file: ``frontend.external.PoseFileOdometry``); SNAPS then verifies loops by PnP on points
+triangulated over the odometry's motion (``frontend.two_view``), there is no map and no
+stereo-order check.
 
 A frame that ``process`` rejects (wrong size or type, a repeated or decreasing frame number, a
 non-finite timestamp) raises ``SnapsGraphError`` before any state changes: the pipeline stays
@@ -38,7 +39,7 @@ from .frontend.depth import ORDER_MAX_FRAMES, check_stereo_pair, map_depth, ster
 from .frontend.external import PoseFileOdometry, time_origin
 from .frontend.loop_features import LoopFeatureBank, verify_features
 from .frontend.odometry import StereoOdometry
-from .frontend.two_view import MonoFeatureBank, loop_measurement, two_view_pose
+from .frontend.two_view import MonoFeatureBank
 from .loop.snaps import SnapsLoopCloser
 from .loop.uiqi import make_thumbnail
 from .mapping.tsdf import FusedMap
@@ -212,7 +213,7 @@ class SlamPipeline:
         if self.loop_features is not None:
             self.loop_features.add(k, frame, vo.disparity_offset_px)
         if self.two_view is not None:
-            self.two_view.add(k, frame)
+            self.two_view.observe(k, frame, vo.pose)
         if self.snaps is not None:
             self._loop_cov.clear()
             step = self.snaps.step(frame.index, vo.T_rel, frame.left, verify=lambda ref: self._verify(ref, vo, frame, k))
@@ -268,36 +269,33 @@ class SlamPipeline:
 
     def _verify(self, ref_index: int, vo: VOResult, frame: StereoFrame | None = None, k: int | None = None):
         """Geometric verification of a SNAPS loop: the stored reference nearest to the candidate
-        is verified and the result carried to the candidate by the VO poses between the two (at
-        most a few frames); the covariance is kept for the loop factor. Returns (T_ref_cur,
-        inliers) or None; never raises."""
+        is verified (with the current frame's stereo depth check when it has a right image) and
+        the result carried to the candidate by the VO poses between the two (at most a few
+        frames); the covariance is kept for the loop factor. Returns (T_ref_cur, inliers) or
+        None; never raises."""
+        bank = self.two_view if self.two_view is not None else self.loop_features
         k_ref = self._k_of_frame.get(ref_index)
-        if self.two_view is not None and frame is not None and k is not None:
-            return self._verify_two_view(ref_index, k_ref, vo, frame, k)
-        if self.loop_features is not None and frame is not None and k is not None:
-            if k_ref is None:
-                return None
-            k_feat = self.loop_features.nearest(k_ref)
-            if k_feat is None:
-                return None
-            try:
-                cur = self.loop_features.query(k, frame)
-                m = verify_features(
-                    self.loop_features.reference(k_feat), cur, frame, self.camera, self.cfg.frontend, vo.disparity_offset_px
-                )
-            except Exception as exc:  # best effort: an unverifiable candidate is not a loop
-                self.graph.failures.append((k, f"loop verification raised {type(exc).__name__}: {exc}"))
-                return None
-            if m is None:
-                return None
-            T = m.T_ref_cur
-            if k_feat != k_ref:
-                T = np.linalg.solve(self._vo_poses[k_ref], self._vo_poses[k_feat]) @ T
-            if np.linalg.norm(T[:3, 3]) > self.cfg.frontend.loop_max_distance_m:  # not the same place
-                return None
-            self._loop_cov[int(ref_index)] = m.cov
-            return T, m.inliers
-        return None
+        if bank is None or frame is None or k is None or k_ref is None:
+            return None
+        k_feat = bank.nearest(k_ref)
+        if k_feat is None:
+            return None
+        try:
+            cur = bank.query(k, frame)
+            stereo = None if self._monocular else frame
+            m = verify_features(bank.reference(k_feat), cur, stereo, self.camera, self.cfg.frontend, vo.disparity_offset_px)
+        except Exception as exc:  # best effort: an unverifiable candidate is not a loop
+            self.graph.failures.append((k, f"loop verification raised {type(exc).__name__}: {exc}"))
+            return None
+        if m is None:
+            return None
+        T = m.T_ref_cur
+        if k_feat != k_ref:
+            T = np.linalg.solve(self._vo_poses[k_ref], self._vo_poses[k_feat]) @ T
+        if np.linalg.norm(T[:3, 3]) > self.cfg.frontend.loop_max_distance_m:  # not the same place
+            return None
+        self._loop_cov[int(ref_index)] = m.cov
+        return T, m.inliers
 
     def _start_monocular(self, mono: bool) -> None:
         """At the first frame: a monocular run verifies loops by two-view geometry."""
@@ -309,32 +307,7 @@ class SlamPipeline:
             self.loop_features.close()
             self.loop_features = None
         if self.snaps is not None:
-            self.two_view = MonoFeatureBank(self.camera, self.cfg.frontend, background=False)
-
-    def _verify_two_view(self, ref_index: int, k_ref: int | None, vo: VOResult, frame: StereoFrame, k: int):
-        """Monocular verification: the essential matrix between the stored reference nearest to
-        the candidate and this frame (``frontend.two_view``), carried to the candidate by the
-        odometry; the length of the translation from the odometry, capped by the same-place
-        assumption. (T_ref_cur, inliers) or None; the covariance is kept for the loop factor."""
-        assert self.two_view is not None
-        if k_ref is None:
-            return None
-        k_feat = self.two_view.nearest(k_ref)
-        if k_feat is None:
-            return None
-        try:
-            m = two_view_pose(self.two_view.reference(k_feat), self.two_view.query(k, frame), self.camera, self.cfg.frontend)
-        except Exception as exc:  # best effort: an unverifiable candidate is not a loop
-            self.graph.failures.append((k, f"loop verification raised {type(exc).__name__}: {exc}"))
-            return None
-        if m is None:
-            return None
-        odo = np.linalg.solve(self._vo_poses[k_feat], vo.pose)
-        T, cov = loop_measurement(m, float(np.linalg.norm(odo[:3, 3])))
-        if k_feat != k_ref:
-            T = np.linalg.solve(self._vo_poses[k_ref], self._vo_poses[k_feat]) @ T
-        self._loop_cov[int(ref_index)] = cov
-        return T, m.inliers
+            self.two_view = MonoFeatureBank(self.camera, self.cfg.frontend)
 
     def _add_loop_factor(self, loop: LoopEvent, vo: VOResult) -> None:
         """A loop-closure factor for a SNAPS loop: measured by verification when it succeeded

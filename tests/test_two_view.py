@@ -1,9 +1,8 @@
-"""Two-view loop verification (no stereo): a synthetic pair of known motion, the loop
-measurement's length and covariance, and real pairs (a rig of exact truth, the real revisit)."""
+"""Monocular loop verification: reference points triangulated over the odometry's motion, then
+PnP. A synthetic scene of known motion, the bank's bookkeeping, and real images (the rectified
+rig of exact truth; the real revisit)."""
 
 from __future__ import annotations
-
-import math
 
 import cv2
 import numpy as np
@@ -13,10 +12,10 @@ from conftest import SHARED_DATA
 from snaps_graph.camera import kitti00_camera
 from snaps_graph.config import Config
 from snaps_graph.datasets.kitti import KittiSequence
-from snaps_graph.frontend.loop_features import LOOP_QUERY_FEATURES
-from snaps_graph.frontend.two_view import SAME_PLACE_M, loop_measurement, two_view_features, two_view_pose
-from snaps_graph.geometry import log_so3, rotation_angle_deg
-from snaps_graph.types import FrameFeatures
+from snaps_graph.frontend.loop_features import LOOP_QUERY_FEATURES, verify_features
+from snaps_graph.frontend.two_view import MonoFeatureBank, partner_pose, triangulate, two_view_features
+from snaps_graph.geometry import rotation_angle_deg
+from snaps_graph.types import FrameFeatures, StereoFrame
 
 LOOP_SEQ = SHARED_DATA / "kitti00_loop" / "sequences" / "00"
 KITTI06 = SHARED_DATA / "kitti" / "sequences" / "06"
@@ -27,91 +26,108 @@ def _need(path):
         pytest.skip(f"real data not found at {path} (it is in CI's ../shared/data; a user's clone lacks it)")
 
 
-def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
-    return math.degrees(math.acos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1.0, 1.0)))
+def _pose(R: np.ndarray, t) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    return T
 
 
-def _synthetic_pair(R: np.ndarray, t: np.ndarray, n: int = 300, noise_px: float = 0.3, seed: int = 0):
-    """Features of n random points seen from a reference camera and from a camera at (R, t) in it."""
+def _scene(poses: list[np.ndarray], n: int = 400, noise_px: float = 0.2, seed: int = 0):
+    """Features of n random points seen from cameras at ``poses`` (T_world_camera); one shared
+    random descriptor per point, so matching is exact."""
     cam = kitti00_camera()
     rng = np.random.default_rng(seed)
-    X = np.c_[rng.uniform(-15, 15, n), rng.uniform(-3, 2, n), rng.uniform(5, 40, n)]
-    Xc = (X - t) @ R  # the points in the current camera: R^T (X - t)
+    X = np.c_[rng.uniform(-15, 15, n), rng.uniform(-3, 2, n), rng.uniform(6, 40, n)]
+    desc = rng.standard_normal((n, 128)).astype(np.float32)
+    views = []
+    for T in poses:
+        Xc = (X - T[:3, 3]) @ T[:3, :3]
+        uv = np.c_[cam.fx * Xc[:, 0] / Xc[:, 2] + cam.cx, cam.fy * Xc[:, 1] / Xc[:, 2] + cam.cy]
+        uv = (uv + rng.normal(0, noise_px, uv.shape)).astype(np.float32)
+        views.append(FrameFeatures(uv, np.zeros((n, 3), np.float32), desc))
+    return cam, X, views
 
-    def proj(P):
-        uv = np.c_[cam.fx * P[:, 0] / P[:, 2] + cam.cx, cam.fy * P[:, 1] / P[:, 2] + cam.cy]
-        return (uv + rng.normal(0, noise_px, uv.shape)).astype(np.float32)
 
-    desc = rng.integers(0, 256, (n, 32), dtype=np.uint8)
-    z = np.zeros((n, 3), np.float32)
-    return cam, FrameFeatures(proj(X), z, desc), FrameFeatures(proj(Xc), z, desc)
+def test_partner_pose_keeps_the_images_rotation_and_the_odometrys_length():
+    """The odometry's step is 0.5 deg off in heading and 2 % long; the fit takes rotation and
+    direction from the images and only the length from the odometry."""
+    true = _pose(cv2.Rodrigues(np.array([0.0, 0.02, 0.0]))[0], [0.05, 0.0, 1.5])
+    cam, _, (ref, par) = _scene([np.eye(4), true])
+    odo = _pose(cv2.Rodrigues(np.array([0.0, 0.02 + np.radians(0.5), 0.0]))[0], 1.02 * true[:3, 3])
+    fit = partner_pose(ref.uv.astype(float), par.uv.astype(float), odo, cam, Config().frontend)
+    assert fit is not None
+    T, inl = fit
+    assert inl.mean() > 0.9
+    assert rotation_angle_deg(T[:3, :3].T @ true[:3, :3]) < 0.05
+    assert np.isclose(np.linalg.norm(T[:3, 3]), np.linalg.norm(odo[:3, 3]))
+    assert np.linalg.norm(T[:3, 3] - 1.02 * true[:3, 3]) < 0.02
+    # an odometry pointing elsewhere (sideways) is refused, not trusted
+    assert partner_pose(ref.uv.astype(float), par.uv.astype(float), _pose(np.eye(3), [1.5, 0, 0]), cam, Config().frontend) is None
 
 
-def test_synthetic_pair_recovered():
-    R = cv2.Rodrigues(np.array([0.01, 0.15, -0.02]).reshape(3, 1))[0]
-    t = np.array([0.8, 0.05, 0.6])
-    cam, ref, cur = _synthetic_pair(R, t)
+def test_triangulated_reference_verifies_a_revisit_metrically():
+    """Reference at the origin, partner 1.5 m ahead, a revisit 0.8 m to the left and 0.6 m
+    behind, turned 3 deg: PnP on the triangulated points recovers it in metres."""
     cfg = Config().frontend
-    m = two_view_pose(ref, cur, cam, cfg)
-    assert m is not None and m.inliers >= 0.9 * 300
-    assert rotation_angle_deg(m.R_ref_cur.T @ R) < 0.1
-    assert _angle_deg(m.direction, t) < 1.0
-    again = two_view_pose(ref, cur, cam, cfg)
-    assert again is not None and np.array_equal(again.R_ref_cur, m.R_ref_cur)  # seeded: deterministic
-    # the fit's covariance: finite, positive, the direction's orthogonal to itself
-    assert np.all(np.linalg.eigvalsh(m.cov_rot) > 0) and abs(m.direction @ m.cov_dir @ m.direction) < 1e-12
+    rev = _pose(cv2.Rodrigues(np.array([0.0, np.radians(3.0), 0.0]))[0], [-0.8, 0.0, -0.6])
+    cam, X, (ref, par, cur) = _scene([np.eye(4), _pose(np.eye(3), [0.0, 0.0, 1.5]), rev])
+    pts = triangulate(ref, par, _pose(np.eye(3), [0.0, 0.0, 1.5]), cam, cfg)
+    assert pts is not None and len(pts.uv) > 200
+    m = verify_features(pts, cur, None, cam, cfg)
+    assert m is not None and m.inliers > 200
+    assert np.linalg.norm(m.T_ref_cur[:3, 3] - rev[:3, 3]) < 0.05
+    assert rotation_angle_deg(m.T_ref_cur[:3, :3].T @ rev[:3, :3]) < 0.1
+    assert np.all(np.isfinite(m.cov)) and np.all(np.linalg.eigvalsh(m.cov) > 0)
 
 
-def test_too_few_matches_is_no_loop():
-    cam, ref, cur = _synthetic_pair(np.eye(3), np.array([1.0, 0, 0]), n=15)
-    assert two_view_pose(ref, cur, cam, Config().frontend) is None
-    rng = np.random.default_rng(1)
-    other = FrameFeatures(cur.uv, cur.pts3d, rng.integers(0, 256, cur.desc.shape, dtype=np.uint8))
-    cam, ref, _ = _synthetic_pair(np.eye(3), np.array([1.0, 0, 0]))
-    assert two_view_pose(ref, other, cam, Config().frontend) is None  # unrelated descriptors
-
-
-def test_loop_measurement_length_and_covariance():
-    R = cv2.Rodrigues(np.array([0.0, 0.1, 0.0]).reshape(3, 1))[0]
-    t = np.array([0.3, 0.0, -1.0])
-    cam, ref, cur = _synthetic_pair(R, t)
-    m = two_view_pose(ref, cur, cam, Config().frontend)
-    assert m is not None
-    T_far, C = loop_measurement(m, 8.0)  # the odometry says 8 m: the same-place assumption caps it
-    assert np.isclose(np.linalg.norm(T_far[:3, 3]), SAME_PLACE_M)
-    T_near, _ = loop_measurement(m, 0.4)
-    assert np.isclose(np.linalg.norm(T_near[:3, 3]), 0.4) and _angle_deg(T_near[:3, 3], t) < 1.0
-    assert np.all(np.linalg.eigvalsh(C) > 0)
-    d_cur = R.T @ m.direction  # the translation tangent is in the current camera's frame
-    assert np.isclose(math.sqrt(d_cur @ C[3:, 3:] @ d_cur), SAME_PLACE_M, rtol=0.05)  # loose along the direction
+def test_bank_waits_for_a_partner_and_drops_a_camera_at_rest():
+    cfg = Config().frontend
+    cam = kitti00_camera()
+    rng = np.random.default_rng(3)
+    img = cv2.GaussianBlur(rng.integers(0, 256, (376, 1241), dtype=np.uint8), (5, 5), 1.5)
+    frame = StereoFrame(0, 0.0, img, np.zeros((0, 0), np.uint8))
+    bank = MonoFeatureBank(cam, cfg)
+    with pytest.raises(TypeError, match="observe"):
+        bank.add(0, frame)
+    for k in range(40):  # standing still: no partner ever arrives
+        bank.observe(k, StereoFrame(k, 0.1 * k, img, frame.right), np.eye(4))
+    assert len(bank) == 0 and all(39 - j < 30 for j in bank._waiting)  # older ones were dropped
 
 
 def test_known_rig_on_real_images():
-    """KITTI 06: left image vs right image of the rectified rig (R = I, 0.54 m to the right)."""
+    """KITTI 06: references triangulated from the left images with the truth as odometry, the
+    right image of the same frame as the query (R = I, 0.54 m to the right): metric and exact."""
     _need(KITTI06)
-    seq = KittiSequence(KITTI06, frames="0:1")
-    cfg = Config().frontend
-    f = seq[0]
-    m = two_view_pose(two_view_features(f.left, cfg), two_view_features(f.right, cfg, LOOP_QUERY_FEATURES), seq.camera, cfg)
-    assert m is not None and m.inliers >= 100
-    assert rotation_angle_deg(m.R_ref_cur) < 1.0
-    assert _angle_deg(m.direction, np.array([1.0, 0, 0])) < 2.0
-
-
-def test_real_revisit_pair():
-    """kitti00_loop 1600 against 154 (1.8 m behind it) and 158 (2 m ahead): verified, the along-track
-    sign right, pitch and roll as the truth's (the truth's yaw and height between the passes are
-    not that good: docs/odometry-input.md)."""
-    _need(LOOP_SEQ)
-    seq = KittiSequence(LOOP_SEQ)
-    idx = {int(f): i for i, f in enumerate(seq.indices)}
+    seq = KittiSequence(KITTI06, frames="0:12")
     assert seq._gt_all is not None
     cfg = Config().frontend
-    cur = two_view_features(seq[idx[1600]].left, cfg, LOOP_QUERY_FEATURES)
-    for r, sign in ((154, 1.0), (158, -1.0)):
-        m = two_view_pose(two_view_features(seq[idx[r]].left, cfg), cur, seq.camera, cfg)
-        assert m is not None and m.inliers >= 100
-        assert np.sign(m.direction[2]) == sign and abs(m.direction[2]) > 0.9
-        T = np.linalg.solve(seq._gt_all[idx[r]], seq._gt_all[idx[1600]])
-        err = np.degrees(log_so3(T[:3, :3].T @ m.R_ref_cur))
-        assert abs(err[0]) < 0.2 and abs(err[2]) < 0.2 and abs(err[1]) < 2.0, err
+    bank = MonoFeatureBank(seq.camera, cfg)
+    for k, f in enumerate(seq):
+        bank.observe(k, f, seq._gt_all[k])
+    ref = bank.reference(5)
+    assert ref is not None and len(ref.uv) >= 100
+    m = verify_features(ref, two_view_features(seq[5].right, cfg, LOOP_QUERY_FEATURES), None, seq.camera, cfg)
+    assert m is not None and m.inliers >= 50
+    assert rotation_angle_deg(m.T_ref_cur[:3, :3]) < 0.5
+    assert np.linalg.norm(m.T_ref_cur[:3, 3] - [seq.camera.baseline_m, 0.0, 0.0]) < 0.06
+
+
+def test_real_revisit_pair_and_a_street_apart():
+    """kitti00_loop: 1600 against the first pass's 155 (within 2 m) verifies, along-track sign as
+    the truth's; against 140 (16 m back along the same street) it does not pass as the same place."""
+    _need(LOOP_SEQ)
+    seq = KittiSequence(LOOP_SEQ)
+    assert seq._gt_all is not None
+    idx = {int(f): i for i, f in enumerate(seq.indices)}
+    cfg = Config().frontend
+    bank = MonoFeatureBank(seq.camera, cfg)
+    for f in range(135, 170):
+        bank.observe(idx[f], seq[idx[f]], seq._gt_all[idx[f]])
+    cur = bank.query(idx[1600], seq[idx[1600]])
+    G = {f: seq._gt_all[idx[f]] for f in (140, 155, 1600)}
+    m = verify_features(bank.reference(idx[155]), cur, None, seq.camera, cfg)
+    assert m is not None and m.inliers >= 30
+    T = np.linalg.solve(G[155], G[1600])
+    assert np.sign(m.T_ref_cur[2, 3]) == np.sign(T[2, 3]) and abs(m.T_ref_cur[1, 3]) < 0.2  # same road: same height
+    far = verify_features(bank.reference(idx[140]), cur, None, seq.camera, cfg)
+    assert far is None or np.linalg.norm(far.T_ref_cur[:3, 3]) > cfg.loop_max_distance_m

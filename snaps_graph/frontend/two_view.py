@@ -1,20 +1,16 @@
-"""Loop verification without stereo: two-view geometry between a reference frame and the current one.
+"""Loop verification without stereo: reference points triangulated over the odometry's motion.
 
-SIFT features of both frames (``loop_features.detect_loop_keypoints``), ratio-test
-matches, the essential matrix under RANSAC (``cv2.findEssentialMat`` with USAC_ACCURATE: local
-optimisation of the inliers, which a plain 5-point RANSAC lacks; seeded) and ``cv2.recoverPose``
-give the rotation and the direction of the translation; at least ``min_inliers`` matches must
-agree. The metric length is not observed by one camera: it is the odometry's distance between
-the two frames, capped by the paper's same-place assumption (a pair SNAPS accepts stands close;
-``SAME_PLACE_M``), and the covariance leaves it loose: sigma ``SAME_PLACE_M`` along the
-direction, the fitted direction's uncertainty across it, the fitted rotation's from the
-Sampson residuals' Jacobian. See docs/odometry-input.md for the figures behind the choice.
+One camera sees no depth, and two views of one street fit an essential matrix whatever their
+distance apart (docs/odometry-input.md). So a reference frame's SIFT keypoints are triangulated
+against a later frame of the same pass at least ``BASELINE_M`` away along the odometry (over a
+metre or two its motion is metric and close to exact), and a candidate is then verified like a
+stereo one (``loop_features.verify_features``): PnP RANSAC of those points on the current
+frame's keypoints gives a metric relative pose, refused beyond ``loop_max_distance_m``.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
 from typing import Literal
 
 import cv2
@@ -22,163 +18,131 @@ import numpy as np
 
 from ..camera import StereoCamera
 from ..config import FrontendConfig
-from ..geometry import rotation_angle_deg
+from ..geometry import inv
 from ..types import FrameFeatures, StereoFrame
-from .loop_features import (
-    LOOP_QUERY_FEATURES,
-    LOOP_RATIO_TEST,
-    VERIFY_MAX_ROTATION_DEG,
-    LoopFeatureBank,
-    detect_loop_keypoints,
-    ratio_matches,
-)
+from .keyframe import MIN_STEREO_POINTS
+from .loop_features import LOOP_QUERY_FEATURES, LOOP_RATIO_TEST, LoopFeatureBank, detect_loop_keypoints, ratio_matches
 from .motion import RANSAC_SEED
 
-SAME_PLACE_M = 1.0  # a loop's distance is at most this, and as uncertain (1 sigma along its direction)
+BASELINE_M = 1.0  # a reference is triangulated against the first later frame this far along the odometry
+MAX_PARTNER_FRAMES = 30  # ...arriving within this many frames, else the reference is dropped (a camera at rest)
+MIN_PARALLAX_DEG = 0.5  # a triangulated point's two rays differ by at least this
+MAX_DIRECTION_DEG = 20.0  # the images' direction of the partner and the odometry's agree within this
 RANSAC_PROB = 0.999
-MIN_SIGMA_ROT_RAD = 1e-3  # the E fit's rotation sigma is never taken below this
-MIN_SIGMA_DIR_RAD = 0.02  # nor the direction's
-
-
-@dataclass
-class TwoViewMatch:
-    """A two-view loop measurement."""
-
-    R_ref_cur: np.ndarray  # 3x3 rotation of the current camera in the reference camera frame
-    direction: np.ndarray  # (3,) unit translation of the current camera, reference frame
-    inliers: int
-    rms_px: float  # Sampson error rms of the inliers
-    cov_rot: np.ndarray  # 3x3, right perturbation of R_ref_cur (rad)
-    cov_dir: np.ndarray  # 3x3 (rank 2), of ``direction`` in the reference frame
-    pairs: np.ndarray  # (inliers, 2) int: the inlier matches' indices into the reference's and the current frame's features
-
-
-DETECTOR: Literal["orb", "sift"] = "sift"  # two-view geometry's features (docs/odometry-input.md: SIFT against ORB)
+REFERENCE_FEATURES = 1000  # keypoints of a reference and of its partner before matching
+DETECTOR: Literal["orb", "sift"] = "sift"  # monocular verification's features (docs/odometry-input.md: SIFT against ORB)
 
 
 def two_view_features(
     img: np.ndarray, cfg: FrontendConfig, n: int | None = None, detector: Literal["orb", "sift"] = DETECTOR
 ) -> FrameFeatures:
-    """Keypoints and descriptors of one image (no depth) for two-view verification."""
+    """Keypoints and descriptors of one image (no depth)."""
     uv, desc, _ = detect_loop_keypoints(img, dataclasses.replace(cfg, loop_detector=detector), n)
     return FrameFeatures(uv, np.zeros((len(uv), 3), np.float32), desc)
 
 
-class MonoFeatureBank(LoopFeatureBank):
-    """``LoopFeatureBank`` for frames without a right image: keypoints and descriptors only."""
+def partner_pose(
+    x_ref: np.ndarray, x_par: np.ndarray, T_odo: np.ndarray, camera: StereoCamera, cfg: FrontendConfig
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """(T_ref_partner, inlier mask) from the matches' essential matrix (USAC_ACCURATE, seeded) and
+    the odometry's length ``|T_odo|``: the images fix rotation and direction far better than an
+    odometry's step does, and triangulation is as exact as they are. None when the fit fails or
+    its direction is more than ``MAX_DIRECTION_DEG`` from the odometry's."""
+    cv2.setRNGSeed(RANSAC_SEED)
+    E, mask = cv2.findEssentialMat(x_par, x_ref, camera.K, cv2.USAC_ACCURATE, RANSAC_PROB, cfg.pnp_reprojection_px)
+    if E is None or E.shape != (3, 3) or mask is None:
+        return None
+    # points1 = partner, points2 = reference: X_ref = R X_partner + t
+    _, R, t, mask2 = cv2.recoverPose(E, x_par, x_ref, camera.K, mask=mask.copy())
+    d, d_odo = t.reshape(3), T_odo[:3, 3]
+    length = float(np.linalg.norm(d_odo))
+    cos = float(d @ d_odo) / max(float(np.linalg.norm(d)) * length, 1e-12)
+    if not (np.all(np.isfinite(R)) and np.isfinite(cos)) or cos < np.cos(np.radians(MAX_DIRECTION_DEG)):
+        return None
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = length * d / np.linalg.norm(d)
+    return T, mask2.ravel() > 0
 
-    def _compute(self, left: np.ndarray, right: np.ndarray, offset_px: float) -> FrameFeatures | None:
-        f = two_view_features(left, self.cfg)
-        return f if len(f.uv) >= self.cfg.min_inliers else None
+
+def triangulate(
+    ref: FrameFeatures, partner: FrameFeatures, T_odo: np.ndarray, camera: StereoCamera, cfg: FrontendConfig
+) -> FrameFeatures | None:
+    """``ref``'s keypoints that match ``partner``'s, with 3D points in ``ref``'s camera frame
+    triangulated from the two views (``partner`` at :func:`partner_pose`, the odometry's
+    ``T_odo`` giving the length): inliers of the fit, in front of both cameras within
+    [min_depth_m, max_depth_m], reprojecting within ``pnp_reprojection_px`` in both, rays at
+    least ``MIN_PARALLAX_DEG`` apart. None when fewer than ``MIN_STEREO_POINTS`` remain."""
+    m = ratio_matches(ref, partner, cfg, LOOP_RATIO_TEST)
+    if m is None:
+        return None
+    ref, partner, (ia, ib) = m
+    K = camera.K
+    fit = partner_pose(ref.uv[ia].astype(np.float64), partner.uv[ib].astype(np.float64), T_odo, camera, cfg)
+    if fit is None:
+        return None
+    T_ref_partner, inl = fit
+    ia, ib = ia[inl], ib[inl]
+    T_p_r = inv(T_ref_partner)
+    P1 = K @ np.eye(3, 4)
+    P2 = K @ T_p_r[:3, :]
+    x1 = ref.uv[ia].astype(np.float64)
+    x2 = partner.uv[ib].astype(np.float64)
+    Xh = cv2.triangulatePoints(P1, P2, x1.T, x2.T)
+    w = Xh[3]
+    ok = np.abs(w) > 1e-12
+    X = (Xh[:3] / np.where(ok, w, 1.0)).T
+    Xp = X @ T_p_r[:3, :3].T + T_p_r[:3, 3]
+    ok &= (X[:, 2] >= cfg.min_depth_m) & (X[:, 2] <= cfg.max_depth_m) & (Xp[:, 2] >= cfg.min_depth_m)
+
+    def reproj(P: np.ndarray, x: np.ndarray) -> np.ndarray:
+        z = np.maximum(P[:, 2], 1e-9)
+        return np.hypot(camera.fx * P[:, 0] / z + camera.cx - x[:, 0], camera.fy * P[:, 1] / z + camera.cy - x[:, 1])
+
+    ok &= (reproj(X, x1) <= cfg.pnp_reprojection_px) & (reproj(Xp, x2) <= cfg.pnp_reprojection_px)
+    ray2 = X - T_ref_partner[:3, 3]
+    cos = np.einsum("ij,ij->i", X, ray2) / np.maximum(np.linalg.norm(X, axis=1) * np.linalg.norm(ray2, axis=1), 1e-12)
+    ok &= cos <= np.cos(np.radians(MIN_PARALLAX_DEG))
+    keep = np.flatnonzero(ok)
+    if len(keep) < MIN_STEREO_POINTS:
+        return None
+    return FrameFeatures(
+        np.ascontiguousarray(ref.uv[ia[keep]]), X[keep].astype(np.float32), np.ascontiguousarray(ref.desc[ia[keep]])
+    )
+
+
+class MonoFeatureBank(LoopFeatureBank):
+    """``LoopFeatureBank`` for frames without a right image: a reference's 3D points come from
+    triangulation against its partner frame (:func:`triangulate`) instead of stereo, so a
+    reference is stored once its partner has arrived. Fed by :meth:`observe` with the
+    odometry's pose of every frame; computed inline (deterministic)."""
+
+    def __init__(self, camera: StereoCamera, cfg: FrontendConfig):
+        super().__init__(camera, cfg, background=False)
+        self._waiting: dict[int, tuple[FrameFeatures, np.ndarray]] = {}  # reference -> (its keypoints, its pose)
+
+    def add(self, k: int, frame: StereoFrame, offset_px: float = 0.0) -> None:
+        raise TypeError("a monocular bank needs each frame's pose: call observe(k, frame, pose)")
+
+    def observe(self, k: int, frame: StereoFrame, pose: np.ndarray) -> None:
+        """Take stream position ``k`` with its odometry pose (T_world_camera, 4x4)."""
+        cur = two_view_features(frame.left, self.cfg, REFERENCE_FEATURES) if self.wants(k) else None
+        for j in sorted(self._waiting):
+            feat_j, pose_j = self._waiting[j]
+            T_j_k = inv(pose_j) @ pose
+            if np.linalg.norm(T_j_k[:3, 3]) < BASELINE_M:
+                if k - j >= MAX_PARTNER_FRAMES:
+                    del self._waiting[j]
+                continue
+            if cur is None:
+                cur = two_view_features(frame.left, self.cfg, REFERENCE_FEATURES)
+            del self._waiting[j]
+            self._keep(j, triangulate(feat_j, cur, T_j_k, self.camera, self.cfg))
+        if cur is not None and self.wants(k):
+            self._waiting[k] = (cur, np.array(pose, float))
 
     def query(self, k: int, frame: StereoFrame) -> FrameFeatures:
         if self._query_k != k or self._query is None:
             self._query = two_view_features(frame.left, self.cfg, LOOP_QUERY_FEATURES)
             self._query_k = k
         return self._query
-
-
-def _sampson(E: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
-    """Sampson distances (normalised image units) of correspondences x1 -> x2 (N,3 homogeneous)."""
-    Ex1 = x1 @ E.T
-    Etx2 = x2 @ E
-    num = np.einsum("ij,ij->i", x2, Ex1)
-    den = Ex1[:, 0] ** 2 + Ex1[:, 1] ** 2 + Etx2[:, 0] ** 2 + Etx2[:, 1] ** 2
-    return num / np.sqrt(np.maximum(den, 1e-30))
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-
-
-def _exp(w: np.ndarray) -> np.ndarray:
-    return cv2.Rodrigues(np.asarray(w, float).reshape(3, 1))[0]
-
-
-def _fit_covariance(
-    R_rc: np.ndarray, d: np.ndarray, x_ref: np.ndarray, x_cur: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, float]:
-    """(cov of R_rc's right perturbation, cov of d, rms) from the Sampson residuals' Jacobian in
-    the 5 parameters (3 rotation, 2 direction), by central differences: cov = s² (JᵀJ)⁻¹."""
-    b1 = np.cross(d, [1.0, 0, 0] if abs(d[0]) < 0.9 else [0, 1.0, 0])
-    b1 /= np.linalg.norm(b1)
-    b2 = np.cross(d, b1)
-
-    def residuals(p: np.ndarray) -> np.ndarray:
-        R = R_rc @ _exp(p[:3])
-        t = d + p[3] * b1 + p[4] * b2
-        t = t / np.linalg.norm(t)
-        # x_ref = R x_cur + t  (X_ref = R_rc X_cur + t): E maps cur -> ref, x_refᵀ [t]x R x_cur = 0
-        return _sampson(_skew(t) @ R, x_cur, x_ref)
-
-    r0 = residuals(np.zeros(5))
-    h = 1e-6
-    J = np.empty((len(r0), 5))
-    for i in range(5):
-        e = np.zeros(5)
-        e[i] = h
-        J[:, i] = (residuals(e) - residuals(-e)) / (2 * h)
-    dof = max(len(r0) - 5, 1)
-    s2 = float(r0 @ r0) / dof
-    try:
-        C = s2 * np.linalg.inv(J.T @ J)
-    except np.linalg.LinAlgError:
-        C = np.diag([1.0] * 5)
-    B = np.stack([b1, b2], axis=1)
-    return C[:3, :3], B @ C[3:, 3:] @ B.T, float(np.sqrt(s2))
-
-
-def two_view_pose(
-    ref: FrameFeatures | None, cur: FrameFeatures | None, camera: StereoCamera, cfg: FrontendConfig
-) -> TwoViewMatch | None:
-    """The relative rotation and translation direction of ``cur`` in ``ref``'s camera frame, or
-    None when the descriptors differ in kind, too few matches or inliers survive, the fit is not
-    finite, or the rotation is implausible (``VERIFY_MAX_ROTATION_DEG``)."""
-    m = ratio_matches(ref, cur, cfg, LOOP_RATIO_TEST)
-    if m is None:
-        return None
-    ref, cur, (ia, ib) = m
-    p_ref = ref.uv[ia].astype(np.float64)
-    p_cur = cur.uv[ib].astype(np.float64)
-    K = camera.K
-    cv2.setRNGSeed(RANSAC_SEED)
-    E, mask = cv2.findEssentialMat(p_cur, p_ref, K, cv2.USAC_ACCURATE, RANSAC_PROB, cfg.pnp_reprojection_px)
-    if E is None or E.shape != (3, 3) or mask is None:
-        return None
-    # points1 = cur, points2 = ref: X_ref = R X_cur + t, i.e. R = R_ref_cur, t along t_ref_cur
-    n_good, R, t, mask2 = cv2.recoverPose(E, p_cur, p_ref, K, mask=mask.copy())
-    inl = np.flatnonzero(mask2.ravel() > 0)
-    if n_good < cfg.min_inliers or len(inl) < cfg.min_inliers:
-        return None
-    d = t.reshape(3) / max(float(np.linalg.norm(t)), 1e-12)
-    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(d))):
-        return None
-    if rotation_angle_deg(R) > VERIFY_MAX_ROTATION_DEG:
-        return None
-    Kinv = np.linalg.inv(K)
-    x_cur = np.c_[p_cur[inl], np.ones(len(inl))] @ Kinv.T
-    x_ref = np.c_[p_ref[inl], np.ones(len(inl))] @ Kinv.T
-    cov_rot, cov_dir, rms = _fit_covariance(R, d, x_ref, x_cur)
-    if not (np.all(np.isfinite(cov_rot)) and np.all(np.isfinite(cov_dir))):
-        return None
-    cov_rot = cov_rot + np.eye(3) * MIN_SIGMA_ROT_RAD**2
-    P = np.eye(3) - np.outer(d, d)
-    cov_dir = cov_dir + P * MIN_SIGMA_DIR_RAD**2
-    return TwoViewMatch(R, d, int(len(inl)), rms * camera.fx, cov_rot, cov_dir, np.c_[ia[inl], ib[inl]])
-
-
-def loop_measurement(m: TwoViewMatch, odometry_distance_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """(T_ref_cur 4x4, 6x6 covariance: rot rad then trans m, GTSAM's Pose3 tangent with right
-    perturbation) of a two-view match: length min(odometry distance, ``SAME_PLACE_M``) along the
-    measured direction, sigma ``SAME_PLACE_M`` along it, length x direction sigma across it."""
-    s = min(max(float(odometry_distance_m), 0.0), SAME_PLACE_M)
-    d = m.direction
-    T = np.eye(4)
-    T[:3, :3] = m.R_ref_cur
-    T[:3, 3] = s * d
-    C_t = SAME_PLACE_M**2 * np.outer(d, d) + max(s, 0.1 * SAME_PLACE_M) ** 2 * m.cov_dir
-    R = m.R_ref_cur
-    C = np.zeros((6, 6))
-    C[:3, :3] = m.cov_rot
-    C[3:, 3:] = R.T @ C_t @ R  # translation tangent is in the current camera's frame
-    return T, 0.5 * (C + C.T)
