@@ -50,11 +50,12 @@ class LiveStereo(SequenceBase):
         source: str = "live",
         clock=time.monotonic,
     ):
-        if camera is None and rectifier is None:
+        cam = rectifier.camera if rectifier is not None else camera
+        if cam is None:
             raise SnapsGraphError(f"{source}: a live source needs a calibration (calib.txt or cam0/cam1 sensor.yaml)")
         self._left, self._right = left, right
         self.rectifier = rectifier
-        self.camera = rectifier.camera if rectifier is not None else camera
+        self.camera: StereoCamera = cam
         self.max_frames = max_frames
         self.source = source
         self._clock = clock

@@ -282,7 +282,7 @@ class RosbagSequence(FrameSelection):
         K, D, _R, P = _info_mats(info)
         if K.size != 9 or not np.all(np.isfinite(K)) or size[0] <= 0 or size[1] <= 0:
             raise SnapsGraphError(f"{self.path}: {self.left_topic} CameraInfo needs a finite K and an image size")
-        if "rect" in self.left_topic.lower() or not np.any(D):
+        if "rect" in (self.left_topic or "").lower() or not np.any(D):
             Kp = P.reshape(3, 4)[:, :3] if P.size == 12 and P[0] > 0 else K.reshape(3, 3)
             return None, StereoCamera(float(Kp[0, 0]), float(Kp[1, 1]), float(Kp[0, 2]), float(Kp[1, 2]), 0.0, *size)
         und = MonoUndistorter(K.reshape(3, 3), D, size, f"{self.path}: {self.left_topic} CameraInfo")
@@ -309,7 +309,7 @@ class RosbagSequence(FrameSelection):
                 raise SnapsGraphError(
                     f"{self.path}: distortion model '{info.distortion_model}' is not supported (plumb_bob, rational_polynomial)"
                 )
-        rectified_topics = "rect" in self.left_topic.lower() and "rect" in self.right_topic.lower()
+        rectified_topics = "rect" in (self.left_topic or "").lower() and "rect" in (self.right_topic or "").lower()
         identity = all(
             np.allclose(r.reshape(3, 3), np.eye(3)) and not np.any(d) and np.allclose(k.reshape(3, 3), p.reshape(3, 4)[:, :3])
             for k, d, r, p in ((Kl, Dl, Rl, Pl), (Kr, Dr, Rr, Pr))

@@ -231,7 +231,7 @@ def verify_features(
     must be :func:`plausible`. None if anything fails.
     """
     found = match_and_pnp(ref, cur, camera, cfg, LOOP_RATIO_TEST)
-    if found is None:
+    if found is None or ref is None:
         return None
     T_cur_ref, ia, ib, inl = found
     pts, uv = ref.pts3d[ia[inl]], cur.uv[ib[inl]]
