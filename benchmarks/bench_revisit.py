@@ -59,17 +59,11 @@ def one_run(seq: Path, gt_all: np.ndarray, pct: float, seed: int, work: Path, ar
     odo = work / f"{name}.txt"
     write_kitti_poses(odo, drifted)
     out = work / name
-    cfg = work / f"{name}.toml"
-    sections: dict[str, list[str]] = {
-        "loop": [f'search = "{args.search}"', f"verify_all_candidates = {str(args.verify_all).lower()}"]
-    }
-    for kv in args.set:
-        key, _, value = kv.partition("=")
-        section, _, name = key.strip().partition(".")
-        sections.setdefault(section, []).append(f"{name} = {value.strip()}")
-    cfg.write_text("".join(f"[{sec}]\n" + "".join(f"{line}\n" for line in lines) for sec, lines in sections.items()))
     cmd = [sys.executable, "-m", "snaps_graph.cli", "run", str(seq), "--odometry", str(odo), "--out", str(out)]
-    cmd += ["--refine", "batch", "--config", str(cfg), "--overwrite"]
+    cmd += ["--refine", "batch", "--overwrite", "--set", f'loop.search="{args.search}"']
+    cmd += ["--set", f"loop.verify_all_candidates={str(args.verify_all).lower()}"]
+    for kv in args.set:
+        cmd += ["--set", kv]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode not in (0, 3):
         raise SystemExit(f"run failed ({proc.returncode}): {' '.join(cmd)}\n{proc.stderr[-2000:]}")

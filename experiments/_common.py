@@ -40,25 +40,12 @@ PATHS = {"00": SHARED / "kitti_gt" / "00.txt", "07": SHARED / "kitti_gt" / "07.t
 
 
 def config_from_set(items: list[str]) -> Config:
-    """The default Config with ``--set section.key=value`` overrides (the value in TOML: 3, 0.5,
-    true, "yaw"; a bare word is a string), validated; a bad one exits with a one-line error."""
-    import tomllib
-
+    """The default Config with ``--set section.key=value`` overrides (``Config.with_overrides``,
+    as ``snaps-graph run --set``); a bad one exits with a one-line error."""
     from snaps_graph.errors import SnapsGraphError
 
-    data: dict[str, dict] = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        section, dot, name = key.partition(".")
-        if not sep or not dot:
-            raise SystemExit(f"error: --set {item!r}: expected section.key=value")
-        try:
-            parsed = tomllib.loads(f"v = {value}")["v"]
-        except tomllib.TOMLDecodeError:
-            parsed = value
-        data.setdefault(section, {})[name] = parsed
     try:
-        return Config.from_dict(data, source="--set")
+        return Config().with_overrides(items)
     except SnapsGraphError as exc:
         raise SystemExit(f"error: {exc}") from None
 

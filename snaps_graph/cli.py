@@ -200,6 +200,9 @@ def run(
     out: Path = typer.Option(..., "--out", "-o", help="Results folder."),
     frames: Optional[str] = typer.Option(None, "--frames", help="Frame range A:B (A included, B excluded)."),
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="A TOML config (see `snaps-graph config`)."),
+    set_: list[str] = typer.Option(
+        [], "--set", help="A config value, section.key=VALUE (VALUE in TOML), after --config; repeatable."
+    ),
     gt: Optional[Path] = typer.Option(None, "--gt", help="Ground-truth poses (default: SEQ/poses.txt or ROOT/poses/XX.txt)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty OUT folder (whole, at the end of the run)."),
     left_topic: Optional[str] = typer.Option(None, "--left-topic", help="ROS bag: left image topic (default: found by name)."),
@@ -238,7 +241,7 @@ def run(
     _check_choice("--loops", loops, LoopMode)
     _check_choice("--refine", refine, RefineMode)
     _check_choice("--mode", mode, FrontendMode)
-    cfg = Config.load(config) if config else Config()
+    cfg = (Config.load(config) if config else Config()).with_overrides(set_)
     if not str(seq_dir).startswith("live:") and not seq_dir.exists():  # a mistyped path: at once
         raise_user(f"{seq_dir}: sequence folder not found (nor a bag file)")
     for given, what in ((gt, "ground-truth"), (calib, "calibration")):
@@ -336,6 +339,9 @@ def batch(
     max_parallel: Optional[int] = typer.Option(
         None, "--max-parallel", help="At most this many cells at once (default: as many as Ray has CPUs for)."
     ),
+    set_: list[str] = typer.Option(
+        [], "--set", help="A config value for every cell, section.key=VALUE (VALUE in TOML), over the plan's; repeatable."
+    ),
 ) -> None:
     """Run every (sequence, variant) cell of a plan as a Ray task; resumable; summary.csv / .md.
 
@@ -345,7 +351,7 @@ def batch(
     """
     from .batch import load_plan, run_batch
 
-    p = load_plan(plan)  # checked whole before any task starts
+    p = load_plan(plan, overrides=set_)  # checked whole before any task starts
     t0 = time.perf_counter()
     try:
         rows = run_batch(p, out, address=address, max_parallel=max_parallel)

@@ -15,6 +15,7 @@ import dataclasses
 import difflib
 import math
 import sys
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, get_args, get_origin, get_type_hints
@@ -408,6 +409,18 @@ class Config:
     def from_dict(cls, data: dict[str, Any], source: str = "config") -> "Config":
         cfg = cls()
         cfg.source = source
+        cfg._apply(data, source)
+        return cfg
+
+    def with_overrides(self, items: list[str] | tuple[str, ...], source: str = "--set") -> "Config":
+        """A copy with ``section.key=value`` overrides (:func:`parse_set`) applied, validated."""
+        out = copy.deepcopy(self)
+        if items:
+            out._apply(parse_set(items, source), source)
+        return out
+
+    def _apply(self, data: dict[str, Any], source: str) -> None:
+        cfg = self
         for key, value in data.items():
             if not hasattr(cfg, key):
                 raise SnapsGraphError(f"{source}: unknown key '{key}'{_did_you_mean(key, cfg)}")
@@ -431,7 +444,6 @@ class Config:
                     raise SnapsGraphError(f"{source}: [{key}] is not a section{hint}")
                 setattr(cfg, key, _coerce(current, value, f"{source}: {key}"))
         cfg.validate()
-        return cfg
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -458,6 +470,23 @@ class Config:
 
     def dump(self, path: str | Path) -> None:
         atomic_write_text(path, self.dumps())
+
+
+def parse_set(items: list[str] | tuple[str, ...], source: str = "--set") -> dict[str, Any]:
+    """``section.key=value`` items (the value in TOML: 3, 0.5, true, "yaw"; a bare word is a
+    string) as the nested dict a config file would give; a malformed item is a one-line error."""
+    data: dict[str, Any] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        section, dot, name = key.strip().partition(".")
+        if not sep or not dot or not section or not name:
+            raise SnapsGraphError(f"{source} {item!r}: expected section.key=value")
+        try:
+            parsed = tomllib.loads(f"v = {value.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            parsed = value.strip()
+        data.setdefault(section, {})[name.strip()] = parsed
+    return data
 
 
 def _coerce(current: Any, value: Any, where: str) -> Any:

@@ -77,6 +77,12 @@ def test_plan_expands_cells_with_overrides_and_hashes(seqs, tmp_path):
     # the hash is a function of the plan: reading it again gives the same hashes
     again = plan_from_dict({"sequences": [str(seqs["good"])], "frames": "0:16", "refine": "batch"}, source="p.toml")
     assert again.cells[0].variant == "default" and again.cells[0].config_hash == default.config_hash
+    # --set beats the plan and its variants, and changes the hash
+    over = plan_from_dict(
+        {"sequences": [str(seqs["good"])], "frames": "0:16", "variants": {"tight": {"loop": {"min_similarity": 0.3}}}},
+        overrides=["loop.min_similarity=0.25"],
+    )
+    assert over.cells[0].cfg.loop.min_similarity == 0.25 and over.cells[0].config_hash != tight.config_hash
 
 
 def test_plan_paths_are_relative_to_the_plan_file(seqs, tmp_path):

@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 
 from snaps_graph.config import FIXED, RETIRED, RULES, Config
+from snaps_graph.errors import SnapsGraphError
 
 ROOT = Path(__file__).resolve().parents[1]
 CLI = [sys.executable, "-m", "snaps_graph.cli"]
@@ -132,3 +133,30 @@ def test_the_paper_preset_runs_with_the_papers_choices(tiny_seq, tmp_path):
         for key, value in values.items():
             assert getattr(getattr(used, section), key) == value, f"{section}.{key}"
     assert (tmp_path / "run" / "poses_snaps.txt").stat().st_size > 0
+
+
+def test_set_overrides_are_parsed_as_toml_and_checked():
+    cfg = Config().with_overrides(["loop.attempts=3", 'loop.search="radius"', "loop.correction_axes=xyz", "map.enabled=true"])
+    assert (cfg.loop.attempts, cfg.loop.search, cfg.loop.correction_axes, cfg.map.enabled) == (3, "radius", "xyz", True)
+    assert Config().loop.attempts != 3  # a copy: the defaults are untouched
+    for bad, why in (
+        ("loop.attempts", "expected section.key=value"),
+        ("attempts=3", "expected section.key=value"),
+        ("loop.atempts=3", "did you mean"),
+        ("loop.attempts=-1", "loop.attempts"),
+    ):
+        with pytest.raises(SnapsGraphError, match=why):
+            Config().with_overrides([bad])
+
+
+def test_run_set_beats_the_config_file_and_lands_in_the_results(tiny_seq, tmp_path):
+    file = tmp_path / "c.toml"
+    file.write_text("[loop]\nattempts = 7\nmin_similarity = 0.2\n")
+    out = tmp_path / "out"
+    r = cli("run", tiny_seq, "-o", out, "-c", file, "--set", "loop.attempts=2", "--frames", "0:3")
+    assert r.returncode == 0, r.stderr
+    ran = Config.load(out / "config.toml")
+    assert ran.loop.attempts == 2 and ran.loop.min_similarity == 0.2
+    r = cli("run", tiny_seq, "-o", tmp_path / "o2", "--set", "loop.atempts=2")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "did you mean" in r.stderr and "--set" in r.stderr
+    assert not (tmp_path / "o2").exists()

@@ -66,17 +66,21 @@ class Plan:
 
 
 # ---------------------------------------------------------------- plan parsing
-def load_plan(path: str | Path) -> Plan:
-    """Read and check a plan file (see the module docstring); a one-line error names it."""
+def load_plan(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> Plan:
+    """Read and check a plan file (see the module docstring); a one-line error names it.
+    ``overrides``: ``section.key=value`` items applied to every variant's config last."""
     path = Path(path)
     data = read_toml(path, "plan")
-    return plan_from_dict(data, source=str(path), base_dir=path.parent)
+    return plan_from_dict(data, source=str(path), base_dir=path.parent, overrides=overrides)
 
 
-def plan_from_dict(data: dict[str, Any], source: str = "plan", base_dir: str | Path = ".") -> Plan:
+def plan_from_dict(
+    data: dict[str, Any], source: str = "plan", base_dir: str | Path = ".", overrides: list[str] | tuple[str, ...] = ()
+) -> Plan:
     """Check a plan given as a dict (what a plan file holds) and expand it into cells.
 
-    Experiments build plans this way in memory. ``base_dir``: where relative paths start."""
+    Experiments build plans this way in memory. ``base_dir``: where relative paths start;
+    ``overrides`` (``--set`` items) beat the plan, as a command-line option beats a file."""
     base = Path(base_dir)
     allowed = (*TOP_ONLY, *RUN_OPTIONS)
     for key in data:
@@ -108,7 +112,8 @@ def plan_from_dict(data: dict[str, Any], source: str = "plan", base_dir: str | P
         _check_name(name, source, where)
         if not isinstance(body, dict):
             raise SnapsGraphError(f"{source}: [{where}] must be a table")
-        resolved[name] = _variant_config(base_cfg, top, body, source, where)
+        cfg, frames = _variant_config(base_cfg, top, body, source, where)
+        resolved[name] = (cfg.with_overrides(overrides), frames)
 
     seqs = _sequences(data, source, base)
     cells: list[Cell] = []
