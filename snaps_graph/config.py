@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, get_args, get_origin, get_type_hints
 
+from .config_retired import FIXED, RETIRED
 from .errors import SnapsGraphError
 from .io_utils import atomic_write_text, read_toml
 
@@ -520,114 +521,6 @@ def _toml_value(value: Any) -> str:
         return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
     raise TypeError(f"cannot write {value!r} to TOML")
 
-
-# Keys older versions had (and wrote into every run's config.toml): read back with a note.
-_RETIRED_GROUPS = {
-    "the map is a TSDF fusion now, not a union of point clouds": (
-        "map.pixel_step",
-        "map.voxel_size_m",
-        "map.keyframe_voxel_size_m",
-        "map.build_chunk_points",
-        "map.build_tile_m",
-    ),
-    "KLT tracks from the last frame": (
-        "frontend.klt_reference",
-        "frontend.kf_max_gap",
-        "frontend.kf_min_ratio",
-        "frontend.klt_anchor_gap",
-        "frontend.klt_anchor_max_px",
-    ),
-    "the road prewarp is gone; the KLT window bias is removed per track": (
-        "frontend.klt_road_prewarp",
-        "frontend.klt_road_max_depth_m",
-        "frontend.klt_road_tol_m",
-        "frontend.klt_road_min_points",
-        "frontend.klt_road_max_tilt_deg",
-    ),
-    "the local BA runs inline, numpy solver, longest tracks first": (
-        "frontend.lba_async",
-        "frontend.lba_solver",
-        "frontend.lba_select",
-    ),
-    "far points are not used": ("frontend.sba_far_points", "frontend.far_min_disparity_px"),
-    "KLT always retries a failed frame on ORB matches": ("frontend.klt_retry",),
-    "the disparity offset is modelled as a turned right camera": ("frontend.disparity_offset_model",),
-    "loops verify with their own features against the nearest stored reference, PnP pose": (
-        "frontend.loop_verify_features",
-        "frontend.loop_verify_neighbours",
-        "frontend.loop_pose_refine",
-    ),
-    "the batch solve is Levenberg-Marquardt without a gravity prior": (
-        "graph.batch_solver",
-        "graph.gnc_inlier_probability",
-        "graph.gravity_prior",
-        "graph.gravity_sigma_deg",
-        "graph.gravity_rounds",
-    ),
-    "iSAM2 factorises by QR": ("graph.isam2_factorization",),
-    "a step with a stereo-BA covariance uses it, others their inlier count": ("graph.odom_noise",),
-    "a verified loop with a covariance uses it, others their Q": ("graph.loop_sigma_source",),
-    "the top-down PNG is coloured by height at a fixed resolution": ("map.topdown_colour_by", "map.topdown_dpi"),
-}
-RETIRED = {key: why for why, keys in _RETIRED_GROUPS.items() for key in keys}
-RETIRED |= {
-    "loop.correction_model": 'a verified heading turn always bends eq. 6\'s window ("shift" measured worse)',
-    "loop.heading_prior": 'the heading prior is the drift since the reference ("tracked" measured no better)',
-    "loop.ramp": "eq. 6's ramp follows the distance driven (by frame count measured worse)",
-}
-
-# Settings that are constants in the code now (the module's name in upper case): an older
-# config.toml that holds one is read with a note. tests/test_config.py checks the values agree.
-FIXED: dict[str, Any] = {
-    "frontend.wls_lambda": 8000.0,
-    "frontend.wls_sigma": 1.5,
-    "frontend.sgbm_block_size": 5,
-    "frontend.stereo_window_px": 11,
-    "frontend.stereo_levels": 4,
-    "frontend.stereo_max_dy_px": 1.0,
-    "frontend.stereo_lr_check_px": 0.5,
-    "frontend.klt_min_tracks": 600,
-    "frontend.klt_retry_features": 4000,
-    "frontend.klt_levels": 3,
-    "frontend.klt_bias_max_px": 0.5,
-    "frontend.min_frame_std": 3.0,
-    "frontend.min_sharpness_ratio": 0.35,
-    "frontend.pnp_iterations": 200,
-    "frontend.pnp_confidence": 0.999,
-    "frontend.sba_keep_below": 100,
-    "frontend.lba_chain_scale": 1.0,
-    "frontend.loop_orb_levels": 8,
-    "frontend.loop_orb_scale": 1.2,
-    "frontend.loop_orb_fast_threshold": 20,
-    "frontend.loop_orb_upright": True,
-    "frontend.loop_ratio_test": 0.8,
-    "frontend.loop_depth_min_ratio": 0.5,
-    "frontend.loop_min_sigma_px": 0.5,
-    "frontend.verify_max_translation_m": 30.0,
-    "frontend.verify_max_rotation_deg": 90.0,
-    "graph.prior_sigma_rot_rad": 1e-4,
-    "graph.prior_sigma_trans_m": 1e-3,
-    "graph.odom_min_inliers": 20,
-    "graph.unverified_sigma_rot_rad": 0.5,
-    "graph.robust_param": 3.0,
-    "graph.isam2_relinearize_threshold": 0.01,
-    "graph.isam2_relinearize_skip": 1,
-    "graph.isam2_loop_iterations": 0,
-    "graph.isam2_final_iterations": 10,
-    "frontend.ransac_seed": 0,
-    "frontend.loop_orb_features": 1000,
-    "frontend.loop_query_features": 1500,
-    "frontend.min_stereo_points": 40,
-    "frontend.klt_weak_quality": 0.001,
-    "graph.batch_max_iterations": 100,
-    "graph.odom_sigma_scale_min": 0.5,
-    "graph.odom_sigma_scale_max": 4.0,
-    "graph.odom_ref_inliers": 200,
-    "graph.flagged_sigma_scale": 100.0,
-    "graph.loop_sigma_scale_max": 10.0,
-    "map.depth_texture_threshold": 10,
-    "map.depth_speckle_range_px": 1.0,
-}
 
 # The range of every numeric field, "section.field" -> Range, from the fields' metadata.
 RULES: dict[str, Range] = {}
