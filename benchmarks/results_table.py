@@ -10,8 +10,9 @@ Runs the command-line tool on each input it has data for and writes the table (m
   ``run --odometry DRIFTED --refine batch``; below the table, the mean deviation over frames
   1560-1660 (the revisit, as ``benchmarks/bench_revisit.py`` measures it) and the loops.
 
-Rows whose input or command is not available yet (the rendered KITTI paths) are printed as
-"not yet measured", never estimated.
+Rows whose input is not at hand (a rendering not made yet) say so and how to make it; nothing is
+estimated. ``street07`` / ``street00``: the street renderings of KITTI 07 and 00
+(``make data``), ``run --refine batch``.
 
     python benchmarks/results_table.py                          # data from ../shared/data
     python benchmarks/results_table.py --kitti06 DATA/kitti/sequences/06 --out docs/results/README-table.md
@@ -35,10 +36,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"
 
-# Rows not measured by this script yet: (input, why). They stay in the table so a reader sees the gap.
-PENDING = [
-    ("rendered KITTI 00 path (4541 frames)", "not yet measured"),
-]
+# The street renderings of KITTI paths: (name, the `make data` recipe, its placeholder in the commands).
+RENDERED = [("07", "street07", "STREET07"), ("00", "street00", "STREET00")]
 
 
 def _cli(*args: str) -> list[str]:
@@ -111,13 +110,14 @@ def main() -> int:
         help="the KITTI 00 revisit folder (sequences/00/image_0, poses/00.txt) "
         "(default: ../shared/data/kitti00_loop; the row is skipped when absent)",
     )
-    ap.add_argument(
-        "--street07",
-        type=Path,
-        default=ROOT / "results" / "data" / "street07",
-        help="the street rendering of KITTI 07 (`make data DATASETS=street07`; default: results/data/street07; "
-        "the row says how to make it when absent)",
-    )
+    for nn, recipe, _ in RENDERED:
+        ap.add_argument(
+            f"--{recipe}",
+            type=Path,
+            default=ROOT / "results" / "data" / recipe,
+            help=f"the street rendering of KITTI {nn} (`make data DATASETS={recipe}`; default: results/data/{recipe}; "
+            "the row says how to make it when absent)",
+        )
     ap.add_argument(
         "--work",
         type=Path,
@@ -176,17 +176,15 @@ def main() -> int:
     else:
         rows.append("| real KITTI 00 revisit (left camera, drifted odometry) | not measured: no data at --revisit | | | | | | |")
 
-    name07 = "rendered KITTI 07 path, street (stereo)"
-    if (args.street07 / "image_0").is_dir():
-        run_dir = args.work / "street07"
-        cmd = _cli("run", str(args.street07), "--out", str(run_dir), "--refine", "batch", "--overwrite")
-        rows.append(_row(name07, _run(cmd, run_dir / "metrics.json", args.reuse)))
-        commands.append(_shown(cmd, {str(args.street07): "STREET07"}))
-    else:
-        rows.append(f"| {name07} | not measured: no rendering at --street07 (`make data DATASETS=street07`) | | | | | | |")
-
-    for name, why in PENDING:
-        rows.append(f"| {name} | {why} | | | | | | |")
+    for nn, recipe, shown in RENDERED:
+        seq, name = getattr(args, recipe), f"rendered KITTI {nn} path, street (stereo)"
+        if (seq / "image_0").is_dir():
+            run_dir = args.work / recipe
+            cmd = _cli("run", str(seq), "--out", str(run_dir), "--refine", "batch", "--overwrite")
+            rows.append(_row(name, _run(cmd, run_dir / "metrics.json", args.reuse)))
+            commands.append(_shown(cmd, {str(seq): shown}))
+        else:
+            rows.append(f"| {name} | not measured: no rendering at --{recipe} (`make data DATASETS={recipe}`) | | | | | | |")
 
     load = f"load average up to {max(LOADS):.1f} while measuring" if LOADS else "rows read from earlier runs (--reuse)"
     md = [
@@ -205,7 +203,10 @@ def main() -> int:
         "KITTI06 = the `--kitti06` folder: KITTI odometry sequence 06, frames 0-50, stereo, with its ground truth.",
         "KITTI00LOOP = the `--revisit` folder: KITTI 00's left images of frames 100-230 and 1540-1660, "
         "whose frames 1560-1641 drive again through the street of frames 109-210.",
-        "STREET07 = `make data DATASETS=street07`: the street world rendered along KITTI 07's ground truth.",
+        *(
+            f"{shown} = `make data DATASETS={recipe}`: the street world rendered along KITTI {nn}'s ground truth."
+            for nn, recipe, shown in RENDERED
+        ),
         "",
         "Regenerate: `python benchmarks/results_table.py --readme README.md` (writes this table here and in docs/results/).",
     ]
