@@ -200,9 +200,7 @@ def run(
     out: Path = typer.Option(..., "--out", "-o", help="Results folder."),
     frames: Optional[str] = typer.Option(None, "--frames", help="Frame range A:B (A included, B excluded)."),
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="A TOML config (see `snaps-graph config`)."),
-    set_: list[str] = typer.Option(
-        [], "--set", help="A config value, section.key=VALUE (VALUE in TOML), after --config; repeatable."
-    ),
+    set_: list[str] = typer.Option([], "--set", help="A config value, section.key=VALUE (in TOML), after --config; repeatable."),
     gt: Optional[Path] = typer.Option(None, "--gt", help="Ground-truth poses (default: SEQ/poses.txt or ROOT/poses/XX.txt)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty OUT folder (whole, at the end of the run)."),
     left_topic: Optional[str] = typer.Option(None, "--left-topic", help="ROS bag: left image topic (default: found by name)."),
@@ -339,9 +337,7 @@ def batch(
     max_parallel: Optional[int] = typer.Option(
         None, "--max-parallel", help="At most this many cells at once (default: as many as Ray has CPUs for)."
     ),
-    set_: list[str] = typer.Option(
-        [], "--set", help="A config value for every cell, section.key=VALUE (VALUE in TOML), over the plan's; repeatable."
-    ),
+    set_: list[str] = typer.Option([], "--set", help="A config value per cell, section.key=VALUE, over the plan; repeatable."),
 ) -> None:
     """Run every (sequence, variant) cell of a plan as a Ray task; resumable; summary.csv / .md.
 
