@@ -47,8 +47,8 @@ def replay(run: Path, cfg: Config, verbose: bool) -> np.ndarray:
     for k, lp in script.items():
         tex[k] = tex[k_of[lp["reference"]]]
     lc = cfg.loop
-    lc.thumbnail_scale, lc.search, lc.radius_m, lc.max_yaw_deg, lc.attempts = 1.0, "radius", 1e5, 180.0, 100000
-    lc.search_max_radius_m, lc.window, lc.shift_px, lc.pause_closer_ratio = 1e5, 8, 0, 0.0
+    lc.thumbnail_scale, lc.search, lc.radius_m, lc.max_yaw_deg, lc.attempts = 1.0, "radius", 1e4, 180.0, 1000
+    lc.search_max_radius_m, lc.window, lc.shift_px, lc.pause_closer_ratio = 1e4, 8, 0, 0.0
     closer = SnapsLoopCloser(lc, cfg.odometry)
     for k in range(len(vo)):
         T_rel = np.eye(4) if k == 0 else inv(vo[k - 1]) @ vo[k]
