@@ -30,6 +30,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from _revisit import REVISIT, WINDOW, frame_ids, window_deviation
 
 from snaps_graph.evaluation.drift import drift_trajectory
 from snaps_graph.evaluation.loops import label_pairs, loops_run, pr_curve, read_candidates_csv
@@ -37,22 +38,10 @@ from snaps_graph.trajectory_io import read_kitti_poses, write_kitti_poses
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = ROOT / ".." / "shared" / "data" / "kitti00_loop"
-REVISIT = (1573, 1630)  # frames that pass within 1 m of the first pass (the data's README)
-WINDOW = (1560, 1660)  # the deviation is measured over these frames
-
-
-def _frame_ids(seq: Path) -> list[int]:
-    return sorted(int(p.stem) for p in (seq / "image_0").glob("*.png"))
-
-
-def _window_dev(poses: np.ndarray, gt: np.ndarray, frames: list[int]) -> float:
-    """Mean position error over WINDOW; ``gt`` is the run's poses_gt.txt (row k = frames[k])."""
-    sel = [k for k, f in enumerate(frames) if WINDOW[0] <= f <= WINDOW[1]]
-    return float(np.mean(np.linalg.norm(poses[sel, :3, 3] - gt[sel, :3, 3], axis=1)))
 
 
 def one_run(seq: Path, gt_all: np.ndarray, pct: float, seed: int, work: Path, args) -> dict:
-    frames = _frame_ids(seq)
+    frames = frame_ids(seq)
     gt = gt_all[: frames[-1] + 1]
     drifted = drift_trajectory(gt, seed, pct=pct)
     name = f"p{pct:g}_s{seed}_{args.search}"
@@ -99,7 +88,7 @@ def one_run(seq: Path, gt_all: np.ndarray, pct: float, seed: int, work: Path, ar
     for traj in ("vo", "snaps", "batch"):
         f = out / f"poses_{traj}.txt"
         if f.is_file():
-            est[traj] = _window_dev(read_kitti_poses(f), run_gt, frames)
+            est[traj] = window_deviation(read_kitti_poses(f), run_gt, frames)
     return {
         "pct": pct,
         "seed": seed,

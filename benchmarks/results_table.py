@@ -223,13 +223,12 @@ def main() -> int:
 
 def _revisit_note(run_dir: Path, seq: Path) -> str:
     """The revisit's figures: mean deviation over bench_revisit's window, and the loops."""
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    from bench_revisit import WINDOW, _frame_ids, _window_dev
+    from _revisit import WINDOW, frame_ids, window_deviation
 
     from snaps_graph.trajectory_io import read_kitti_poses
 
-    frames, gt = _frame_ids(seq), read_kitti_poses(run_dir / "poses_gt.txt")
-    dev = {t: _window_dev(read_kitti_poses(run_dir / f"poses_{t}.txt"), gt, frames) for t in ("vo", "snaps", "batch")}
+    frames, gt = frame_ids(seq), read_kitti_poses(run_dir / "poses_gt.txt")
+    dev = {t: window_deviation(read_kitti_poses(run_dir / f"poses_{t}.txt"), gt, frames) for t in ("vo", "snaps", "batch")}
     loops = [json.loads(line) for line in (run_dir / "loops.jsonl").read_text().splitlines() if line.strip()]
     shown = ", ".join(f"{lp['frame']} -> {lp['reference']}" for lp in loops) or "none"
     return (
