@@ -283,7 +283,9 @@ class SlamPipeline:
         try:
             cur = bank.query(k, frame)
             stereo = None if self._monocular else frame
-            m = verify_features(bank.reference(k_feat), cur, stereo, self.camera, self.cfg.frontend, vo.disparity_offset_px)
+            m = verify_features(
+                bank.reference(k_feat), cur, stereo, self.camera, self.cfg.frontend, vo.disparity_offset_px, bank.merged
+            )
         except Exception as exc:  # best effort: an unverifiable candidate is not a loop
             self.graph.failures.append((k, f"loop verification raised {type(exc).__name__}: {exc}"))
             return None

@@ -14,7 +14,7 @@ from snaps_graph.config import Config
 from snaps_graph.datasets.kitti import KittiSequence
 from snaps_graph.frontend.loop_features import LOOP_QUERY_FEATURES, verify_features
 from snaps_graph.frontend.two_view import MonoFeatureBank, partner_pose, triangulate, two_view_features
-from snaps_graph.geometry import rotation_angle_deg
+from snaps_graph.geometry import inv, rotation_angle_deg
 from snaps_graph.types import FrameFeatures, StereoFrame
 
 LOOP_SEQ = SHARED_DATA / "kitti00_loop" / "sequences" / "00"
@@ -106,7 +106,7 @@ def test_known_rig_on_real_images():
         bank.observe(k, f, seq._gt_all[k])
     ref = bank.reference(5)
     assert ref is not None and len(ref.uv) >= 100
-    m = verify_features(ref, two_view_features(seq[5].right, cfg, LOOP_QUERY_FEATURES), None, seq.camera, cfg)
+    m = verify_features(ref, two_view_features(seq[5].right, cfg, LOOP_QUERY_FEATURES), None, seq.camera, cfg, unique=True)
     assert m is not None and m.inliers >= 50
     assert rotation_angle_deg(m.T_ref_cur[:3, :3]) < 0.5
     assert np.linalg.norm(m.T_ref_cur[:3, 3] - [seq.camera.baseline_m, 0.0, 0.0]) < 0.06
@@ -125,9 +125,58 @@ def test_real_revisit_pair_and_a_street_apart():
         bank.observe(idx[f], seq[idx[f]], seq._gt_all[idx[f]])
     cur = bank.query(idx[1600], seq[idx[1600]])
     G = {f: seq._gt_all[idx[f]] for f in (140, 155, 1600)}
-    m = verify_features(bank.reference(idx[155]), cur, None, seq.camera, cfg)
+    m = verify_features(bank.reference(idx[155]), cur, None, seq.camera, cfg, unique=True)
     assert m is not None and m.inliers >= 30
     T = np.linalg.solve(G[155], G[1600])
     assert np.sign(m.T_ref_cur[2, 3]) == np.sign(T[2, 3]) and abs(m.T_ref_cur[1, 3]) < 0.2  # same road: same height
-    far = verify_features(bank.reference(idx[140]), cur, None, seq.camera, cfg)
+    far = verify_features(bank.reference(idx[140]), cur, None, seq.camera, cfg, unique=True)
     assert far is None or np.linalg.norm(far.T_ref_cur[:3, 3]) > cfg.loop_max_distance_m
+
+
+def test_reference_is_a_local_map_and_a_keypoint_counts_once():
+    """References 0, 5 and 10 see the same points from 0, 1.5 and 3 m along: reference 5 holds all
+    three sets carried into its own camera frame; verified with ``unique`` a current keypoint
+    matched by three copies of one point is one inlier, without it three."""
+    cfg = Config().frontend
+    poses = [_pose(np.eye(3), [0.0, 0.0, z]) for z in (0.0, 1.5, 3.0)]
+    rev = _pose(np.eye(3), [-0.7, 0.0, 1.0])
+    cam, X, views = _scene([*poses, rev], n=150)
+    bank = MonoFeatureBank(cam, cfg)
+    for k, T, v in zip((0, 5, 10), poses, views):
+        Xc = (X - T[:3, 3]) @ T[:3, :3]
+        bank.put(k, FrameFeatures(v.uv, Xc.astype(np.float32), v.desc))
+        bank._pose[k] = T
+    assert bank.merged
+    local = bank.reference(5)
+    assert local is not None and len(local.uv) == 3 * 150
+    X5 = (X - poses[1][:3, 3]) @ poses[1][:3, :3]
+    for i in range(3):
+        assert np.allclose(local.pts3d[i * 150 : (i + 1) * 150], X5, atol=1e-4)
+    assert np.allclose(local.uv[:150], views[1].uv)  # its own points first, own pixels kept
+    cur = views[3]
+    once = verify_features(local, cur, None, cam, cfg, unique=True)
+    thrice = verify_features(local, cur, None, cam, cfg)
+    assert once is not None and thrice is not None
+    assert once.inliers <= 150 < thrice.inliers
+    assert np.linalg.norm(once.T_ref_cur[:3, 3] - (inv(poses[1]) @ rev)[:3, 3]) < 0.05
+
+
+def test_revisit_entry_verifies_with_the_local_map():
+    """kitti00_loop: frame 1577 enters the street 6 deg turned and 1.1 m aside of the first
+    pass's 135; that reference's own triangulated points give too few inliers, its local map
+    enough, at the truth's distance within half a metre."""
+    _need(LOOP_SEQ)
+    seq = KittiSequence(LOOP_SEQ)
+    assert seq._gt_all is not None
+    idx = {int(f): i for i, f in enumerate(seq.indices)}
+    cfg = Config().frontend
+    bank = MonoFeatureBank(seq.camera, cfg)
+    for f in range(125, 165):
+        bank.observe(idx[f], seq[idx[f]], seq._gt_all[idx[f]])
+    cur = bank.query(idx[1577], seq[idx[1577]])
+    own = bank._ref[idx[135]]
+    assert verify_features(own, cur, None, seq.camera, cfg, unique=True) is None
+    m = verify_features(bank.reference(idx[135]), cur, None, seq.camera, cfg, unique=True)
+    assert m is not None and m.inliers >= cfg.min_inliers
+    T = np.linalg.solve(seq._gt_all[idx[135]], seq._gt_all[idx[1577]])
+    assert abs(np.linalg.norm(m.T_ref_cur[:3, 3]) - np.linalg.norm(T[:3, 3])) < 0.5

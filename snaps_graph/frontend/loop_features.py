@@ -170,27 +170,37 @@ def pose_covariance(
 
 
 def ratio_matches(
-    ref: FrameFeatures | None, cur: FrameFeatures | None, cfg: FrontendConfig, ratio: float
+    ref: FrameFeatures | None, cur: FrameFeatures | None, cfg: FrontendConfig, ratio: float, unique: bool = False
 ) -> tuple[FrameFeatures, FrameFeatures, tuple[np.ndarray, np.ndarray]] | None:
     """``(ref, cur, (ref indices, cur indices))`` of ratio-test matches, or None when either side
-    is missing, the descriptor kinds differ, or fewer than ``min_inliers`` matches survive."""
+    is missing, the descriptor kinds differ, or fewer than ``min_inliers`` matches survive.
+    ``unique``: a keypoint of ``cur`` keeps only its first match (a reference merged from several
+    frames holds one point several times, which must not count as several inliers)."""
     if ref is None or cur is None or len(ref.desc) < cfg.min_inliers or len(cur.desc) < 2:
         return None
     if ref.desc.dtype != cur.desc.dtype or ref.desc.shape[1] != cur.desc.shape[1]:
         return None
     ia, ib = match_descriptors(ref.desc, cur.desc, ratio)
+    if unique:
+        first = np.sort(np.unique(ib, return_index=True)[1])
+        ia, ib = ia[first], ib[first]
     if len(ia) < cfg.min_inliers:
         return None
     return ref, cur, (ia, ib)
 
 
 def match_and_pnp(
-    ref: FrameFeatures | None, cur: FrameFeatures | None, camera: StereoCamera, cfg: FrontendConfig, ratio: float
+    ref: FrameFeatures | None,
+    cur: FrameFeatures | None,
+    camera: StereoCamera,
+    cfg: FrontendConfig,
+    ratio: float,
+    unique: bool = False,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """Ratio-test matches of ``ref``'s descriptors to ``cur``'s, then PnP RANSAC of ``ref``'s 3D
     points on ``cur``'s pixels: (T_cur_ref, ref indices, cur indices, inlier positions among the
     matches), or None when the descriptor kinds differ or fewer than ``min_inliers`` survive."""
-    m = ratio_matches(ref, cur, cfg, ratio)
+    m = ratio_matches(ref, cur, cfg, ratio, unique)
     if m is None:
         return None
     ref, cur, (ia, ib) = m
@@ -221,6 +231,7 @@ def verify_features(
     camera: StereoCamera,
     cfg: FrontendConfig,
     offset_px: float = 0.0,
+    unique: bool = False,
 ) -> LoopMatch | None:
     """Verify a loop from the reference's 3D points to the current frame's keypoints.
 
@@ -228,9 +239,9 @@ def verify_features(
     ``loop_depth_check_px`` > 0, the inliers' stereo disparity in the current frame must agree
     with their predicted one within that many pixels; at least ``min_inliers`` must pass both
     and at least ``LOOP_DEPTH_MIN_RATIO`` of the inliers that have a current disparity. The pose
-    must be :func:`plausible`. None if anything fails.
+    must be :func:`plausible`. None if anything fails. ``unique`` as in :func:`ratio_matches`.
     """
-    found = match_and_pnp(ref, cur, camera, cfg, LOOP_RATIO_TEST)
+    found = match_and_pnp(ref, cur, camera, cfg, LOOP_RATIO_TEST, unique)
     if found is None or ref is None:
         return None
     T_cur_ref, ia, ib, inl = found
@@ -269,6 +280,8 @@ class LoopFeatureBank:
     A reference's features are computed on one worker thread (OpenCV releases the GIL), off the
     frame's critical path; every read waits for the pending ones, so results do not depend on
     timing. ``background=False`` computes them inline."""
+
+    merged = False  # a reference holds one frame's points (verify with ``unique`` when True)
 
     def __init__(self, camera: StereoCamera, cfg: FrontendConfig, background: bool = True):
         self.camera = camera

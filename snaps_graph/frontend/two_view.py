@@ -6,6 +6,9 @@ against a later frame of the same pass at least ``BASELINE_M`` away along the od
 metre or two its motion is metric and close to exact), and a candidate is then verified like a
 stereo one (``loop_features.verify_features``): PnP RANSAC of those points on the current
 frame's keypoints gives a metric relative pose, refused beyond ``loop_max_distance_m``.
+Triangulation keeps only a tenth of a frame's keypoints, so a reference is verified with its
+neighbouring references' points too (a local map, as ORB-SLAM3 verifies against covisible
+keyframes), each matched keypoint of the current frame counted once.
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ MIN_PARALLAX_DEG = 0.5  # a triangulated point's two rays differ by at least thi
 MAX_DIRECTION_DEG = 20.0  # the images' direction of the partner and the odometry's agree within this
 RANSAC_PROB = 0.999
 REFERENCE_FEATURES = 1000  # keypoints of a reference and of its partner before matching
+NEIGHBOURS = 1  # a reference's local map adds the points of this many stored references on each side
 DETECTOR: Literal["orb", "sift"] = "sift"  # monocular verification's features (docs/odometry-input.md: SIFT against ORB)
 
 
@@ -117,9 +121,12 @@ class MonoFeatureBank(LoopFeatureBank):
     reference is stored once its partner has arrived. Fed by :meth:`observe` with the
     odometry's pose of every frame; computed inline (deterministic)."""
 
+    merged = True  # a reference is a local map: one physical point may be there several times
+
     def __init__(self, camera: StereoCamera, cfg: FrontendConfig):
         super().__init__(camera, cfg, background=False)
         self._waiting: dict[int, tuple[FrameFeatures, np.ndarray]] = {}  # reference -> (its keypoints, its pose)
+        self._pose: dict[int, np.ndarray] = {}  # stored reference -> its odometry pose
 
     def add(self, k: int, frame: StereoFrame, offset_px: float = 0.0) -> None:
         raise TypeError("a monocular bank needs each frame's pose: call observe(k, frame, pose)")
@@ -138,8 +145,38 @@ class MonoFeatureBank(LoopFeatureBank):
                 cur = two_view_features(frame.left, self.cfg, REFERENCE_FEATURES)
             del self._waiting[j]
             self._keep(j, triangulate(feat_j, cur, T_j_k, self.camera, self.cfg))
+            self._pose[j] = pose_j
         if cur is not None and self.wants(k):
             self._waiting[k] = (cur, np.array(pose, float))
+
+    def reference(self, k: int) -> FrameFeatures | None:
+        """Reference ``k``'s points with those of its ``NEIGHBOURS`` stored references on each
+        side, carried into ``k``'s camera frame by the odometry between them (a few metres: close
+        to exact), reprojected for their pixels; ``k``'s own points first."""
+        own = self._ref.get(k)
+        if own is None or k not in self._pose:
+            return own
+        e = self.cfg.loop_reference_every
+        parts = [own]
+        for n in [k + s * d * e for d in range(1, NEIGHBOURS + 1) for s in (-1, 1)]:
+            other = self._ref.get(n)
+            if other is None or n not in self._pose:
+                continue
+            T = inv(self._pose[k]) @ self._pose[n]
+            X = other.pts3d.astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+            front = X[:, 2] >= self.cfg.min_depth_m
+            X = X[front]
+            uv = np.column_stack(
+                [self.camera.fx * X[:, 0] / X[:, 2] + self.camera.cx, self.camera.fy * X[:, 1] / X[:, 2] + self.camera.cy]
+            )
+            parts.append(FrameFeatures(uv.astype(np.float32), X.astype(np.float32), other.desc[front]))
+        if len(parts) == 1:
+            return own
+        return FrameFeatures(
+            np.concatenate([p.uv for p in parts]),
+            np.concatenate([p.pts3d for p in parts]),
+            np.ascontiguousarray(np.concatenate([p.desc for p in parts])),
+        )
 
     def query(self, k: int, frame: StereoFrame) -> FrameFeatures:
         if self._query_k != k or self._query is None:
