@@ -28,7 +28,7 @@ demo: setup
 lint: setup
 	$(BIN)/ruff check snaps_graph tests benchmarks experiments
 	$(BIN)/ruff format --check snaps_graph tests benchmarks experiments
-	$(BIN)/mypy
+	$(BIN)/mypy  # snaps_graph and tests: [tool.mypy] files in pyproject.toml
 
 test: lint
 	$(BIN)/python -m pytest -q

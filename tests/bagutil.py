@@ -30,14 +30,15 @@ def write_stereo_bag(
         from rosbags.rosbag1 import Writer
 
         ts = get_typestore(Stores.ROS1_NOETIC)
-        writer = Writer(path)
+        writer: Writer | Writer2 = Writer(path)
         ser = ts.serialize_ros1
     else:
-        from rosbags.rosbag2 import StoragePlugin, Writer
+        from rosbags.rosbag2 import StoragePlugin
+        from rosbags.rosbag2 import Writer as Writer2
 
         ts = get_typestore(Stores.LATEST)
         plugin = StoragePlugin.MCAP if kind == "mcap" else StoragePlugin.SQLITE3
-        writer = Writer(path, version=9, storage_plugin=plugin)
+        writer = Writer2(path, version=9, storage_plugin=plugin)
         ser = ts.serialize_cdr
     T = ts.types
     Header, Time = T["std_msgs/msg/Header"], T["builtin_interfaces/msg/Time"]

@@ -13,6 +13,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 # Before Ray is imported anywhere in this process: every address Ray uses is 127.0.0.1, and no
 # usage report leaves the machine.
@@ -69,6 +70,7 @@ def test_plan_expands_cells_with_overrides_and_hashes(seqs, tmp_path):
     assert default.cfg.graph.refine == "batch" and default.cfg.loop.min_similarity == 0.15
     # a variant's own option beats the plan's
     assert tight.cfg.graph.refine == "none" and tight.cfg.loop.min_similarity == 0.3
+    assert default.gt is not None
     assert default.frames == "0:16" and default.gt.endswith("poses.txt")
     assert default.config_hash != tight.config_hash
     # the same path under another name is the same run: same hash, its own folder
@@ -187,7 +189,8 @@ def test_run_cell_records_ok_and_failed_and_resume_checks_the_hash(seqs, tmp_pat
     assert rec["status"] == "ok" and rec["metrics"]["frames"] == 8 and "vo" in rec["metrics"]
     folder = ok_cell.folder(tmp_path)
     assert (folder / "metrics.json").is_file() and (folder / CELL_FILE).is_file()
-    assert completed(ok_cell, tmp_path)["status"] == "skipped"
+    done = completed(ok_cell, tmp_path)
+    assert done is not None and done["status"] == "skipped"
     assert completed(other_variant, tmp_path) is None  # never ran
     # the same folder with another configuration is not complete for it
     moved = type(ok_cell)(**{**ok_cell.__dict__, "config_hash": other_variant.config_hash})
@@ -220,7 +223,7 @@ def cluster():
     ray = pytest.importorskip("ray")
     from ray.cluster_utils import Cluster
 
-    node = {"num_cpus": 1, "node_ip_address": "127.0.0.1", "object_store_memory": 100 * 2**20}
+    node: dict[str, Any] = {"num_cpus": 1, "node_ip_address": "127.0.0.1", "object_store_memory": 100 * 2**20}
     c = Cluster(initialize_head=True, head_node_args={**node, "include_dashboard": False})
     c.add_node(**node)
     c.wait_for_nodes()
@@ -343,7 +346,8 @@ def test_resume_is_keyed_on_the_inputs_content_and_checks_the_folder_whole(seqs,
     cell = plan_from_dict(body).cells[0]
     out = tmp_path / "out"
     assert run_cell(cell, str(out), threads=1)["status"] == "ok"
-    assert completed(plan_from_dict(body).cells[0], out)["status"] == "skipped"
+    done = completed(plan_from_dict(body).cells[0], out)
+    assert done is not None and done["status"] == "skipped"
     # another ground truth (same path): not the same run
     poses = (seq / "poses.txt").read_text().splitlines()
     (seq / "poses.txt").write_text("\n".join(poses[1:] + poses[:1]) + "\n")

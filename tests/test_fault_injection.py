@@ -82,6 +82,7 @@ def test_a_kill_at_every_step_leaves_old_or_new_results_and_the_next_start_recov
     assert write_in_child(new_ref, finished, None) == 0
     assert write_in_child(old_ref, finished, None, gt=False) == 0  # other results: no ground truth
     new, old = digest(new_ref), digest(old_ref)
+    assert new is not None
     assert new != old and MARKER in new
     steps = 0
     for n in range(1, 100):

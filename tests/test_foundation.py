@@ -124,6 +124,7 @@ def test_kitti06_reader(kitti06_dir):
     f = seq[10]
     assert f.index == 10 and f.left.shape == (370, 1226) and f.left.dtype == np.uint8
     assert f.timestamp == pytest.approx(1.044989e00, rel=1e-6) or f.timestamp > 1.0
+    assert seq.gt_poses is not None
     assert seq.gt_poses.shape == (51, 4, 4)
     assert np.allclose(seq.gt_poses[0], np.eye(4))
     assert (seq.camera.width, seq.camera.height) == (1226, 370)
@@ -132,6 +133,7 @@ def test_kitti06_reader(kitti06_dir):
 def test_kitti06_frame_range_rebases_gt(kitti06_dir):
     full = KittiSequence(kitti06_dir)
     part = KittiSequence(kitti06_dir, frames="20:30")
+    assert full.gt_poses is not None and part.gt_poses is not None
     assert len(part) == 10 and part[0].index == 20 and list(part.indices) == list(range(20, 30))
     expect = np.linalg.inv(full.gt_poses[20]) @ full.gt_poses[25]
     assert np.allclose(part.gt_poses[5], expect, atol=1e-9)

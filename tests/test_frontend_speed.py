@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import cast
 
 import numpy as np
 import pytest
@@ -11,6 +12,7 @@ from snaps_graph.camera import StereoCamera
 from snaps_graph.config import FrontendConfig
 from snaps_graph.frontend.stereo_ba import stereo_two_view_ba
 from snaps_graph.geometry import exp_so3
+from snaps_graph.types import FrameFeatures
 
 CAM = StereoCamera(fx=718.0, fy=718.0, cx=607.0, cy=185.0, baseline_m=0.54, width=1241, height=376)
 
@@ -93,7 +95,7 @@ def test_split_lk_calls_give_bit_identical_poses(small_rendering):
                 assert vo._workers._split_pool is not None
             res = [vo.process(f) for f in frames]
         assert all(r.ok for r in res)
-        out.append((np.array([r.pose for r in res]), [r.features.uv for r in res]))
+        out.append((np.array([r.pose for r in res]), [cast(FrameFeatures, r.features).uv for r in res]))
     assert np.array_equal(out[0][0], out[1][0])
     assert all(np.array_equal(a, b) for a, b in zip(out[0][1], out[1][1]))
 

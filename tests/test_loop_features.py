@@ -47,6 +47,7 @@ def test_depth_check_rejects_a_lookalike_at_another_distance(kitti_pair):
     bank = LoopFeatureBank(seq.camera, cfg)
     bank.add(0, f0)
     ref = bank.reference(0)
+    assert ref is not None
     cur = bank.query(3, f3)
     assert verify_features(ref, cur, f3, seq.camera, cfg) is not None
     far = FrameFeatures(ref.uv, ref.pts3d * 2.0, ref.desc)
@@ -98,6 +99,7 @@ def test_loop_factor_uses_the_verification_covariance():
     cfg = GraphConfig()
     C = np.diag([1e-6] * 3 + [1e-4] * 3)
     eff = loop_covariance(cfg, C)
+    assert eff is not None
     floor = np.array([cfg.loop_sigma_floor_rot_rad] * 3 + [cfg.loop_sigma_floor_trans_m] * 3)
     assert np.allclose(np.diag(eff), cfg.loop_cov_scale * np.diag(C) + floor**2)
     assert loop_covariance(cfg, np.full((6, 6), np.nan)) is None
@@ -110,8 +112,10 @@ def test_loop_factor_uses_the_verification_covariance():
     meas = np.eye(4)
     meas[0, 3] = 2.0
     info = g.add_loop(0, 2, 0.2, meas, covariance=C)
+    assert info.sigmas is not None
     assert np.allclose(info.sigmas, np.sqrt(np.diag(eff)))
     info_q = g.add_loop(0, 2, 0.2, meas)  # no covariance: Q-scaled sigmas as before
+    assert info_q.sigmas is not None
     assert info_q.sigmas[3] == pytest.approx(cfg.loop_sigma_trans_m / 0.2)
 
 

@@ -198,7 +198,7 @@ def test_accuracy_of_exact_offset_and_partial_maps(tmp_path):
     exact = np.column_stack([xz[:, 0], np.full(len(xz), 1.65), xz[:, 1]]).astype(np.float32)
     a = map_accuracy(world, exact, exact, poses, CAM.K, (640, 320), 10.0, 0.2, min_samples=20_000)
     assert a["points"]["error_p90_m"] < 1e-4 and a["points"]["completeness"] > 0.95
-    lifted = exact + np.float32([0, 0.5, 0])
+    lifted = exact + np.array([0, 0.5, 0], np.float32)
     b = map_accuracy(world, lifted, lifted, poses, CAM.K, (640, 320), 10.0, 0.2, min_samples=20_000)
     assert b["points"]["error_median_m"] == pytest.approx(0.5, abs=1e-3) and b["points"]["completeness"] < 0.01
     half = exact[exact[:, 0] < 0]
@@ -246,6 +246,7 @@ def test_write_map_outputs_and_compare_report(tmp_path):
     out = tmp_path / "run"
     out.mkdir()
     entry = write_map_outputs(out, m, {"vo": vo, "batch": gt}, gt, cfg)
+    assert entry is not None
     for f in ("map.ply", "map_mesh.ply", "map.png", "map_mesh.png", "map_compare.png", "map_vo.ply", "map_mesh_vo.ply"):
         assert (out / f).is_file(), f
     acc = entry["accuracy"]
@@ -289,6 +290,7 @@ def test_an_empty_map_is_flagged_not_fatal(tmp_path):
     m = FusedMap(CAM, MapConfig())
     m.add_keyframe(0, np.zeros((160, 320), np.float32))  # a black frame: no valid depth
     entry = write_map_outputs(tmp_path, m, {"vo": np.eye(4)[None]}, None, MapConfig())
+    assert entry is not None
     assert "empty" in entry and not (tmp_path / "map.ply").exists()
     assert write_map_outputs(tmp_path, FusedMap(CAM, MapConfig()), {"vo": np.eye(4)[None]}, None, MapConfig()) is None
 

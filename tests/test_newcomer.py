@@ -224,4 +224,5 @@ def test_progress_on_a_terminal_closes_at_the_last_frame_and_names_the_phase():
     text = term.getvalue()
     assert "3/3" in text and text.endswith("slam: writing the map ...\n")
     shown = float(re.findall(r"([\d.]+)frame/s", text)[-1])
+    assert bar.rate is not None
     assert abs(shown - bar.rate) <= 0.05 * bar.rate  # the bar's final rate is the summary's

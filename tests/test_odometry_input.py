@@ -109,6 +109,7 @@ def test_relative_poses_across_a_gap_and_drift_noise(tmp_path):
     # A random walk in the distance driven through the file (11 m across the gap, 9 m straight),
     # calibrated to 2 % / 3 deg per 100 m over the reference drive: variance (p/100)^2 * L * d.
     d, L = 4 * 1.5 + 2 * 2.5, DRIFT_REFERENCE_M
+    assert outs[2].cov is not None
     sig = np.sqrt(np.diag(outs[2].cov))
     assert np.allclose(sig[3:], 0.02 * math.sqrt(L * d)) and np.allclose(sig[:3], math.radians(0.03 * math.sqrt(L * d)))
     # Over the reference drive the steps add up to the model's percentages.
@@ -140,6 +141,7 @@ def test_monocular_kitti_with_gaps_takes_times_and_poses_by_frame_number(tmp_pat
     ds = KittiSequence(seq)
     assert not ds.stereo and list(ds.indices) == [0, 1, 5, 6]
     full = read_kitti_poses(tiny_seq / "poses.txt")
+    assert ds.gt_poses is not None
     assert np.allclose(ds.gt_poses[2], np.linalg.solve(full[0], full[5]))
     assert ds[2].right.size == 0 and ds[2].index == 5
     part = KittiSequence(seq, frames="1:3")  # positions in file-number order
@@ -154,6 +156,7 @@ def test_python_api_monocular_with_pose_file(mono_seq):
     for f in ds:
         pipe.process(f)
     res = pipe.finish()
+    assert ds.gt_poses is not None
     assert np.allclose(res.trajectories["vo"], ds.gt_poses, atol=1e-6)
     assert pipe.two_view is not None and pipe.loop_features is None
     # the stereo VO cannot run on it: a one-line error, nothing changed
@@ -231,4 +234,5 @@ def test_stereo_sequence_with_pose_file_keeps_stereo_verification(tiny_seq):
         pipe.process(f)
     res = pipe.finish()
     assert isinstance(pipe.loop_features, LoopFeatureBank) and pipe.two_view is None
+    assert ds.gt_poses is not None
     assert np.allclose(res.trajectories["vo"], ds.gt_poses, atol=1e-6)

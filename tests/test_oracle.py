@@ -14,7 +14,7 @@ from snaps_graph.evaluation.oracle import loop_oracle, true_revisit_pairs
 def yaw_pose(x: float, z: float, yaw_deg: float) -> np.ndarray:
     a = math.radians(yaw_deg)
     T = np.eye(4)
-    T[:3, :3] = [[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]]
+    T[:3, :3] = [[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0], [-math.sin(a), 0.0, math.cos(a)]]
     T[0, 3], T[2, 3] = x, z
     return T
 
@@ -77,6 +77,7 @@ def test_oracle_keeps_error_that_no_loop_observes():
     # agree with the VO: the oracle cannot (and must not) remove that error.
     lead = np.array([yaw_pose(0.0, float(z), 0.0) for z in range(-30, 0)])
     gt = np.concatenate([lead, square_laps()])
+    vo: list[np.ndarray] | np.ndarray
     vo = [gt[0]]
     for k in range(1, len(gt)):
         step = np.linalg.solve(gt[k - 1], gt[k])
@@ -88,6 +89,7 @@ def test_oracle_keeps_error_that_no_loop_observes():
     assert res.pairs and min(j for j, _ in res.pairs) >= 30  # loops only on the square
     assert abs(res.mean_deviation - before) < 0.05 * before
     # The same error on the square (frame 40, revisited by frame 120) is observed and removed.
+    vo2: list[np.ndarray] | np.ndarray
     vo2 = [gt[0]]
     for k in range(1, len(gt)):
         step = np.linalg.solve(gt[k - 1], gt[k])
@@ -101,6 +103,7 @@ def test_oracle_weighs_the_steps_by_the_covariances_it_is_given():
     loops put a heading error on the one step whose covariance allows it; with the inlier
     sigmas (all steps alike) the same correction is spread over the lap."""
     gt = square_laps()
+    vo: list[np.ndarray] | np.ndarray
     vo = [gt[0]]
     for k in range(1, len(gt)):
         vo.append(vo[-1] @ np.linalg.solve(gt[k - 1], gt[k]) @ (yaw_pose(0.0, 0.0, 2.0) if k == 40 else np.eye(4)))

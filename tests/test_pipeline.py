@@ -67,6 +67,7 @@ def test_run_kitti06_results_folder_and_determinism(kitti06_dir, tmp_path):
 
 def test_eval_json_and_table(kitti06_dir, tmp_path):
     gt = KittiSequence(kitti06_dir).gt_poses
+    assert gt is not None
     est = gt.copy()
     est[:, 0, 3] += 1.0  # a constant 1 m offset: mean deviation exactly 1, ATE 0 after alignment
     from snaps_graph.trajectory_io import write_kitti_poses
@@ -135,6 +136,7 @@ def test_streaming_with_bad_frames_never_nan(kitti06_dir):
     assert {6, 11, 15} <= set(flagged)
     assert all(o.vo.ok for o in outs if o.frame in (8, 9, 13, 17, 18, 19))  # resumed
     result = pipe.finish()
+    assert seq.gt_poses is not None
     err = mean_deviation(result.trajectories["vo"], seq.gt_poses)
     assert err < 1.0  # constant velocity over 3 bad frames of 20 (measured ~0.2 m)
     for poses in result.trajectories.values():

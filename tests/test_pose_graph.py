@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from typing import Any, cast
 
 import gtsam
 import numpy as np
@@ -41,6 +42,7 @@ def square(seed: int = 0, yaw_bias: float = 0.003, rot_noise: float = 0.002, tra
     The noise stays within the default odometry sigmas (0.005 rad, 0.05 m per step): a chain much
     worse than its stated sigmas makes a true loop look like an outlier to the robust kernel."""
     n = 4 * SIDE
+    rel_true: list[np.ndarray] | np.ndarray
     rel_true = [np.eye(4)] + [pose(yaw_rot(np.pi / 2 if k % SIDE == 0 else 0.0), (0, 0, 1.0)) for k in range(1, n + 1)]
     rel_true = np.array(rel_true)
     gt = chain(rel_true)
@@ -132,7 +134,8 @@ def test_odometry_sigmas_follow_inliers_and_flag():
 def test_odometry_covariance_scaled_floored_and_checked():
     C = np.diag([1e-8] * 3 + [1e-6] * 3)
     cfg = GraphConfig(odom_cov_scale=2.0, odom_cov_floor_rot_rad=1e-3, odom_cov_floor_trans_m=1e-2)
-    assert np.allclose(odometry_covariance(cfg, C), 4 * C + np.diag([1e-6] * 3 + [1e-4] * 3))
+    scaled = odometry_covariance(cfg, C)
+    assert scaled is not None and np.allclose(scaled, 4 * C + np.diag([1e-6] * 3 + [1e-4] * 3))
     assert odometry_covariance(cfg, None) is None
     assert odometry_covariance(cfg, np.full((6, 6), np.nan)) is None
     assert odometry_covariance(cfg, np.eye(3)) is None
@@ -340,7 +343,7 @@ def test_bad_input_raises_one_line_errors():
     with pytest.raises(SnapsGraphError, match="refine mode"):
         PoseGraph(GraphConfig(), mode="turbo")
     with pytest.raises(SnapsGraphError, match="robust_kernel"):
-        PoseGraph(GraphConfig(robust_kernel="tukey"))
+        PoseGraph(GraphConfig(robust_kernel=cast(Any, "tukey")))
     g = PoseGraph(GraphConfig())
     with pytest.raises(SnapsGraphError, match="non-finite"):
         g.add_frame(0, np.full((4, 4), np.nan))

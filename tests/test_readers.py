@@ -14,8 +14,11 @@ import numpy as np
 import pytest
 
 from snaps_graph.config import Config
+from snaps_graph.datasets.euroc import EurocSequence
 from snaps_graph.datasets.kitti import KittiSequence
 from snaps_graph.datasets.open import open_dataset, open_live
+from snaps_graph.datasets.rectify import StereoRectifier
+from snaps_graph.datasets.rosbag import RosbagSequence
 from snaps_graph.errors import SnapsGraphError
 from snaps_graph.pipeline import SlamPipeline
 from snaps_graph.runner import run_sequence
@@ -62,6 +65,7 @@ def sift_row_offsets(left: np.ndarray, right: np.ndarray) -> np.ndarray:
 def test_euroc_pairs_what_exists_and_rectifies_rows(euroc_dir):
     seq = open_dataset(euroc_dir)
     assert type(seq).__name__ == "EurocSequence"
+    assert isinstance(seq, EurocSequence) and isinstance(seq.rectifier, StereoRectifier)
     assert len(seq) == 95 and seq.gt_poses is None
     assert any("4 listed images are missing" in n for n in seq.notes)
     cam = seq.camera
@@ -110,10 +114,12 @@ def test_euroc_ground_truth_for_the_rectified_left_camera(euroc_dir, tmp_path):
     (root / "mav0/state_groundtruth_estimate0/data.csv").write_text("\n".join(lines) + "\n")
 
     seq = open_dataset(root)
+    assert isinstance(seq, EurocSequence) and isinstance(seq.rectifier, StereoRectifier)
     n_before = int(np.sum(t_img < t_gt[0]))
     assert n_before == 3 and len(seq) == 95 - n_before
     assert any("outside the ground truth" in n for n in seq.notes)
     gt = seq.gt_poses
+    assert gt is not None
     assert gt.shape == (len(seq), 4, 4) and np.allclose(gt[0], np.eye(4))
     # Relative rotation angle = the body's yaw change; rigid offsets cancel in the angle.
     t_frames = t_img[n_before:]
@@ -206,6 +212,7 @@ def test_bag_gives_the_folders_poses(kind, compressed, name, kitti8, kitti8_pose
         assert list(bag_dir.glob("*.mcap"))  # a real MCAP storage file inside the ROS 2 bag folder
     seq = open_dataset(path)
     assert type(seq).__name__ == "RosbagSequence" and len(seq) == N_BAG and not seq.notes
+    assert isinstance(seq, RosbagSequence)
     assert seq.camera == kitti8.camera
     assert np.allclose(seq.timestamps, kitti8.timestamps, atol=1e-9)
     poses = run_poses(seq)
@@ -225,9 +232,11 @@ def test_bag_sqlite3_and_bare_mcap(kitti8, tmp_path):
 def test_bag_raw_images_rectified_from_camera_info(euroc_dir, tmp_path):
     """A bag of EuRoC's raw pairs with CameraInfo K, D, R, P gives EuRoC's rectified pairs."""
     eu = open_dataset(euroc_dir, frames="0:3")
+    assert isinstance(eu, EurocSequence) and isinstance(eu.rectifier, StereoRectifier)
     pairs = [(eu.timestamps[i], *eu.raw_pair(i)) for i in range(3)]
     write_stereo_bag(tmp_path / "raw", None, "mcap", raw_pairs=pairs, infos=eu.rectifier.info, prefix="/cam")
     seq = open_dataset(tmp_path / "raw")
+    assert isinstance(seq, RosbagSequence)
     assert seq.rectifier is not None and seq.camera == eu.camera
     for a, b in zip(seq, eu):
         assert np.array_equal(a.left, b.left) and np.array_equal(a.right, b.right)
@@ -257,7 +266,7 @@ def test_image_encodings(encoding, kitti8):
             header=h, height=4, width=4, encoding="rgb8", is_bigendian=0, step=12, data=rgb.reshape(-1)
         )
         assert decode_image(m, "sensor_msgs/msg/Image")[0, 0] == 76  # 0.299 * 255
-        m.encoding = "bgr8"
+        m.encoding = "bgr8"  # type: ignore[attr-defined]  # rosbags types every message as MsgType, without its fields
         assert decode_image(m, "sensor_msgs/msg/Image")[0, 0] == 29  # 0.114 * 255
 
 
@@ -298,6 +307,7 @@ def test_bad_bags_are_one_line(kitti8, tmp_path):
     with pytest.raises(SnapsGraphError, match="no sensor_msgs/CameraInfo topic beside /stereo/left/image_raw"):
         open_dataset(tmp_path / "nocal")
     seq = open_dataset(tmp_path / "nocal", calib=kitti8.path / "calib.txt")  # a calib.txt: size from the images
+    assert isinstance(seq, RosbagSequence)
     assert seq.camera == kitti8.camera and np.array_equal(seq[1].left, kitti8[1].left)
 
 
@@ -398,6 +408,7 @@ def test_convert_euroc_and_bag_to_kitti(euroc_dir, kitti8, tmp_path):
     proc = cli("convert", str(euroc_dir), "--out", str(out), "--frames", "10:14")
     assert proc.returncode == 0, proc.stderr
     eu = open_dataset(euroc_dir, frames="10:14")
+    assert isinstance(eu, EurocSequence)
     back = KittiSequence(out)
     assert len(back) == 4 and back.gt_poses is None
     assert abs(back.camera.baseline_m - eu.camera.baseline_m) < 1e-9 and abs(back.camera.fx - eu.camera.fx) < 1e-6
@@ -411,6 +422,7 @@ def test_convert_euroc_and_bag_to_kitti(euroc_dir, kitti8, tmp_path):
     proc = cli("convert", str(tmp_path / "bag"), "--out", str(tmp_path / "k2"), "--gt", str(gt_file))
     assert proc.returncode == 0 and "with poses.txt" in proc.stdout, proc.stderr
     k2 = KittiSequence(tmp_path / "k2")
+    assert k2.gt_poses is not None
     assert np.allclose(k2.gt_poses, kitti8.gt_poses[:4], atol=1e-9) and np.array_equal(k2[2].right, kitti8[2].right)
 
 
@@ -594,6 +606,7 @@ def test_bag_with_one_image_topic_is_monocular(kitti8, tmp_path):
             )
             w.write(cc, t_ns, ts.serialize_cdr(info, "sensor_msgs/msg/CameraInfo"))
     seq = open_dataset(bag)
+    assert isinstance(seq, RosbagSequence)
     assert not seq.stereo and len(seq) == 4 and seq.camera.baseline_m == 0.0 and seq.camera.fx == cam.fx
     assert seq[2].right.size == 0 and np.array_equal(seq[2].left, kitti8[2].left)
     gt = kitti8.gt_poses[:4]

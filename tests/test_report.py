@@ -33,7 +33,7 @@ def rebase(poses: np.ndarray) -> np.ndarray:
 def drifted(gt: np.ndarray, yaw_bias_deg: float, scale: float) -> np.ndarray:
     a = math.radians(yaw_bias_deg)
     bias = np.eye(4)
-    bias[:3, :3] = [[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]]
+    bias[:3, :3] = [[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0], [-math.sin(a), 0.0, math.cos(a)]]
     est = [np.eye(4)]
     for k in range(len(gt) - 1):
         step = inv(gt[k]) @ gt[k + 1]
@@ -134,7 +134,7 @@ def run07(tmp_path_factory, kitti_gt_dir):
     }
 
 
-def table_rows(report: str, header_start: str) -> list[list[str]]:
+def table_rows(report: str, header_start: str) -> list[dict[str, str]]:
     """Rows of the markdown table whose header starts with ``| header_start``."""
     lines = report.splitlines()
     start = next(i for i, l in enumerate(lines) if l.startswith(f"| {header_start}"))

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Any, cast
 
 import numpy as np
 import pytest
@@ -18,12 +19,13 @@ from snaps_graph.errors import SnapsGraphError
 from snaps_graph.geometry import inv, wrap_deg, yaw_deg
 from snaps_graph.loop import SnapsLoopCloser
 from snaps_graph.loop.search import _NEIGHBOUR_OFFSETS
+from snaps_graph.loop.snaps import Verifier
 
 SHAPE = (16, 20)
 
 
 def cfg(**kw) -> LoopConfig:
-    base = dict(
+    base: dict[str, Any] = dict(
         radius_m=5.5,
         frame_distance=3,
         discount_length=4,
@@ -52,7 +54,7 @@ def pose(z: float = 0.0, x: float = 0.0, yaw: float = 0.0) -> np.ndarray:
     """T_world_cam at (x, 0, z) with heading ``yaw`` degrees about the camera's y axis."""
     c, s = math.cos(math.radians(yaw)), math.sin(math.radians(yaw))
     T = np.eye(4)
-    T[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
+    T[:3, :3] = [[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]]
     T[0, 3], T[2, 3] = x, z
     return T
 
@@ -232,7 +234,7 @@ def test_below_min_similarity_no_loop():
 # ---------------------------------------------------------------- spatial index
 def brute_force(closer: SnapsLoopCloser, n: int) -> np.ndarray:
     c = closer.cfg
-    P, yaw = closer.positions, yaw_deg(closer.poses)
+    P, yaw = closer.positions, np.asarray(yaw_deg(closer.poses))
     j = np.arange(n + 1 - c.frame_distance)
     d = np.linalg.norm(P[j] - P[n], axis=1)
     ok = (d <= c.radius_m) & (np.abs(wrap_deg(yaw[j] - yaw[n])) <= c.max_yaw_deg)
@@ -252,6 +254,7 @@ def test_spatial_index_tracks_corrected_positions():
     poses[0] = np.eye(4)
     textures: dict[tuple[int, int], np.ndarray] = {}
     moved_cells = 0
+    key: tuple[int, int] | int
     for k in range(n):
         P = poses[k][:3, 3]
         key = (int(np.floor(P[0] / 4)), int(np.floor(P[2] / 4)))
@@ -324,8 +327,10 @@ def test_verified_offset_aims_at_measured_position(use_offset):
         T_rel = np.eye(4) if k == 0 else inv(poses[k - 1]) @ poses[k]
         step = closer.step(10 + k, T_rel, images[k], verify=verify)
     ev = step.loop
+    assert ev is not None
     assert asked == [10]  # only the winning reference is verified, once
     assert ev.verified and ev.verify_inliers == 42
+    assert ev.T_ref_cur is not None
     np.testing.assert_allclose(ev.T_ref_cur, T_meas)
     target = np.array([-0.5, 0.0, 1.5]) if use_offset else np.zeros(3)
     np.testing.assert_allclose(ev.delta, target - [0, 0, 5.0], atol=1e-12)
@@ -343,6 +348,7 @@ def test_verified_loop_moves_with_weight_one():
         T_rel = np.eye(4) if k == 0 else inv(poses[k - 1]) @ poses[k]
         step = closer.step(k, T_rel, images[k], verify=lambda ref: (T_meas, 30))
     ev = step.loop
+    assert ev is not None
     assert ev.weight == 1.0 and ev.q == pytest.approx(0.64)
     np.testing.assert_allclose(closer.positions[5], [0, 0, 5.0 + gamma(1, 0) * (1.0 - 5.0)], atol=1e-12)
     np.testing.assert_allclose(closer.positions[4], [0, 0, 4.0 + gamma(1, 1) * (1.0 - 5.0)], atol=1e-12)
@@ -473,7 +479,7 @@ def test_eq6_rotation_correction_turns_window_to_verified_heading(sigma, gain):
         T_rel = np.eye(4) if k == 0 else inv(est[k - 1]) @ est[k]
         step = closer.step(k, T_rel, images[k], verify=lambda ref: (T_meas, 50))
     assert step.loop is not None and closer.heading_gain(5) == pytest.approx(gain)
-    yaw = yaw_deg(closer.poses)
+    yaw = np.asarray(yaw_deg(closer.poses))
     for s in range(1, 6):
         assert yaw[s] == pytest.approx(3.0 * (1.0 - gain * s / 5.0), abs=1e-9)
     nxt = closer.step(6, pose(z=1.0), tex(6))  # one more metre straight ahead in the camera frame
@@ -560,7 +566,7 @@ def _pause_case(ratio: float, second_z: float, measured_z: float | None = None):
     steps = []
     for k in range(7):
         T_rel = np.eye(4) if k == 0 else inv(poses[k - 1]) @ poses[k]
-        steps.append(closer.step(k, T_rel, images[k], verify=lambda ref, k=k: (meas[k], 50)))
+        steps.append(closer.step(k, T_rel, images[k], verify=cast(Verifier, lambda ref, k=k: (meas[k], 50))))
     assert steps[5].loop is not None and steps[5].loop.reference == 0
     return steps, closer
 
@@ -590,7 +596,7 @@ def test_closer_loop_keeps_the_pause_of_the_loop_that_started_it():
     for k in range(17):
         T_rel = np.eye(4) if k == 0 else inv(poses[k - 1]) @ poses[k]
         meas = inv(poses[1 if k == 16 else 0]) @ poses[k]
-        step = closer.step(k, T_rel, images[k], verify=lambda ref, m=meas: (m, 50))
+        step = closer.step(k, T_rel, images[k], verify=cast(Verifier, lambda ref, m=meas: (m, 50)))
     assert step.loop is not None and step.loop.reference == 1 and closer.last_pinned == 16
 
 

@@ -62,7 +62,9 @@ def test_stereo_ba_beats_pnp_on_far_points_scale():
         uv_r, d_r, uv_c, d_c = _observe(X, T, rng, 0.5, outliers=0.1)
         keep = d_r > 1.0
         P = CAM.backproject(uv_r[keep, 0], uv_r[keep, 1], CAM.fx * CAM.baseline_m / d_r[keep])
-        Tp, inl = pnp_ransac(P, uv_c[keep], CAM, cfg)
+        pnp = pnp_ransac(P, uv_c[keep], CAM, cfg)
+        assert pnp is not None
+        Tp, inl = pnp
         r = stereo_two_view_ba(Tp, uv_r[keep][inl], d_r[keep][inl], uv_c[keep][inl], d_c[keep][inl], CAM, WIDE)
         assert r.ok and np.all(np.isfinite(r.T_cur_ref)) and np.all(np.isfinite(r.cov))
         err_pnp.append(np.linalg.norm(Tp[:3, 3]) - true_step)
@@ -101,6 +103,7 @@ def test_keep_px_keeps_tracks_a_tight_estimate_left_out():
     tight = stereo_two_view_ba(T, uv_r, d_r, uv_c, d_c, CAM, FrontendConfig(sba_keep_px=0.6))
     kept = stereo_two_view_ba(T, uv_r, d_r, uv_c, d_c, CAM, cfg)
     assert tight.ok and kept.ok
+    assert kept.kept is not None
     assert np.array_equal(tight.T_cur_ref, kept.T_cur_ref) and np.array_equal(tight.inliers, kept.inliers)
     assert tight.inliers.sum() < 0.8 * (~bad).sum()
     assert kept.kept.sum() >= 0.9 * (~bad).sum() and not np.any(kept.kept & bad)  # measured 94 %

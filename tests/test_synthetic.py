@@ -265,6 +265,7 @@ def test_render_to_folder_reads_back(tmp_path):
     assert len(calls) == 4 and totals["frames"] == 4
     back = KittiSequence(out)
     assert len(back) == 4
+    assert back.gt_poses is not None
     assert back.camera.fx == pytest.approx(seq.camera.fx) and back.camera.baseline_m == pytest.approx(seq.camera.baseline_m)
     assert (back.camera.width, back.camera.height) == (W, H)
     np.testing.assert_allclose(back.gt_poses, np.linalg.inv(P[0]) @ P, atol=1e-6)
@@ -316,10 +317,11 @@ def test_kitti00_no_building_in_the_corridor(kitti00):
 
 def test_kitti00_revisited_place_looks_alike(kitti00):
     P = kitti00.gt_poses
-    pos, yaw = P[:, :3, 3], yaw_deg(P)
+    pos, yaw = P[:, :3, 3], np.asarray(yaw_deg(P))
     # the revisit more than 100 frames later that stands closest to a first-pass pose (3D
     # distance plus rotation: KITTI's revisits differ by decimetres in height, degrees in yaw)
     best = None
+    j: np.ndarray | int
     for i in range(0, len(P) - 101, 5):
         j = np.arange(i + 101, len(P))
         d = np.linalg.norm(pos[j] - pos[i], axis=1)

@@ -70,6 +70,7 @@ def test_front_end_threads_do_not_change_the_result(kitti06_dir):
     for threads in (1, 2):
         with StereoOdometry(KittiSequence(kitti06_dir, frames="0:1").camera, FrontendConfig(threads=threads)) as vo:
             runs.append([vo.process(frames[0])])
+            assert vo._klt is not None
             n_first = vo._klt._next_id  # landmark ids handed out to the first frame's corners
             runs[-1] += [vo.process(f) for f in frames[1:]]
             assert vo._klt._next_id > n_first  # re-detection ran after the first frame

@@ -38,6 +38,8 @@ def reference_maps(x: np.ndarray, y: np.ndarray, B: int) -> dict[str, np.ndarray
 def assert_matches_reference(x: np.ndarray, y: np.ndarray, B: int) -> None:
     ref = reference_maps(x, y, B)
     res = uiqi(x, y, window=B, return_maps=True)
+    assert res.q_map is not None and res.correlation_map is not None
+    assert res.luminance_map is not None and res.contrast_map is not None
     np.testing.assert_allclose(res.q_map, ref["q"], rtol=0, atol=1e-9)
     np.testing.assert_allclose(res.correlation_map, ref["corr"], rtol=0, atol=1e-9)
     np.testing.assert_allclose(res.luminance_map, ref["lum"], rtol=0, atol=1e-9)
@@ -100,6 +102,8 @@ def test_identity_symmetry_and_factors_multiply():
     y = rng.integers(0, 256, (25, 30), dtype=np.uint8)
     assert uiqi(x, x).q == pytest.approx(1.0, abs=1e-12)
     rxy, ryx = uiqi(x, y, return_maps=True), uiqi(y, x, return_maps=True)
+    assert rxy.q_map is not None and ryx.q_map is not None and rxy.correlation_map is not None
+    assert rxy.luminance_map is not None and rxy.contrast_map is not None
     np.testing.assert_allclose(rxy.q_map, ryx.q_map, rtol=0, atol=1e-15)
     np.testing.assert_allclose(rxy.q_map, rxy.correlation_map * rxy.luminance_map * rxy.contrast_map, atol=1e-15)
     assert rxy.q_map.shape == (25 - 8 + 1, 30 - 8 + 1)
@@ -186,7 +190,7 @@ def test_shifted_similarity_equals_uiqi_on_the_overlap():
     q, dx = similarity_shifted(A, B, max_shift=6, step=1)
     m = 6  # a's central columns [6, 44) against b's columns moved by d
     expect = {d: uiqi(a[:, m : 50 - m], b[:, m + d : 50 - m + d], 8).q for d in range(-6, 7)}
-    best = max(expect, key=expect.get)
+    best = max(expect, key=expect.__getitem__)
     assert dx == best and q == pytest.approx(expect[best], abs=1e-5)  # float32 ranking score
     from snaps_graph.loop.uiqi import shifted_pair, similarity
 

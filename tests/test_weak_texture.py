@@ -36,6 +36,7 @@ def test_weak_texture_pass_adds_corners_with_depth(open_turn):
     for weak in (0, 300):
         with StereoOdometry(seq.camera, dataclasses.replace(FrontendConfig(), klt_weak_points=weak)) as vo:
             none = np.zeros((0, 2), np.float32)
+            assert vo._klt is not None
             _, z2, _ = vo._klt._detect_new(frames[10], none, np.zeros(0, np.float32), {})
         counts[weak] = int(np.count_nonzero(z2 > 0))
     # The strongest corners are the far trees (no depth within max_depth_m): the first pass
@@ -82,5 +83,6 @@ def test_no_second_pass_where_stereo_fails(open_turn):
     out = {}
     for weak in (0, 300):
         with StereoOdometry(seq.camera, dataclasses.replace(FrontendConfig(), klt_weak_points=weak)) as vo:
+            assert vo._klt is not None
             out[weak] = vo._klt._detect_new(broken, np.zeros((0, 2), np.float32), np.zeros(0, np.float32), {})[0]
     assert np.array_equal(out[0], out[300])

@@ -94,6 +94,7 @@ def test_mixed_scene_alternates_street_and_open():
     cfg = WorldConfig(scene="mixed")
     seq = SyntheticSequence(P, width=W, height=H, seed=2, world_config=cfg)
     is_open = seq.world.sample_open
+    assert is_open is not None
     assert is_open.any() and (~is_open).any()
     # street buildings stand only along street stretches, trees only beside open ones
     k_box = [
@@ -155,6 +156,7 @@ def test_traffic_differs_between_passes(loop300):
     cfg = WorldConfig(traffic=True, pass_radius_m=30.0)
     seq = SyntheticSequence(P, width=W, height=H, seed=5, times=times, world_config=cfg)
     tr = seq.world.traffic
+    assert tr is not None
     assert len(tr.slots) > 20 and len(tr.oncoming) > 20
     # the same place on the two passes (frame k and k + 250): other parked cars
     xz = P[:, [0, 2], 3]
@@ -186,7 +188,9 @@ def test_lighting_differs_between_passes(loop300):
     a, b = seq.render(10), seq.render(260)
     np.testing.assert_array_equal(a.depth, b.depth)  # same pose, same geometry
     assert np.mean(np.abs(a.left.astype(int) - b.left.astype(int))) > 5.0  # other light
-    assert np.degrees(np.arccos(np.clip(seq.sun(10) @ seq.sun(260), -1, 1))) > 30.0
+    sun_a, sun_b = seq.sun(10), seq.sun(260)
+    assert sun_a is not None and sun_b is not None
+    assert np.degrees(np.arccos(np.clip(sun_a @ sun_b, -1, 1))) > 30.0
     hit = seq._renderer.cast(seq.gt_poses[10][:3, :3], seq.gt_poses[10][:3, 3], sun=seq.sun(10))
     assert 0.02 < hit["shadow"].mean() < 0.9  # cast shadows, not everything dark
     plain = SyntheticSequence(P, width=W, height=H, seed=6, times=times)

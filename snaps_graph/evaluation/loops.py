@@ -34,6 +34,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ..errors import SnapsGraphError
 from ..geometry import wrap_deg, yaw_deg
@@ -51,7 +52,7 @@ class LoopEvalSettings:
     segment_gap: int = 10
 
 
-def label_pairs(d_gt: np.ndarray, true_m: float, false_m: float) -> np.ndarray:
+def label_pairs(d_gt: ArrayLike, true_m: float, false_m: float) -> np.ndarray:
     """+1 true (d <= true_m), 0 false (d > false_m), -1 ignored (in between)."""
     d = np.asarray(d_gt, float)
     return np.where(d <= true_m, 1, np.where(d > false_m, 0, -1))
