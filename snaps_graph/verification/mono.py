@@ -4,8 +4,8 @@ One camera sees no depth, and two views of one street fit an essential matrix wh
 distance apart (docs/odometry-input.md). So a reference frame's SIFT keypoints are triangulated
 against a later frame of the same pass at least ``BASELINE_M`` away along the odometry (over a
 metre or two its motion is metric and close to exact), and a candidate is then verified like a
-stereo one (``loop_features.verify_features``): PnP RANSAC of those points on the current
-frame's keypoints gives a metric relative pose, refused beyond ``loop_max_distance_m``.
+stereo one (``features.verify_features``): PnP RANSAC of those points on the current
+frame's keypoints gives a metric relative pose, refused beyond ``verification.max_distance_m``.
 """
 
 from __future__ import annotations
@@ -17,12 +17,12 @@ import cv2
 import numpy as np
 
 from ..camera import StereoCamera
-from ..config import FrontendConfig
+from ..config import FrontendConfig, VerificationConfig
+from ..frontend.keyframe import MIN_STEREO_POINTS
+from ..frontend.motion import RANSAC_SEED
 from ..geometry import inv
 from ..types import FrameFeatures, StereoFrame
-from .keyframe import MIN_STEREO_POINTS
-from .loop_features import LOOP_QUERY_FEATURES, LOOP_RATIO_TEST, LoopFeatureBank, detect_loop_keypoints, ratio_matches
-from .motion import RANSAC_SEED
+from .features import LOOP_QUERY_FEATURES, LOOP_RATIO_TEST, LoopFeatureBank, detect_loop_keypoints, ratio_matches
 
 BASELINE_M = 1.0  # a reference is triangulated against the first later frame this far along the odometry
 MAX_PARTNER_FRAMES = 30  # ...arriving within this many frames, else the reference is dropped (a camera at rest)
@@ -34,10 +34,10 @@ DETECTOR: Literal["orb", "sift"] = "sift"  # monocular verification's features (
 
 
 def two_view_features(
-    img: np.ndarray, cfg: FrontendConfig, n: int | None = None, detector: Literal["orb", "sift"] = DETECTOR
+    img: np.ndarray, cfg: VerificationConfig, n: int | None = None, detector: Literal["orb", "sift"] = DETECTOR
 ) -> FrameFeatures:
     """Keypoints and descriptors of one image (no depth)."""
-    uv, desc, _ = detect_loop_keypoints(img, dataclasses.replace(cfg, loop_detector=detector), n)
+    uv, desc, _ = detect_loop_keypoints(img, dataclasses.replace(cfg, detector=detector), n)
     return FrameFeatures(uv, np.zeros((len(uv), 3), np.float32), desc)
 
 
@@ -117,8 +117,8 @@ class MonoFeatureBank(LoopFeatureBank):
     reference is stored once its partner has arrived. Fed by :meth:`observe` with the
     odometry's pose of every frame; computed inline (deterministic)."""
 
-    def __init__(self, camera: StereoCamera, cfg: FrontendConfig):
-        super().__init__(camera, cfg, background=False)
+    def __init__(self, camera: StereoCamera, cfg: FrontendConfig, vcfg: VerificationConfig):
+        super().__init__(camera, cfg, vcfg, background=False)
         self._waiting: dict[int, tuple[FrameFeatures, np.ndarray]] = {}  # reference -> (its keypoints, its pose)
 
     def add(self, k: int, frame: StereoFrame, offset_px: float = 0.0) -> None:
@@ -126,7 +126,7 @@ class MonoFeatureBank(LoopFeatureBank):
 
     def observe(self, k: int, frame: StereoFrame, pose: np.ndarray) -> None:
         """Take stream position ``k`` with its odometry pose (T_world_camera, 4x4)."""
-        cur = two_view_features(frame.left, self.cfg, REFERENCE_FEATURES) if self.wants(k) else None
+        cur = two_view_features(frame.left, self.vcfg, REFERENCE_FEATURES) if self.wants(k) else None
         for j in sorted(self._waiting):
             feat_j, pose_j = self._waiting[j]
             T_j_k = inv(pose_j) @ pose
@@ -135,7 +135,7 @@ class MonoFeatureBank(LoopFeatureBank):
                     del self._waiting[j]
                 continue
             if cur is None:
-                cur = two_view_features(frame.left, self.cfg, REFERENCE_FEATURES)
+                cur = two_view_features(frame.left, self.vcfg, REFERENCE_FEATURES)
             del self._waiting[j]
             self._keep(j, triangulate(feat_j, cur, T_j_k, self.camera, self.cfg))
         if cur is not None and self.wants(k):
@@ -143,6 +143,6 @@ class MonoFeatureBank(LoopFeatureBank):
 
     def query(self, k: int, frame: StereoFrame) -> FrameFeatures:
         if self._query_k != k or self._query is None:
-            self._query = two_view_features(frame.left, self.cfg, LOOP_QUERY_FEATURES)
+            self._query = two_view_features(frame.left, self.vcfg, LOOP_QUERY_FEATURES)
             self._query_k = k
         return self._query
