@@ -19,6 +19,7 @@ lengths / sum of ground-truth step lengths - 1: a scale error of the translation
 from __future__ import annotations
 
 import argparse
+import copy
 import sys
 import time
 from pathlib import Path
@@ -30,33 +31,34 @@ ROOT = Path(__file__).resolve().parents[1]
 
 from naive_vo import NaiveVO  # the paper's front end written plainly
 
-from snaps_graph.config import FrontendConfig
+from snaps_graph.config import Config, FrontendConfig
 from snaps_graph.datasets.kitti import KittiSequence
 from snaps_graph.evaluation.metrics import ate_rmse, evaluate, path_length, step_error_axes_percent
 from snaps_graph.frontend import StereoOdometry
 
+# [frontend] values per mode, a nested section as a dict (as in a config file)
 MODES = {
     "default": dict(),  # the default configuration
-    "klt_pnp": dict(mode="klt", motion="pnp", local_ba=False),  # klt + sparse stereo + PnP only
-    "klt_sba": dict(mode="klt", motion="stereo_ba", local_ba=False),
-    "klt_lba": dict(mode="klt", motion="stereo_ba", local_ba=True, lba_every=1),  # every frame a keyframe
-    "klt_lba2": dict(mode="klt", motion="stereo_ba", local_ba=True, lba_every=2, lba_window=8),
-    "klt_lba3": dict(mode="klt", motion="stereo_ba", local_ba=True, lba_every=3, lba_window=8),
-    "klt_lba3w6": dict(mode="klt", motion="stereo_ba", local_ba=True, lba_every=3, lba_window=6),
+    "klt_pnp": dict(mode="klt", motion="pnp", local_ba=dict(enabled=False)),  # klt + sparse stereo + PnP only
+    "klt_sba": dict(mode="klt", motion="stereo_ba", local_ba=dict(enabled=False)),
+    "klt_lba": dict(mode="klt", motion="stereo_ba", local_ba=dict(enabled=True, every=1)),  # every frame a keyframe
+    "klt_lba2": dict(mode="klt", motion="stereo_ba", local_ba=dict(enabled=True, every=2, window=8)),
+    "klt_lba3": dict(mode="klt", motion="stereo_ba", local_ba=dict(enabled=True, every=3, window=8)),
+    "klt_lba3w6": dict(mode="klt", motion="stereo_ba", local_ba=dict(enabled=True, every=3, window=6)),
     "sift": dict(
-        mode="sift", disparity="bm_wls", sift_first_octave=-1, motion="pnp", local_ba=False
+        mode="sift", disparity="bm_wls", sift_first_octave=-1, motion="pnp", local_ba=dict(enabled=False)
     ),  # the paper's front end, faithfully
     "sift_sba": dict(mode="sift", disparity="bm_wls", sift_first_octave=-1, motion="stereo_ba"),
     "sift_sparse": dict(mode="sift", disparity="sparse"),  # what mode = "sift" runs by default
     "sift_fo-1": dict(mode="sift", disparity="sparse", sift_first_octave=-1),
     "orb": dict(mode="orb"),
-    "no_offset": dict(estimate_disparity_offset=False),  # the default without the online disparity offset estimate
-    "no_weak": dict(klt_weak_points=0),  # the default without the weak-texture corner detection
-    "no_chain": dict(lba_chain="off"),  # the default without the chain's heading factor in the local BA
-    "chain_yaw": dict(lba_chain="yaw"),  # the chain's heading alone in the local BA (the default before yaw_roll)
+    "no_offset": dict(offset=dict(estimate=False)),  # the default without the online disparity offset estimate
+    "no_weak": dict(klt=dict(weak_points=0)),  # the default without the weak-texture corner detection
+    "no_chain": dict(local_ba=dict(chain="off")),  # the default without the chain's heading factor in the local BA
+    "chain_yaw": dict(local_ba=dict(chain="yaw")),  # the chain's heading alone in the local BA (the default before yaw_roll)
     "sgl1": dict(stereo_guess_levels=1),  # tracked points' stereo from the predicted disparity, 2 pyramid levels
     "sgl2": dict(stereo_guess_levels=2),  # ... 3 pyramid levels
-    "no_bias_fix": dict(klt_bias_window_px=0),  # the default with the plain 11 px LK fit
+    "no_bias_fix": dict(klt=dict(bias_window_px=0)),  # the default with the plain 11 px LK fit
 }
 
 
@@ -74,9 +76,8 @@ def accuracy(poses: np.ndarray, gt: np.ndarray) -> tuple[float, float, float]:
 
 
 def frontend_config(name: str, base: FrontendConfig | None = None) -> FrontendConfig:
-    import dataclasses
-
-    return dataclasses.replace(base or FrontendConfig(), **MODES[name])
+    cfg = Config(frontend=copy.deepcopy(base) if base is not None else FrontendConfig())
+    return cfg.merged({"frontend": MODES[name]}, f"mode {name}").frontend
 
 
 def run(name, seq, frames, base=None):

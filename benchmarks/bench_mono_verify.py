@@ -1,9 +1,9 @@
 """Monocular loop verification (no right image) against ground truth, on real KITTI images.
 
-The pipeline's monocular path (``frontend.two_view``): every ``loop_reference_every``-th frame's
+The pipeline's monocular path (``verification.mono``): every ``verification.reference_every``-th frame's
 keypoints are triangulated against a later frame of the same pass using the odometry's length,
 and a candidate is verified by PnP of those points on the current frame's keypoints
-(``loop_features.verify_features`` without a depth check). Printed:
+(``verification.features.verify_features`` without a depth check). Printed:
 
 * a control of exact truth: the reference bank of KITTI 06's left images (ground-truth poses as
   odometry) against the *right* image of frame k + j (the rectified rig: R = I, 0.54 m to the
@@ -14,7 +14,7 @@ and a candidate is verified by PnP of those points on the current frame's keypoi
   translation errors against poses/00.txt, per axis, and the agreement between references of one
   current frame (carried to each other by the first pass's truth, locally exact);
 * false pairs (10-40 m apart in the truth): how many verify, and how many pass the
-  ``loop_max_distance_m`` gate.
+  ``verification.max_distance_m`` gate.
 
 ``--pct P --seed S`` builds the bank from odometry drifted by the drift tool instead of the truth.
 
@@ -32,18 +32,18 @@ import numpy as np
 from snaps_graph.config import Config
 from snaps_graph.datasets.kitti import KittiSequence
 from snaps_graph.evaluation.drift import drift_trajectory
-from snaps_graph.frontend.loop_features import LOOP_QUERY_FEATURES, verify_features
-from snaps_graph.frontend.two_view import MonoFeatureBank, two_view_features
 from snaps_graph.geometry import log_so3, rotation_angle_deg
 from snaps_graph.trajectory_io import read_kitti_poses
+from snaps_graph.verification.features import LOOP_QUERY_FEATURES, verify_features
+from snaps_graph.verification.mono import MonoFeatureBank, two_view_features
 
 HERE = Path(__file__).resolve().parent
 DEFAULT_DATA = HERE.parent.parent / "shared" / "data"
 
 
-def bank_of(seq: KittiSequence, poses: np.ndarray, fe) -> tuple[MonoFeatureBank, dict[int, int], float]:
+def bank_of(seq: KittiSequence, poses: np.ndarray, cfg: Config) -> tuple[MonoFeatureBank, dict[int, int], float]:
     """The reference bank of a sequence's left images with ``poses`` (one per frame number) as odometry."""
-    bank = MonoFeatureBank(seq.camera, fe)
+    bank = MonoFeatureBank(seq.camera, cfg.frontend, cfg.verification)
     k_of = {}
     t0 = time.perf_counter()
     for k, f in enumerate(seq):
@@ -56,7 +56,7 @@ def direction_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1.0, 1.0))))
 
 
-def control(path: Path, fe) -> None:
+def control(path: Path, cfg: Config) -> None:
     if not path.is_dir():
         print(f"control skipped: {path} not found")
         return
@@ -64,7 +64,7 @@ def control(path: Path, fe) -> None:
     assert seq._gt_all is not None
     gt = {int(f): seq._gt_all[i] for i, f in enumerate(seq.indices)}
     poses = np.array([gt[f] for f in sorted(gt)])
-    bank, k_of, _ = bank_of(seq, poses, fe)
+    bank, k_of, _ = bank_of(seq, poses, cfg)
     T_lr = np.eye(4)
     T_lr[0, 3] = seq.camera.baseline_m
     for j in (0, 1, 2):
@@ -73,8 +73,10 @@ def control(path: Path, fe) -> None:
             if bank.reference(k_of[r]) is None or r + j not in gt:
                 continue
             T = np.linalg.solve(gt[r], gt[r + j]) @ T_lr
-            cur = two_view_features(seq[k_of[r + j]].right, fe, LOOP_QUERY_FEATURES)
-            m = verify_features(bank.reference(k_of[r]), cur, None, seq.camera, fe, unique=bank.merged)
+            cur = two_view_features(seq[k_of[r + j]].right, cfg.verification, LOOP_QUERY_FEATURES)
+            m = verify_features(
+                bank.reference(k_of[r]), cur, None, seq.camera, cfg.frontend, cfg.verification, unique=bank.merged
+            )
             if m is not None:
                 e = m.T_ref_cur
                 res.append(
@@ -104,13 +106,13 @@ def main() -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--config", type=Path, default=None)
     args = ap.parse_args()
-    fe = (Config.load(args.config) if args.config else Config()).frontend
-    control(args.data / "kitti" / "sequences" / "06", fe)
+    cfg = Config.load(args.config) if args.config else Config()
+    control(args.data / "kitti" / "sequences" / "06", cfg)
     root = args.data / "kitti00_loop"
     seq = KittiSequence(root / "sequences" / "00")
     G = read_kitti_poses(root / "poses" / "00.txt")
     odo = G if args.pct is None else drift_trajectory(G[: int(seq.indices[-1]) + 1], args.seed, pct=args.pct)
-    bank, k_of, ms = bank_of(seq, odo, fe)
+    bank, k_of, ms = bank_of(seq, odo, cfg)
     stored = [f for f in k_of if bank.reference(k_of[f]) is not None]
     print(
         f"kitti00_loop: {len(stored)} references stored, odometry {'truth' if args.pct is None else f'drifted {args.pct:g} %, seed {args.seed}'}; "
@@ -121,7 +123,9 @@ def main() -> int:
     def verify(c: int, r: int):
         if c not in queries:
             queries[c] = bank.query(k_of[c], seq[k_of[c]])
-        return verify_features(bank.reference(k_of[r]), queries[c], None, seq.camera, fe, unique=bank.merged)
+        return verify_features(
+            bank.reference(k_of[r]), queries[c], None, seq.camera, cfg.frontend, cfg.verification, unique=bank.merged
+        )
 
     pairs = [
         (r, c) for c in range(1560, 1642) for r in stored if r <= 230 and np.linalg.norm(G[r][:3, 3] - G[c][:3, 3]) <= args.radius
@@ -182,9 +186,9 @@ def main() -> int:
         (r, c) for c in range(1560, 1661, 2) for r in stored if r <= 230 and 10 < np.linalg.norm(G[r][:3, 3] - G[c][:3, 3]) <= 40
     ]
     ver = [m for m in (verify(c, r) for r, c in false) if m is not None]
-    near = sum(np.linalg.norm(m.T_ref_cur[:3, 3]) <= fe.loop_max_distance_m for m in ver)
+    near = sum(np.linalg.norm(m.T_ref_cur[:3, 3]) <= cfg.verification.max_distance_m for m in ver)
     print(
-        f"false pairs (10-40 m apart): {len(false)}, verified {len(ver)}, within loop_max_distance_m {fe.loop_max_distance_m:g} m: {near}"
+        f"false pairs (10-40 m apart): {len(false)}, verified {len(ver)}, within verification.max_distance_m {cfg.verification.max_distance_m:g} m: {near}"
     )
     return 0
 

@@ -34,13 +34,14 @@ from snaps_graph.evaluation.metrics import ate_rmse, path_length
 from snaps_graph.frontend import StereoOdometry
 from snaps_graph.types import StereoFrame
 
+# [frontend] values per mode, a nested section as a dict (as in a config file)
 MODES = {
     "default": dict(),
     "sift": dict(mode="sift"),
     "orb": dict(mode="orb"),
-    "paper": dict(mode="sift", disparity="bm_wls", sift_first_octave=-1, motion="pnp", local_ba=False),
-    "no_offset": dict(estimate_disparity_offset=False),  # the default without the online disparity offset estimate
-    "no_weak": dict(klt_weak_points=0),  # the default without the weak-texture corner detection
+    "paper": dict(mode="sift", disparity="bm_wls", sift_first_octave=-1, motion="pnp", local_ba=dict(enabled=False)),
+    "no_offset": dict(offset=dict(estimate=False)),  # the default without the online disparity offset estimate
+    "no_weak": dict(klt=dict(weak_points=0)),  # the default without the weak-texture corner detection
 }
 
 
@@ -52,9 +53,7 @@ def step_bias(est: np.ndarray, gt: np.ndarray) -> float:
 
 
 def run(seq: KittiSequence, overrides: dict, stride: int = 1, gaps: bool = False) -> tuple[np.ndarray, int, float, float]:
-    cfg = Config()
-    for k, v in overrides.items():
-        setattr(cfg.frontend, k, v)
+    cfg = Config().merged({"frontend": overrides}, "--modes")
     t0 = time.perf_counter()
     with StereoOdometry(seq.camera, cfg.frontend) as vo:
         res = []

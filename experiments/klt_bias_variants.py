@@ -100,7 +100,7 @@ def main() -> None:
     acc = {}
     for i in range(0, len(seq) - 1, every):
         f0 = seq.render(i)
-        uv = feat.detect_corners(f0.left, cfg.klt_features, cfg, avoid=np.zeros((0, 2), np.float32))
+        uv = feat.detect_corners(f0.left, cfg.klt.features, cfg.klt, avoid=np.zeros((0, 2), np.float32))
         z = depth_mod.sample_depth(f0.depth, uv)
         uv, z = uv[z > 0], z[z > 0]
         P = np.c_[(uv[:, 0] - cam.cx) / cam.fx * z, (uv[:, 1] - cam.cy) / cam.fy * z, z, np.ones(len(z))]

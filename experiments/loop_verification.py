@@ -2,7 +2,7 @@
 
 Runs the front end once per sequence (cached on disk without its per-frame features,
 ``results/experiments/vo_cache_lv``), then replays the real pipeline over the cached VO with the
-real images, so the loop-verification features (``frontend/loop_features.py``) are computed as in
+real images, so the loop-verification features (``verification/features.py``) are computed as in
 a full run. Each ``--variant NAME:section.key=value,...`` is one replay (``base`` = the config as
 given). Per sequence and variant it prints the loop evaluation (max recall at 100 % precision
 with and without verification, revisit frames searched, loops, false loops), VO / SNAPS / batch
@@ -48,21 +48,19 @@ from snaps_graph.trajectory_io import read_kitti_poses
 
 # The VO depends on these sources as much as on the settings: a cache made by an older front end
 # would replay a VO no user's run produces (how an earlier table disagreed with the CLI).
+# Loop verification (its own package, not among them) runs in the replay, never in the cached VO:
+# editing it keeps the cache.
 VO_SOURCES = ("frontend/*.py", "camera.py", "geometry.py", "datasets/kitti.py")
-# Loop verification runs in the replay, never in the cached VO: editing it keeps the cache.
-NOT_VO_SOURCES = ("loop_features.py", "verify.py")
 
 
 def frontend_key(cfg: Config) -> str:
-    """Hash of the front-end settings the VO depends on (the loop_* keys are not among them) and
-    of the front end's source files."""
-    d = {k: v for k, v in dataclasses.asdict(cfg.frontend).items() if not k.startswith("loop_")}
-    h = hashlib.md5(repr(sorted(d.items())).encode())
+    """Hash of the front-end settings the VO depends on ([frontend]; [verification] is not among
+    them) and of the front end's source files."""
+    h = hashlib.md5(repr(sorted(dataclasses.asdict(cfg.frontend).items())).encode())
     root = Path(snaps_graph.__file__).parent
     for pattern in VO_SOURCES:
         for f in sorted(root.glob(pattern)):
-            if f.name not in NOT_VO_SOURCES:
-                h.update(f.read_bytes())
+            h.update(f.read_bytes())
     return h.hexdigest()[:10]
 
 

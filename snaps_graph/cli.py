@@ -31,7 +31,8 @@ from typing import Optional  # noqa: E402
 import typer  # noqa: E402
 
 from ._malloc import set_malloc_thresholds  # noqa: E402
-from .config import Config, FrontendMode, LoopMode, RefineMode, choices  # noqa: E402
+from .config import Config, FrontendMode, LoopMode, RefineMode  # noqa: E402
+from .config_schema import choices  # noqa: E402
 from .console import (  # noqa: E402  # progress, summary, Ctrl-C
     EXIT_CELLS_FAILED,
     EXIT_INTERRUPTED,

@@ -18,9 +18,21 @@ import sys
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, get_args, get_origin, get_type_hints
+from typing import Any, Literal
 
-from .config_retired import FIXED, RETIRED
+from .config_retired import FIXED, MOVED, RETIRED
+from .config_schema import (
+    Range,
+    Section,
+    check_value,
+    coerce,
+    did_you_mean,
+    dumps_section,
+    hints_of,
+    is_section,
+    settings,
+    toml_value,
+)
 from .errors import SnapsGraphError
 from .io_utils import atomic_write_text, read_toml
 
@@ -31,43 +43,7 @@ LoopMode = Literal["snaps", "none"]
 RefineMode = Literal["none", "isam2", "batch", "both"]  # both = iSAM2 online + batch at the end
 
 
-# ---- validation ----
-@dataclass(frozen=True)
-class Range:
-    """Allowed values of a number: bounds (open or closed), odd, a multiple of ``multiple``."""
-
-    lo: float | None = None
-    hi: float | None = None
-    lo_open: bool = False
-    hi_open: bool = False
-    odd: bool = False
-    multiple: int | None = None
-
-    def describe(self) -> str:
-        if self.lo is not None and self.hi is not None:
-            text = f"in {'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}{')' if self.hi_open else ']'}"
-        elif self.lo is not None:
-            text = f"{'>' if self.lo_open else '>='} {self.lo:g}"
-        elif self.hi is not None:
-            text = f"{'<' if self.hi_open else '<='} {self.hi:g}"
-        else:
-            text = "a number"
-        if self.odd:
-            text = "odd and " + text
-        if self.multiple:
-            text = f"a multiple of {self.multiple} and " + text
-        return text
-
-    def ok(self, v: float) -> bool:
-        if self.lo is not None and (v <= self.lo if self.lo_open else v < self.lo):
-            return False
-        if self.hi is not None and (v >= self.hi if self.hi_open else v > self.hi):
-            return False
-        if self.odd and int(v) % 2 == 0:
-            return False
-        return not (self.multiple and int(v) % self.multiple)
-
-
+# ---- ranges ----
 def _gt(lo: float) -> Range:
     return Range(lo=lo, lo_open=True)
 
@@ -115,30 +91,78 @@ def _f(default: Any, help: str, range: Range | None = None) -> Any:
     return field(default=default, metadata=meta)
 
 
-class _Section:
-    """Validation shared by the config sections: every field is checked against its type (a
-    ``Literal`` is an enumeration) and its range (the field's metadata), at construction and on demand."""
+@dataclass
+class KltConfig(Section):
+    """KLT corners and their tracking from the reference frame (``mode = "klt"``)."""
 
-    _name = "config"
+    _name = "frontend.klt"
 
-    def __post_init__(self) -> None:
-        self.validate()
-
-    def validate(self, source: str = "config") -> None:
-        """A one-line SnapsGraphError naming ``source`` and the key for the first bad value."""
-        hints = _hints(type(self))
-        for f in dataclasses.fields(self):  # type: ignore[arg-type]
-            key = f"{self._name}.{f.name}"
-            _check_value(getattr(self, f.name), hints[f.name], f.metadata.get("range"), f"{source}: {key}")
-        self._cross_checks(source)
+    features: int = _f(1500, "KLT corners detected when re-detecting", _in(1, MAX_POINTS))
+    window_px: int = _f(11, "KLT window, px", _in(3, MAX_WINDOW_PX))
+    quality: float = _f(0.01, "goodFeaturesToTrack quality, relative to the best corner", FRACTION)
+    min_distance_px: int = _f(10, "minimum spacing between KLT corners, px", _in(1, 1000))
+    border_px: int = _f(16, "no KLT corner this close to the image border, px", _nn(1000))
+    bias_window_px: int = _f(7, "KLT window-bias removal: re-fit window, px (0 = off)", _nn(MAX_WINDOW_PX))
+    weak_points: int = _f(
+        300, "weak texture: fewer points with depth than this re-detect at a lower corner quality (0 = off)", _nn(MAX_POINTS)
+    )
 
     def _cross_checks(self, source: str) -> None:
-        pass
+        if self.bias_window_px and not 3 <= self.bias_window_px < self.window_px:
+            raise SnapsGraphError(
+                f"{source}: frontend.klt.bias_window_px must be 0 or in [3, window_px), got {self.bias_window_px}"
+            )
 
 
 @dataclass
-class FrontendConfig(_Section):
-    """Stereo visual odometry (SPEC "Front end")."""
+class StereoBAConfig(Section):
+    """The two-view stereo bundle adjustment after PnP RANSAC (``motion = "stereo_ba"``)."""
+
+    _name = "frontend.stereo_ba"
+
+    huber_px: float = _f(0.3, "Huber width on a stereo-BA / local-BA residual, px", _pos(100))
+    outlier_px: float = _f(0.6, "after the stereo BA's first round, points beyond this are dropped, px", _pos(100))
+    keep_px: float = _f(2.0, "a small image keeps tracks within this of the stereo-BA pose too, px", _pos(100))
+    iterations: int = _f(3, "stereo-BA Gauss-Newton iterations per round (two rounds)", _in(1, MAX_ITERATIONS))
+
+
+@dataclass
+class LocalBAConfig(Section):
+    """The sliding-window stereo BA over the last keyframes (klt)."""
+
+    _name = "frontend.local_ba"
+
+    enabled: bool = _f(True, "klt: sliding-window stereo BA over the last keyframes")
+    window: int = _f(6, "keyframes in the local-BA window", _in(2, 100))
+    iterations: int = _f(5, "local-BA iterations per solve", _in(1, MAX_ITERATIONS))
+    max_landmarks: int = _f(300, "landmarks in the local-BA window (longest tracks first)", _in(10, MAX_POINTS))
+    every: int = _f(3, "a reference becomes a keyframe this many frames after the last", _in(1, MAX_FRAMES))
+    keyframe_m: float = _f(2.5, "...or once driven this far from the last keyframe (0 = never), m", _nn(1000))
+    chain: Literal["off", "yaw", "yaw_roll", "rotation", "full"] = _f(
+        "yaw_roll", "which part of the VO chain's step between keyframes constrains the local-BA window"
+    )
+
+
+@dataclass
+class OffsetConfig(Section):
+    """The rig's disparity offset, configured and estimated online by the local BA."""
+
+    _name = "frontend.offset"
+
+    px: float = _f(0.0, "rig disparity offset (measured - true) at the centre column, px", Range(-10, 10))
+    estimate: bool = _f(True, "klt + local BA: estimate the disparity offset online")
+    prior_px: float = _f(0.5, "prior sigma of the offset in each local-BA solve, px", _pos(10))
+    max_px: float = _f(2.0, "the estimate is clamped to +- this, px", Range(0, 10))
+    min_solves: int = _f(3, "solves before an estimate may be applied", _in(1, MAX_FRAMES))
+    min_px: float = _f(0.05, "an estimate is applied when it differs by at least this, px", _nn(10))
+    max_sd_px: float = _f(0.05, "...and its standard error is at most this, px", _pos(10))
+    min_z: float = _f(4.0, "...and it differs by at least this many standard errors", _nn(1e4))
+    memory_solves: int = _f(20, "once applied, older solves fade with weight 1 - 1/this (0 = never)", _nn(MAX_FRAMES))
+
+
+@dataclass
+class FrontendConfig(Section):
+    """Stereo visual odometry (SPEC "Front end"): the general settings, then one table per part."""
 
     _name = "frontend"
 
@@ -153,64 +177,26 @@ class FrontendConfig(_Section):
         0, "SIFT scale space: -1 = image doubled first (OpenCV, the paper), 0 = own resolution (3x faster)"
     )
     orb_features: int = _f(2000, "ORB keypoints per image", _in(1, MAX_POINTS))
-    klt_features: int = _f(1500, "KLT corners detected when re-detecting", _in(1, MAX_POINTS))
     ratio_test: float = _f(0.75, "Lowe's ratio for descriptor matching", FRACTION)
     pnp_reprojection_px: float = _f(1.5, "PnP RANSAC inlier threshold, px", _pos(100))
     min_inliers: int = _f(20, "fewer PnP inliers flag the frame", _in(6, MAX_POINTS))
     max_step_m: float = _f(4.0, "a larger step between frames is implausible (flagged), m", _pos(1000))
     max_step_deg: float = _f(20.0, "a larger turn between frames is implausible (flagged), deg", ANGLE)
     threads: int = _f(2, "worker threads (OpenCV releases the GIL)", Range(1, 256))
+    lk_split_min: int = _f(200, "an LK call on at least this many points runs in two threads (0 = never)", _nn(MAX_POINTS))
     stereo_guess_levels: int = _f(4, "sparse stereo LK pyramid levels for points with a predicted disparity", _nn(MAX_LEVELS))
-    klt_window_px: int = _f(11, "KLT window, px", _in(3, MAX_WINDOW_PX))
-    klt_quality: float = _f(0.01, "goodFeaturesToTrack quality, relative to the best corner", FRACTION)
-    klt_min_distance_px: int = _f(10, "minimum spacing between KLT corners, px", _in(1, 1000))
-    klt_border_px: int = _f(16, "no KLT corner this close to the image border, px", _nn(1000))
-    loop_features: int = _f(500, "keypoints with depth kept per frame for loop verification", _in(1, MAX_POINTS))
+    frame_features: int = _f(
+        500, "keypoints with depth kept per frame in the VO result (the viewer's points)", _in(1, MAX_POINTS)
+    )
     motion: Literal["pnp", "stereo_ba"] = _f(
         "stereo_ba", "after PnP RANSAC: stereo_ba = two-view stereo bundle adjustment, pnp = PnP + LM (the paper's)"
     )
-    sba_huber_px: float = _f(0.3, "Huber width on a stereo-BA / local-BA residual, px", _pos(100))
-    sba_outlier_px: float = _f(0.6, "after the stereo BA's first round, points beyond this are dropped, px", _pos(100))
-    sba_keep_px: float = _f(2.0, "a small image keeps tracks within this of the stereo-BA pose too, px", _pos(100))
-    sba_iterations: int = _f(3, "stereo-BA Gauss-Newton iterations per round (two rounds)", _in(1, MAX_ITERATIONS))
-    local_ba: bool = _f(True, "klt: sliding-window stereo BA over the last keyframes")
-    lba_window: int = _f(6, "keyframes in the local-BA window", _in(2, 100))
-    lba_iterations: int = _f(5, "local-BA iterations per solve", _in(1, MAX_ITERATIONS))
-    lba_max_landmarks: int = _f(300, "landmarks in the local-BA window (longest tracks first)", _in(10, MAX_POINTS))
-    lba_every: int = _f(3, "a reference becomes a keyframe this many frames after the last", _in(1, MAX_FRAMES))
-    lba_keyframe_m: float = _f(2.5, "...or once driven this far from the last keyframe (0 = never), m", _nn(1000))
-    disparity_offset_px: float = _f(0.0, "rig disparity offset (measured - true) at the centre column, px", Range(-10, 10))
-    estimate_disparity_offset: bool = _f(True, "klt + local BA: estimate the disparity offset online")
-    disparity_offset_prior_px: float = _f(0.5, "prior sigma of the offset in each local-BA solve, px", _pos(10))
-    disparity_offset_max_px: float = _f(2.0, "the estimate is clamped to +- this, px", Range(0, 10))
-    disparity_offset_min_solves: int = _f(3, "solves before an estimate may be applied", _in(1, MAX_FRAMES))
-    disparity_offset_min_px: float = _f(0.05, "an estimate is applied when it differs by at least this, px", _nn(10))
-    disparity_offset_max_sd_px: float = _f(0.05, "...and its standard error is at most this, px", _pos(10))
-    disparity_offset_min_z: float = _f(4.0, "...and it differs by at least this many standard errors", _nn(1e4))
-    disparity_offset_memory_solves: int = _f(
-        20, "once applied, older solves fade with weight 1 - 1/this (0 = never)", _nn(MAX_FRAMES)
-    )
-    loop_detector: Literal["orb", "sift"] = _f("orb", "loop verification keypoints: orb (pyramid) or sift (octave 0)")
-    loop_reference_every: int = _f(5, "loop reference features every this many frames", _in(1, MAX_FRAMES))
-    loop_depth_check_px: float = _f(
-        1.0, "a loop inlier's disparity must agree with its prediction within this (0 = off), px", _nn(100)
-    )
-    loop_max_distance_m: float = _f(8.0, "a verified loop farther apart than this is refused, m", _pos(1e4))
-    klt_bias_window_px: int = _f(7, "KLT window-bias removal: re-fit window, px (0 = off)", _nn(MAX_WINDOW_PX))
-    lba_chain: Literal["off", "yaw", "yaw_roll", "rotation", "full"] = _f(
-        "yaw_roll", "which part of the VO chain's step between keyframes constrains the local-BA window"
-    )
-    klt_weak_points: int = _f(
-        300, "weak texture: fewer points with depth than this re-detect at klt_weak_quality (0 = off)", _nn(MAX_POINTS)
-    )
-    lk_split_min: int = _f(200, "an LK call on at least this many points runs in two threads (0 = never)", _nn(MAX_POINTS))
-    loop_subpixel_px: float = _f(2.0, "loop keypoint sub-pixel refinement half-window at level 0 (0 = off), px", _nn(100))
+    klt: KltConfig = field(default_factory=KltConfig)
+    stereo_ba: StereoBAConfig = field(default_factory=StereoBAConfig)
+    local_ba: LocalBAConfig = field(default_factory=LocalBAConfig)
+    offset: OffsetConfig = field(default_factory=OffsetConfig)
 
     def _cross_checks(self, source: str) -> None:
-        if self.klt_bias_window_px and not 3 <= self.klt_bias_window_px < self.klt_window_px:
-            raise SnapsGraphError(
-                f"{source}: frontend.klt_bias_window_px must be 0 or in [3, klt_window_px), got {self.klt_bias_window_px}"
-            )
         if not self.min_depth_m < self.max_depth_m:
             raise SnapsGraphError(
                 f"{source}: frontend.min_depth_m must be < frontend.max_depth_m, got {self.min_depth_m} and {self.max_depth_m}"
@@ -218,7 +204,23 @@ class FrontendConfig(_Section):
 
 
 @dataclass
-class LoopConfig(_Section):
+class VerificationConfig(Section):
+    """Geometric verification of a loop candidate: its own keypoints on reference frames, matched
+    and solved by PnP against the current frame (stereo, or triangulated from two views)."""
+
+    _name = "verification"
+
+    detector: Literal["orb", "sift"] = _f("orb", "loop verification keypoints: orb (pyramid) or sift (octave 0)")
+    reference_every: int = _f(5, "loop reference features every this many frames", _in(1, MAX_FRAMES))
+    depth_check_px: float = _f(
+        1.0, "a loop inlier's disparity must agree with its prediction within this (0 = off), px", _nn(100)
+    )
+    max_distance_m: float = _f(8.0, "a verified loop farther apart than this is refused, m", _pos(1e4))
+    subpixel_px: float = _f(2.0, "loop keypoint sub-pixel refinement half-window at level 0 (0 = off), px", _nn(100))
+
+
+@dataclass
+class LoopConfig(Section):
     """SNAPS loop closure (paper §III, Table I; SPEC "SNAPS loop closure")."""
 
     _name = "loop"
@@ -273,7 +275,7 @@ class LoopConfig(_Section):
 
 
 @dataclass
-class GraphConfig(_Section):
+class GraphConfig(Section):
     """GTSAM factor graph (SPEC "Factor graph")."""
 
     _name = "graph"
@@ -297,7 +299,7 @@ class GraphConfig(_Section):
 
 
 @dataclass
-class MapConfig(_Section):
+class MapConfig(Section):
     """Point-cloud map (SPEC "Map")."""
 
     _name = "map"
@@ -335,7 +337,7 @@ class MapConfig(_Section):
 
 
 @dataclass
-class OdometryConfig(_Section):
+class OdometryConfig(Section):
     """Odometry drift model: how fast a trajectory's error grows with the distance driven (1 sigma).
 
     A pose file (``run --odometry``) carries no covariance, so its factors take their noise from
@@ -350,6 +352,7 @@ class OdometryConfig(_Section):
 @dataclass
 class Config:
     frontend: FrontendConfig = field(default_factory=FrontendConfig)
+    verification: VerificationConfig = field(default_factory=VerificationConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)
     graph: GraphConfig = field(default_factory=GraphConfig)
     map: MapConfig = field(default_factory=MapConfig)
@@ -365,10 +368,10 @@ class Config:
         SnapsGraphError naming the config file and the key. ``snaps-graph config FILE`` and
         ``run`` (before the first frame) both call this on the configuration that would run."""
         source = source or self.source
-        for section in (self.frontend, self.loop, self.graph, self.map, self.odometry):
-            section.validate(source)
-        hints = _hints(type(self))
-        _check_value(self.loops, hints["loops"], None, f"{source}: loops")
+        for f in dataclasses.fields(self):
+            if is_section(section := getattr(self, f.name)):
+                section.validate(source)
+        check_value(self.loops, hints_of(type(self))["loops"], None, f"{source}: loops")
         if self.map.enabled and self.map.trajectory != "best":
             need = {
                 "vo": True,
@@ -415,183 +418,119 @@ class Config:
 
     def with_overrides(self, items: list[str] | tuple[str, ...], source: str = "--set") -> "Config":
         """A copy with ``section.key=value`` overrides (:func:`parse_set`) applied, validated."""
+        return self.merged(parse_set(items, source), source) if items else copy.deepcopy(self)
+
+    def merged(self, data: dict[str, Any], source: str) -> "Config":
+        """A copy with ``data`` (nested tables, as a config file gives them) applied, validated."""
         out = copy.deepcopy(self)
-        if items:
-            out._apply(parse_set(items, source), source)
+        out._apply(data, source)
         return out
 
     def _apply(self, data: dict[str, Any], source: str) -> None:
-        cfg = self
-        for key, value in data.items():
-            if not hasattr(cfg, key):
-                raise SnapsGraphError(f"{source}: unknown key '{key}'{_did_you_mean(key, cfg)}")
-            current = getattr(cfg, key)
-            if dataclasses.is_dataclass(current):
-                if not isinstance(value, dict):
-                    raise SnapsGraphError(f"{source}: [{key}] must be a table")
-                for sub, subval in value.items():
-                    if f"{key}.{sub}" in RETIRED or f"{key}.{sub}" in FIXED:  # an older version wrote it
-                        print(f"note: {source}: {_retired_note(f'{key}.{sub}', subval)}; ignored", file=sys.stderr)
-                        continue
-                    if not hasattr(current, sub):
-                        raise SnapsGraphError(f"{source}: unknown key '{key}.{sub}'{_did_you_mean(sub, current, key + '.')}")
-                    setattr(current, sub, _coerce(getattr(current, sub), subval, f"{source}: {key}.{sub}"))
-            else:
-                if isinstance(value, dict):  # a table where a value belongs: a misspelled section
-                    close = difflib.get_close_matches(
-                        key, [f.name for f in dataclasses.fields(cfg) if dataclasses.is_dataclass(getattr(cfg, f.name))], n=1
-                    )
-                    hint = f" (did you mean [{close[0]}]?)" if close else ""
-                    raise SnapsGraphError(f"{source}: [{key}] is not a section{hint}")
-                setattr(cfg, key, _coerce(current, value, f"{source}: {key}"))
-        cfg.validate()
+        _apply_table(self, _moved(data, source), source, "")
+        self.validate()
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
 
     def dumps(self, comments: bool = False) -> str:
-        """The configuration as TOML; ``comments`` adds each key's help and range as a comment."""
-        lines: list[str] = []
-        sections = []
-        for f in dataclasses.fields(self):
-            value = getattr(self, f.name)
-            if dataclasses.is_dataclass(value):
-                sections.append((f.name, value))
-            else:
-                line = f"{f.name} = {_toml_value(value)}"
-                lines.append(f"{line}  # {_describe(f, _hints(type(self))[f.name])}" if comments else line)
-        for name, section in sections:
-            lines.append("")
-            lines.append(f"[{name}]")
-            hints = _hints(type(section))
-            for f in dataclasses.fields(section):
-                line = f"{f.name} = {_toml_value(getattr(section, f.name))}"
-                lines.append(f"{line}  # {_describe(f, hints[f.name])}" if comments else line)
-        return "\n".join(lines) + "\n"
+        """The configuration as TOML, a nested section as its own table (``[frontend.klt]``);
+        ``comments`` adds each key's help and range as a comment."""
+        return "\n".join(dumps_section(self, "", comments)) + "\n"
 
     def dump(self, path: str | Path) -> None:
         atomic_write_text(path, self.dumps())
 
 
 def parse_set(items: list[str] | tuple[str, ...], source: str = "--set") -> dict[str, Any]:
-    """``section.key=value`` items (the value in TOML: 3, 0.5, true, "yaw"; a bare word is a
+    """``section.key=value`` items, a nested section's key with its full path
+    (``frontend.klt.window_px=11``; the value in TOML: 3, 0.5, true, "yaw"; a bare word is a
     string) as the nested dict a config file would give; a malformed item is a one-line error."""
     data: dict[str, Any] = {}
     for item in items:
         key, sep, value = item.partition("=")
-        section, dot, name = key.strip().partition(".")
-        if not sep or not dot or not section or not name:
+        parts = [p.strip() for p in key.split(".")]
+        if not sep or len(parts) < 2 or not all(parts):
             raise SnapsGraphError(f"{source} {item!r}: expected section.key=value")
         try:
             parsed = tomllib.loads(f"v = {value.strip()}")["v"]
         except tomllib.TOMLDecodeError:
             parsed = value.strip()
-        data.setdefault(section, {})[name.strip()] = parsed
+        table = data
+        for i, part in enumerate(parts[:-1]):
+            table = table.setdefault(part, {})
+            if not isinstance(table, dict):
+                raise SnapsGraphError(f"{source} {item!r}: {'.'.join(parts[: i + 1])} is a value, not a section")
+        if isinstance(table.get(parts[-1]), dict):
+            raise SnapsGraphError(f"{source} {item!r}: {key.strip()} is a section, not a value")
+        table[parts[-1]] = parsed
     return data
 
 
-def _coerce(current: Any, value: Any, where: str) -> Any:
-    if isinstance(current, bool):
-        if not isinstance(value, bool):
-            raise SnapsGraphError(f"{where}: expected true/false, got {value!r}")
-        return value
-    if isinstance(current, int):
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise SnapsGraphError(f"{where}: expected an integer, got {value!r}")
-        return value
-    if isinstance(current, float):
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise SnapsGraphError(f"{where}: expected a finite number, got {value!r}")
-        return float(value)
-    if isinstance(current, str):
-        if not isinstance(value, str):
-            raise SnapsGraphError(f"{where}: expected a string, got {value!r}")
-        return value
-    return value
+def _moved(data: dict[str, Any], source: str) -> dict[str, Any]:
+    """``data`` with each key an older version wrote flat (``frontend.klt_window_px``) at its place
+    now (``frontend.klt.window_px``), a one-line note for each; both places given is an error."""
+    out: dict[str, Any] = {}
+    moves: list[tuple[str, Any]] = []
+
+    def walk(src: dict[str, Any], dst: dict[str, Any], prefix: str) -> None:
+        for key, value in src.items():
+            path = prefix + key
+            if path in MOVED and not isinstance(value, dict):  # an old key held a value, never a table
+                moves.append((path, value))
+            elif isinstance(value, dict):
+                walk(value, dst.setdefault(key, {}), path + ".")
+            else:
+                dst[key] = value
+
+    walk(data, out, "")
+    for old, value in moves:
+        new = MOVED[old]
+        print(f"note: {source}: {old} moved to {new}", file=sys.stderr)
+        *parents, name = new.split(".")
+        table = out
+        for i, part in enumerate(parents):
+            table = table.setdefault(part, {})
+            if not isinstance(table, dict):
+                raise SnapsGraphError(f"{source}: [{'.'.join(parents[: i + 1])}] must be a table")
+        if name in table:
+            raise SnapsGraphError(f"{source}: {old} and {new} are the same setting; give {new} only")
+        table[name] = value
+    return out
 
 
-def _toml_value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, float):
-        return repr(value)
-    if isinstance(value, int):
-        return str(value)
-    if isinstance(value, str):
-        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    raise TypeError(f"cannot write {value!r} to TOML")
-
-
-# The range of every numeric field, "section.field" -> Range, from the fields' metadata.
-RULES: dict[str, Range] = {}
+def _apply_table(obj: Any, data: dict[str, Any], source: str, prefix: str) -> None:
+    """Set ``obj``'s fields from ``data``, a nested section from its own table, in turn."""
+    names = {f.name for f in dataclasses.fields(obj)}
+    for key, value in data.items():
+        path = prefix + key
+        if path in RETIRED or path in FIXED:  # an older version wrote it
+            print(f"note: {source}: {_retired_note(path, value)}; ignored", file=sys.stderr)
+            continue
+        if key not in names:
+            raise SnapsGraphError(f"{source}: unknown key '{path}'{did_you_mean(key, obj, prefix)}")
+        current = getattr(obj, key)
+        if is_section(current):
+            if not isinstance(value, dict):
+                raise SnapsGraphError(f"{source}: [{path}] must be a table")
+            _apply_table(current, value, source, path + ".")
+        elif isinstance(value, dict):  # a table where a value belongs: a misspelled section
+            tables = [n for n in sorted(names) if is_section(getattr(obj, n))]
+            close = difflib.get_close_matches(key, tables, n=1)
+            hint = f" (did you mean [{prefix}{close[0]}]?)" if close else ""
+            raise SnapsGraphError(f"{source}: [{path}] is not a section{hint}")
+        else:
+            setattr(obj, key, coerce(current, value, f"{source}: {path}"))
 
 
 def _retired_note(key: str, value: Any) -> str:
     if key in FIXED:
         fixed = FIXED[key]
         if value == fixed and type(value) is type(fixed):
-            return f"{key} is no longer a setting (fixed at {_toml_value(fixed)})"
-        return (
-            f"{key} is no longer a setting: it is fixed at {_toml_value(fixed)} now, this file's {_toml_value(value)} is ignored"
-        )
+            return f"{key} is no longer a setting (fixed at {toml_value(fixed)})"
+        return f"{key} is no longer a setting: it is fixed at {toml_value(fixed)} now, this file's {toml_value(value)} is ignored"
     return f"{key} is no longer used ({RETIRED[key]})"
 
 
-def _did_you_mean(name: str, obj: Any, prefix: str = "") -> str:
-    """ " (did you mean 'loop.min_similarity'?)" for a misspelled key, else ""."""
-    close = difflib.get_close_matches(name, [f.name for f in dataclasses.fields(obj)], n=1, cutoff=0.7)
-    return f" (did you mean '{prefix}{close[0]}'?)" if close else ""
-
-
-_HINTS: dict[type, dict[str, Any]] = {}
-
-
-def _hints(cls: type) -> dict[str, Any]:
-    if cls not in _HINTS:
-        _HINTS[cls] = get_type_hints(cls)
-    return _HINTS[cls]
-
-
-def choices(hint: Any) -> tuple | None:
-    """The allowed values of a ``Literal`` type, else None."""
-    return get_args(hint) if get_origin(hint) is Literal else None
-
-
-def _check_value(value: Any, hint: Any, rule: Range | None, where: str) -> None:
-    allowed = choices(hint)
-    if allowed is not None:
-        if isinstance(value, bool) or value not in allowed:
-            raise SnapsGraphError(f"{where} must be one of {', '.join(repr(a) for a in allowed)}, got {value!r}")
-        return
-    if hint is bool:
-        if not isinstance(value, bool):
-            raise SnapsGraphError(f"{where}: expected true/false, got {value!r}")
-        return
-    if hint is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise SnapsGraphError(f"{where}: expected an integer, got {value!r}")
-    elif hint is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise SnapsGraphError(f"{where}: expected a finite number, got {value!r}")
-    else:
-        return  # a section or a string
-    if rule is not None and not rule.ok(value):
-        shown = f"{value:.10g}" if isinstance(value, float) else repr(value)
-        raise SnapsGraphError(f"{where} must be {rule.describe()}, got {shown}")
-
-
-def _describe(f: dataclasses.Field, hint: Any) -> str:
-    """A field's comment in ``snaps-graph config``: its help, then its range or choices."""
-    text = f.metadata.get("help", "")
-    allowed = choices(hint)
-    if allowed is not None:
-        return f"{text}; one of {', '.join(_toml_value(a) for a in allowed)}"
-    if "range" in f.metadata:
-        return f"{text}; {f.metadata['range'].describe()}"
-    return text
-
-
-for _cls in (FrontendConfig, LoopConfig, GraphConfig, MapConfig, OdometryConfig):
-    for _field in dataclasses.fields(_cls):
-        if "range" in _field.metadata:
-            RULES[f"{_cls._name}.{_field.name}"] = _field.metadata["range"]
+# The range of every numeric field, "section.field" -> Range, from the fields' metadata.
+RULES: dict[str, Range] = {key: f.metadata["range"] for key, f, _ in settings(Config()) if "range" in f.metadata}

@@ -1,5 +1,6 @@
-"""Config keys of older versions, read back from an old config.toml with a note: keys that are
-gone with their option, and settings that are constants in the code now."""
+"""Config keys of older versions, read back from an old config.toml: keys that are gone with
+their option and settings that are constants in the code now (read with a note, ignored), and
+keys that moved to a section of their own (read with a note, applied at their new place)."""
 
 from __future__ import annotations
 
@@ -111,4 +112,42 @@ FIXED: dict[str, Any] = {
     "graph.loop_sigma_scale_max": 10.0,
     "map.depth_texture_threshold": 10,
     "map.depth_speckle_range_px": 1.0,
+}
+
+# Keys older versions wrote flat in [frontend], at their place now: read back, the value applied
+# there, with a note.
+MOVED: dict[str, str] = {
+    "frontend.klt_features": "frontend.klt.features",
+    "frontend.klt_window_px": "frontend.klt.window_px",
+    "frontend.klt_quality": "frontend.klt.quality",
+    "frontend.klt_min_distance_px": "frontend.klt.min_distance_px",
+    "frontend.klt_border_px": "frontend.klt.border_px",
+    "frontend.klt_bias_window_px": "frontend.klt.bias_window_px",
+    "frontend.klt_weak_points": "frontend.klt.weak_points",
+    "frontend.sba_huber_px": "frontend.stereo_ba.huber_px",
+    "frontend.sba_outlier_px": "frontend.stereo_ba.outlier_px",
+    "frontend.sba_keep_px": "frontend.stereo_ba.keep_px",
+    "frontend.sba_iterations": "frontend.stereo_ba.iterations",
+    "frontend.local_ba": "frontend.local_ba.enabled",
+    "frontend.lba_window": "frontend.local_ba.window",
+    "frontend.lba_iterations": "frontend.local_ba.iterations",
+    "frontend.lba_max_landmarks": "frontend.local_ba.max_landmarks",
+    "frontend.lba_every": "frontend.local_ba.every",
+    "frontend.lba_keyframe_m": "frontend.local_ba.keyframe_m",
+    "frontend.lba_chain": "frontend.local_ba.chain",
+    "frontend.disparity_offset_px": "frontend.offset.px",
+    "frontend.estimate_disparity_offset": "frontend.offset.estimate",
+    "frontend.disparity_offset_prior_px": "frontend.offset.prior_px",
+    "frontend.disparity_offset_max_px": "frontend.offset.max_px",
+    "frontend.disparity_offset_min_solves": "frontend.offset.min_solves",
+    "frontend.disparity_offset_min_px": "frontend.offset.min_px",
+    "frontend.disparity_offset_max_sd_px": "frontend.offset.max_sd_px",
+    "frontend.disparity_offset_min_z": "frontend.offset.min_z",
+    "frontend.disparity_offset_memory_solves": "frontend.offset.memory_solves",
+    "frontend.loop_features": "frontend.frame_features",
+    "frontend.loop_detector": "verification.detector",
+    "frontend.loop_reference_every": "verification.reference_every",
+    "frontend.loop_depth_check_px": "verification.depth_check_px",
+    "frontend.loop_max_distance_m": "verification.max_distance_m",
+    "frontend.loop_subpixel_px": "verification.subpixel_px",
 }

@@ -12,7 +12,7 @@ keyframes); the dataset's own frame number is kept beside them (``FrameRecord.fr
 
 Monocular frames (an empty or None right image) need a front end other than the stereo VO (a
 pose file: ``frontend.external.PoseFileOdometry``); SNAPS then verifies loops by PnP on points
-triangulated over the odometry's motion (``frontend.two_view``), there is no map and no
+triangulated over the odometry's motion (``verification.mono``), there is no map and no
 stereo-order check.
 
 A frame that ``process`` rejects (wrong size or type, a repeated or decreasing frame number, a
@@ -37,14 +37,14 @@ from .config import Config
 from .errors import SnapsGraphError
 from .frontend.depth import ORDER_MAX_FRAMES, check_stereo_pair, map_depth, stereo_order
 from .frontend.external import PoseFileOdometry, time_origin
-from .frontend.loop_features import LoopFeatureBank, verify_features
 from .frontend.odometry import StereoOdometry
-from .frontend.two_view import MonoFeatureBank
 from .loop.snaps import SnapsLoopCloser
 from .loop.uiqi import make_thumbnail
 from .mapping.tsdf import FusedMap
 from .trajectory_io import PoseFile
 from .types import FrameRecord, FrontEnd, LoopEvent, StereoFrame, VOResult
+from .verification.features import LoopFeatureBank, verify_features
+from .verification.mono import MonoFeatureBank
 
 
 @dataclass
@@ -121,7 +121,7 @@ class SlamPipeline:
         self.graph = PoseGraph(self.cfg.graph, mode="isam2" if self.refine == "both" else self.refine)
         self.map = FusedMap(camera, self.cfg.map) if self.cfg.map.enabled else None
         if loop_features is None and self.snaps is not None:
-            loop_features = LoopFeatureBank(camera, self.cfg.frontend)
+            loop_features = LoopFeatureBank(camera, self.cfg.frontend, self.cfg.verification)
         self.loop_features = loop_features
         self._loop_cov: dict[int, np.ndarray] = {}  # reference index -> covariance of this frame's verified loop
 
@@ -284,7 +284,14 @@ class SlamPipeline:
             cur = bank.query(k, frame)
             stereo = None if self._monocular else frame
             m = verify_features(
-                bank.reference(k_feat), cur, stereo, self.camera, self.cfg.frontend, vo.disparity_offset_px, bank.merged
+                bank.reference(k_feat),
+                cur,
+                stereo,
+                self.camera,
+                self.cfg.frontend,
+                self.cfg.verification,
+                vo.disparity_offset_px,
+                bank.merged,
             )
         except Exception as exc:  # best effort: an unverifiable candidate is not a loop
             self.graph.failures.append((k, f"loop verification raised {type(exc).__name__}: {exc}"))
@@ -294,7 +301,7 @@ class SlamPipeline:
         T = m.T_ref_cur
         if k_feat != k_ref:
             T = np.linalg.solve(self._vo_poses[k_ref], self._vo_poses[k_feat]) @ T
-        if np.linalg.norm(T[:3, 3]) > self.cfg.frontend.loop_max_distance_m:  # not the same place
+        if np.linalg.norm(T[:3, 3]) > self.cfg.verification.max_distance_m:  # not the same place
             return None
         self._loop_cov[int(ref_index)] = m.cov
         return T, m.inliers
@@ -309,7 +316,7 @@ class SlamPipeline:
             self.loop_features.close()
             self.loop_features = None
         if self.snaps is not None:
-            self.two_view = MonoFeatureBank(self.camera, self.cfg.frontend)
+            self.two_view = MonoFeatureBank(self.camera, self.cfg.frontend, self.cfg.verification)
 
     def _add_loop_factor(self, loop: LoopEvent, vo: VOResult) -> None:
         """A loop-closure factor for a SNAPS loop: measured by verification when it succeeded

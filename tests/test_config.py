@@ -1,10 +1,10 @@
 """The configuration explains itself: every key's help and range beside it, printed by
-``snaps-graph config`` as TOML comments that load back; the paper's preset; settings that are
-constants in the code now still load from an older config with a note."""
+``snaps-graph config`` as TOML comments that load back, nested sections as their own tables; the
+paper's preset; settings that are constants in the code now, and keys that moved to a nested
+section, still load from an older config with a note."""
 
 from __future__ import annotations
 
-import dataclasses
 import importlib
 import os
 import subprocess
@@ -14,12 +14,12 @@ from pathlib import Path
 
 import pytest
 
-from snaps_graph.config import FIXED, RETIRED, RULES, Config
+from snaps_graph.config import FIXED, MOVED, RETIRED, RULES, Config, parse_set
+from snaps_graph.config_schema import settings
 from snaps_graph.errors import SnapsGraphError
 
 ROOT = Path(__file__).resolve().parents[1]
 CLI = [sys.executable, "-m", "snaps_graph.cli"]
-SECTIONS = ("frontend", "loop", "graph", "map", "odometry")
 
 
 def cli(*args, timeout: float = 300) -> subprocess.CompletedProcess:
@@ -28,7 +28,8 @@ def cli(*args, timeout: float = 300) -> subprocess.CompletedProcess:
 
 
 def _keys(cfg: Config) -> list[str]:
-    return [f"{s}.{f.name}" for s in SECTIONS for f in dataclasses.fields(getattr(cfg, s))]
+    """Every setting's dotted key ("frontend.klt.window_px"), the top-level ``loops`` too."""
+    return [key for key, _, _ in settings(cfg)]
 
 
 def test_config_prints_every_key_with_a_comment_and_loads_back(tmp_path):
@@ -44,7 +45,7 @@ def test_config_prints_every_key_with_a_comment_and_loads_back(tmp_path):
             value, sep, comment = rest.partition("  # ")
             assert sep and comment.strip(), f"no comment on {section}{key}: {line!r}"
             commented.add(section + key)
-    assert commented == set(_keys(Config())) | {"loops"}
+    assert commented == set(_keys(Config()))
     data = tomllib.loads(proc.stdout)  # the comments leave it TOML
     assert data == Config().to_dict()
     path = tmp_path / "x.toml"
@@ -62,12 +63,11 @@ def test_a_numeric_comment_states_the_range():
 def test_config_keys_are_at_most_120_and_each_has_help():
     cfg = Config()
     keys = _keys(cfg)
-    assert len(keys) <= 120, len(keys)
-    for s in SECTIONS:
-        for f in dataclasses.fields(getattr(cfg, s)):
-            assert f.metadata.get("help"), f"{s}.{f.name} has no help"
+    assert len([k for k in keys if "." in k]) <= 120, len(keys)  # in the sections (beside the top-level loops)
+    for key, f, _ in settings(cfg):
+        assert f.metadata.get("help"), f"{key} has no help"
     assert set(RULES) <= set(keys)
-    assert not set(FIXED) & set(keys) and not set(RETIRED) & set(keys)
+    assert not set(FIXED) & set(keys) and not set(RETIRED) & set(keys) and not set(MOVED) & set(keys)
 
 
 # where each setting that became a constant lives now
@@ -78,7 +78,7 @@ _HOMES = (
     "snaps_graph.frontend.features",
     "snaps_graph.frontend.motion",
     "snaps_graph.frontend.keyframe",
-    "snaps_graph.frontend.loop_features",
+    "snaps_graph.verification.features",
     "snaps_graph.frontend.lba_schedule",
     "snaps_graph.backend.pose_graph",
     "snaps_graph.backend.noise",
@@ -106,7 +106,7 @@ def test_an_old_config_with_a_fixed_setting_loads_with_a_note(tmp_path, capsys):
 
 
 PAPER = {
-    "frontend": dict(mode="sift", sift_first_octave=-1, disparity="bm_wls", motion="pnp", local_ba=False),
+    "frontend": {"mode": "sift", "sift_first_octave": -1, "disparity": "bm_wls", "motion": "pnp", "local_ba.enabled": False},
     "loop": dict(
         search="radius",
         discount_window="fixed",
@@ -131,7 +131,10 @@ def test_the_paper_preset_runs_with_the_papers_choices(tiny_seq, tmp_path):
     used = Config.load(tmp_path / "run" / "config.toml")  # the configuration the run dumped
     for section, values in PAPER.items():
         for key, value in values.items():
-            assert getattr(getattr(used, section), key) == value, f"{section}.{key}"
+            obj = used
+            for part in f"{section}.{key}".split("."):
+                obj = getattr(obj, part)
+            assert obj == value, f"{section}.{key}"
     assert (tmp_path / "run" / "poses_snaps.txt").stat().st_size > 0
 
 
@@ -160,3 +163,112 @@ def test_run_set_beats_the_config_file_and_lands_in_the_results(tiny_seq, tmp_pa
     r = cli("run", tiny_seq, "-o", tmp_path / "o2", "--set", "loop.atempts=2")
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "did you mean" in r.stderr and "--set" in r.stderr
     assert not (tmp_path / "o2").exists()
+
+
+def test_nested_sections_are_toml_tables_that_load_back_exactly(tmp_path):
+    """``[frontend.klt]`` etc. are tables of their own in the dump, help comments included; a
+    changed config dumped and loaded is the same config, and to_dict stays nested."""
+    cfg = Config().with_overrides(["frontend.klt.window_px=9", "frontend.offset.px=0.25", 'verification.detector="sift"'])
+    text = cfg.dumps(comments=True)
+    for table in (
+        "[frontend]",
+        "[frontend.klt]",
+        "[frontend.stereo_ba]",
+        "[frontend.local_ba]",
+        "[frontend.offset]",
+        "[verification]",
+    ):
+        assert f"\n{table}\n" in text
+    assert "window_px = 9  # KLT window, px; in [3, 101]" in text
+    assert tomllib.loads(text) == cfg.to_dict()
+    assert cfg.to_dict()["frontend"]["klt"]["window_px"] == 9
+    for comments in (False, True):
+        path = tmp_path / f"c{comments}.toml"
+        path.write_text(cfg.dumps(comments=comments))
+        assert Config.load(path) == cfg
+    path = tmp_path / "dumped.toml"
+    cfg.dump(path)
+    assert Config.load(path).dumps() == cfg.dumps()
+
+
+def test_moved_keys_are_real_settings_and_each_old_one_is_gone():
+    keys = set(_keys(Config()))
+    assert set(MOVED.values()) <= keys
+    assert len(set(MOVED.values())) == len(MOVED)
+    assert not set(MOVED) & (set(RETIRED) | set(FIXED))
+
+
+def test_an_old_flat_config_is_applied_at_the_new_places_with_a_note(tmp_path, capsys):
+    """An older version's config.toml (a results folder's) runs as it did: each moved key's value
+    lands at its new place, with one note line each."""
+    path = tmp_path / "old.toml"
+    path.write_text(
+        "[frontend]\nklt_window_px = 13\nklt_bias_window_px = 5\nlocal_ba = false\nlba_every = 2\nsba_huber_px = 0.4\n"
+        "disparity_offset_px = 0.3\nestimate_disparity_offset = false\nloop_features = 400\n"
+        'loop_detector = "sift"\nloop_max_distance_m = 6.0\nmode = "klt"\n[loop]\nattempts = 4\n'
+    )
+    cfg = Config.load(path)
+    err = capsys.readouterr().err
+    fe, v = cfg.frontend, cfg.verification
+    assert (fe.klt.window_px, fe.klt.bias_window_px, fe.local_ba.enabled, fe.local_ba.every) == (13, 5, False, 2)
+    assert (fe.stereo_ba.huber_px, fe.offset.px, fe.offset.estimate, fe.frame_features) == (0.4, 0.3, False, 400)
+    assert (v.detector, v.max_distance_m, cfg.loop.attempts) == ("sift", 6.0, 4)
+    assert f"note: {path}: frontend.klt_window_px moved to frontend.klt.window_px\n" in err
+    assert f"note: {path}: frontend.local_ba moved to frontend.local_ba.enabled\n" in err
+    assert f"note: {path}: frontend.loop_detector moved to verification.detector\n" in err
+    assert err.count("\n") == 10 and err.count("moved to") == 10
+    both = tmp_path / "both.toml"
+    both.write_text("[frontend]\nklt_window_px = 13\n[frontend.klt]\nwindow_px = 9\n")
+    with pytest.raises(SnapsGraphError, match="frontend.klt_window_px and frontend.klt.window_px are the same setting"):
+        Config.load(both)
+
+
+def test_an_old_results_folder_config_reads_back(tmp_path, capsys):
+    """A config.toml as older versions wrote it (every key flat) loads to the defaults it held."""
+    old = {"frontend": {}, "verification": {}}
+    for old_key, new_key in MOVED.items():
+        obj = Config()
+        for part in new_key.split("."):
+            obj = getattr(obj, part)
+        old["frontend"][old_key.split(".")[1]] = obj
+    lines = ["[frontend]"] + [f"{k} = {str(v).lower() if isinstance(v, bool) else repr(v)}" for k, v in old["frontend"].items()]
+    path = tmp_path / "config.toml"
+    path.write_text("\n".join(lines) + "\n")
+    assert Config.load(path) == Config()
+    assert capsys.readouterr().err.count("moved to") == len(MOVED)
+
+
+def test_set_reaches_nested_sections_and_old_keys():
+    cfg = Config().with_overrides(["frontend.klt.window_px=13", 'verification.detector="sift"', "frontend.local_ba.every=2"])
+    assert (cfg.frontend.klt.window_px, cfg.verification.detector, cfg.frontend.local_ba.every) == (13, "sift", 2)
+    assert parse_set(["frontend.klt.window_px=13", "frontend.mode=orb"]) == {
+        "frontend": {"klt": {"window_px": 13}, "mode": "orb"}
+    }
+    assert Config().with_overrides(["frontend.klt_window_px=13"]).frontend.klt.window_px == 13  # an old key, with a note
+    for bad, why in (
+        ("frontend.klt.windw_px=3", r"unknown key 'frontend\.klt\.windw_px' \(did you mean 'frontend\.klt\.window_px'\?\)"),
+        ("frontend.kl.window_px=3", r"unknown key 'frontend\.kl' \(did you mean 'frontend\.klt'\?\)"),
+        ("frontend.window_px=3", r"did you mean 'frontend\.klt\.window_px'\?"),
+        ("verification.detectr=orb", r"did you mean 'verification\.detector'\?"),
+        ("frontend.klt=3", r"\[frontend\.klt\] must be a table"),
+        ("frontend.mode.x=3", r"\[frontend\.mode\] is not a section"),
+        ("frontend.klt.window_px=2", r"frontend\.klt\.window_px must be in \[3, 101\]"),
+        ("frontend.klt.bias_window_px=11", r"frontend\.klt\.bias_window_px must be 0 or in \[3, window_px\)"),
+        ("frontend..window_px=3", "expected section.key=value"),
+    ):
+        with pytest.raises(SnapsGraphError, match=why):
+            Config().with_overrides([bad])
+    with pytest.raises(SnapsGraphError, match="is a value, not a section"):
+        parse_set(["frontend.klt=3", "frontend.klt.window_px=9"])
+
+
+def test_a_misspelled_nested_table_in_a_file_gets_did_you_mean(tmp_path):
+    path = tmp_path / "c.toml"
+    path.write_text("[frontend.klt]\nwindow = 9\n")
+    with pytest.raises(
+        SnapsGraphError, match=r"unknown key 'frontend\.klt\.window' \(did you mean 'frontend\.klt\.window_px'\?\)"
+    ):
+        Config.load(path)
+    path.write_text("[frontend.stereoba]\nhuber_px = 1.0\n")
+    with pytest.raises(SnapsGraphError, match=r"did you mean 'frontend\.stereo_ba'\?"):
+        Config.load(path)

@@ -81,7 +81,7 @@ def test_dense_depth_range_limits_mark_invalid():
 def test_sparse_depth_subpixel_disparity():
     # A plane at 8 m seen by the stereo pair: disparity 31.25 px (not a whole pixel).
     f = _plane_frame(0, [0.0, 0.0, 0.0])
-    uv = feat.detect_corners(f.left, 300, FrontendConfig())
+    uv = feat.detect_corners(f.left, 300, FrontendConfig().klt)
     z, disp = sparse_depth(f.left, f.right, uv, CAM, FrontendConfig())
     ok = z > 0
     assert ok.mean() > 0.8
@@ -238,7 +238,7 @@ def test_an_old_config_with_retired_keys_loads_with_a_note(tmp_path, capsys):
         '[graph]\ngravity_prior = false\nodom_noise = "ba"\n[map]\ntopdown_dpi = 150\n'
     )
     cfg = Config.load(old)
-    assert cfg.frontend.klt_features == 1200
+    assert cfg.frontend.klt.features == 1200  # moved to [frontend.klt], with a note
     err = capsys.readouterr().err
     for key in ("frontend.klt_road_prewarp", "frontend.lba_async", "graph.gravity_prior", "graph.odom_noise", "map.topdown_dpi"):
         assert key in RETIRED and f"note: {old}: {key} is no longer used" in err

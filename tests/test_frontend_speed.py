@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from snaps_graph.camera import StereoCamera
-from snaps_graph.config import FrontendConfig
+from snaps_graph.config import FrontendConfig, KltConfig, StereoBAConfig
 from snaps_graph.frontend.stereo_ba import stereo_two_view_ba
 from snaps_graph.geometry import exp_so3
 from snaps_graph.types import FrameFeatures
@@ -51,7 +51,7 @@ def test_stereo_ba_covariance_is_the_inverse_schur_complement_of_numeric_jacobia
         cur[:, :2],
         cur[:, 0] - cur[:, 2],
         CAM,
-        FrontendConfig(sba_huber_px=1.0, sba_outlier_px=2.0, sba_iterations=6),
+        StereoBAConfig(huber_px=1.0, outlier_px=2.0, iterations=6),
     )
     assert r.ok and r.inliers.all()
     np.testing.assert_allclose(r.T_cur_ref, T, atol=1e-9)
@@ -143,7 +143,7 @@ def test_detect_corners_on_the_cropped_image_finds_the_same_corners(border, radi
 
     rng = np.random.default_rng(border + radius)
     img = cv2.GaussianBlur(rng.integers(0, 256, (188, 620), dtype=np.uint8), (0, 0), 2.0)
-    cfg = dataclasses.replace(FrontendConfig(), klt_border_px=border, klt_min_distance_px=radius, klt_quality=quality)
+    cfg = KltConfig(border_px=border, min_distance_px=radius, quality=quality)
     for avoid in (None, np.c_[rng.uniform(0, 620, 300), rng.uniform(0, 188, 300)].astype(np.float32)):
         if avoid is None:
             mask = np.zeros(img.shape, np.uint8)

@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 
 from snaps_graph.backend.pose_graph import PoseGraph, loop_covariance
-from snaps_graph.config import Config, FrontendConfig, GraphConfig
+from snaps_graph.config import Config, FrontendConfig, GraphConfig, VerificationConfig
 from snaps_graph.datasets.kitti import KittiSequence
 from snaps_graph.frontend.keyframe import MIN_STEREO_POINTS
-from snaps_graph.frontend.loop_features import LoopFeatureBank, pose_covariance, verify_features
 from snaps_graph.geometry import inv, rotation_angle_deg
 from snaps_graph.pipeline import SlamPipeline
 from snaps_graph.types import FrameFeatures
+from snaps_graph.verification.features import LoopFeatureBank, pose_covariance, verify_features
 
 
 @pytest.fixture(scope="module")
@@ -24,12 +24,12 @@ def kitti_pair(kitti06_dir):
 @pytest.mark.parametrize("detector", ["orb", "sift"])
 def test_verify_features_recovers_relative_pose(kitti_pair, detector):
     seq, f0, f3 = kitti_pair
-    cfg = FrontendConfig(loop_detector=detector)
-    bank = LoopFeatureBank(seq.camera, cfg)
+    cfg, vcfg = FrontendConfig(), VerificationConfig(detector=detector)
+    bank = LoopFeatureBank(seq.camera, cfg, vcfg)
     bank.add(0, f0)
     ref = bank.reference(0)
     assert ref is not None and len(ref.uv) >= MIN_STEREO_POINTS
-    m = verify_features(ref, bank.query(3, f3), f3, seq.camera, cfg)
+    m = verify_features(ref, bank.query(3, f3), f3, seq.camera, cfg, vcfg)
     assert m is not None and m.inliers >= cfg.min_inliers
     G = inv(seq.gt_poses[0]) @ seq.gt_poses[3]  # 3.6 m forward
     # Real KITTI 06 (exposure, blur): ORB 0.17 m off, SIFT 0.06 m; the tracker's own verifier 0.15 m.
@@ -43,33 +43,33 @@ def test_depth_check_rejects_a_lookalike_at_another_distance(kitti_pair):
     """The reference's points twice as far project the same in its own image; PnP then finds a
     pose (the scene scaled by 2), but the current frame's stereo disagrees: no loop."""
     seq, f0, f3 = kitti_pair
-    cfg = FrontendConfig()
-    bank = LoopFeatureBank(seq.camera, cfg)
+    cfg, vcfg = FrontendConfig(), VerificationConfig()
+    bank = LoopFeatureBank(seq.camera, cfg, vcfg)
     bank.add(0, f0)
     ref = bank.reference(0)
     assert ref is not None
     cur = bank.query(3, f3)
-    assert verify_features(ref, cur, f3, seq.camera, cfg) is not None
+    assert verify_features(ref, cur, f3, seq.camera, cfg, vcfg) is not None
     far = FrameFeatures(ref.uv, ref.pts3d * 2.0, ref.desc)
-    assert verify_features(far, cur, f3, seq.camera, cfg) is None
-    off = FrontendConfig(loop_depth_check_px=0.0)  # without the check the scaled scene passes
-    assert verify_features(far, cur, f3, seq.camera, off) is not None
+    assert verify_features(far, cur, f3, seq.camera, cfg, vcfg) is None
+    off = VerificationConfig(depth_check_px=0.0)  # without the check the scaled scene passes
+    assert verify_features(far, cur, f3, seq.camera, cfg, off) is not None
 
 
 def test_verify_features_rejects_an_unrelated_frame(kitti_pair):
     seq, f0, f3 = kitti_pair
-    cfg = FrontendConfig()
-    bank = LoopFeatureBank(seq.camera, cfg)
+    cfg, vcfg = FrontendConfig(), VerificationConfig()
+    bank = LoopFeatureBank(seq.camera, cfg, vcfg)
     bank.add(0, f0)
     rng = np.random.default_rng(1)
     noise = rng.integers(0, 256, (seq.camera.height, seq.camera.width), dtype=np.uint8)
     fake = type(f3)(index=9, timestamp=0.9, left=noise, right=noise)
-    assert verify_features(bank.reference(0), bank.query(9, fake), fake, seq.camera, cfg) is None
+    assert verify_features(bank.reference(0), bank.query(9, fake), fake, seq.camera, cfg, vcfg) is None
 
 
 def test_bank_keeps_every_nth_frame_and_finds_the_nearest(kitti_pair):
     seq, f0, _ = kitti_pair
-    bank = LoopFeatureBank(seq.camera, FrontendConfig(loop_reference_every=5))
+    bank = LoopFeatureBank(seq.camera, FrontendConfig(), VerificationConfig(reference_every=5))
     assert bank.wants(0) and bank.wants(10) and not bank.wants(3)
     ref = FrameFeatures(np.zeros((1, 2), np.float32), np.zeros((1, 3), np.float32), np.zeros((1, 32), np.uint8))
     for k in (0, 5, 10):
@@ -121,7 +121,7 @@ def test_loop_factor_uses_the_verification_covariance():
 
 def test_pipeline_keeps_reference_features(tiny_seq):
     cfg = Config()
-    cfg.frontend.loop_reference_every = 2
+    cfg.verification.reference_every = 2
     seq = KittiSequence(tiny_seq)
     pipe = SlamPipeline(seq.camera, cfg, loops="snaps", refine="none", build_map=False)
     for f in seq:
@@ -177,11 +177,11 @@ def test_discount_shapes_fall_to_zero_at_the_window_start():
 
 def test_reference_points_use_the_disparity_offset(kitti_pair):
     """A rig whose disparities read 0.5 px large (offset +0.5): corrected points lie farther."""
-    from snaps_graph.frontend.loop_features import detect_loop_keypoints, stereo_points
+    from snaps_graph.verification.features import detect_loop_keypoints, stereo_points
 
     seq, f0, _ = kitti_pair
     cfg = FrontendConfig()
-    uv, _, _ = detect_loop_keypoints(f0.left, cfg)
+    uv, _, _ = detect_loop_keypoints(f0.left, VerificationConfig())
     i0, p0 = stereo_points(f0.left, f0.right, uv, seq.camera, cfg)
     i1, p1 = stereo_points(f0.left, f0.right, uv, seq.camera, cfg, offset_px=0.5)
     common, a, b = np.intersect1d(i0, i1, return_indices=True)
@@ -194,7 +194,7 @@ def test_subpixel_loop_keypoints_sit_on_the_corners():
     keypoints lie a few pixels off them (level grids), the refined ones within a pixel."""
     import cv2
 
-    from snaps_graph.frontend.loop_features import detect_loop_keypoints
+    from snaps_graph.verification.features import detect_loop_keypoints
 
     H, W, s, off = 360, 480, 24.0, np.array([0.37, 0.61])
     yy, xx = np.mgrid[0 : H * 8, 0 : W * 8] / 8.0  # 8x supersampled
@@ -204,7 +204,7 @@ def test_subpixel_loop_keypoints_sit_on_the_corners():
     img = img.astype(np.uint8)
 
     def median_px_from_corner(sp: float) -> float:
-        uv, _, _ = detect_loop_keypoints(img, FrontendConfig(loop_subpixel_px=sp), 500)
+        uv, _, _ = detect_loop_keypoints(img, VerificationConfig(subpixel_px=sp), 500)
         c = uv + 0.5 - off  # pixel k covers [k, k + 1) of the supersampled plane
         return float(np.median(np.hypot(c[:, 0] - s * np.round(c[:, 0] / s), c[:, 1] - s * np.round(c[:, 1] / s))))
 

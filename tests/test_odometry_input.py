@@ -225,7 +225,7 @@ def test_cli_end_to_end_on_the_real_revisit(tmp_path):
 
 def test_stereo_sequence_with_pose_file_keeps_stereo_verification(tiny_seq):
     """With a right image the pose file replaces only the VO: the stereo loop features stay."""
-    from snaps_graph.frontend.loop_features import LoopFeatureBank
+    from snaps_graph.verification.features import LoopFeatureBank
 
     ds = KittiSequence(tiny_seq)
     cfg = Config()

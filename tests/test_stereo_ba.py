@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 
 from snaps_graph.camera import StereoCamera
-from snaps_graph.config import FrontendConfig
+from snaps_graph.config import Config, FrontendConfig, LocalBAConfig, StereoBAConfig
 from snaps_graph.frontend.motion import pnp_ransac
 from snaps_graph.frontend.stereo_ba import stereo_two_view_ba
 
 # A wide kernel (1.0 / 2.0 px, 6 steps): the BA's own behaviour, apart from the front end's tight default.
-WIDE = FrontendConfig(sba_huber_px=1.0, sba_outlier_px=2.0, sba_iterations=6)
+WIDE = StereoBAConfig(huber_px=1.0, outlier_px=2.0, iterations=6)
 
 CAM = StereoCamera(fx=718.0, fy=718.0, cx=607.0, cy=185.0, baseline_m=0.54, width=1241, height=376)
 
@@ -90,17 +90,17 @@ def test_stereo_ba_rejects_outliers_and_recovers_exact_motion():
 
 def test_keep_px_keeps_tracks_a_tight_estimate_left_out():
     """0.5 px noise against the default 0.3 / 0.6 px kernel: the estimate leaves out many good
-    points; the points ``kept`` with ``sba_keep_px`` = 2 are 94 % of them, and still no gross
-    outlier. ``sba_keep_px`` does not change the estimate."""
+    points; the points ``kept`` with ``keep_px`` = 2 are 94 % of them, and still no gross
+    outlier. ``keep_px`` does not change the estimate."""
     rng = np.random.default_rng(3)
     T = _motion()
     X = _points(rng, 300, 3.0, 40.0)
     uv_r, d_r, uv_c, d_c = _observe(X, T, rng, 0.5, outliers=0.1)
     clean = _observe(X, T, np.random.default_rng(9), 0.0)[2]
     bad = np.linalg.norm(uv_c - clean, axis=1) > 3
-    cfg = FrontendConfig()
-    assert (cfg.sba_huber_px, cfg.sba_outlier_px, cfg.sba_keep_px) == (0.3, 0.6, 2.0)
-    tight = stereo_two_view_ba(T, uv_r, d_r, uv_c, d_c, CAM, FrontendConfig(sba_keep_px=0.6))
+    cfg = StereoBAConfig()
+    assert (cfg.huber_px, cfg.outlier_px, cfg.keep_px) == (0.3, 0.6, 2.0)
+    tight = stereo_two_view_ba(T, uv_r, d_r, uv_c, d_c, CAM, StereoBAConfig(keep_px=0.6))
     kept = stereo_two_view_ba(T, uv_r, d_r, uv_c, d_c, CAM, cfg)
     assert tight.ok and kept.ok
     assert kept.kept is not None
@@ -143,7 +143,9 @@ def test_local_ba_keeps_poses_finite_and_reduces_error():
     gt = [np.eye(4) for _ in range(n_kf)]
     for k in range(n_kf):
         gt[k][:3, 3] = [0.0, 0.0, 1.0 * k]
-    lba = LocalBundleAdjuster(CAM, FrontendConfig(lba_window=n_kf, lba_iterations=10, sba_huber_px=1.0))
+    lba = LocalBundleAdjuster(
+        CAM, FrontendConfig(local_ba=LocalBAConfig(window=n_kf, iterations=10), stereo_ba=StereoBAConfig(huber_px=1.0))
+    )
     errs_in, errs_out = [], []
     for k in range(n_kf):
         Tcw = np.linalg.inv(gt[k])
@@ -167,15 +169,15 @@ def test_local_ba_keeps_poses_finite_and_reduces_error():
 
 
 @pytest.mark.parametrize(
-    "bad",
-    [dict(motion="bundle"), dict(lba_chain="ceres"), dict(lba_window=1), dict(sba_huber_px=0.0)],
+    "key,value",
+    [("motion", '"bundle"'), ("local_ba.chain", '"ceres"'), ("local_ba.window", "1"), ("stereo_ba.huber_px", "0.0")],
 )
-def test_bad_new_frontend_settings_are_one_line_errors(bad):
+def test_bad_new_frontend_settings_are_one_line_errors(key, value):
     from snaps_graph.errors import SnapsGraphError
 
     FrontendConfig(motion="pnp")
-    with pytest.raises(SnapsGraphError, match=next(iter(bad))):
-        FrontendConfig(**bad)
+    with pytest.raises(SnapsGraphError, match=f"frontend.{key}"):
+        Config().with_overrides([f"frontend.{key}={value}"])
 
 
 @pytest.fixture(scope="module")
@@ -201,7 +203,7 @@ def _run_vo(seq, frames, cfg):
 
 @pytest.mark.parametrize(
     "extra",
-    [dict(local_ba=True, lba_every=2)],
+    [dict(local_ba=LocalBAConfig(enabled=True, every=2))],
     ids=["frame+lba"],
 )
 def test_vo_variants_track_a_small_rendering(small_rendering, extra):
@@ -221,7 +223,10 @@ def test_vo_result_carries_the_stereo_ba_covariance(small_rendering):
     from snaps_graph.frontend import StereoOdometry
 
     seq, frames, _ = small_rendering
-    for cfg, expect in ((FrontendConfig(lba_every=2), True), (FrontendConfig(motion="pnp", local_ba=False), False)):
+    for cfg, expect in (
+        (FrontendConfig(local_ba=LocalBAConfig(every=2)), True),
+        (FrontendConfig(motion="pnp", local_ba=LocalBAConfig(enabled=False)), False),
+    ):
         with StereoOdometry(seq.camera, cfg) as vo:
             res = [vo.process(f) for f in frames]
         assert res[0].cov is None

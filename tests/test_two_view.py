@@ -12,10 +12,10 @@ from conftest import SHARED_DATA
 from snaps_graph.camera import kitti00_camera
 from snaps_graph.config import Config
 from snaps_graph.datasets.kitti import KittiSequence
-from snaps_graph.frontend.loop_features import LOOP_QUERY_FEATURES, verify_features
-from snaps_graph.frontend.two_view import MonoFeatureBank, partner_pose, triangulate, two_view_features
 from snaps_graph.geometry import inv, rotation_angle_deg
 from snaps_graph.types import FrameFeatures, StereoFrame
+from snaps_graph.verification.features import LOOP_QUERY_FEATURES, verify_features
+from snaps_graph.verification.mono import MonoFeatureBank, partner_pose, triangulate, two_view_features
 
 LOOP_SEQ = SHARED_DATA / "kitti00_loop" / "sequences" / "00"
 KITTI06 = SHARED_DATA / "kitti" / "sequences" / "06"
@@ -68,12 +68,12 @@ def test_partner_pose_keeps_the_images_rotation_and_the_odometrys_length():
 def test_triangulated_reference_verifies_a_revisit_metrically():
     """Reference at the origin, partner 1.5 m ahead, a revisit 0.8 m to the left and 0.6 m
     behind, turned 3 deg: PnP on the triangulated points recovers it in metres."""
-    cfg = Config().frontend
+    cfg, vcfg = Config().frontend, Config().verification
     rev = _pose(cv2.Rodrigues(np.array([0.0, np.radians(3.0), 0.0]))[0], [-0.8, 0.0, -0.6])
     cam, X, (ref, par, cur) = _scene([np.eye(4), _pose(np.eye(3), [0.0, 0.0, 1.5]), rev])
     pts = triangulate(ref, par, _pose(np.eye(3), [0.0, 0.0, 1.5]), cam, cfg)
     assert pts is not None and len(pts.uv) > 200
-    m = verify_features(pts, cur, None, cam, cfg)
+    m = verify_features(pts, cur, None, cam, cfg, vcfg)
     assert m is not None and m.inliers > 200
     assert np.linalg.norm(m.T_ref_cur[:3, 3] - rev[:3, 3]) < 0.05
     assert rotation_angle_deg(m.T_ref_cur[:3, :3].T @ rev[:3, :3]) < 0.1
@@ -81,12 +81,12 @@ def test_triangulated_reference_verifies_a_revisit_metrically():
 
 
 def test_bank_waits_for_a_partner_and_drops_a_camera_at_rest():
-    cfg = Config().frontend
+    cfg, vcfg = Config().frontend, Config().verification
     cam = kitti00_camera()
     rng = np.random.default_rng(3)
     img = cv2.GaussianBlur(rng.integers(0, 256, (376, 1241), dtype=np.uint8), (5, 5), 1.5)
     frame = StereoFrame(0, 0.0, img, np.zeros((0, 0), np.uint8))
-    bank = MonoFeatureBank(cam, cfg)
+    bank = MonoFeatureBank(cam, cfg, vcfg)
     with pytest.raises(TypeError, match="observe"):
         bank.add(0, frame)
     for k in range(40):  # standing still: no partner ever arrives
@@ -100,13 +100,13 @@ def test_known_rig_on_real_images():
     _need(KITTI06)
     seq = KittiSequence(KITTI06, frames="0:12")
     assert seq._gt_all is not None
-    cfg = Config().frontend
-    bank = MonoFeatureBank(seq.camera, cfg)
+    cfg, vcfg = Config().frontend, Config().verification
+    bank = MonoFeatureBank(seq.camera, cfg, vcfg)
     for k, f in enumerate(seq):
         bank.observe(k, f, seq._gt_all[k])
     ref = bank.reference(5)
     assert ref is not None and len(ref.uv) >= 100
-    m = verify_features(ref, two_view_features(seq[5].right, cfg, LOOP_QUERY_FEATURES), None, seq.camera, cfg, unique=True)
+    m = verify_features(ref, two_view_features(seq[5].right, vcfg, LOOP_QUERY_FEATURES), None, seq.camera, cfg, vcfg, unique=True)
     assert m is not None and m.inliers >= 50
     assert rotation_angle_deg(m.T_ref_cur[:3, :3]) < 0.5
     assert np.linalg.norm(m.T_ref_cur[:3, 3] - [seq.camera.baseline_m, 0.0, 0.0]) < 0.06
@@ -119,29 +119,29 @@ def test_real_revisit_pair_and_a_street_apart():
     seq = KittiSequence(LOOP_SEQ)
     assert seq._gt_all is not None
     idx = {int(f): i for i, f in enumerate(seq.indices)}
-    cfg = Config().frontend
-    bank = MonoFeatureBank(seq.camera, cfg)
+    cfg, vcfg = Config().frontend, Config().verification
+    bank = MonoFeatureBank(seq.camera, cfg, vcfg)
     for f in range(135, 170):
         bank.observe(idx[f], seq[idx[f]], seq._gt_all[idx[f]])
     cur = bank.query(idx[1600], seq[idx[1600]])
     G = {f: seq._gt_all[idx[f]] for f in (140, 155, 1600)}
-    m = verify_features(bank.reference(idx[155]), cur, None, seq.camera, cfg, unique=True)
+    m = verify_features(bank.reference(idx[155]), cur, None, seq.camera, cfg, vcfg, unique=True)
     assert m is not None and m.inliers >= 30
     T = np.linalg.solve(G[155], G[1600])
     assert np.sign(m.T_ref_cur[2, 3]) == np.sign(T[2, 3]) and abs(m.T_ref_cur[1, 3]) < 0.2  # same road: same height
-    far = verify_features(bank.reference(idx[140]), cur, None, seq.camera, cfg, unique=True)
-    assert far is None or np.linalg.norm(far.T_ref_cur[:3, 3]) > cfg.loop_max_distance_m
+    far = verify_features(bank.reference(idx[140]), cur, None, seq.camera, cfg, vcfg, unique=True)
+    assert far is None or np.linalg.norm(far.T_ref_cur[:3, 3]) > vcfg.max_distance_m
 
 
 def test_reference_is_a_local_map_and_a_keypoint_counts_once():
     """References 0, 5 and 10 see the same points from 0, 1.5 and 3 m along: reference 5 holds all
     three sets carried into its own camera frame; verified with ``unique`` a current keypoint
     matched by three copies of one point is one inlier, without it three."""
-    cfg = Config().frontend
+    cfg, vcfg = Config().frontend, Config().verification
     poses = [_pose(np.eye(3), [0.0, 0.0, z]) for z in (0.0, 1.5, 3.0)]
     rev = _pose(np.eye(3), [-0.7, 0.0, 1.0])
     cam, X, views = _scene([*poses, rev], n=150)
-    bank = MonoFeatureBank(cam, cfg)
+    bank = MonoFeatureBank(cam, cfg, vcfg)
     for k, T, v in zip((0, 5, 10), poses, views):
         Xc = (X - T[:3, 3]) @ T[:3, :3]
         bank.put(k, FrameFeatures(v.uv, Xc.astype(np.float32), v.desc))
@@ -154,8 +154,8 @@ def test_reference_is_a_local_map_and_a_keypoint_counts_once():
         assert np.allclose(local.pts3d[i * 150 : (i + 1) * 150], X5, atol=1e-4)
     assert np.allclose(local.uv[:150], views[1].uv)  # its own points first, own pixels kept
     cur = views[3]
-    once = verify_features(local, cur, None, cam, cfg, unique=True)
-    thrice = verify_features(local, cur, None, cam, cfg)
+    once = verify_features(local, cur, None, cam, cfg, vcfg, unique=True)
+    thrice = verify_features(local, cur, None, cam, cfg, vcfg)
     assert once is not None and thrice is not None
     assert once.inliers <= 150 < thrice.inliers
     assert np.linalg.norm(once.T_ref_cur[:3, 3] - (inv(poses[1]) @ rev)[:3, 3]) < 0.05
@@ -169,14 +169,14 @@ def test_revisit_entry_verifies_with_the_local_map():
     seq = KittiSequence(LOOP_SEQ)
     assert seq._gt_all is not None
     idx = {int(f): i for i, f in enumerate(seq.indices)}
-    cfg = Config().frontend
-    bank = MonoFeatureBank(seq.camera, cfg)
+    cfg, vcfg = Config().frontend, Config().verification
+    bank = MonoFeatureBank(seq.camera, cfg, vcfg)
     for f in range(125, 165):
         bank.observe(idx[f], seq[idx[f]], seq._gt_all[idx[f]])
     cur = bank.query(idx[1577], seq[idx[1577]])
     own = bank._ref[idx[135]]
-    assert verify_features(own, cur, None, seq.camera, cfg, unique=True) is None
-    m = verify_features(bank.reference(idx[135]), cur, None, seq.camera, cfg, unique=True)
+    assert verify_features(own, cur, None, seq.camera, cfg, vcfg, unique=True) is None
+    m = verify_features(bank.reference(idx[135]), cur, None, seq.camera, cfg, vcfg, unique=True)
     assert m is not None and m.inliers >= cfg.min_inliers
     T = np.linalg.solve(seq._gt_all[idx[135]], seq._gt_all[idx[1577]])
     assert abs(np.linalg.norm(m.T_ref_cur[:3, 3]) - np.linalg.norm(T[:3, 3])) < 0.5

@@ -1,5 +1,5 @@
 """KLT re-detection in weak texture (open-road drift): a second corner detection at
-``KLT_WEAK_QUALITY`` when too few points have stereo depth (``klt_weak_points``)."""
+``KLT_WEAK_QUALITY`` when too few points have stereo depth (``frontend.klt.weak_points``)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from snaps_graph.config import FrontendConfig
+from snaps_graph.config import FrontendConfig, KltConfig
 from snaps_graph.datasets.kitti import KittiSequence
 from snaps_graph.errors import SnapsGraphError
 from snaps_graph.frontend import StereoOdometry
@@ -34,7 +34,7 @@ def test_weak_texture_pass_adds_corners_with_depth(open_turn):
     seq, frames = open_turn
     counts = {}
     for weak in (0, 300):
-        with StereoOdometry(seq.camera, dataclasses.replace(FrontendConfig(), klt_weak_points=weak)) as vo:
+        with StereoOdometry(seq.camera, FrontendConfig(klt=KltConfig(weak_points=weak))) as vo:
             none = np.zeros((0, 2), np.float32)
             assert vo._klt is not None
             _, z2, _ = vo._klt._detect_new(frames[10], none, np.zeros(0, np.float32), {})
@@ -59,15 +59,15 @@ def test_textured_real_frames_never_take_the_second_pass(kitti06_dir):
     seq = KittiSequence(kitti06_dir, frames="0:4")
     frames = list(seq)
     a = _run(seq, frames)
-    b = _run(seq, frames, klt_weak_points=0)
+    b = _run(seq, frames, klt=KltConfig(weak_points=0))
     for x, y in zip(a, b):
         assert np.array_equal(x.pose, y.pose)
 
 
-@pytest.mark.parametrize("bad", [dict(klt_weak_points=-1), dict(klt_weak_points=1.5)])
+@pytest.mark.parametrize("bad", [dict(weak_points=-1), dict(weak_points=1.5)])
 def test_bad_weak_texture_settings_are_one_line_errors(bad):
-    with pytest.raises(SnapsGraphError, match=next(iter(bad))):
-        FrontendConfig(**bad)
+    with pytest.raises(SnapsGraphError, match=f"frontend.klt.{next(iter(bad))}"):
+        KltConfig(**bad)
 
 
 def test_no_second_pass_where_stereo_fails(open_turn):
@@ -82,7 +82,7 @@ def test_no_second_pass_where_stereo_fails(open_turn):
     broken = StereoFrame(f.index, f.timestamp, f.left, noise)
     out = {}
     for weak in (0, 300):
-        with StereoOdometry(seq.camera, dataclasses.replace(FrontendConfig(), klt_weak_points=weak)) as vo:
+        with StereoOdometry(seq.camera, FrontendConfig(klt=KltConfig(weak_points=weak))) as vo:
             assert vo._klt is not None
             out[weak] = vo._klt._detect_new(broken, np.zeros((0, 2), np.float32), np.zeros(0, np.float32), {})[0]
     assert np.array_equal(out[0], out[300])

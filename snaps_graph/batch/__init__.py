@@ -11,7 +11,7 @@ and ``DIR/summary.md``::
     [variants.default]
     [variants.tight]
     loop = { min_similarity = 0.3 }   # config overrides, checked like a config file
-    frontend = { klt_features = 1000 }
+    frontend.klt = { features = 1000 }
 
 A sequence is anything ``run`` reads except a live device (KITTI, EuRoC, ROS bags; a table may
 add ``gt``, ``left_topic``, ``right_topic``, ``calib``). Relative paths are relative to the plan

@@ -13,7 +13,8 @@ from pathlib import Path
 from typing import Any
 
 from .. import __version__
-from ..config import Config, FrontendMode, LoopMode, RefineMode, choices
+from ..config import Config, FrontendMode, LoopMode, RefineMode
+from ..config_schema import choices
 from ..datasets.open import open_dataset
 from ..errors import SnapsGraphError
 from ..io_utils import (
@@ -32,7 +33,7 @@ RUN_OPTIONS: dict[str, tuple[str | None, Any]] = {
     "map_all": ("map.per_trajectory", bool),
 }
 TOP_ONLY = ("sequences", "variants", "config", "cpus_per_task")
-CONFIG_SECTIONS = ("frontend", "loop", "graph", "map")
+CONFIG_SECTIONS = ("frontend", "verification", "loop", "graph", "map")
 READER_KEYS = ("left_topic", "right_topic", "calib")  # a sequence table's reader options, as `run` takes them
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._+=,-]*$")
 
@@ -203,16 +204,16 @@ def _variant_config(
     own = _run_options(body, source, f"{where}.")
     merged = base.to_dict()
     _apply_options(merged, top)
+    sections: dict[str, Any] = {}
     for section in CONFIG_SECTIONS:
         if section in body and not (section == "map" and isinstance(body[section], bool)):  # map = true: the run option
             if not isinstance(body[section], dict):
                 raise SnapsGraphError(f"{source}: {where}.{section} must be a table, e.g. {section} = {{ key = value }}")
-            for k, v in body[section].items():
-                if k not in merged[section]:
-                    raise SnapsGraphError(f"{source}: {where}: unknown key '{section}.{k}'")
-                merged[section][k] = v
-    _apply_options(merged, own)
-    cfg = Config.from_dict(merged, source=f"{source}: {where}")
+            sections[section] = body[section]
+    options: dict[str, Any] = {}
+    _apply_options(options, own)
+    src = f"{source}: {where}"  # a variant's keys are read as a config file's (an older key: moved, with a note)
+    cfg = Config.from_dict(merged, source=src).merged(sections, src).merged(options, src)
     return cfg, own.get("frames", top.get("frames"))
 
 
@@ -222,7 +223,7 @@ def _apply_options(merged: dict[str, Any], options: dict[str, Any]) -> None:
         if target is None:
             continue
         section, _, field = target.rpartition(".")
-        (merged[section] if section else merged)[field] = value
+        (merged.setdefault(section, {}) if section else merged)[field] = value
 
 
 def _sequences(data: dict[str, Any], source: str, base: Path) -> list[tuple[str, str, str | None, tuple]]:

@@ -1,4 +1,4 @@
-"""Stereo visual odometry front end (paper §II-B..D): depth, features, PnP, loop verification."""
+"""Stereo visual odometry front end (paper §II-B..D): depth, features, PnP, the motion between frames."""
 
 from .depth import dense_depth, dense_disparity, sparse_depth
 from .motion import pnp_ransac

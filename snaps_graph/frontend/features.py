@@ -6,7 +6,7 @@ Three ways to get 2D correspondences between two frames, chosen by ``FrontendCon
 - "orb": the same with ORB (``orb_features``) and Hamming distance;
 - "klt": Shi-Tomasi corners tracked frame to frame with pyramidal Lucas-Kanade, re-detected
   where tracks ran out. No descriptors are needed for motion (loop verification detects its
-  own features: ``loop_features.py``).
+  own features: ``verification/features.py``).
 
 Every function returns plain float32/uint8 numpy arrays and is deterministic for a given input
 (keypoints are put in a fixed order, ties broken by position), so the front end is
@@ -18,7 +18,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ..config import FrontendConfig
+from ..config import FrontendConfig, KltConfig
 
 KLT_LEVELS = 3  # KLT pyramid levels
 KLT_BIAS_MAX_PX = 0.5  # a window-bias re-fit that moves a track farther than this keeps the plain position
@@ -110,13 +110,13 @@ def match_descriptors(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float) -> t
     return rows[keep].astype(np.int64), j1[keep].astype(np.int64)
 
 
-def detect_corners(img: np.ndarray, n: int, cfg: FrontendConfig, avoid: np.ndarray | None = None) -> np.ndarray:
-    """Up to ``n`` Shi-Tomasi corners (float32 (N,2)), at least ``klt_min_distance_px`` apart,
-    none within ``klt_border_px`` of the border, none within ``klt_min_distance_px`` of the
+def detect_corners(img: np.ndarray, n: int, cfg: KltConfig, avoid: np.ndarray | None = None) -> np.ndarray:
+    """Up to ``n`` Shi-Tomasi corners (float32 (N,2)), at least ``min_distance_px`` apart,
+    none within ``border_px`` of the border, none within ``min_distance_px`` of the
     points ``avoid`` (the tracks that survived, so new corners fill the gaps).
 
     The mask is the border frame and the surviving points eroded by an elliptical kernel of radius
-    ``klt_min_distance_px``, built directly (``_exclusion_mask``). goodFeaturesToTrack computes
+    ``min_distance_px``, built directly (``_exclusion_mask``). goodFeaturesToTrack computes
     corner eigenvalues over the whole image it is given, so it gets the mask's open frame plus a
     3-pixel margin (the 3x3 derivative, the 3x3 block and the 3x3 local-maximum test reach 3
     pixels): the same corners, the image's border band not computed.
@@ -124,10 +124,10 @@ def detect_corners(img: np.ndarray, n: int, cfg: FrontendConfig, avoid: np.ndarr
     if n <= 0:
         return np.zeros((0, 2), np.float32)
     h, w = img.shape
-    b = cfg.klt_border_px
+    b = cfg.border_px
     if avoid is not None and len(avoid):
-        mask = _exclusion_mask(h, w, b, cfg.klt_min_distance_px, avoid)
-        m = b + cfg.klt_min_distance_px if b > 0 else 0
+        mask = _exclusion_mask(h, w, b, cfg.min_distance_px, avoid)
+        m = b + cfg.min_distance_px if b > 0 else 0
     else:
         mask = np.zeros((h, w), np.uint8)
         mask[b : h - b, b : w - b] = 255
@@ -135,11 +135,11 @@ def detect_corners(img: np.ndarray, n: int, cfg: FrontendConfig, avoid: np.ndarr
     c = max(0, m - 3)
     if c > 0 and h - 2 * c > 8 and w - 2 * c > 8:
         roi = np.ascontiguousarray(img[c : h - c, c : w - c])
-        pts = cv2.goodFeaturesToTrack(roi, n, cfg.klt_quality, cfg.klt_min_distance_px, mask=mask[c : h - c, c : w - c].copy())
+        pts = cv2.goodFeaturesToTrack(roi, n, cfg.quality, cfg.min_distance_px, mask=mask[c : h - c, c : w - c].copy())
         if pts is not None:
             pts = pts + np.float32(c)
     else:
-        pts = cv2.goodFeaturesToTrack(img, n, cfg.klt_quality, cfg.klt_min_distance_px, mask=mask)
+        pts = cv2.goodFeaturesToTrack(img, n, cfg.quality, cfg.min_distance_px, mask=mask)
     if pts is None:
         return np.zeros((0, 2), np.float32)
     return pts.reshape(-1, 2).astype(np.float32)
@@ -165,7 +165,7 @@ def track_klt(
     prev_img: np.ndarray,
     cur_img: np.ndarray,
     uv: np.ndarray,
-    cfg: FrontendConfig,
+    cfg: KltConfig,
     guess: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Track points from ``prev_img`` into ``cur_img`` with pyramidal LK.
@@ -185,7 +185,7 @@ def track_klt(
         cur_img,
         uv.reshape(-1, 1, 2),
         init,
-        winSize=(cfg.klt_window_px, cfg.klt_window_px),
+        winSize=(cfg.window_px, cfg.window_px),
         maxLevel=KLT_LEVELS,
         criteria=crit,
         flags=flags,
@@ -194,7 +194,7 @@ def track_klt(
     h, w = cur_img.shape
     ok = (st.reshape(-1) == 1) & np.all(np.isfinite(p1), axis=1)
     ok &= (p1[:, 0] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] <= h - 1)
-    if 0 < cfg.klt_bias_window_px < cfg.klt_window_px and np.any(ok):
+    if 0 < cfg.bias_window_px < cfg.window_px and np.any(ok):
         p1 = _window_extrapolated(prev_img, cur_img, uv, p1, ok, cfg)
     return p1.astype(np.float32), ok
 
@@ -205,9 +205,9 @@ def window_moment(w: int) -> float:
 
 
 def _window_extrapolated(
-    prev_img: np.ndarray, cur_img: np.ndarray, uv: np.ndarray, p1: np.ndarray, ok: np.ndarray, cfg: FrontendConfig
+    prev_img: np.ndarray, cur_img: np.ndarray, uv: np.ndarray, p1: np.ndarray, ok: np.ndarray, cfg: KltConfig
 ) -> np.ndarray:
-    """LK positions with the window bias removed (``klt_bias_window_px``).
+    """LK positions with the window bias removed (``bias_window_px``).
 
     A translation-only LK fit over a window where the flow is not linear (the road plane under
     forward motion: its image flow grows with the square of the row's distance from the horizon)
@@ -215,7 +215,7 @@ def _window_extrapolated(
     for a w-pixel window. Re-fitting at the finest level with a smaller window w2 and extrapolating
     the two positions linearly in that moment to zero removes the bias to first order.
     """
-    w1, w2 = cfg.klt_window_px, cfg.klt_bias_window_px
+    w1, w2 = cfg.window_px, cfg.bias_window_px
     sel = np.flatnonzero(ok)
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.001)
     p2, st, _ = cv2.calcOpticalFlowPyrLK(

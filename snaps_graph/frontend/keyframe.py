@@ -82,9 +82,9 @@ def make_keyframe(
 ) -> Keyframe:
     """Keep keypoints with valid depth; back-project them (eq. 2); pick the frame's features.
 
-    Detected keypoints come strongest first, so the first ``loop_features`` are kept; tracked
+    Detected keypoints come strongest first, so the first ``frame_features`` are kept; tracked
     corners have no such order, so an evenly spread subset is kept (without descriptors: loops
-    verify with their own features, ``loop_features.py``)."""
+    verify with their own features, ``verification/features.py``)."""
     valid = z > 0
     uv, z, disp = uv[valid], z[valid], disp[valid]
     ids = ids[valid] if ids is not None else np.full(len(uv), -1, np.int64)
@@ -93,10 +93,10 @@ def make_keyframe(
     t0 = time.perf_counter()
     m = len(uv)
     if desc is not None:
-        pick = np.arange(min(m, cfg.loop_features))
+        pick = np.arange(min(m, cfg.frame_features))
         fdesc = desc[pick]
     else:
-        pick = np.arange(m) if m <= cfg.loop_features else np.linspace(0, m - 1, cfg.loop_features).astype(np.int64)
+        pick = np.arange(m) if m <= cfg.frame_features else np.linspace(0, m - 1, cfg.frame_features).astype(np.int64)
         fdesc = np.zeros((len(pick), 32), np.uint8)
     features = FrameFeatures(np.ascontiguousarray(uv[pick]), np.ascontiguousarray(pts3d[pick]), np.ascontiguousarray(fdesc))
     timings["features"] = timings.get("features", 0.0) + (time.perf_counter() - t0) * 1000.0

@@ -1,9 +1,9 @@
 """When the local BA runs (klt mode), what it is told about the chain, and what its answer does.
 
-A reference frame becomes a keyframe ``lba_every`` frames after the last one, or sooner once the
-drive has gone ``lba_keyframe_m`` from it (a fast drive keeps the keyframes' spacing). The
+A reference frame becomes a keyframe ``local_ba.every`` frames after the last one, or sooner once the
+drive has gone ``local_ba.keyframe_m`` from it (a fast drive keeps the keyframes' spacing). The
 chain's stereo-BA steps since the last keyframe, their covariance carried along, join the
-window as a relative-pose factor (``lba_chain``); the chain continues from the refined pose,
+window as a relative-pose factor (``local_ba.chain``); the chain continues from the refined pose,
 and the step that carries the correction has its size added to its covariance. Each solve's
 disparity-offset estimate feeds the running estimate (``offset.py``).
 """
@@ -26,7 +26,7 @@ LBA_CHAIN_SCALE = 1.0  # multiplier of the chain step's covariance in the local-
 
 def chain_information(cov: np.ndarray, axes: str) -> np.ndarray:
     """Information (6x6, [rotation, translation]) of the chain's step between keyframes for
-    ``lba_chain``: "yaw" = the marginal of the rotation about the camera's y axis only, "yaw_roll"
+    ``local_ba.chain``: "yaw" = the marginal of the rotation about the camera's y axis only, "yaw_roll"
     = the marginal of the rotation about its y and z axes, "rotation" = the marginal of the
     rotation, "full" = all six."""
     info = np.zeros((6, 6))
@@ -46,7 +46,7 @@ class LocalBAScheduler:
         self.cfg = cfg
         self.lba = LocalBundleAdjuster(camera, cfg)
         self.lba.offset_joint = False  # held until the running estimate is applied
-        self.offset = DisparityOffsetEstimator(cfg)
+        self.offset = DisparityOffsetEstimator(cfg.offset)
         self._last = -(10**9)  # frame index of the last keyframe
         self._last_pos = np.zeros(3)  # and its position
         self._chain_cov: np.ndarray | None = None  # the chain's covariance since that keyframe (T_cur_kf)
@@ -75,14 +75,14 @@ class LocalBAScheduler:
         n_off = len(self.lba.stats.offsets)
         chained = pose
         chain = None
-        if self._chain_cov is not None and self._prev_pose is not None and self.cfg.lba_chain != "off":
+        if self._chain_cov is not None and self._prev_pose is not None and self.cfg.local_ba.chain != "off":
             N = np.linalg.solve(pose, self._prev_pose)  # T_cur_prevkf along the chain
-            chain = (N, chain_information(self._chain_cov * LBA_CHAIN_SCALE, self.cfg.lba_chain))
+            chain = (N, chain_information(self._chain_cov * LBA_CHAIN_SCALE, self.cfg.local_ba.chain))
         self._chain_cov = np.zeros((6, 6))
         pose = self.lba.add_keyframe(index, pose, kf.ids, kf.uv, kf.disp, chain)
         timings["lba"] = (time.perf_counter() - t0) * 1000.0
         self._prev_pose = pose.copy()
-        if self.cfg.estimate_disparity_offset and self.offset.add(self.lba.stats.offsets[n_off:]):
+        if self.cfg.offset.estimate and self.offset.add(self.lba.stats.offsets[n_off:]):
             self.lba.offset_px = self.offset.offset
             self.lba.offset_joint = True
         c = inv(chained) @ pose
@@ -95,8 +95,8 @@ class LocalBAScheduler:
         self._chain_cov, self._prev_pose = None, None
 
     def due(self, index: int, pose: np.ndarray) -> bool:
-        """A keyframe is due ``lba_every`` frames after the last one, or ``lba_keyframe_m`` after it."""
-        if index - self._last >= self.cfg.lba_every:
+        """A keyframe is due ``local_ba.every`` frames after the last one, or ``local_ba.keyframe_m`` after it."""
+        if index - self._last >= self.cfg.local_ba.every:
             return True
-        m = self.cfg.lba_keyframe_m
+        m = self.cfg.local_ba.keyframe_m
         return m > 0 and float(np.linalg.norm(pose[:3, 3] - self._last_pos)) >= m

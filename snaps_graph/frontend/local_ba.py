@@ -94,16 +94,16 @@ class LocalBundleAdjuster:
 
     def __init__(self, camera: StereoCamera, cfg: FrontendConfig):
         """The window, kernel, iterations, landmark cap and offset estimate of ``cfg``
-        (``lba_*``, ``sba_huber_px``, ``disparity_offset_*``)."""
+        (``local_ba``, ``stereo_ba.huber_px``, ``offset``)."""
         self.camera = camera
-        self.window = cfg.lba_window
-        self.iterations = cfg.lba_iterations
-        self.max_landmarks = cfg.lba_max_landmarks
-        self.huber_px = cfg.sba_huber_px
+        self.window = cfg.local_ba.window
+        self.iterations = cfg.local_ba.iterations
+        self.max_landmarks = cfg.local_ba.max_landmarks
+        self.huber_px = cfg.stereo_ba.huber_px
         self.kfs: deque[_KF] = deque(maxlen=self.window)
-        self.offset_px = float(cfg.disparity_offset_px)  # disparity offset applied (and the prior's mean)
-        self.estimate_offset = cfg.estimate_disparity_offset
-        self.offset_prior_px = cfg.disparity_offset_prior_px
+        self.offset_px = float(cfg.offset.px)  # disparity offset applied (and the prior's mean)
+        self.estimate_offset = cfg.offset.estimate
+        self.offset_prior_px = cfg.offset.prior_px
         self.offset_joint = True  # False: hold the offset in the pose solve, only estimate it
         self.stats = LocalBAStats()
 

@@ -120,7 +120,7 @@ def refine_motion(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Stereo BA on PnP's inliers ``inl`` (``motion = "stereo_ba"``): (T_cur_ref, inlier indices,
     the pose covariance or None). ``true(uv, d)`` corrects disparities for the offset. The BA's
-    own outliers are dropped from ``inl``; a small image's tracks within ``sba_keep_px`` are kept
+    own outliers are dropped from ``inl``; a small image's tracks within ``stereo_ba.keep_px`` are kept
     (below ``SBA_KEEP_BELOW`` inliers). A degenerate BA leaves PnP's answer (``timings['sba_fallback']``)."""
     if cfg.motion != "stereo_ba" or len(inl) == 0:
         return T_cur_ref, inl, None
@@ -132,7 +132,7 @@ def refine_motion(
         cur_uv[inl],
         true(cur_uv[inl], cur_disp[inl]),
         camera,
-        cfg,
+        cfg.stereo_ba,
     )
     timings["sba"] = (time.perf_counter() - t0) * 1000.0
     if not r.ok:

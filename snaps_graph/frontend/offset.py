@@ -1,12 +1,12 @@
 """The running estimate of a rig's disparity offset (measured - true, px, at the centre column).
 
 Each local-BA solve estimates the offset from its window's data alone (``local_ba.py``); their
-information-weighted mean, clamped to +-``disparity_offset_max_px``, replaces the configured
-``disparity_offset_px`` once ``disparity_offset_min_solves`` solves contributed, its standard
-error is at most ``disparity_offset_max_sd_px`` (a drive with too little depth change leaves the
+information-weighted mean, clamped to +-``max_px`` (``[frontend.offset]``), replaces the configured
+``px`` once ``min_solves`` solves contributed, its standard
+error is at most ``max_sd_px`` (a drive with too little depth change leaves the
 offset unobservable) and it differs from the configured one by at least
-``disparity_offset_min_px`` and ``disparity_offset_min_z`` standard errors (an offset-free rig's
-early noise stays out). Once applied, older solves fade (weight 1 - 1/``memory`` per new solve):
+``min_px`` and ``min_z`` standard errors (an offset-free rig's
+early noise stays out). Once applied, older solves fade (weight 1 - 1/``memory_solves`` per new solve):
 they were measured with a worse offset in place.
 """
 
@@ -16,22 +16,22 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from ..config import FrontendConfig
+from ..config import OffsetConfig
 
 
 class DisparityOffsetEstimator:
     """``add`` the solves' (offset px, information 1/px^2); ``offset`` is the offset to apply."""
 
-    def __init__(self, cfg: FrontendConfig):
+    def __init__(self, cfg: OffsetConfig):
         self.cfg = cfg
-        self.offset = float(cfg.disparity_offset_px)
+        self.offset = float(cfg.px)
         self.applied = False  # the estimate replaced the configured offset
         self._acc = [0.0, 0.0, 0]  # sum of info * offset, sum of info, solves
 
     def add(self, solves: Iterable[tuple[float, float]]) -> bool:
         """Fold new solves into the estimate; True once it is applied (``offset`` is then it)."""
         cfg, acc = self.cfg, self._acc
-        mem = cfg.disparity_offset_memory_solves
+        mem = cfg.memory_solves
         for off, info in solves:
             if np.isfinite(off) and np.isfinite(info) and info > 0:
                 if self.applied and mem > 0:
@@ -40,12 +40,12 @@ class DisparityOffsetEstimator:
                 acc[0] += info * off
                 acc[1] += info
                 acc[2] += 1
-        observed = acc[1] > 0 and acc[1] ** -0.5 <= cfg.disparity_offset_max_sd_px
-        if acc[2] >= cfg.disparity_offset_min_solves and observed:
-            lim = cfg.disparity_offset_max_px
+        observed = acc[1] > 0 and acc[1] ** -0.5 <= cfg.max_sd_px
+        if acc[2] >= cfg.min_solves and observed:
+            lim = cfg.max_px
             est = float(np.clip(acc[0] / acc[1], -lim, lim))
-            need = max(cfg.disparity_offset_min_px, cfg.disparity_offset_min_z * acc[1] ** -0.5)
-            if self.applied or abs(est - cfg.disparity_offset_px) >= need:
+            need = max(cfg.min_px, cfg.min_z * acc[1] ** -0.5)
+            if self.applied or abs(est - cfg.px) >= need:
                 self.offset = est
                 self.applied = True
         return self.applied

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..camera import StereoCamera
-from ..config import FrontendConfig
+from ..config import StereoBAConfig
 from ..geometry import exp_so3
 
 
@@ -71,7 +71,7 @@ def stereo_two_view_ba(
     cur_uv: np.ndarray,
     cur_disp: np.ndarray | None,
     camera: StereoCamera,
-    cfg: FrontendConfig,
+    cfg: StereoBAConfig,
     *,
     sigma_px: float = 0.5,
     min_points: int = 8,
@@ -80,13 +80,13 @@ def stereo_two_view_ba(
 
     ``ref_disp`` (N,) reference disparities in pixels (> 0 where known; a point without one is
     not used); ``cur_disp`` (N,) current disparities (<= 0 or NaN: that point's current right
-    image coordinate is missing, its left one still counts). The kernel is ``cfg.sba_huber_px``,
-    the outlier cut ``cfg.sba_outlier_px``, ``cfg.sba_iterations`` Gauss-Newton steps per round;
-    ``kept`` holds every point within ``cfg.sba_keep_px`` in both views at the final pose (a
+    image coordinate is missing, its left one still counts). The kernel is ``cfg.huber_px``,
+    the outlier cut ``cfg.outlier_px``, ``cfg.iterations`` Gauss-Newton steps per round;
+    ``kept`` holds every point within ``cfg.keep_px`` in both views at the final pose (a
     tight outlier cut for the estimate need not cut the tracks a caller keeps). Never raises for
     degenerate data: ``ok=False`` with the seed, a reason and an infinite covariance.
     """
-    huber_px, outlier_px, iterations, keep_px = cfg.sba_huber_px, cfg.sba_outlier_px, cfg.sba_iterations, cfg.sba_keep_px
+    huber_px, outlier_px, iterations, keep_px = cfg.huber_px, cfg.outlier_px, cfg.iterations, cfg.keep_px
     T_init = np.asarray(T_init, np.float64)
     n = len(ref_uv)
     bad_cov = np.full((6, 6), np.inf)

@@ -5,7 +5,7 @@ At speed (large motion, or frames skipped) LK starts from the constant-velocity 
 when PnP on the tracks still fails, it retries once on ORB matches detected
 afresh plus the tracks. Weak texture: goodFeaturesToTrack's quality threshold is relative to the
 image's strongest corner, which on an open road is a far tree line against the sky; when tracked
-plus new points with depth are fewer than ``klt_weak_points`` and most new corners are out of
+plus new points with depth are fewer than ``klt.weak_points`` and most new corners are out of
 range, corners are detected once more at ``KLT_WEAK_QUALITY``. Stereo of the tracked points runs
 beside PnP, re-detection (and its stereo) beside the stereo BA.
 """
@@ -75,7 +75,7 @@ class KltTracker:
                 dp = cam.fx * cam.baseline_m / np.maximum(zp, 1e-6)
                 gain = offset_gain(guess[:, 0], dp, cam)
                 dguess = np.where(zp > 0, dp + self.stereo.offset() * gain, ref.disp)
-        uv_cur, ok = self.workers.split(lambda u, g: feat.track_klt(ref.left, frame.left, u, cfg, g), ref.uv, guess)
+        uv_cur, ok = self.workers.split(lambda u, g: feat.track_klt(ref.left, frame.left, u, cfg.klt, g), ref.uv, guess)
         idx = np.flatnonzero(ok)
         timings["match"] = (time.perf_counter() - t0) * 1000.0
         stereo = self.workers.submit(self._stereo_tracked, frame, uv_cur[idx], dguess[idx], timings)
@@ -138,8 +138,8 @@ class KltTracker:
         def add_corners(quality: float) -> None:
             nonlocal new_uv, z2, d2
             t = time.perf_counter()
-            n = cfg.klt_features - n_valid - int(np.count_nonzero(z2 > 0))
-            qcfg = cfg if quality == cfg.klt_quality else dataclasses.replace(cfg, klt_quality=quality)
+            n = cfg.klt.features - n_valid - int(np.count_nonzero(z2 > 0))
+            qcfg = cfg.klt if quality == cfg.klt.quality else dataclasses.replace(cfg.klt, quality=quality)
             extra = feat.detect_corners(frame.left, n, qcfg, avoid=np.concatenate([uv[z > 0], new_uv]))
             t_det = time.perf_counter()
             if len(extra):
@@ -149,12 +149,12 @@ class KltTracker:
             ms["depth"] += (time.perf_counter() - t_det) * 1000.0
 
         if n_valid < KLT_MIN_TRACKS:
-            add_corners(cfg.klt_quality)
+            add_corners(cfg.klt.quality)
             # Only where the far field took the ranking: most new corners lie beyond max_depth_m
             # (a valid disparity); where stereo failed on them, more corners would not help.
             far = int(np.count_nonzero((d2 > 0) & (z2 <= 0)))
-            weak = n_valid + int(np.count_nonzero(z2 > 0)) < cfg.klt_weak_points and 2 * far > len(new_uv)
-            if weak and KLT_WEAK_QUALITY < cfg.klt_quality:
+            weak = n_valid + int(np.count_nonzero(z2 > 0)) < cfg.klt.weak_points and 2 * far > len(new_uv)
+            if weak and KLT_WEAK_QUALITY < cfg.klt.quality:
                 add_corners(KLT_WEAK_QUALITY)
         timings["depth"] = timings.get("depth", 0.0) + ms["depth"]
         timings["features"] = ms["features"]

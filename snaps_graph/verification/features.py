@@ -2,7 +2,7 @@
 
 The tracker's own per-frame features (KLT corners) are not repeatable when a place is revisited
 metres apart. ``LoopFeatureBank`` keeps,
-for every ``loop_reference_every``-th frame, multi-scale keypoints with descriptors and stereo
+for every ``reference_every``-th frame, multi-scale keypoints with descriptors and stereo
 3D points (``FrameFeatures``: no images), and computes the current frame's keypoints only when
 a loop candidate is to be verified (:meth:`LoopFeatureBank.query`, once per frame).
 
@@ -11,7 +11,7 @@ RANSAC (the odometry's estimator), keeps the pose only if enough inliers *also* 
 with the current frame's own stereo (a place that merely looks alike, e.g. a repeated facade
 module at another distance, fails that), and returns the pose with its covariance from the
 inliers' reprojection Jacobian, so the graph weighs a loop by what verification measured.
-ORB keypoints are refined to sub-pixel at full resolution (``loop_subpixel_px``).
+ORB keypoints are refined to sub-pixel at full resolution (``verification.subpixel_px``).
 """
 
 from __future__ import annotations
@@ -24,13 +24,13 @@ import cv2
 import numpy as np
 
 from ..camera import StereoCamera
-from ..config import FrontendConfig
+from ..config import FrontendConfig, VerificationConfig
+from ..frontend.depth import correct_disparity, sparse_disparity
+from ..frontend.features import match_descriptors
+from ..frontend.keyframe import MIN_STEREO_POINTS
+from ..frontend.motion import pnp_ransac, pose_from_rvec
 from ..geometry import inv, rotation_angle_deg
 from ..types import FrameFeatures, StereoFrame
-from .depth import correct_disparity, sparse_disparity
-from .features import match_descriptors
-from .keyframe import MIN_STEREO_POINTS
-from .motion import pnp_ransac, pose_from_rvec
 
 LOOP_ORB_LEVELS = 8  # ORB pyramid levels of the loop keypoints
 LOOP_ORB_SCALE = 1.2  # ORB pyramid ratio between levels
@@ -56,17 +56,17 @@ class LoopMatch:
 
 
 def detect_loop_keypoints(
-    img: np.ndarray, cfg: FrontendConfig, n: int | None = None
+    img: np.ndarray, cfg: VerificationConfig, n: int | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Multi-scale keypoints for loops: (uv float32 (N,2), descriptors, size float32 (N,)).
 
-    ``loop_detector`` "orb": ORB's own pyramid (``LOOP_ORB_LEVELS`` levels, ratio
+    ``detector`` "orb": ORB's own pyramid (``LOOP_ORB_LEVELS`` levels, ratio
     ``LOOP_ORB_SCALE``), descriptors computed upright (angle 0: the cameras do not roll, and
     skipping the orientation makes descriptors of a place seen again more alike); "sift": SIFT
     from the image's own resolution. Strongest first, ties by position (deterministic).
     """
     n = LOOP_ORB_FEATURES if n is None else n
-    if cfg.loop_detector == "sift":
+    if cfg.detector == "sift":
         sift = cv2.SIFT.create(n)
         half = cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2), interpolation=cv2.INTER_AREA)
         kps, desc = sift.detectAndCompute(half, None)
@@ -90,7 +90,7 @@ def detect_loop_keypoints(
     if desc is None or not kps:
         return np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8), np.zeros(0, np.float32)
     uv = np.array([k.pt for k in kps], np.float32)
-    if cfg.loop_subpixel_px > 0:
+    if cfg.subpixel_px > 0:
         uv = _subpixel(img, uv, np.array([k.octave for k in kps]), cfg)
     size = np.array([k.size for k in kps], np.float32)
     resp = np.array([k.response for k in kps], np.float32)
@@ -98,16 +98,16 @@ def detect_loop_keypoints(
     return uv[order], np.ascontiguousarray(desc[order], np.uint8), size[order]
 
 
-def _subpixel(img: np.ndarray, uv: np.ndarray, octave: np.ndarray, cfg: FrontendConfig) -> np.ndarray:
+def _subpixel(img: np.ndarray, uv: np.ndarray, octave: np.ndarray, cfg: VerificationConfig) -> np.ndarray:
     """FAST corners found on a pyramid level sit on that level's pixel grid (up to
     ``LOOP_ORB_SCALE``^octave px off at full resolution): refine each at full resolution by
-    ``cv2.cornerSubPix`` with a half-window of ``loop_subpixel_px`` x scale^octave, and keep the
+    ``cv2.cornerSubPix`` with a half-window of ``subpixel_px`` x scale^octave, and keep the
     original where the refinement moved farther than that half-window."""
     out = uv.copy()
     crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 20, 0.01)
     for o in np.unique(octave):
         sel = np.flatnonzero(octave == o)
-        half = max(2, int(round(cfg.loop_subpixel_px * LOOP_ORB_SCALE ** int(o))))
+        half = max(2, int(round(cfg.subpixel_px * LOOP_ORB_SCALE ** int(o))))
         pts = uv[sel].reshape(-1, 1, 2).copy()
         ref = cv2.cornerSubPix(img, pts, (half, half), (-1, -1), crit).reshape(-1, 2)
         ok = np.all(np.isfinite(ref), 1) & (np.abs(ref - uv[sel]).max(1) <= half)
@@ -230,13 +230,14 @@ def verify_features(
     cur_frame: StereoFrame | None,
     camera: StereoCamera,
     cfg: FrontendConfig,
+    vcfg: VerificationConfig,
     offset_px: float = 0.0,
     unique: bool = False,
 ) -> LoopMatch | None:
     """Verify a loop from the reference's 3D points to the current frame's keypoints.
 
     Ratio-test matches, PnP RANSAC (``pnp_ransac``), then, with ``cur_frame`` and
-    ``loop_depth_check_px`` > 0, the inliers' stereo disparity in the current frame must agree
+    ``vcfg.depth_check_px`` > 0, the inliers' stereo disparity in the current frame must agree
     with their predicted one within that many pixels; at least ``min_inliers`` must pass both
     and at least ``LOOP_DEPTH_MIN_RATIO`` of the inliers that have a current disparity. The pose
     must be :func:`plausible`. None if anything fails. ``unique`` as in :func:`ratio_matches`.
@@ -246,13 +247,13 @@ def verify_features(
         return None
     T_cur_ref, ia, ib, inl = found
     pts, uv = ref.pts3d[ia[inl]], cur.uv[ib[inl]]
-    if cur_frame is not None and cfg.loop_depth_check_px > 0:
+    if cur_frame is not None and vcfg.depth_check_px > 0:
         Xc = pts.astype(np.float64) @ T_cur_ref[:3, :3].T + T_cur_ref[:3, 3]
         d_pred = camera.fx * camera.baseline_m / np.maximum(Xc[:, 2], 1e-6)
         d_raw = sparse_disparity(cur_frame.left, cur_frame.right, uv, cfg)
         d_meas = correct_disparity(d_raw, uv[:, 0], offset_px, camera)
         has = d_meas > 0
-        agree = has & (np.abs(d_meas - d_pred) <= cfg.loop_depth_check_px)
+        agree = has & (np.abs(d_meas - d_pred) <= vcfg.depth_check_px)
         if int(agree.sum()) < cfg.min_inliers or agree.sum() < LOOP_DEPTH_MIN_RATIO * max(int(has.sum()), 1):
             return None
         pts, uv = pts[agree], uv[agree]
@@ -274,7 +275,7 @@ def verify_features(
 
 
 class LoopFeatureBank:
-    """Loop features of reference frames (every ``loop_reference_every``-th stream position) and
+    """Loop features of reference frames (every ``reference_every``-th stream position) and
     of the current frame on demand. Memory per reference: N x (8 + 12 + descriptor) bytes.
 
     A reference's features are computed on one worker thread (OpenCV releases the GIL), off the
@@ -283,9 +284,9 @@ class LoopFeatureBank:
 
     merged = False  # a reference holds one frame's points (verify with ``unique`` when True)
 
-    def __init__(self, camera: StereoCamera, cfg: FrontendConfig, background: bool = True):
+    def __init__(self, camera: StereoCamera, cfg: FrontendConfig, vcfg: VerificationConfig, background: bool = True):
         self.camera = camera
-        self.cfg = cfg
+        self.cfg, self.vcfg = cfg, vcfg  # stereo depth; the keypoints and references
         self._ref: dict[int, FrameFeatures] = {}
         self._pending: dict[int, Future] = {}
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="loop-features") if background else None
@@ -302,7 +303,7 @@ class LoopFeatureBank:
         return sum(f.uv.nbytes + f.pts3d.nbytes + f.desc.nbytes for f in self._ref.values())
 
     def wants(self, k: int) -> bool:
-        return k % self.cfg.loop_reference_every == 0
+        return k % self.vcfg.reference_every == 0
 
     def add(self, k: int, frame: StereoFrame, offset_px: float = 0.0) -> None:
         """Compute and keep reference features for stream position ``k`` if it is one
@@ -316,7 +317,7 @@ class LoopFeatureBank:
 
     def _compute(self, left: np.ndarray, right: np.ndarray, offset_px: float) -> FrameFeatures | None:
         t0 = time.perf_counter()
-        uv, desc, _ = detect_loop_keypoints(left, self.cfg)
+        uv, desc, _ = detect_loop_keypoints(left, self.vcfg)
         idx, pts = stereo_points(left, right, uv, self.camera, self.cfg, offset_px)
         self.t_reference_ms += (time.perf_counter() - t0) * 1000.0
         if len(idx) < MIN_STEREO_POINTS:
@@ -349,7 +350,7 @@ class LoopFeatureBank:
     def nearest(self, k: int) -> int | None:
         """The stored reference nearest to stream position ``k`` (ties: the older), or None."""
         self._collect()
-        e = self.cfg.loop_reference_every
+        e = self.vcfg.reference_every
         base = k - k % e
         for c in (base, base + e, base - e, base + 2 * e) if k - base <= e // 2 else (base + e, base, base + 2 * e, base - e):
             if c in self._ref:
@@ -359,7 +360,7 @@ class LoopFeatureBank:
     def query(self, k: int, frame: StereoFrame) -> FrameFeatures:
         """The current frame's keypoints and descriptors (no depth), computed once per ``k``."""
         if self._query_k != k or self._query is None:
-            uv, desc, _ = detect_loop_keypoints(frame.left, self.cfg, LOOP_QUERY_FEATURES)
+            uv, desc, _ = detect_loop_keypoints(frame.left, self.vcfg, LOOP_QUERY_FEATURES)
             self._query = FrameFeatures(uv, np.zeros((len(uv), 3), np.float32), desc)
             self._query_k = k
         return self._query

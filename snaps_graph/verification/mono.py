@@ -4,8 +4,8 @@ One camera sees no depth, and two views of one street fit an essential matrix wh
 distance apart (docs/odometry-input.md). So a reference frame's SIFT keypoints are triangulated
 against a later frame of the same pass at least ``BASELINE_M`` away along the odometry (over a
 metre or two its motion is metric and close to exact), and a candidate is then verified like a
-stereo one (``loop_features.verify_features``): PnP RANSAC of those points on the current
-frame's keypoints gives a metric relative pose, refused beyond ``loop_max_distance_m``.
+stereo one (``features.verify_features``): PnP RANSAC of those points on the current
+frame's keypoints gives a metric relative pose, refused beyond ``verification.max_distance_m``.
 Triangulation keeps only a tenth of a frame's keypoints, so a reference is verified with its
 neighbouring references' points too (a local map, as ORB-SLAM3 verifies against covisible
 keyframes), each matched keypoint of the current frame counted once.
@@ -20,12 +20,12 @@ import cv2
 import numpy as np
 
 from ..camera import StereoCamera
-from ..config import FrontendConfig
+from ..config import FrontendConfig, VerificationConfig
+from ..frontend.keyframe import MIN_STEREO_POINTS
+from ..frontend.motion import RANSAC_SEED
 from ..geometry import inv
 from ..types import FrameFeatures, StereoFrame
-from .keyframe import MIN_STEREO_POINTS
-from .loop_features import LOOP_QUERY_FEATURES, LOOP_RATIO_TEST, LoopFeatureBank, detect_loop_keypoints, ratio_matches
-from .motion import RANSAC_SEED
+from .features import LOOP_QUERY_FEATURES, LOOP_RATIO_TEST, LoopFeatureBank, detect_loop_keypoints, ratio_matches
 
 BASELINE_M = 1.0  # a reference is triangulated against the first later frame this far along the odometry
 MAX_PARTNER_FRAMES = 30  # ...arriving within this many frames, else the reference is dropped (a camera at rest)
@@ -38,10 +38,10 @@ DETECTOR: Literal["orb", "sift"] = "sift"  # monocular verification's features (
 
 
 def two_view_features(
-    img: np.ndarray, cfg: FrontendConfig, n: int | None = None, detector: Literal["orb", "sift"] = DETECTOR
+    img: np.ndarray, cfg: VerificationConfig, n: int | None = None, detector: Literal["orb", "sift"] = DETECTOR
 ) -> FrameFeatures:
     """Keypoints and descriptors of one image (no depth)."""
-    uv, desc, _ = detect_loop_keypoints(img, dataclasses.replace(cfg, loop_detector=detector), n)
+    uv, desc, _ = detect_loop_keypoints(img, dataclasses.replace(cfg, detector=detector), n)
     return FrameFeatures(uv, np.zeros((len(uv), 3), np.float32), desc)
 
 
@@ -123,8 +123,8 @@ class MonoFeatureBank(LoopFeatureBank):
 
     merged = True  # a reference is a local map: one physical point may be there several times
 
-    def __init__(self, camera: StereoCamera, cfg: FrontendConfig):
-        super().__init__(camera, cfg, background=False)
+    def __init__(self, camera: StereoCamera, cfg: FrontendConfig, vcfg: VerificationConfig):
+        super().__init__(camera, cfg, vcfg, background=False)
         self._waiting: dict[int, tuple[FrameFeatures, np.ndarray]] = {}  # reference -> (its keypoints, its pose)
         self._pose: dict[int, np.ndarray] = {}  # stored reference -> its odometry pose
 
@@ -133,7 +133,7 @@ class MonoFeatureBank(LoopFeatureBank):
 
     def observe(self, k: int, frame: StereoFrame, pose: np.ndarray) -> None:
         """Take stream position ``k`` with its odometry pose (T_world_camera, 4x4)."""
-        cur = two_view_features(frame.left, self.cfg, REFERENCE_FEATURES) if self.wants(k) else None
+        cur = two_view_features(frame.left, self.vcfg, REFERENCE_FEATURES) if self.wants(k) else None
         for j in sorted(self._waiting):
             feat_j, pose_j = self._waiting[j]
             T_j_k = inv(pose_j) @ pose
@@ -142,7 +142,7 @@ class MonoFeatureBank(LoopFeatureBank):
                     del self._waiting[j]
                 continue
             if cur is None:
-                cur = two_view_features(frame.left, self.cfg, REFERENCE_FEATURES)
+                cur = two_view_features(frame.left, self.vcfg, REFERENCE_FEATURES)
             del self._waiting[j]
             self._keep(j, triangulate(feat_j, cur, T_j_k, self.camera, self.cfg))
             self._pose[j] = pose_j
@@ -156,7 +156,7 @@ class MonoFeatureBank(LoopFeatureBank):
         own = self._ref.get(k)
         if own is None or k not in self._pose:
             return own
-        e = self.cfg.loop_reference_every
+        e = self.vcfg.reference_every
         parts = [own]
         for n in [k + s * d * e for d in range(1, NEIGHBOURS + 1) for s in (-1, 1)]:
             other = self._ref.get(n)
@@ -180,6 +180,6 @@ class MonoFeatureBank(LoopFeatureBank):
 
     def query(self, k: int, frame: StereoFrame) -> FrameFeatures:
         if self._query_k != k or self._query is None:
-            self._query = two_view_features(frame.left, self.cfg, LOOP_QUERY_FEATURES)
+            self._query = two_view_features(frame.left, self.vcfg, LOOP_QUERY_FEATURES)
             self._query_k = k
         return self._query
