@@ -48,7 +48,7 @@ def replay(run: Path, cfg: Config, verbose: bool) -> np.ndarray:
         tex[k] = tex[k_of[lp["reference"]]]
     lc = cfg.loop
     lc.thumbnail_scale, lc.search, lc.radius_m, lc.max_yaw_deg, lc.attempts = 1.0, "radius", 1e4, 180.0, 1000
-    lc.search_max_radius_m, lc.window, lc.shift_px, lc.pause_closer_ratio = 1e4, 8, 0, 0.0
+    lc.search_max_radius_m, lc.window, lc.shift_px, lc.pause_graph_loops = 1e4, 8, 0, False
     closer = SnapsLoopCloser(lc, cfg.odometry)
     for k in range(len(vo)):
         T_rel = np.eye(4) if k == 0 else inv(vo[k - 1]) @ vo[k]

@@ -261,10 +261,8 @@ class LoopConfig(Section):
     discount_span_factor: float = _f(1.0, "span window = this x (N - j) frames", _pos(1000))
     discount_length_max: int = _f(1000, "longest span window, frames", _nn(MAX_FRAMES))
     discount_shape: Literal["paper", "linear"] = _f("linear", "gamma over the window: paper (eq. 6) or a linear ramp")
-    pause_closer_ratio: float = _f(
-        0.5,
-        "in the pause, candidates closer than this x the last loop's distance are searched (0 = off)",
-        Range(0, 1, hi_open=True),
+    pause_graph_loops: bool = _f(
+        True, "in the pause, verified loops still go to the factor graph, eq. 6 not applied (false = the paper's pause)"
     )
 
     def _cross_checks(self, source: str) -> None:

@@ -40,6 +40,7 @@ def cfg(**kw) -> LoopConfig:
         discount_window="fixed",  # the paper's window K and gamma (span/shapes: test_loop_features)
         discount_shape="paper",
         search="radius",  # the paper's fixed radius (the drift gate: own tests)
+        pause_graph_loops=False,  # the paper's pause (graph-only loops inside it: own tests)
     )
     base.update(kw)
     return LoopConfig(**base)
@@ -495,8 +496,6 @@ def test_eq6_options_validated():
         SnapsLoopCloser(cfg(search="grid"))
     with pytest.raises(SnapsGraphError, match="search_max_radius_m"):
         SnapsLoopCloser(cfg(search_max_radius_m=1.0))
-    with pytest.raises(SnapsGraphError, match="pause_closer_ratio"):
-        SnapsLoopCloser(cfg(pause_closer_ratio=1.0))
 
 
 def test_eq6_never_moves_the_reference_or_older_frames():
@@ -555,41 +554,51 @@ def test_bend_undoes_a_constant_heading_drift():
     assert yaw_deg(closer.poses[36]) == pytest.approx(0.0, abs=1e-6)
 
 
-def _pause_case(ratio: float, second_z: float, measured_z: float | None = None):
+def _pause_case(graph_loops: bool, second_z: float, verifies: bool = True, require_verification: bool = True):
     """Frames 0..4 lie 20 m apart; frame 5 (z = 4) revisits frame 0 and verifies at 4 m, which
     starts the pause (10 frames); frame 6 (z = second_z) looks like frame 0 as well and verifies
-    at measured_z (default: its true distance)."""
-    closer = SnapsLoopCloser(cfg(inter_frame_pause=10, pause_closer_ratio=ratio, correction_weight="verified"))
+    at its true distance (or, ``verifies`` False, does not verify)."""
+    closer = SnapsLoopCloser(
+        cfg(
+            inter_frame_pause=10,
+            pause_graph_loops=graph_loops,
+            correction_weight="verified",
+            require_verification=require_verification,
+        )
+    )
     poses = [pose(z=20.0 * k) for k in range(5)] + [pose(z=4.0), pose(z=second_z)]
     images = [tex(k) for k in range(5)] + [tex(0) // 2, tex(0) // 2]
-    meas = {5: pose(z=4.0), 6: pose(z=second_z if measured_z is None else measured_z)}
+    meas = {5: pose(z=4.0), 6: pose(z=second_z) if verifies else None}
     steps = []
     for k in range(7):
         T_rel = np.eye(4) if k == 0 else inv(poses[k - 1]) @ poses[k]
-        steps.append(closer.step(k, T_rel, images[k], verify=cast(Verifier, lambda ref, k=k: (meas[k], 50))))
+        steps.append(
+            closer.step(k, T_rel, images[k], verify=cast(Verifier, lambda ref, k=k: None if meas[k] is None else (meas[k], 50)))
+        )
     assert steps[5].loop is not None and steps[5].loop.reference == 0
     return steps, closer
 
 
-def test_pause_closer_ratio():
-    steps, closer = _pause_case(0.0, 1.0)  # the paper's pause: no search at all
+def test_pause_graph_loops():
+    steps, closer = _pause_case(False, 3.0)  # the paper's pause: no search at all
     assert steps[6].candidates == 0 and steps[6].loop is None
     p6 = closer.positions[6].copy()
-    steps, closer = _pause_case(0.5, 1.0)  # 1 m < 0.5 * 4 m: searched, verified, a graph-only loop
+    steps, closer = _pause_case(True, 3.0)  # searched, verified: a graph-only loop
     ev = steps[6].loop
     assert ev is not None and ev.reference == 0 and ev.verified and ev.weight == 0.0 and ev.n_corrected == 0
     assert closer.last_pinned == 5 and ev.alpha == 1  # not pinned, not counted by eq. 6
     np.testing.assert_array_equal(closer.positions[6], p6)  # the trajectory is the paper pause's
-    steps, _ = _pause_case(0.5, 3.0)  # estimated 3 m: not clearly closer, nothing compared
-    assert steps[6].candidates == 0
-    steps, closer = _pause_case(0.5, 1.0, measured_z=2.5)  # verification measures 2.5 m: no loop
+    steps, closer = _pause_case(True, 3.0, verifies=False)  # compared, not verified: no loop
     assert steps[6].candidates == 1 and steps[6].loop is None and closer.last_pinned == 5
+    # even where the paper's rule takes an unverified loop, the pause does not
+    steps, closer = _pause_case(True, 3.0, verifies=False, require_verification=False)
+    assert steps[6].candidates == 1 and steps[6].loop is None
 
 
 def test_closer_loop_keeps_the_pause_of_the_loop_that_started_it():
     """A closer (graph-only) loop inside the pause does not restart it: frame 16 (11 frames after
     the loop at 5, pause 10) searches normally although frame 6 closed a closer loop."""
-    closer = SnapsLoopCloser(cfg(inter_frame_pause=10, pause_closer_ratio=0.5, correction_weight="verified"))
+    closer = SnapsLoopCloser(cfg(inter_frame_pause=10, pause_graph_loops=True, correction_weight="verified"))
     poses = [pose(z=20.0 * k) for k in range(5)] + [pose(z=4.0), pose(z=1.0)] + [pose(z=200.0 + 20 * k) for k in range(9)]
     poses.append(pose(z=20.5))  # frame 16 revisits frame 1
     images = [tex(k) for k in range(5)] + [tex(0) // 2, tex(0) // 2] + [tex(10 + k) for k in range(9)] + [tex(1) // 2]

@@ -10,9 +10,9 @@
    Q ≥ minimum similarity are, highest Q first, the loop. With a verifier (the pipeline always has
    one), they are tried in that order and the first that passes geometric verification is the
    loop; with ``require_verification`` none passing means no loop (see :meth:`_try_close`).
-   With ``pause_closer_ratio`` r > 0 the pause still searches candidates estimated closer than r
-   times the last loop's distance; one verified closer than that is a loop for the factor graph
-   only (weight 0, nothing corrected, the pause keeps running from the loop that started it);
+   With ``pause_graph_loops`` the pause still searches candidates; one that verifies is a loop
+   for the factor graph only (weight 0, nothing corrected, the pause keeps running from the loop
+   that started it);
 4. on a loop corrects the trajectory by eq. 6 (correction.py); the current frame becomes the last
    pinned frame.
 
@@ -197,14 +197,11 @@ class SnapsLoopCloser(CandidateSearch, Correction):
             if ids.size:
                 pick = self._pick(len(ids))
                 loop, computed = self._try_close(n, ids[pick], dists[pick], verify)
-        elif self.cfg.pause_closer_ratio > 0.0:  # in the pause: only a clearly closer revisit
+        elif self.cfg.pause_graph_loops:  # in the pause: verified revisits for the graph
             ids, dists = self.search(n)
             if ids.size:
-                limit = self.cfg.pause_closer_ratio * self._pinned_distance
-                keep = dists < limit
-                if keep.any():
-                    a = self.cfg.attempts
-                    loop, computed = self._try_close(n, ids[keep][:a], dists[keep][:a], verify, limit)
+                a = self.cfg.attempts
+                loop, computed = self._try_close(n, ids[:a], dists[:a], verify, in_pause=True)
         # Verification (tried or successful) is the graph's work, timed on its own.
         t_verify_ms, self._t_verify_ms = self._t_verify_ms, 0.0
         t_ms = (perf_counter() - t0) * 1e3 - t_verify_ms
@@ -214,11 +211,10 @@ class SnapsLoopCloser(CandidateSearch, Correction):
 
     # ---- candidates ----
     def _try_close(
-        self, n: int, ids: np.ndarray, dists: np.ndarray, verify: Verifier | None = None, max_distance: float | None = None
+        self, n: int, ids: np.ndarray, dists: np.ndarray, verify: Verifier | None = None, in_pause: bool = False
     ) -> tuple[LoopEvent | None, int]:
-        """Compare candidates, pick the loop, correct (eq. 6). With ``max_distance`` (a search
-        inside the pause) a verification measuring the reference that far away or farther does
-        not make a loop.
+        """Compare candidates, pick the loop, correct (eq. 6). ``in_pause``: only a verified
+        candidate makes a loop, and it goes to the graph without correcting.
 
         δ aims at the reference position p_ref (the paper's same-place assumption). With
         ``use_verified_offset`` and a verifier that succeeds, δ aims instead at where the current
@@ -252,7 +248,7 @@ class SnapsLoopCloser(CandidateSearch, Correction):
             tv = perf_counter()
             for i in passing[: max(1, self.cfg.verify_attempts)]:
                 outcome[i] = result = verify(int(self._index[int(ids[i])]))
-                if result is not None and (max_distance is None or np.linalg.norm(result[0][:3, 3]) < max_distance):
+                if result is not None:
                     best, (T_ref_cur, inliers), verified = i, result, True
                     break
             if self.cfg.verify_all_candidates:
@@ -261,7 +257,7 @@ class SnapsLoopCloser(CandidateSearch, Correction):
                         outcome[i] = verify(int(self._index[int(ids[i])]))
             t_verify_ms = (perf_counter() - tv) * 1e3
             self._t_verify_ms = t_verify_ms
-        accept = bool(passing) and (verified or verify is None or not self.cfg.require_verification)
+        accept = bool(passing) and (verified or (not in_pause and (verify is None or not self.cfg.require_verification)))
         if passing and not accept:
             self.rejected_unverified += 1
         self._record(n, ids, dists, qs, shifts, outcome, best if accept else -1)
@@ -277,7 +273,6 @@ class SnapsLoopCloser(CandidateSearch, Correction):
         delta = target - self._p[n]
         if self.cfg.correction_axes == "ground":  # the reference's height error stays out
             delta[1] = 0.0
-        in_pause = max_distance is not None  # a closer revisit inside the pause: for the graph only
         rotvec = None
         if verified and self.cfg.correction_rotation != "none" and not in_pause:
             gain = self._gain((n - ref) * self.cfg.heading_drift_deg**2)
