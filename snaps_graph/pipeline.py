@@ -117,7 +117,11 @@ class SlamPipeline:
 
         self.camera = camera
         self.vo: FrontEnd = frontend if frontend is not None else StereoOdometry(camera, self.cfg.frontend)
-        self.snaps = SnapsLoopCloser(self.cfg.loop, self.cfg.odometry) if self.loops_mode == "snaps" else None
+        self.snaps = (
+            SnapsLoopCloser(self.cfg.loop, self.cfg.odometry, self.cfg.verification.reference_every)
+            if self.loops_mode == "snaps"
+            else None
+        )
         self.graph = PoseGraph(self.cfg.graph, mode="isam2" if self.refine == "both" else self.refine)
         self.map = FusedMap(camera, self.cfg.map) if self.cfg.map.enabled else None
         if loop_features is None and self.snaps is not None:

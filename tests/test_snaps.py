@@ -554,7 +554,9 @@ def test_bend_undoes_a_constant_heading_drift():
     assert yaw_deg(closer.poses[36]) == pytest.approx(0.0, abs=1e-6)
 
 
-def _pause_case(graph_loops: bool, second_z: float, verifies: bool = True, require_verification: bool = True):
+def _pause_case(
+    graph_loops: bool, second_z: float, verifies: bool = True, require_verification: bool = True, pause_every: int = 1
+):
     """Frames 0..4 lie 20 m apart; frame 5 (z = 4) revisits frame 0 and verifies at 4 m, which
     starts the pause (10 frames); frame 6 (z = second_z) looks like frame 0 as well and verifies
     at its true distance (or, ``verifies`` False, does not verify)."""
@@ -564,7 +566,8 @@ def _pause_case(graph_loops: bool, second_z: float, verifies: bool = True, requi
             pause_graph_loops=graph_loops,
             correction_weight="verified",
             require_verification=require_verification,
-        )
+        ),
+        pause_every=pause_every,
     )
     poses = [pose(z=20.0 * k) for k in range(5)] + [pose(z=4.0), pose(z=second_z)]
     images = [tex(k) for k in range(5)] + [tex(0) // 2, tex(0) // 2]
@@ -590,6 +593,10 @@ def test_pause_graph_loops():
     np.testing.assert_array_equal(closer.positions[6], p6)  # the trajectory is the paper pause's
     steps, closer = _pause_case(True, 3.0, verifies=False)  # compared, not verified: no loop
     assert steps[6].candidates == 1 and steps[6].loop is None and closer.last_pinned == 5
+    steps, _ = _pause_case(True, 3.0, pause_every=2)  # one frame into the pause: not its turn
+    assert steps[6].candidates == 0 and steps[6].loop is None
+    with pytest.raises(SnapsGraphError, match="pause_every"):
+        SnapsLoopCloser(cfg(), pause_every=0)
     # even where the paper's rule takes an unverified loop, the pause does not
     steps, closer = _pause_case(True, 3.0, verifies=False, require_verification=False)
     assert steps[6].candidates == 1 and steps[6].loop is None

@@ -10,7 +10,8 @@
    Q ≥ minimum similarity are, highest Q first, the loop. With a verifier (the pipeline always has
    one), they are tried in that order and the first that passes geometric verification is the
    loop; with ``require_verification`` none passing means no loop (see :meth:`_try_close`).
-   With ``pause_graph_loops`` the pause still searches candidates; one that verifies is a loop
+   With ``pause_graph_loops`` the pause still searches candidates (every ``pause_every``-th
+   frame); one that verifies is a loop
    for the factor graph only (weight 0, nothing corrected, the pause keeps running from the loop
    that started it);
 4. on a loop corrects the trajectory by eq. 6 (correction.py); the current frame becomes the last
@@ -68,7 +69,13 @@ class SnapsStep:
 class SnapsLoopCloser(CandidateSearch, Correction):
     """Real-time SNAPS loop closer and owner of the heuristic trajectory (no I/O inside)."""
 
-    def __init__(self, cfg: LoopConfig | None = None, odometry: OdometryConfig | None = None):
+    def __init__(self, cfg: LoopConfig | None = None, odometry: OdometryConfig | None = None, pause_every: int = 1):
+        """``pause_every``: in the pause, a graph-only loop is searched every this many frames
+        (the verifier's reference spacing: loops measured against one stored reference share its
+        errors, and the graph would count them as independent)."""
+        if pause_every < 1:
+            raise SnapsGraphError(f"SNAPS: pause_every must be >= 1, got {pause_every}")
+        self.pause_every = int(pause_every)
         self.cfg = cfg if cfg is not None else LoopConfig()
         self.cfg.validate()
         self.odometry = odometry if odometry is not None else OdometryConfig()
@@ -197,7 +204,7 @@ class SnapsLoopCloser(CandidateSearch, Correction):
             if ids.size:
                 pick = self._pick(len(ids))
                 loop, computed = self._try_close(n, ids[pick], dists[pick], verify)
-        elif self.cfg.pause_graph_loops:  # in the pause: verified revisits for the graph
+        elif self.cfg.pause_graph_loops and (n - self._pause_from) % self.pause_every == 0:  # verified revisits for the graph
             ids, dists = self.search(n)
             if ids.size:
                 a = self.cfg.attempts
