@@ -139,13 +139,19 @@ def metrics_table(per_traj: dict[str, dict]) -> str:
     return "\n".join(lines)
 
 
+def loops_text(metrics: dict) -> str:
+    """ "12 loops (4 corrected the heuristic)": the others are the graph's only."""
+    n, c = metrics["loops"], metrics.get("loops_corrected")
+    return f"{n} loops" + (f" ({c} corrected the heuristic)" if c is not None and c != n else "")
+
+
 def print_summary(metrics: dict, out: Path, wall_rate: float | None = None, partial: bool = False) -> None:
     """The run's summary. ``wall_rate``: frames/s on the wall clock over the frames (the progress
     line's); ``partial``: a ``--frames`` range (its ground truth is poses_gt.txt, not the official file)."""
     lat = metrics.get("latency_ms", {})
     fps = lat.get("frames_per_s")
     typer.echo(
-        f"{metrics['frames']} frames ({metrics.get('flagged_frames', 0)} flagged), {metrics['loops']} loops, "
+        f"{metrics['frames']} frames ({metrics.get('flagged_frames', 0)} flagged), {loops_text(metrics)}, "
         f"median {fmt(lat.get('total', {}).get('median'), 1)} ms/frame"
         + (f" ({fps:.1f} frames/s processing)" if fps else "")
         + (f", wall {wall_rate:.1f} frames/s" if wall_rate else "")

@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 from .config import Config
+from .console import loops_text
 from .datasets.kitti import KittiSequence
 from .evaluation.report import compare_run
 from .io_utils import check_output_folder, output_folder
@@ -60,7 +61,7 @@ def run_demo(
     lat = metrics["latency_ms"]
     print(
         f"demo: rendered {len(synth)} stereo pairs in {t_render:.1f} s; SLAM at {lat['frames_per_s']:.1f} frames/s "
-        f"({t_run:.1f} s), {metrics['frames']} frames ({metrics['flagged_frames']} flagged), {metrics['loops']} loops closed"
+        f"({t_run:.1f} s), {metrics['frames']} frames ({metrics['flagged_frames']} flagged), {loops_text(metrics)} closed"
     )
     for name, m in metrics.get("trajectories", {}).items():
         print(f"  {name:<6} mean deviation {m['mean_deviation']:.3f} m   ATE {m['ate_rmse']:.3f} m")

@@ -167,6 +167,8 @@ def run_metrics(result: RunResult, gt_poses: np.ndarray | None, graph_failures: 
         "frames": n,
         "flagged_frames": result.n_flagged,
         "loops": len(result.loops),
+        # the rest went to the factor graph only (found inside the pause after a loop)
+        "loops_corrected": sum(1 for lp in result.loops if lp.weight > 0.0),
         "wall_s": result.wall_s,
     }
     if gt_poses is not None:

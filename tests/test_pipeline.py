@@ -223,5 +223,8 @@ def test_demo_smoke(tmp_path):
         assert (run / name).is_file(), name
     metrics = json.loads((run / "metrics.json").read_text())
     dev = {name: m["mean_deviation"] for name, m in metrics["trajectories"].items()}
-    assert metrics["loops"] >= 1
+    assert metrics["loops"] >= 1 and 1 <= metrics["loops_corrected"] <= metrics["loops"]
+    loops = [json.loads(line) for line in (run / "loops.jsonl").read_text().splitlines()]
+    assert metrics["loops_corrected"] == sum(lp["weight"] > 0 for lp in loops)  # the rest: graph only, in the pause
+    assert f"{metrics['loops']} loops" in proc.stdout
     assert dev["snaps"] < dev["vo"] and dev["isam2"] < dev["snaps"], dev
