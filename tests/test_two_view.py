@@ -112,17 +112,25 @@ def test_known_rig_on_real_images():
     assert np.linalg.norm(m.T_ref_cur[:3, 3] - [seq.camera.baseline_m, 0.0, 0.0]) < 0.06
 
 
-def test_real_revisit_pair_and_a_street_apart():
-    """kitti00_loop: 1600 against the first pass's 155 (within 2 m) verifies, along-track sign as
-    the truth's; against 140 (16 m back along the same street) it does not pass as the same place."""
+def _revisit_bank(first: int, stop: int) -> tuple[KittiSequence, dict[int, int], MonoFeatureBank]:
+    """kitti00_loop with a monocular bank of its first-pass frames first..stop-1 (the truth as
+    odometry), and frame number -> stream position."""
     _need(LOOP_SEQ)
     seq = KittiSequence(LOOP_SEQ)
     assert seq._gt_all is not None
     idx = {int(f): i for i, f in enumerate(seq.indices)}
-    cfg, vcfg = Config().frontend, Config().verification
-    bank = MonoFeatureBank(seq.camera, cfg, vcfg)
-    for f in range(135, 170):
+    bank = MonoFeatureBank(seq.camera, Config().frontend, Config().verification)
+    for f in range(first, stop):
         bank.observe(idx[f], seq[idx[f]], seq._gt_all[idx[f]])
+    return seq, idx, bank
+
+
+def test_real_revisit_pair_and_a_street_apart():
+    """kitti00_loop: 1600 against the first pass's 155 (within 2 m) verifies, along-track sign as
+    the truth's; against 140 (16 m back along the same street) it does not pass as the same place."""
+    seq, idx, bank = _revisit_bank(135, 170)
+    cfg, vcfg = bank.cfg, bank.vcfg
+    assert seq._gt_all is not None
     cur = bank.query(idx[1600], seq[idx[1600]])
     G = {f: seq._gt_all[idx[f]] for f in (140, 155, 1600)}
     m = verify_features(bank.reference(idx[155]), cur, None, seq.camera, cfg, vcfg, unique=True)
@@ -165,14 +173,9 @@ def test_revisit_entry_verifies_with_the_local_map():
     """kitti00_loop: frame 1577 enters the street 6 deg turned and 1.1 m aside of the first
     pass's 135; that reference's own triangulated points give too few inliers, its local map
     enough, at the truth's distance within half a metre."""
-    _need(LOOP_SEQ)
-    seq = KittiSequence(LOOP_SEQ)
+    seq, idx, bank = _revisit_bank(125, 165)
+    cfg, vcfg = bank.cfg, bank.vcfg
     assert seq._gt_all is not None
-    idx = {int(f): i for i, f in enumerate(seq.indices)}
-    cfg, vcfg = Config().frontend, Config().verification
-    bank = MonoFeatureBank(seq.camera, cfg, vcfg)
-    for f in range(125, 165):
-        bank.observe(idx[f], seq[idx[f]], seq._gt_all[idx[f]])
     cur = bank.query(idx[1577], seq[idx[1577]])
     own = bank._ref[idx[135]]
     assert verify_features(own, cur, None, seq.camera, cfg, vcfg, unique=True) is None
