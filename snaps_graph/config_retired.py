@@ -59,7 +59,7 @@ RETIRED |= {
     "loop.correction_model": 'a verified heading turn always bends eq. 6\'s window ("shift" measured worse)',
     "loop.heading_prior": 'the heading prior is the drift since the reference ("tracked" measured no better)',
     "loop.ramp": "eq. 6's ramp follows the distance driven (by frame count measured worse)",
-    "loop.pause_closer_ratio": "loop.pause_graph_loops gives the graph every verified loop in the pause (closer only measured worse)",
+    "loop.pause_closer_ratio": "loop.pause_graph_loops gives the graph the verified loops inside the pause (closer ones only measured worse)",
 }
 
 # Settings that are constants in the code now (the module's name in upper case): an older
