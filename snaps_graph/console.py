@@ -139,10 +139,11 @@ def metrics_table(per_traj: dict[str, dict]) -> str:
     return "\n".join(lines)
 
 
-def loops_text(metrics: dict) -> str:
-    """ "12 loops (4 corrected the heuristic)": the others are the graph's only."""
+def loops_text(metrics: dict, verb: str = "") -> str:
+    """ "12 loops (4 corrected the heuristic)": the others are the graph's only. ``verb`` goes
+    after the count ("12 loops closed (4 ...)")."""
     n, c = metrics["loops"], metrics.get("loops_corrected")
-    return f"{n} loops" + (f" ({c} corrected the heuristic)" if c is not None and c != n else "")
+    return f"{n} loops{' ' + verb if verb else ''}" + (f" ({c} corrected the heuristic)" if c is not None and c != n else "")
 
 
 def print_summary(metrics: dict, out: Path, wall_rate: float | None = None, partial: bool = False) -> None:

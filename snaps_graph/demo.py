@@ -61,7 +61,7 @@ def run_demo(
     lat = metrics["latency_ms"]
     print(
         f"demo: rendered {len(synth)} stereo pairs in {t_render:.1f} s; SLAM at {lat['frames_per_s']:.1f} frames/s "
-        f"({t_run:.1f} s), {metrics['frames']} frames ({metrics['flagged_frames']} flagged), {loops_text(metrics)} closed"
+        f"({t_run:.1f} s), {metrics['frames']} frames ({metrics['flagged_frames']} flagged), {loops_text(metrics, 'closed')}"
     )
     for name, m in metrics.get("trajectories", {}).items():
         print(f"  {name:<6} mean deviation {m['mean_deviation']:.3f} m   ATE {m['ate_rmse']:.3f} m")
