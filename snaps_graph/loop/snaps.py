@@ -11,9 +11,8 @@
    one), they are tried in that order and the first that passes geometric verification is the
    loop; with ``require_verification`` none passing means no loop (see :meth:`_try_close`).
    With ``pause_graph_loops`` the pause still searches candidates (every ``pause_every``-th
-   frame); one that verifies is a loop
-   for the factor graph only (weight 0, nothing corrected, the pause keeps running from the loop
-   that started it);
+   frame); one that verifies is a loop for the factor graph only (weight 0, nothing corrected,
+   the pause keeps running from the loop that started it);
 4. on a loop corrects the trajectory by eq. 6 (correction.py); the current frame becomes the last
    pinned frame.
 
@@ -95,7 +94,6 @@ class SnapsLoopCloser(CandidateSearch, Correction):
         self._last_pinned: int | None = None
         self._pause_from = 0  # the loop that started the current pause
         self._alpha = 0  # loops that corrected the trajectory (eq. 6's alpha)
-        self._pinned_distance = 0.0  # distance of the last loop (m)
         self._loops: list[LoopEvent] = []
         self.similarities_computed = 0
         self.rejected_unverified = 0  # loops refused because no candidate verified
@@ -298,7 +296,6 @@ class SnapsLoopCloser(CandidateSearch, Correction):
             self._last_pinned = self._pause_from = n
             if verified:  # the search's uncertainty restarts from this measurement
                 self._last_loop = (n, ref)
-        self._pinned_distance = float(np.linalg.norm(np.asarray(T_ref_cur, float)[:3, 3])) if verified else float(dists[best])
         event = LoopEvent(
             frame=int(self._index[n]),
             reference=int(self._index[ref]),

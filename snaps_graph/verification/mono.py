@@ -144,8 +144,10 @@ class MonoFeatureBank(LoopFeatureBank):
             if cur is None:
                 cur = two_view_features(frame.left, self.vcfg, REFERENCE_FEATURES)
             del self._waiting[j]
-            self._keep(j, triangulate(feat_j, cur, T_j_k, self.camera, self.cfg))
-            self._pose[j] = pose_j
+            points = triangulate(feat_j, cur, T_j_k, self.camera, self.cfg)
+            if points is not None:
+                self._keep(j, points)
+                self._pose[j] = pose_j
         if cur is not None and self.wants(k):
             self._waiting[k] = (cur, np.array(pose, float))
 
