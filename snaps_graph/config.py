@@ -454,15 +454,24 @@ def parse_set(items: list[str] | tuple[str, ...], source: str = "--set") -> dict
             parsed = tomllib.loads(f"v = {value.strip()}")["v"]
         except tomllib.TOMLDecodeError:
             parsed = value.strip()
-        table = data
-        for i, part in enumerate(parts[:-1]):
-            table = table.setdefault(part, {})
-            if not isinstance(table, dict):
-                raise SnapsGraphError(f"{source} {item!r}: {'.'.join(parts[: i + 1])} is a value, not a section")
+        table, bad = _table_at(data, parts[:-1])
+        if table is None:
+            raise SnapsGraphError(f"{source} {item!r}: {bad} is a value, not a section")
         if isinstance(table.get(parts[-1]), dict):
             raise SnapsGraphError(f"{source} {item!r}: {key.strip()} is a section, not a value")
         table[parts[-1]] = parsed
     return data
+
+
+def _table_at(root: dict[str, Any], parts: list[str]) -> tuple[dict[str, Any] | None, str]:
+    """The nested table at the path ``parts`` in ``root`` (created where missing), or (None, the
+    path up to the first part that holds a value, not a table)."""
+    table = root
+    for i, part in enumerate(parts):
+        table = table.setdefault(part, {})
+        if not isinstance(table, dict):
+            return None, ".".join(parts[: i + 1])
+    return table, ""
 
 
 def _moved(data: dict[str, Any], source: str) -> dict[str, Any]:
@@ -486,11 +495,9 @@ def _moved(data: dict[str, Any], source: str) -> dict[str, Any]:
         new = MOVED[old]
         print(f"note: {source}: {old} moved to {new}", file=sys.stderr)
         *parents, name = new.split(".")
-        table = out
-        for i, part in enumerate(parents):
-            table = table.setdefault(part, {})
-            if not isinstance(table, dict):
-                raise SnapsGraphError(f"{source}: [{'.'.join(parents[: i + 1])}] must be a table")
+        table, bad = _table_at(out, parents)
+        if table is None:
+            raise SnapsGraphError(f"{source}: [{bad}] must be a table")
         if name in table:
             raise SnapsGraphError(f"{source}: {old} and {new} are the same setting; give {new} only")
         table[name] = value
