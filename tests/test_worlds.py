@@ -4,9 +4,11 @@ lighting), the world mesh. Small images and few frames: each test takes seconds.
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -47,20 +49,62 @@ def median_depth(seq: SyntheticSequence, frames, above_horizon: bool = False) ->
 
 
 # ---------------------------------------------------------------- street is the original world
-def test_street_renders_bit_identical_to_before_the_scenes():
-    """Digests of frames rendered by the code before scenes and hard worlds existed."""
-    seq = SyntheticSequence(builtin_loop_trajectory(120), width=W, height=H, seed=3)
-    assert digest(seq, [0, 37, 105]) == "fc09e1fe9e819a2b"
+# Ray casting and float rounding differ in the last bits between CPUs (SIMD widths), so the
+# reference is the renders' block statistics, not a digest: a change to the world, its texture,
+# light or noise moves blocks by grey levels; another CPU moves them by far less than the bounds.
+REFERENCE = Path(__file__).parent / "data" / "street_render_reference.json"
+GRID = (4, 8)  # block rows, block columns
+
+
+def block_stats(seq: SyntheticSequence, frames) -> dict[str, list[float]]:
+    """Per frame: left and right block means (grey), depth block means over hit pixels (m), hit fraction."""
+    out: dict[str, list[float]] = {}
+    for i in frames:
+        f = seq.render(i)
+        for name, a in (("left", f.left), ("right", f.right)):
+            blocks = a.astype(np.float64).reshape(GRID[0], a.shape[0] // GRID[0], GRID[1], a.shape[1] // GRID[1])
+            out[f"{i}/{name}"] = blocks.mean((1, 3)).ravel().tolist()
+        d = f.depth.astype(np.float64).reshape(GRID[0], f.depth.shape[0] // GRID[0], GRID[1], f.depth.shape[1] // GRID[1])
+        hit = d > 0
+        out[f"{i}/depth"] = (np.where(hit, d, 0).sum((1, 3)) / np.maximum(hit.sum((1, 3)), 1)).ravel().tolist()
+        out[f"{i}/hit"] = [float(hit.mean())]
+    return out
+
+
+def assert_matches_reference(stats: dict[str, list[float]], key: str) -> None:
+    ref = json.loads(REFERENCE.read_text())[key]
+    assert sorted(stats) == sorted(ref)
+    for name, values in stats.items():
+        got, want = np.array(values), np.array(ref[name])
+        if name.endswith(("left", "right")):
+            assert np.abs(got - want).max() <= 0.25, (key, name, np.abs(got - want).max())
+        elif name.endswith("depth"):
+            assert np.allclose(got, want, rtol=1e-3, atol=1e-3), (key, name)
+        else:
+            assert abs(got[0] - want[0]) <= 0.002, (key, name)
+
+
+def street_loop() -> SyntheticSequence:
+    return SyntheticSequence(builtin_loop_trajectory(120), width=W, height=H, seed=3)
+
+
+def street_kitti00(kitti_gt_dir: Path) -> SyntheticSequence:
+    poses, times = load_trajectory(str(kitti_gt_dir / "00.txt"), "0:300")
+    return SyntheticSequence(poses, width=416, height=128, seed=0, times=times, noise_std=2.0, exposure_change=0.2)
+
+
+def test_street_renders_as_the_reference():
+    """The built-in loop's street renders as it did before scenes and hard worlds existed."""
+    seq = street_loop()
+    assert_matches_reference(block_stats(seq, [0, 37, 105]), "loop")
     explicit = SyntheticSequence(
         builtin_loop_trajectory(120), width=W, height=H, seed=3, world_config=WorldConfig(scene="street")
     )
     assert digest(explicit, [37]) == digest(seq, [37])
 
 
-def test_street_kitti00_bit_identical_with_noise_and_exposure(kitti_gt_dir):
-    poses, times = load_trajectory(str(kitti_gt_dir / "00.txt"), "0:300")
-    seq = SyntheticSequence(poses, width=416, height=128, seed=0, times=times, noise_std=2.0, exposure_change=0.2)
-    assert digest(seq, [0, 150, 299]) == "d89d17808478b408"
+def test_street_kitti00_with_noise_and_exposure_renders_as_the_reference(kitti_gt_dir):
+    assert_matches_reference(block_stats(street_kitti00(kitti_gt_dir), [0, 150, 299]), "kitti00")
 
 
 # ---------------------------------------------------------------- scenes
