@@ -39,10 +39,6 @@ def rotation_angle_deg(R: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
-def is_finite_pose(T: np.ndarray) -> bool:
-    return bool(np.all(np.isfinite(T)))
-
-
 def hat(w: np.ndarray) -> np.ndarray:
     """The skew matrix [w]x (hat(w) @ v = w x v)."""
     return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])

@@ -173,7 +173,7 @@ class PoseGraph:
 
     Public state: ``failures`` (list of (k, reason) for every solver failure or fallback),
     ``loops`` (one :class:`LoopFactorInfo` per :meth:`add_loop` call), ``stats``
-    (:class:`GraphStats`), ``isam2_disabled`` (True once an iSAM2 rebuild failed too).
+    (:class:`GraphStats`).
     """
 
     def __init__(self, cfg: GraphConfig, mode: str | None = None) -> None:
@@ -196,7 +196,6 @@ class PoseGraph:
         self._isam: gtsam.ISAM2 | None = None
         if self.mode == "isam2":
             self._isam = self._new_isam2()
-        self.isam2_disabled = False
         self._pending_factors = gtsam.NonlinearFactorGraph()
         self._pending_values = gtsam.Values()
         self._pending_loops: list[_Loop] = []
@@ -437,7 +436,6 @@ class PoseGraph:
         except RuntimeError as exc:
             self.failures.append((k, f"isam2 rebuild failed, isam2 off: {_one_line(exc)}"))
             self._isam = None
-            self.isam2_disabled = True
 
     def optimize_batch(self) -> np.ndarray:
         """Optimise the whole graph from the initial (heuristic) estimates; returns (N, 4, 4).
@@ -510,10 +508,6 @@ class PoseGraph:
             raise SnapsGraphError(f"graph: set_initial_estimates needs {len(self._initial)} finite 4x4 poses")
         self._initial = [T.copy() for T in poses]
         self._initial_values = _array_to_values(poses)
-
-    def initial_estimates(self) -> np.ndarray:
-        """The initial (heuristic) poses as given to :meth:`add_frame`, (N, 4, 4)."""
-        return self._initial_array()
 
     def save_g2o(self, path: str | Path) -> None:
         """Write the graph and the current estimates as a 3D g2o file, atomically.

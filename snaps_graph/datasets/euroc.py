@@ -243,7 +243,6 @@ class EurocSequence(FrameSelection):
             gt_all = self.rectifier.rect_pose(T_W_B @ self.T_BS0)
         self.gt_path: Path | None = gt_path if gt_all is not None else None
         self._gt_all = gt_all
-        self._stamps_ns = stamps
         self._times_all = (stamps - stamps[0]) * 1e-9  # seconds from the first pair
         self.t0_ns = int(stamps[0])
         self._left, self._right = lefts, rights

@@ -80,11 +80,6 @@ class Correction:
         """Re-file the moved frames lo .. stop-1 in the candidate index (the search's; see search.py)."""
         raise NotImplementedError
 
-    def heading_gain(self, frames: int) -> float:
-        """Share of a verified rotation applied by a loop ``frames`` after its reference: the VO's
-        heading variance over that stretch against the measurement's (config comment)."""
-        return self._gain(frames * self.cfg.heading_drift_deg**2)
-
     def _gain(self, prior: float) -> float:
         """Share of a verified turn applied when the heading's prior variance is ``prior`` deg²."""
         var = prior + self.cfg.verified_heading_sigma_deg**2

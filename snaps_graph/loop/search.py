@@ -133,10 +133,6 @@ class CandidateSearch:
         D = np.asarray(driven, dtype=float)
         return np.hypot(self._drift_a * D, 0.5 * self._drift_b * D * D)
 
-    def _gate(self, driven: np.ndarray | float) -> np.ndarray:
-        cfg = self.cfg
-        return np.clip(cfg.search_sigmas * self.drift_sigma(driven), cfg.radius_m, cfg.search_max_radius_m)
-
     def _search_drift(self, n: int) -> tuple[np.ndarray, np.ndarray]:
         cfg = self.cfg
         last = n - cfg.frame_distance

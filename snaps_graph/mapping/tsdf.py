@@ -51,17 +51,6 @@ class FusedSurface:
     def point_grey(self) -> np.ndarray:
         return self.vertex_grey
 
-    def mesh_o3d(self):
-        import open3d as o3d
-
-        m = o3d.geometry.TriangleMesh()
-        m.vertices = o3d.utility.Vector3dVector(self.vertices.astype(np.float64))
-        m.triangles = o3d.utility.Vector3iVector(self.triangles.astype(np.int32))
-        if len(self.vertex_grey):
-            g = self.vertex_grey.astype(np.float64)[:, None] / 255.0
-            m.vertex_colors = o3d.utility.Vector3dVector(np.repeat(g, 3, axis=1))
-        return m
-
 
 class FusedMap:
     """Compressed keyframe depth; ``fuse(poses)`` integrates it into a TSDF under a trajectory."""
@@ -72,7 +61,6 @@ class FusedMap:
         self.cfg = cfg
         # k -> (depth PNG bytes (uint16 mm), grey PNG bytes or None, (width, height))
         self._kf: dict[int, tuple[bytes, bytes | None, tuple[int, int]]] = {}
-        self.t_fuse_s = 0.0  # time spent in fuse(), all calls
 
     # ---- keyframes ----
     def should_add(self, k: int) -> bool:
@@ -207,7 +195,6 @@ class FusedMap:
         del vbg
         surf = _concat(parts)
         dt = time.perf_counter() - t0
-        self.t_fuse_s += dt
         surf.stats = {
             "keyframes": len(self._kf),
             "chunks": len(parts),

@@ -149,11 +149,6 @@ class FaceTable:
     def __len__(self) -> int:
         return len(self.kind)
 
-    def column(self, name: str) -> np.ndarray:
-        if name in MAIN_FIELDS:
-            return self.main[MAIN_FIELDS.index(name)]
-        return self.detail[DETAIL_FIELDS.index(name)]
-
 
 @dataclass
 class Box:

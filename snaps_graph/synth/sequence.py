@@ -138,9 +138,7 @@ class SyntheticSequence(SequenceBase):
         self._right_turn = np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
         self._poses = np.linalg.inv(poses[0]) @ poses  # rebased: frame 0 is the identity
         self._times = times
-        t0 = time.perf_counter()
         self.world = World(self._poses[:, :3, 3], self._poses[:, :3, 1], seed=self.seed, config=world_config, times=times)
-        self.build_s = time.perf_counter() - t0  # world construction time, for benchmarks
         self._renderer = Renderer(self.world, camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height, self.seed)
         self._exposure = _exposure_curve(len(poses), self.seed, self.exposure_change)
 

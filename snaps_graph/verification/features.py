@@ -16,7 +16,6 @@ ORB keypoints are refined to sub-pixel at full resolution (``verification.subpix
 
 from __future__ import annotations
 
-import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -292,7 +291,6 @@ class LoopFeatureBank:
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="loop-features") if background else None
         self._query_k: int | None = None
         self._query: FrameFeatures | None = None
-        self.t_reference_ms = 0.0  # total time spent on reference features
 
     def __len__(self) -> int:
         self._collect()
@@ -316,10 +314,8 @@ class LoopFeatureBank:
             self._pending[k] = self._pool.submit(self._compute, frame.left, frame.right, offset_px)
 
     def _compute(self, left: np.ndarray, right: np.ndarray, offset_px: float) -> FrameFeatures | None:
-        t0 = time.perf_counter()
         uv, desc, _ = detect_loop_keypoints(left, self.vcfg)
         idx, pts = stereo_points(left, right, uv, self.camera, self.cfg, offset_px)
-        self.t_reference_ms += (time.perf_counter() - t0) * 1000.0
         if len(idx) < MIN_STEREO_POINTS:
             return None
         return FrameFeatures(np.ascontiguousarray(uv[idx]), pts, np.ascontiguousarray(desc[idx]))
