@@ -1,25 +1,8 @@
 """A run: read a dataset, drive :class:`~snaps_graph.pipeline.SlamPipeline`, write the results folder.
 
-The folder contract: the output folder is checked before the first frame (a file, a folder under
-a file, or a non-empty folder without ``overwrite`` is a one-line error at once); the files are
-written into a temporary sibling folder ``.NAME.tmp-PID`` that is renamed onto the output folder
-at the end, so a results folder is whole or absent (Ctrl-C or an error deletes the temporary
-folder; ``overwrite`` replaces an old folder whole). One writer per file (``evaluation.results_io``),
-metrics.json last; the .tum stamps are the sequence's own clock (EuRoC and bag stamps, KITTI's
-times.txt)::
-
-    poses_vo.txt / .tum        pure VO chain
-    poses_snaps.txt / .tum     SNAPS heuristic trajectory (loops = snaps)
-    poses_isam2.txt / .tum     iSAM2 estimate after the last frame (refine = isam2 or both)
-    poses_batch.txt / .tum     batch optimisation (refine = batch or both)
-    poses_gt.txt / .tum        ground truth of the processed frames, re-based (when known)
-    frames.csv                 one row per frame (``types.FrameRecord``): timings, VO quality, loops
-    loops.jsonl                one JSON object per closed loop
-    candidates.csv             every similarity SNAPS computed (types.CandidateRecord; loops = snaps)
-    graph.g2o                  the factor graph (gtsam's writer)
-    config.toml                every parameter used
-    map.ply, map.png           the point-cloud map and its top-down picture (with --map)
-    metrics.json               metrics per trajectory (with ground truth), latency, flagged frames
+The folder is checked before the first frame and is whole or absent: written into a temporary
+sibling ``.NAME.tmp-PID``, renamed into place at the end (docs/run-contract.md). Each file has
+one writer (``evaluation.results_io``), metrics.json last; the files: README.md, "What a run writes".
 """
 
 from __future__ import annotations
