@@ -1,20 +1,9 @@
 """TSDF map: keyframe depth kept compressed, fused into a surface under any trajectory.
 
-Decisions and why:
-
-* **Depth is stored, not clouds.** A keyframe keeps its map depth (``frontend.depth.map_depth``,
-  working size) as a PNG-encoded uint16 millimetre image and its grey image as a PNG, both in
-  memory. Fusing under another trajectory (VO, SNAPS, refined) decodes them again; stereo is
-  never recomputed.
-* **Fusion** is open3d's ``t.geometry.VoxelBlockGrid`` on the CPU (a TSDF in a hash map of 8^3
-  voxel blocks; measured against the legacy ``ScalableTSDFVolume`` in the README). The surface
-  is extracted where at least ``tsdf_min_weight`` keyframes observed it: a one-off wrong depth
-  is outvoted, noise is averaged.
-* **Bounded memory.** Keyframes are fused in path order; when the grid holds
-  ``tsdf_max_blocks`` blocks, its surface (mesh and points) is extracted as compact arrays and
-  the grid starts afresh. A place revisited in a later chunk is then fused separately and
-  appears twice (on top of itself when the trajectory is consistent).
-* open3d is imported inside the methods, so ``import snaps_graph`` stays light.
+A keyframe keeps its map depth (uint16 mm) and grey image PNG-encoded in memory, so a fusion
+under another trajectory never recomputes stereo; fusion is open3d's ``VoxelBlockGrid`` on the
+CPU, in chunks of at most ``tsdf_max_blocks`` (docs/decisions.md, "Map"). open3d is imported
+inside the methods, so ``import snaps_graph`` stays light.
 """
 
 from __future__ import annotations
