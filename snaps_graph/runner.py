@@ -53,17 +53,13 @@ def run_sequence(
     odometry=None,
     odometry_format: str | None = None,
 ) -> tuple[RunResult, dict]:
-    """Run a whole dataset (any reader of ``datasets.open.open_dataset``) and write the results
-    folder. ``observer``: see ``SlamPipeline.observer`` (the rerun logger), or a function of the
-    temporary results folder that makes one (a recording inside the results folder).
-    ``prefetch_frames``: frames read ahead on a background thread (0: none; ``io_utils.prefetch``).
-    ``before_commit``: called with the temporary folder, whole, before it is renamed into place.
-    ``odometry``: a pose file (KITTI or TUM, ``odometry_format`` or detected;
-    ``trajectory_io.read_pose_file``) or a front end object, used instead of the stereo VO;
-    every frame must have a pose.
-
-    Everything that can be checked before the first frame is: the configuration (with the
-    overrides) and the output folder."""
+    """Run a whole dataset (any reader of ``datasets.open.open_dataset``) and write the results folder;
+    the configuration and the folder are checked before the first frame. ``observer``: a
+    ``SlamPipeline.observer`` (the rerun logger) or a function of the temporary folder that makes
+    one; ``prefetch_frames``: frames read ahead on a thread (0: none); ``before_commit``: called with
+    the whole temporary folder before it is renamed; ``odometry``: a pose file (KITTI or TUM,
+    ``odometry_format`` or detected; a pose for every frame) or a front end, instead of the stereo VO.
+    """
     (cfg or Config()).resolved(loops=loops, refine=refine, build_map=build_map)
     frontend = odometry
     if isinstance(odometry, (str, Path)):  # read before the folder opens: a bad file leaves nothing

@@ -290,16 +290,13 @@ def map_section_lines(run_dir: str | Path, map_entry: dict | None) -> list[str]:
 # Entry point
 # ---------------------------------------------------------------------------------------------
 def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accuracy: Callable[..., dict] | None = None) -> dict:
-    """Compare a run's trajectories (VO, SNAPS heuristic, iSAM2 / batch) and write the report.
-
-    ``gt_path`` overrides ``RUN_DIR/poses_gt.txt`` (KITTI, or TUM by a ``.tum`` extension; either
-    one pose per run row or the whole sequence, indexed by frames.csv's ``frame``). Without any
-    ground truth the tables carry no error columns and no errors.png is written. Returns the
-    updated metrics.json content. A missing or malformed input raises SnapsGraphError naming
-    the file. ``map_accuracy(run, trajectories, map_entry, gt, map_config) -> {"accuracy": ...,
-    "world_mesh": ...}`` measures the folder's maps against a true world (the command line passes
-    one built on ``mapping.outputs.accuracy_from_files``: evaluation does not import the map);
-    the result goes into metrics.json's ``map`` entry and the report's map section.
+    """Compare a run's trajectories (VO, SNAPS heuristic, iSAM2 / batch), write the report and return
+    the updated metrics.json content. ``gt_path`` overrides ``RUN_DIR/poses_gt.txt`` (KITTI, or TUM
+    by a ``.tum`` extension; one pose per row or the whole sequence); without ground truth there are
+    no error columns and no errors.png. ``map_accuracy(run, trajectories, map_entry, gt, map_config)``
+    measures the folder's maps against a true world (the command line passes one built on
+    ``mapping.outputs.accuracy_from_files``: evaluation does not import the map). A missing or
+    malformed input raises SnapsGraphError naming the file.
     """
     from .plots import plot_errors, plot_latency_box, plot_trajectories
 
