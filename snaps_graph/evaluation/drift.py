@@ -20,7 +20,7 @@ from ..errors import SnapsGraphError
 class DriftModel:
     """Error rates of a drifted odometry (1 sigma where random)."""
 
-    # Defaults: our stereo VO on real KITTI 06 frames 0-50 (docs/loop-closure.md, "Drift tool").
+    # Defaults: our stereo VO on real KITTI 06 frames 0-50 (docs/loop-closure.md, "The drift tool").
     scale_bias_pct: float = 0.02  # translation scale error, percent (the sign is drawn per seed)
     heading_rw_deg_per_sqrt_m: float = 0.07  # heading random walk
     pitch_rw_deg_per_sqrt_m: float = 0.017  # pitch random walk

@@ -4,7 +4,7 @@ place is revisited metres apart.
 ``LoopFeatureBank`` keeps multi-scale keypoints, descriptors and stereo 3D points of every
 ``reference_every``-th frame, and the current frame's only when a candidate is verified.
 :func:`verify_features`: PnP RANSAC of a reference's points, a depth check against the current
-frame's stereo, and the pose's covariance for the graph (docs/decisions.md, "Loop closure").
+frame's stereo, and the pose's covariance for the graph (docs/decisions.md, "Loop closure (SNAPS)").
 """
 
 from __future__ import annotations
