@@ -1,16 +1,10 @@
 """glibc malloc thresholds for image-sized temporaries, set by a program that runs the pipeline
 (the CLI) with ``set_malloc_thresholds()``; importing the package changes nothing.
 
-OpenCV and numpy allocate image-sized temporaries (LK pyramids, eigenvalue maps, disparity
-maps) many times a frame. glibc serves allocations above its mmap threshold with a fresh
-``mmap`` and gives the top of the heap back to the system above its trim threshold, so such a
-temporary can cost one page fault per 4 KB page on every call (in a process that has imported
-gtsam, on every ``goodFeaturesToTrack`` call). Fixed
-thresholds keep these blocks in the heap, where they are reused. Where memory comes from does
-not change any result.
-
-Not applied off glibc, when ``MALLOC_MMAP_THRESHOLD_`` or ``MALLOC_TRIM_THRESHOLD_`` is set
-(the user's setting wins), or with ``SNAPS_GRAPH_MALLOC=default``.
+Fixed thresholds keep OpenCV's and numpy's image-sized temporaries in the heap, where they are
+reused, instead of a fresh ``mmap`` per call (docs/decisions.md, "Speed"); results do not change.
+Not applied off glibc, when ``MALLOC_MMAP_THRESHOLD_`` or ``MALLOC_TRIM_THRESHOLD_`` is set (the
+user's setting wins), or with ``SNAPS_GRAPH_MALLOC=default``.
 """
 
 from __future__ import annotations
@@ -32,7 +26,7 @@ def _glibc() -> bool:
 
 
 def set_malloc_thresholds() -> bool:
-    """Set glibc's mmap and trim thresholds (see the module docstring); True when applied."""
+    """Set glibc's mmap and trim thresholds unless the user decides them; True when applied."""
     if os.environ.get("SNAPS_GRAPH_MALLOC") == "default":
         return False
     if "MALLOC_MMAP_THRESHOLD_" in os.environ or "MALLOC_TRIM_THRESHOLD_" in os.environ or not _glibc():

@@ -1,10 +1,7 @@
 """Command line: ``snaps-graph synth | run | batch | convert | eval | compare | loops | demo | config | drift``.
 
-Thin: each command parses its options, calls the package and prints. Exit status: 0 done; 2 a
-user error (``SnapsGraphError``: one line ``error: ...`` naming the file, never a traceback; also
-a usage error); 3 ``run`` finished and wrote its folder but the front end flagged more than half
-of the frames (one ``warning:`` line); 4 ``batch`` finished but some cells failed (the summary
-says why); 130 interrupted (Ctrl-C: one line, no results folder).
+Thin: each command parses its options, calls the package and prints. A ``SnapsGraphError`` is one
+``error:`` line and exit status 2, never a traceback; every status: docs/usage.md.
 """
 
 from __future__ import annotations

@@ -1,11 +1,9 @@
 """Typed configuration, one section per stage, loadable from and dumped to TOML.
 
-Every setting a user may want to change lives here, its one-line help (meaning, unit) and range
-beside it as field metadata (``snaps-graph config`` prints them); settings no user needs to change
-are constants in the module that uses them. The SNAPS section uses the paper's Table I names (radius, frame distance, discount length,
-minimum similarity, inter-frame pause, attempts). A run dumps the full configuration it used to
-``config.toml`` in its results folder, and ``Config.load`` reads such a file back (unknown keys
-are a one-line error, so a typo never passes silently).
+Every setting a user may change lives here with its one-line help and range as field metadata
+(``snaps-graph config`` prints them; constants nobody needs to change stay in their modules); the
+SNAPS section keeps the paper's Table I names. A run dumps what it used to ``config.toml``, and
+``Config.load`` reads it back (an unknown key is a one-line error, so a typo never passes).
 """
 
 from __future__ import annotations

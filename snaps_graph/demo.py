@@ -1,10 +1,8 @@
 """``make demo`` / ``snaps-graph demo``: the whole product on built-in data, in a few minutes.
 
-Renders the built-in closed loop (a synthetic street world, no download needed), reads it back
-with the KITTI reader, runs VO + SNAPS + the chosen refinement + the map, writes the comparison
-report, and prints a short summary. The demo keeps the run contract: OUT/sequence and OUT/run
-are checked before anything is rendered, and an earlier folder is replaced only with ``overwrite``
-(and only when this tool wrote it).
+Renders the built-in loop, runs VO + SNAPS + the chosen refinement + the map on it, writes the
+comparison report and prints a summary. OUT/sequence and OUT/run are checked before anything is
+rendered and replaced only with ``overwrite`` (and only when this tool wrote them).
 """
 
 from __future__ import annotations

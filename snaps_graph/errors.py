@@ -1,8 +1,6 @@
-"""User-facing errors.
-
-Anything a user can cause (a bad path, a malformed calibration, mismatched images) raises
-``SnapsGraphError`` with a one-line message that names the file. The CLI prints that line and
-exits with status 2; it never shows a traceback for these.
+"""User-facing errors: anything a user can cause (a bad path, a malformed calibration, mismatched
+images) raises ``SnapsGraphError`` with a one-line message naming the file; the CLI prints that
+line and exits with status 2, never with a traceback.
 """
 
 import threading

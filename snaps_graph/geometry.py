@@ -39,10 +39,6 @@ def rotation_angle_deg(R: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
-def is_finite_pose(T: np.ndarray) -> bool:
-    return bool(np.all(np.isfinite(T)))
-
-
 def hat(w: np.ndarray) -> np.ndarray:
     """The skew matrix [w]x (hat(w) @ v = w x v)."""
     return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
@@ -118,14 +114,10 @@ def scale_motion(T: np.ndarray, s: float) -> np.ndarray:
 
 
 def umeyama_alignment(src_xyz: np.ndarray, dst_xyz: np.ndarray, with_scale: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
-    """Least-squares similarity (R, t, s) with dst ~ s R src + t (Umeyama 1991, eq. 34-43).
-
-    ``src_xyz`` and ``dst_xyz`` are (N, 3) matched points. Same formulas as evo's
-    ``geometry.umeyama_alignment`` (which takes 3xN), so ATE agrees with ``evo_ape -a``. The
-    reflection guard (S = diag(1, 1, -1) when det(U) det(V) < 0) keeps R a rotation.
-    Degenerate inputs still give a minimiser: collinear points (a straight drive) leave the roll
-    about the line free, and any choice gives the same residuals; a single distinct point gives
-    R = I. Scale is 1 unless ``with_scale`` (and a point cloud with no spread keeps s = 1).
+    """Least-squares similarity (R, t, s) with dst ~ s R src + t (Umeyama 1991) from (N, 3) matched
+    points, by evo's formulas, so ATE agrees with ``evo_ape -a``. Degenerate inputs still give a
+    minimiser (collinear points leave the roll about the line free; one distinct point gives R = I).
+    Scale is 1 unless ``with_scale``.
     """
     src = np.asarray(src_xyz, dtype=float)
     dst = np.asarray(dst_xyz, dtype=float)

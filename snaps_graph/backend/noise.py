@@ -1,26 +1,8 @@
 """Noise models of the pose graph's factors (sigmas as [rx, ry, rz, tx, ty, tz]: GTSAM's Pose3 tangent order).
 
-**Odometry noise** (SPEC: "a noise model that reflects the VO quality"). A PnP pose estimated
-from n independent inliers has a covariance that shrinks like 1/n, so its sigmas shrink like
-1/sqrt(n): ``sigma = odom_sigma * clip(sqrt(ODOM_REF_INLIERS / max(n, ODOM_MIN_INLIERS)),
-ODOM_SIGMA_SCALE_MIN, ODOM_SIGMA_SCALE_MAX)``. ``inliers <= 0`` means "not reported" and gives
-the reference sigmas. A flagged step (``ok=False``: the front end fell back on a
-constant-velocity guess) is multiplied by ``FLAGGED_SIGMA_SCALE`` so loops can bend it freely.
-A step that carries the front end's stereo-BA covariance (``VOResult.cov``)
-uses it instead, scaled by ``odom_cov_scale`` and floored by ``odom_cov_floor_*`` (:func:`odometry_covariance`).
-
-**Loop noise from the UIQI Q** (paper eq. 4; SPEC: a higher Q gives a tighter model). Q is a
-similarity, not a calibrated probability; what it tells us is how far the match clears the
-acceptance threshold. We take the margin above a floor ``q0 = loop_q_floor`` and let the
-information 1/sigma^2 grow with the square of that margin, full weight at Q = 1::
-
-    scale(Q) = clip((1 - q0) / (Q - q0), 1, LOOP_SIGMA_SCALE_MAX)   (scale_max when Q <= q0)
-    sigma(Q) = base_sigma * scale(Q)
-
-The default q0 = 0 suits the exact UIQI, where true revisits score 0.15-0.6: sigma = base / Q,
-at most 10x (Q = 0.5 -> 2x, 0.2 -> 5x). With the paper's index scale (threshold 0.75) a floor
-just below it, q0 = 0.7, gives Q = 1 -> 1x, 0.95 -> 1.2x, 0.85 -> 2x, 0.75 -> 6x. Either way it
-is monotone (non-increasing) in Q by construction.
+Odometry: the front end's stereo-BA covariance, scaled and floored, else sigmas that shrink as
+1/sqrt(inliers) and are 100x looser on a flagged step. Loops: the verification's covariance,
+scaled and floored, else base sigmas scaled by the similarity Q (:func:`loop_sigma_scale`).
 """
 
 from __future__ import annotations
@@ -41,11 +23,9 @@ LOOP_SIGMA_SCALE_MAX = 10.0  # clip of a loop's Q scale (1 - q0) / (Q - q0)
 
 
 def odometry_sigmas(cfg: GraphConfig, inliers: int, ok: bool) -> np.ndarray:
-    """Sigmas (rot rad x3, trans m x3) of one VO step: see the module docstring.
-
-    ``sqrt(ODOM_REF_INLIERS / max(inliers, ODOM_MIN_INLIERS))`` clamped to
-    ``[ODOM_SIGMA_SCALE_MIN, ODOM_SIGMA_SCALE_MAX]``; ``inliers <= 0`` (not reported) -> 1;
-    a flagged step is further multiplied by ``FLAGGED_SIGMA_SCALE``.
+    """Sigmas (rot rad x3, trans m x3) of a VO step without a covariance: the reference sigmas times
+    ``sqrt(ODOM_REF_INLIERS / max(inliers, ODOM_MIN_INLIERS))`` clamped to ``[ODOM_SIGMA_SCALE_MIN,
+    ODOM_SIGMA_SCALE_MAX]`` (1 when ``inliers <= 0``, not reported), times ``FLAGGED_SIGMA_SCALE`` if flagged.
     """
     if inliers > 0:
         scale = math.sqrt(ODOM_REF_INLIERS / max(inliers, ODOM_MIN_INLIERS, 1))

@@ -1,50 +1,9 @@
-"""GTSAM pose graph: odometry factors, UIQI-weighted loop factors, iSAM2 or batch refinement.
+"""GTSAM pose graph: odometry factors, robust loop factors, iSAM2 or batch refinement.
 
-The rest of the package passes 4x4 numpy poses (T_world_cam, KITTI camera axes) through
-:class:`PoseGraph`; the pose graph's gtsam types stay in this package.
-
-Decisions, and why:
-
-* **Keys.** One Pose3 variable per frame (not per keyframe), keyed by the frame's *stream
-  position* k = 0, 1, 2, ... (the order frames reach the graph, not a file index), so a run over
-  a frame range ``A:B`` still starts at key 0. Frames must arrive in order; key 0 gets a tight
-  prior (frame 0 is the identity in our convention, but any given initial pose is held).
-* **Noise order.** GTSAM's Pose3 tangent is (rotation rad, translation m): every sigma vector
-  here is ``[rx, ry, rz, tx, ty, tz]`` in that order (a swapped order silently makes rotation
-  100x too stiff or too loose).
-* **Noise models** of the odometry and loop factors: ``noise.py``.
-* **Loop measurement.** A geometrically verified loop (``T_ref_cur`` given) uses the measured
-  relative pose with the ``loop_sigma_*`` base sigmas. Otherwise the paper's own assumption (SNAPS
-  only says the two frames show the same place, §III) is written as a factor: zero translation,
-  and the relative rotation of the *current* estimates (so the factor does not fight the heading,
-  which SNAPS never observes), with the loose ``unverified_sigma_*`` base sigmas.
-* **Robust kernel.** Loop factors (never odometry) sit under ``noiseModel.Robust`` with a Cauchy
-  or Huber m-estimator, so one false SNAPS match cannot tear the trajectory. GTSAM applies the
-  kernel to the norm of the whole whitened 6-vector, and a perfect inlier's norm is already
-  ~sqrt(6) = 2.4, so the width ``ROBUST_PARAM`` is 3 (k = 1 cut true loops to ~15% weight and
-  left a square test loop unclosed). Cauchy is the default: its influence falls off for large
-  residuals, whereas Huber's stays constant (on the square test a false loop moved the
-  result 0.006 m under Cauchy, 0.5 m under Huber, 9.9 m without a kernel).
-  ``robust_kernel = "none"`` exists for comparisons.
-* **iSAM2.** QR factorisation: SPEC records ISAM2 with Cholesky throwing
-  IndeterminantLinearSystemException after ~1080 chained Pose3 factors. Each
-  :meth:`PoseGraph.update` passes only the factors and values added since the previous call.
-  iSAM2 takes one Gauss-Newton step per update, and a robust loop is an IRLS problem, so a fresh
-  loop is only partly applied; later frames' updates finish it (on KITTI 00, extra iterations at
-  loop time cost 4-10x the loop update and changed the final ATE by < 1 mm), so they are off by
-  default (``ISAM2_LOOP_ITERATIONS``) and :meth:`PoseGraph.converge` iterates once at the end of
-  a run. The full estimate is O(N), so :meth:`PoseGraph.estimates` computes it lazily and caches
-  it until the next update; :meth:`update` checks only the newest pose for finiteness.
-* **Failures never raise.** gtsam's C++ exceptions (IndeterminantLinearSystemException, ...)
-  surface as ``RuntimeError``. :meth:`update` catches them, records ``(k, reason)`` in
-  ``failures``, rebuilds iSAM2 (always with QR) from all factors except the loop factors of the
-  failed update, seeded with the last good estimate; if that fails too, iSAM2 is switched off and
-  estimates fall back to the initial (heuristic) poses. :meth:`optimize_batch` returns the initial
-  estimates on failure. A non-finite estimate is replaced by the initial value and recorded.
-* **g2o files.** ``gtsam.writeG2o`` refuses Robust noise models ("invalid noise model") and
-  skips prior factors, so :meth:`save_g2o` writes a Gaussian copy of the graph (same
-  measurements and sigmas, kernel dropped) with the current estimates; g2o's convention fixes
-  vertex 0 in place of the prior.
+The rest of the package passes 4x4 numpy poses (T_world_cam) through :class:`PoseGraph`; gtsam
+stays in this package. One Pose3 per frame, keyed by stream position (0, 1, 2, ... in arrival
+order); every sigma vector is in GTSAM's tangent order ``[rx, ry, rz, tx, ty, tz]``. Noise
+models: ``noise.py``; the decisions behind them: docs/decisions.md, "Factor graph".
 """
 
 from __future__ import annotations
@@ -166,14 +125,11 @@ def _check_pose(T: np.ndarray | None, what: str) -> np.ndarray:
 class PoseGraph:
     """A thin wrapper over GTSAM so no other module touches the solver.
 
-    ``mode``: "none" (build the graph, keep the initial estimates), "isam2" (incremental update
-    per :meth:`update` call) or "batch" (Levenberg-Marquardt over the whole graph on
-    :meth:`optimize_batch`). Default ``cfg.refine``. The graph is built in every mode, so
-    :meth:`optimize_batch` and :meth:`save_g2o` always work.
-
-    Public state: ``failures`` (list of (k, reason) for every solver failure or fallback),
-    ``loops`` (one :class:`LoopFactorInfo` per :meth:`add_loop` call), ``stats``
-    (:class:`GraphStats`), ``isam2_disabled`` (True once an iSAM2 rebuild failed too).
+    ``mode``: "none" (keep the initial estimates), "isam2" (an incremental update per
+    :meth:`update`) or "batch" (Levenberg-Marquardt on :meth:`optimize_batch`); default from
+    ``cfg.refine``. The graph is built in every mode, so :meth:`optimize_batch` and :meth:`save_g2o`
+    always work. ``failures`` lists (k, reason) of every solver failure or fallback; ``loops`` one
+    :class:`LoopFactorInfo` per :meth:`add_loop` call.
     """
 
     def __init__(self, cfg: GraphConfig, mode: str | None = None) -> None:
@@ -196,7 +152,6 @@ class PoseGraph:
         self._isam: gtsam.ISAM2 | None = None
         if self.mode == "isam2":
             self._isam = self._new_isam2()
-        self.isam2_disabled = False
         self._pending_factors = gtsam.NonlinearFactorGraph()
         self._pending_values = gtsam.Values()
         self._pending_loops: list[_Loop] = []
@@ -340,7 +295,7 @@ class PoseGraph:
     def update(self) -> float:
         """One iSAM2 update with the factors and values added since the last call; returns its
         time in ms (0.0 and no work in modes "none" and "batch"). Never raises on a solver
-        failure: see the module docstring for the fallback."""
+        failure: the failure goes to ``failures`` and iSAM2 is rebuilt (:meth:`_rebuild_isam2`)."""
         if self._isam is None or (self._pending_factors.size() == 0 and self._pending_values.size() == 0):
             return 0.0
         k = len(self._initial) - 1
@@ -437,7 +392,6 @@ class PoseGraph:
         except RuntimeError as exc:
             self.failures.append((k, f"isam2 rebuild failed, isam2 off: {_one_line(exc)}"))
             self._isam = None
-            self.isam2_disabled = True
 
     def optimize_batch(self) -> np.ndarray:
         """Optimise the whole graph from the initial (heuristic) estimates; returns (N, 4, 4).
@@ -499,21 +453,14 @@ class PoseGraph:
         return self._current_pose(k).copy()
 
     def set_initial_estimates(self, poses: np.ndarray) -> None:
-        """Replace the initial estimates of all keys (used by :meth:`optimize_batch`; iSAM2 keeps
-        its own linearisation points).
-
-        SNAPS corrects the last K poses at every loop, after they were added; the pipeline hands
-        the final heuristic trajectory here so the batch starts from every correction.
+        """Replace every key's initial estimate, which :meth:`optimize_batch` starts from (iSAM2 keeps
+        its own linearisation points); the pipeline passes the final heuristic trajectory here.
         """
         poses = np.asarray(poses, float)
         if poses.shape != (len(self._initial), 4, 4) or not np.all(np.isfinite(poses)):
             raise SnapsGraphError(f"graph: set_initial_estimates needs {len(self._initial)} finite 4x4 poses")
         self._initial = [T.copy() for T in poses]
         self._initial_values = _array_to_values(poses)
-
-    def initial_estimates(self) -> np.ndarray:
-        """The initial (heuristic) poses as given to :meth:`add_frame`, (N, 4, 4)."""
-        return self._initial_array()
 
     def save_g2o(self, path: str | Path) -> None:
         """Write the graph and the current estimates as a 3D g2o file, atomically.

@@ -68,7 +68,7 @@ class Plan:
 
 # ---------------------------------------------------------------- plan parsing
 def load_plan(path: str | Path, overrides: list[str] | tuple[str, ...] = ()) -> Plan:
-    """Read and check a plan file (see the module docstring); a one-line error names it.
+    """Read and check a plan file (its format: docs/usage.md, "batch"); a one-line error names it.
     ``overrides``: ``section.key=value`` items applied to every variant's config last."""
     path = Path(path)
     data = read_toml(path, "plan")

@@ -68,12 +68,10 @@ def completed(cell: Cell, out_dir: str | Path) -> dict | None:
 
 
 def run_cell(cell: Cell, out_dir: str, threads: int) -> dict:
-    """Run one cell into its folder (a Ray task's body; also callable without Ray).
-
-    Pins OpenCV's and BLAS's thread pools to ``threads`` (the CPUs the task was given: Ray sets
-    OMP_NUM_THREADS for its workers; threadpoolctl limits the BLAS libraries already loaded;
-    cv2.setNumThreads sizes OpenCV's pool; the other variables serve libraries loaded later). Never
-    raises for a failed run: the returned record says ``failed`` with a one-line reason."""
+    """Run one cell into its folder (a Ray task's body; also callable without Ray). Limits OpenCV's
+    and the BLAS libraries' threads to ``threads``, the CPUs the task was given. Never raises for a
+    failed run: the returned record says ``failed`` with a one-line reason.
+    """
     t0 = time.perf_counter()
     rec: dict[str, Any] = {
         "sequence": cell.sequence,
@@ -174,14 +172,12 @@ def run_batch(
     progress: bool = True,
     ray_init: dict[str, Any] | None = None,
 ) -> list[dict]:
-    """Run a plan's cells on Ray into ``out_dir``; returns one record per cell (plan order) and
-    writes ``summary.csv`` / ``summary.md``.
-
-    Cells already complete with the same config hash are skipped. Without ``address`` (and no
-    Ray already initialised in this process) a local Ray instance bound to 127.0.0.1 is started
-    and stopped again; with one, the batch joins that cluster. ``max_parallel``: at most this many
-    cells in flight. On Ctrl-C (or any error) the running tasks are cancelled, the summary is
-    written with the unfinished cells as ``cancelled``, and the exception propagates."""
+    """Run a plan's cells on Ray into ``out_dir``; returns one record per cell (plan order) and writes
+    ``summary.csv`` / ``summary.md``. Cells complete with the same config hash are skipped. Without
+    ``address`` (and no Ray already running here) a local Ray bound to 127.0.0.1 is started and
+    stopped; ``max_parallel`` caps the cells in flight. On Ctrl-C (or any error) the running tasks
+    are cancelled, the summary marks the unfinished cells ``cancelled``, and the exception propagates.
+    """
     if max_parallel is not None and max_parallel < 1:
         raise SnapsGraphError(f"--max-parallel must be at least 1, got {max_parallel}")
     check_cell_folders(plan, out_dir)

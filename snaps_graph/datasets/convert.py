@@ -1,9 +1,8 @@
 """``snaps-graph convert``: any readable source to the KITTI layout ``KittiSequence`` reads.
 
-Writes ``image_0/NNNNNN.png`` and ``image_1/NNNNNN.png`` (the rectified grey pairs, numbered
-from 0), ``calib.txt`` (P0/P1 of the rectified pair), ``times.txt`` (the source's seconds) and
-``poses.txt`` when the source knows its ground truth (re-based to the first frame, for the
-rectified left camera). Every file is written atomically.
+The rectified grey pairs numbered from 0, calib.txt of the rectified pair, times.txt (the
+source's seconds) and, when known, poses.txt (re-based, for the rectified left camera); every
+file written atomically.
 """
 
 from __future__ import annotations

@@ -1,23 +1,9 @@
-"""EuRoC MAV reader (ASL layout): raw stereo, rectified on the fly, with optional ground truth.
+"""EuRoC MAV reader (ASL layout: docs/datasets.md): raw stereo, rectified once, optional ground truth.
 
-Layout (``PATH`` is the sequence folder holding ``mav0/``, or ``mav0/`` itself)::
-
-    mav0/cam0/sensor.yaml, cam1/sensor.yaml   pinhole intrinsics [fu, fv, cu, cv], radial-tangential
-                                               distortion [k1, k2, p1, p2], T_BS (camera in body)
-    mav0/cam0/data.csv, cam1/data.csv         '#timestamp [ns],filename', one image a line
-    mav0/cam0/data/*.png, cam1/data/*.png     raw (distorted) grey images
-    mav0/state_groundtruth_estimate0/data.csv optional: t [ns], p_RS_R xyz [m], q_RS_R wxyz, ...
-
-Left and right images are paired by timestamp (nearest within a quarter frame period); an image
-a ``data.csv`` lists but the folder lacks is skipped, and ``notes`` says how many were dropped.
-The pair is rectified with ``cv2.stereoRectify`` (alpha = 0: only valid pixels, maps computed
-once). Ground truth (body poses at 200 Hz) is interpolated at the frame times and expressed for
-the rectified left camera: ``T_W_rect = T_W_B(t) · T_BS_cam0 · T_raw_rect``; frames outside the
-ground truth's time span are dropped (noted). Frame indices are pair numbers.
-
-With ``cam0`` alone (no ``cam1/``) the sequence is monocular: cam0's images are undistorted (same
-orientation, alpha = 0), frames have an empty right image, and the camera's baseline is 0; it
-needs odometry from elsewhere.
+Pairs are matched by timestamp (images listed but missing are skipped and noted) and rectified
+with ``cv2.stereoRectify`` (alpha = 0); the body ground truth is interpolated at the frame times
+for the rectified left camera, T_W_rect = T_W_B(t)·T_BS_cam0·T_raw_rect, frames outside its span
+dropped. With ``cam0`` alone the sequence is monocular (undistorted, baseline 0).
 """
 
 from __future__ import annotations
@@ -243,7 +229,6 @@ class EurocSequence(FrameSelection):
             gt_all = self.rectifier.rect_pose(T_W_B @ self.T_BS0)
         self.gt_path: Path | None = gt_path if gt_all is not None else None
         self._gt_all = gt_all
-        self._stamps_ns = stamps
         self._times_all = (stamps - stamps[0]) * 1e-9  # seconds from the first pair
         self.t0_ns = int(stamps[0])
         self._left, self._right = lefts, rights

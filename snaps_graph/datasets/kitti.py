@@ -1,22 +1,9 @@
-"""KITTI odometry sequence reader (also reads what ``snaps-graph synth`` writes).
+"""KITTI odometry sequence reader (also reads what ``snaps-graph synth`` writes; layout: docs/datasets.md).
 
-Layout of a sequence folder ``SEQ``::
-
-    SEQ/image_0/NNNNNN.png   rectified left grey images
-    SEQ/image_1/NNNNNN.png   rectified right grey images (absent: a monocular sequence, whose
-                             frames have an empty right image; it needs odometry from elsewhere)
-    SEQ/calib.txt            'P0:' and 'P1:' lines (others ignored)
-    SEQ/times.txt            optional, one timestamp (s) a line
-    SEQ/poses.txt            optional ground truth (KITTI pose format); for the official layout
-                             ROOT/sequences/XX, ground truth is found at ROOT/poses/XX.txt
-
-Frames are read lazily, one at a time, in file-number order (numeric: 0.png, 2.png, 10.png); a
-frame's number is its file's number (positions when some stem is not a number). times.txt and
-poses.txt hold one line per image in that order, or, for numbered files, one line per frame
-number from 0 (a subset of a sequence's images keeps the full files: line i is frame i). A frame
-range ``A:B`` (Python slice semantics) selects positions A..B-1 in that order (for KITTI's
-contiguous 000000.png... these are the file numbers). Every user error is a ``SnapsGraphError``
-whose one-line message names the file.
+Frames are read lazily in numeric file-number order; a frame's number is its file's (its position
+when a stem is not a number). times.txt and poses.txt hold one line per image, or one per frame
+number from 0; ``A:B`` selects positions. Without ``image_1/`` the sequence is monocular. Every
+user error is a one-line ``SnapsGraphError`` naming the file.
 """
 
 from __future__ import annotations

@@ -1,14 +1,9 @@
-"""Live stereo from OpenCV capture devices: two cameras, or one side-by-side stereo camera.
+"""Live stereo from OpenCV capture devices: two cameras (``live:0,1``) or one side by side (``live:0``).
 
-``LiveStereo`` follows the dataset protocol as far as a stream can: ``camera``, ``__iter__``
-yielding ``StereoFrame`` (index = frame number, timestamp = seconds since the first grab),
-``__len__`` = the frame limit (0 when unlimited), ``gt_poses`` None; there is no random access.
-Both devices are ``grab()``-bed before either is ``retrieve()``-d, so the two exposures are as
-close in time as the driver allows. Images are made grey and, when a ``StereoRectifier`` is
-given, rectified; otherwise they must already be rectified (``camera`` from a calib.txt).
-
-Path syntax for ``open_dataset``: ``live:0,1`` (two devices) or ``live:0`` (one side-by-side
-device, left half = left camera); a device is an integer index or a URL/file OpenCV opens.
+A stream, without random access: ``__len__`` is the frame limit (0 = unlimited), timestamps are
+seconds since the first grab, no ground truth. Both devices are grabbed before either is read, so
+the exposures are as close as the driver allows; images are rectified by a given
+``StereoRectifier``, else must be rectified already. A device is an index or anything OpenCV opens.
 """
 
 from __future__ import annotations

@@ -1,11 +1,8 @@
 """Shared pieces of the raw-camera readers (EuRoC, ROS bags, live): stereo rectification,
 timestamp pairing and conversion of any 8/16-bit image to 8-bit grey.
 
-Rectification uses OpenCV: ``stereoRectify`` from both cameras' intrinsics, distortion and the
-right camera's pose in the left camera (EuRoC, live), or the rectification ``R``/``P`` a ROS
-``CameraInfo`` already carries. The remap tables are computed once, as float maps (``CV_32FC1``:
-less CPU per frame than fixed-point ``CV_16SC2`` tables with the OpenCV we use, and no
-1/32-pixel rounding; docs/performance.md); each frame then costs two remaps.
+Rectification is OpenCV's ``stereoRectify`` (or a CameraInfo's own R/P), its remap tables
+computed once as float maps (``CV_32FC1``: less CPU than fixed-point, docs/performance.md).
 """
 
 from __future__ import annotations

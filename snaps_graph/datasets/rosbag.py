@@ -1,23 +1,10 @@
 """ROS 1 (``.bag``) and ROS 2 (sqlite3 or MCAP, a bag folder or a bare ``.db3``/``.mcap``) stereo
 reader through the ``rosbags`` library (pure Python, no ROS install; the ``bags`` extra).
 
-- Images: ``sensor_msgs/Image`` (mono8, mono16, rgb8, bgr8, rgba8, bgra8, 8UC1, 16UC1) or
-  ``sensor_msgs/CompressedImage`` (anything OpenCV decodes), made 8-bit grey.
-- Camera: each image topic's ``sensor_msgs/CameraInfo`` (the ``camera_info`` topic beside it, the
-  first message). Images on topics whose names contain ``rect`` are taken as rectified (ROS
-  publishes one CameraInfo for ``image_raw`` and ``image_rect``); otherwise, unless D = 0, R = I
-  and K = P[:, :3], they are undistorted and rectified with K, D, R, P (remap maps computed once). The baseline comes from the right
-  camera's P (``P[0,3] = -fx·B``).
-- Pairs: left and right messages with the same header stamp (nearest within a quarter frame
-  period), in stamp order; unpaired messages are dropped and counted in ``notes``.
-- Topics: ``left_topic``/``right_topic``, or found by name (``left``/``right``, ``cam0``/``cam1``,
-  ``infra1``/``infra2`` in otherwise equal names); a bag with several candidate pairs asks for them.
-  A bag with one image topic (or ``left_topic`` alone, with no right partner) is monocular: its
-  frames have an empty right image, its camera (undistorted by its CameraInfo) a baseline of 0,
-  and it needs odometry from elsewhere.
-- Without CameraInfo (EuRoC's bags have none), ``calib`` gives the calibration: a calib.txt of
-  rectified cameras or a folder with cam0/ and cam1/ ``sensor.yaml`` (rectified on the fly).
-- Ground truth: a bag carries none; ``gt`` may name a KITTI pose file with one pose per pair.
+Images (``Image`` or ``CompressedImage``) become 8-bit grey; each image topic's CameraInfo
+calibrates it (``calib`` where the bag has none), pairs match by header stamp, topics are found
+by name unless given, and one image topic makes a monocular sequence. The rules: docs/usage.md,
+"Inputs in detail".
 """
 
 from __future__ import annotations

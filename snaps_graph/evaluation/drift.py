@@ -1,16 +1,8 @@
 """Drifted odometry from a ground-truth trajectory: the errors a real stereo VO makes.
 
-Each ground-truth step T_{k-1,k} (camera frame: x right, y down, z forward) is driven again with
-
-* a scale bias: its translation times (1 + ``scale_bias_pct`` / 100);
-* heading and pitch random walks: a rotation error about the camera's y (heading) and x (pitch)
-  axes whose increment over a step of length ds is N(0, sigma^2 ds), sigma in degrees per
-  sqrt(metre); heading errors bend the path, so the position error grows faster than linearly;
-* optionally a slow roll: a constant roll rate in degrees per 100 m.
-
-``pct`` (optional) rescales all of these together, with the same random draws, so that the
-end position error equals ``pct`` percent of the distance driven (a bisection on the common
-factor). Frame 0 keeps its ground-truth pose. Deterministic for a seed; no I/O.
+Each ground-truth step is driven again with a scale bias, heading and pitch random walks and an
+optional roll rate; ``pct`` rescales them together to an end error of ``pct`` % of the distance.
+What each term is, and the defaults' source: docs/loop-closure.md, "The drift tool".
 """
 
 from __future__ import annotations
@@ -28,7 +20,7 @@ from ..errors import SnapsGraphError
 class DriftModel:
     """Error rates of a drifted odometry (1 sigma where random)."""
 
-    # Defaults: our stereo VO on real KITTI 06 frames 0-50 (docs/loop-closure.md, "Drift tool").
+    # Defaults: our stereo VO on real KITTI 06 frames 0-50 (docs/loop-closure.md, "The drift tool").
     scale_bias_pct: float = 0.02  # translation scale error, percent (the sign is drawn per seed)
     heading_rw_deg_per_sqrt_m: float = 0.07  # heading random walk
     pitch_rw_deg_per_sqrt_m: float = 0.017  # pitch random walk
@@ -94,10 +86,10 @@ def end_drift_pct(est: np.ndarray, gt: np.ndarray) -> float:
 
 
 def drift_trajectory(gt: np.ndarray, seed: int, model: DriftModel | None = None, pct: float | None = None) -> np.ndarray:
-    """(N, 4, 4) drifted poses of ground truth ``gt`` (N, 4, 4); see the module docstring.
-
-    Raises SnapsGraphError for non-finite input, fewer than 2 poses, or a ``pct`` that no
-    rescaling reaches (a path that does not move, or a model with every rate at 0)."""
+    """(N, 4, 4) drifted poses of ground truth ``gt`` (N, 4, 4); frame 0 keeps its pose, and a seed
+    always gives the same poses. Raises SnapsGraphError for non-finite input, fewer than 2 poses, or
+    a ``pct`` no rescaling reaches (a path that does not move, or a model with every rate at 0).
+    """
     gt = np.asarray(gt, dtype=float)
     if gt.ndim != 3 or gt.shape[1:] != (4, 4) or len(gt) < 2:
         raise SnapsGraphError("drift: needs at least 2 poses (N, 4, 4)")

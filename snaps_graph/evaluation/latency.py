@@ -11,10 +11,8 @@ import numpy as np
 
 
 def latency_stats(values: np.ndarray) -> dict:
-    """n / median / mean / p95 / max of the finite samples (ms); ``{"n": 0}`` when there is none.
-
-    The shape of every stage in metrics.json's ``latency_ms`` (the pipeline's too, so one reader
-    serves both).
+    """n / median / mean / p95 / max of the finite samples (ms), ``{"n": 0}`` when there is none: each
+    stage of metrics.json's ``latency_ms``, the pipeline's too, so one reader serves both.
     """
     v = np.asarray(values, float)
     v = v[np.isfinite(v)]

@@ -1,30 +1,10 @@
-"""Loop-closure evaluation as the field reports it (``snaps-graph loops RUN_DIR --gt GT``).
+"""Loop-closure evaluation against ground truth (``snaps-graph loops RUN_DIR``).
 
-Input: the run's ``candidates.csv`` (every similarity SNAPS computed; read and written by
-``results_io``, its columns ``types.CANDIDATE_COLUMNS``), its
-``loops.jsonl`` (the loops accepted) and ground truth. Definitions:
-
-- A compared pair (frame, reference) is **true** when their ground-truth positions lie within
-  ``true_m`` (5 m), **false** beyond ``false_m`` (10 m), and **ignored** in between (neither
-  counted as a hit nor as a false alarm: a 7 m pair may or may not show the same place).
-- **Precision-recall over the Q threshold** t: a pair is predicted a loop when Q >= t (*Q alone*)
-  or when Q >= t and geometric verification passed (*Q + verification*). Precision = true
-  predicted / all predicted (true + false); recall = true predicted / all true pairs compared.
-  Pair-level, as in the place-recognition literature (Cummins & Newman's FAB-MAP, Gálvez-López &
-  Tardós's DBoW2 report the same curve). A pair whose verification was never tried counts as not
-  verified, so the verified curve is exact only where every pair at or above t was tried: runs
-  with ``[loop] verify_all_candidates = true`` try them all (``verification_coverage``).
-- **Maximum recall at 100 % precision**: the largest recall of a threshold that admits no false
-  pair: every true pair scoring above the highest false pair's Q (``q_max_false``).
-- **Revisit frames**: frames whose ground-truth position lies within ``true_m`` and heading within
-  ``max_yaw_deg`` of a frame at least ``frame_distance`` earlier (the frames a perfect detector
-  could close); **searched**: those at which SNAPS compared at least one true pair.
-- **Revisit segments**: maximal runs of revisit frames (gaps of at most ``segment_gap`` frames
-  join runs); a segment is **found** when a loop SNAPS accepted at one of its frames is a true pair.
-- **False loops**: accepted loops whose pair lies beyond ``false_m``.
-
-:func:`evaluate_loops` is pure (arrays in, dict out); :func:`loops_run` reads a run folder, writes
-the PR plot and returns the same dict.
+From a run's candidates.csv (every similarity SNAPS computed) and loops.jsonl: each compared pair
+is true, false or ignored by its ground-truth distance; precision-recall over the Q threshold (Q
+alone, and Q + verification), the maximum recall at 100 % precision, the revisit segments found,
+the false loops. The definitions: docs/usage.md, "loops". :func:`evaluate_loops` is pure (arrays
+in, dict out); :func:`loops_run` reads a run folder, writes the PR plot and returns the same dict.
 """
 
 from __future__ import annotations
@@ -132,7 +112,7 @@ def evaluate_loops(
     settings: LoopEvalSettings = LoopEvalSettings(),
     min_similarity: float | None = None,
 ) -> dict:
-    """The loop evaluation (module docstring). ``gt`` is (N, 4, 4), one pose per run row;
+    """The loop evaluation (definitions: docs/usage.md, "loops"). ``gt`` is (N, 4, 4), one pose per run row;
     ``frame_ids`` the dataset index of each row; ``loops`` the accepted (frame, reference) pairs
     (dataset indices). Frame numbers in the output are dataset indices. With ``min_similarity``
     (the run's threshold) also the precision and recall at that threshold."""

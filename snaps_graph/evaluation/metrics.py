@@ -1,21 +1,8 @@
 """Trajectory metrics: mean deviation, ATE RMSE, KITTI relative errors (pure numpy, no files).
 
-Poses are (N, 4, 4) arrays of T_world_cam (KITTI camera axes), row i of the estimate and row i
-of the ground truth describe the same frame. Three figures are reported, because the field
-reports three:
-
-- **mean deviation** (the paper's own figure, 16.79 m -> 5.94 m): the mean Euclidean distance
-  between estimated and true positions with *no* alignment. Both trajectories start at the
-  identity, so the start is the alignment; this is what the paper's Fig. 4 measures.
-- **ATE RMSE**: root mean square position error after the least-squares SE(3) alignment of
-  Umeyama (1991), exactly what ``evo_ape kitti GT EST -a`` prints as ``rmse`` (translation part),
-  and what ORB-SLAM2 and most stereo SLAM papers report. Tests check it against evo to 1e-6.
-- **t_rel / r_rel**: the KITTI devkit's ``evaluate_odometry`` (Geiger et al. 2012): segments of
-  100..800 m of ground-truth path, starting every 10th frame; translation error in % of the
-  segment length and rotation error in degrees per 100 m.
-
-A metric that cannot be computed (t_rel / r_rel on a path shorter than the shortest segment)
-is NaN here and ``null`` / ``n/a`` downstream; a NaN never stands for a pose.
+Poses are (N, 4, 4) T_world_cam; row i of the estimate and of the ground truth is the same frame.
+Why these three, each computed as its field does: docs/decisions.md, "Evaluation". A metric that
+cannot be computed is NaN here and ``null`` / ``n/a`` downstream; a NaN never stands for a pose.
 """
 
 from __future__ import annotations
@@ -59,11 +46,8 @@ def position_errors(est: np.ndarray, gt: np.ndarray) -> np.ndarray:
 
 
 def mean_deviation(est: np.ndarray, gt: np.ndarray) -> float:
-    """Mean distance between estimated and true positions, metres, without alignment.
-
-    The paper's accuracy figure (16.79 m without loop closure, 5.94 m with SNAPS). No alignment
-    because both trajectories start at the identity: aligning would hide the drift the loop
-    closure is meant to remove.
+    """Mean distance between estimated and true positions, metres, without alignment: the paper's
+    figure. Both trajectories start at the identity; aligning would hide the drift loops remove.
     """
     return float(position_errors(est, gt).mean())
 
@@ -75,10 +59,8 @@ def path_length(poses: np.ndarray) -> float:
 
 
 def ate_rmse(est: np.ndarray, gt: np.ndarray) -> float:
-    """RMSE of the position error after SE(3) Umeyama alignment of est onto gt, metres.
-
-    Equals ``evo_ape kitti GT EST -a`` (translation part, ``rmse``): no scale correction,
-    because a stereo rig observes metric scale and a scale error is an error.
+    """RMSE of the position error after SE(3) Umeyama alignment of est onto gt, metres, as
+    ``evo_ape kitti GT EST -a`` prints it: no scale correction, since a stereo rig observes scale.
     """
     est, gt = _check_pair(est, gt)
     p_est = est[:, :3, 3]
@@ -131,22 +113,12 @@ def kitti_relative_errors(
     lengths: tuple[float, ...] = KITTI_LENGTHS_M,
     step: int = KITTI_STEP_FRAMES,
 ) -> tuple[float, float]:
-    """KITTI devkit relative errors: (t_rel in %, r_rel in degrees per 100 m).
+    """KITTI devkit relative errors (``evaluate_odometry.cpp``): (t_rel %, r_rel deg/100 m).
 
-    Follows ``evaluate_odometry.cpp`` (calcSequenceErrors): for every ``step``-th first frame and
-    every segment length L, the last frame is the first one whose ground-truth path distance from
-    the start exceeds dist[first] + L (strictly). The segment's error is
-    E = inv(inv(est_first) est_last) (inv(gt_first) gt_last); t_err = |E_t| / L and
-    r_err = angle(E_R) / L (radians per metre). (inv(delta_gt) delta_est is E's inverse: same
-    norm, same angle.) The devkit takes the angle as acos(clamp((trace - 1) / 2)); we use the
-    equivalent atan2(|vee(R - R^T)| / 2, (trace - 1) / 2), identical for a rotation but not
-    blind near zero: KITTI's ground-truth rotations are orthonormal only to ~1e-7 (07.txt: 1.7e-7),
-    which acos turns into ~5e-4 rad of phantom rotation (r_rel = 0.006 deg/100 m for est == gt on
-    07.txt; atan2 gives 0). Errors are averaged over
-    all segments of all lengths, as the benchmark's table does, and reported as t_rel * 100 (%)
-    and r_rel * 180/pi * 100 (deg/100 m). Returns (nan, nan) when the ground-truth path has no
-    segment (shorter than min(lengths)): the metric is undefined there, not zero.
-    Vectorised over segments; no Python loop over frames.
+    For every ``step``-th first frame and segment length L, the last frame is the first whose
+    ground-truth distance exceeds the start's + L; the error E = inv(delta_est) delta_gt, averaged
+    over all segments. The angle is taken by atan2, not the devkit's acos, which turns KITTI's
+    non-orthonormal rotations into phantom rotation. (nan, nan) when the path has no segment.
     """
     est, gt = _check_pair(est, gt)
     if step < 1:
@@ -177,15 +149,10 @@ def kitti_relative_errors(
 def evaluate(est: np.ndarray, gt: np.ndarray) -> dict:
     """All figures for one trajectory against ground truth, as a JSON-ready dict.
 
-    Keys: mean_deviation (m), ate_rmse (m), t_rel (%), r_rel (deg/100 m), frames,
-    path_length_m (ground-truth path), end_error_m (final position error, no alignment) and
-    end_drift_percent (end error / path length * 100), plus the mean deviation split into
-    mean_deviation_horizontal (m, in the x-z plane) and mean_deviation_vertical (m, |y|): KITTI's
-    world frame is the first camera's, whose y axis points down, so for a level first camera this
-    separates drift along the ground from drift in height (loops observe the first far better
-    than a tilt of the whole path). t_rel / r_rel are NaN on paths shorter
-    than 100 m, and end_drift_percent is NaN for a path of length zero; callers write NaN as
-    null / "n/a".
+    Keys: mean_deviation, ate_rmse, t_rel, r_rel, frames, path_length_m (ground truth), end_error_m,
+    end_drift_percent, and the mean deviation split into horizontal (x-z plane) and vertical (|y|):
+    KITTI's world frame is the first camera's, y down, so this separates drift along the ground from
+    drift in height. NaN where undefined (t_rel / r_rel under 100 m, end drift on a zero-length path).
     """
     est, gt = _check_pair(est, gt)
     errors = position_errors(est, gt)

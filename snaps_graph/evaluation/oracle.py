@@ -1,23 +1,9 @@
-"""How much could *any* loop closure fix? A ground-truth loop oracle for a VO trajectory.
+"""A ground-truth loop oracle: the floor any loop closure could reach on a VO trajectory.
 
-Loop closure can only remove the part of the odometry error that a revisit observes: a loop
-constrains the relative pose of two frames, so an error that leaves every revisited pair's relative
-pose right (a heading error before the first revisit turns the whole rest of the path about a
-point the loops cannot see; a stretch driven once carries the error it had when it started) is
-invisible to every loop, however good the detector. The unaligned mean deviation (the paper's
-figure) counts that error in full.
-
-:func:`loop_oracle` bounds what our loops could reach. It builds the same pose graph as a run
-(the VO steps with the run's odometry noise: the stereo BA's covariances where the caller has
-them, else the inlier-based sigmas; :class:`~snaps_graph.backend.pose_graph.PoseGraph`) and adds
-a loop factor at *every* true revisit (ground truth: within ``radius_m``, at least
-``frame_distance`` frames back, heading within ``max_yaw_deg``, one every ``step`` frames) whose
-measurement is the exact ground-truth relative pose with the tightest noise a verified loop gets,
-then optimises it in batch.
-No detector can give more or better loops than that, so its mean deviation is (up to the
-odometry noise model) the floor for SNAPS and for the refinement on this VO.
-
-It is an evaluation tool only: it reads ground truth, and nothing in a run uses it.
+:func:`loop_oracle` builds a run's pose graph over the VO steps, adds an exact loop factor at
+every true revisit and optimises it in batch (why it is a floor and not zero:
+docs/loop-closure.md, "The dev paths"). An evaluation tool: it reads ground truth, and nothing in
+a run uses it.
 """
 
 from __future__ import annotations
@@ -98,14 +84,10 @@ def loop_oracle(
 ) -> OracleResult:
     """Batch-optimise the VO chain with an exact loop factor at every true revisit.
 
-    ``vo`` and ``gt`` are (N, 4, 4) T_world_cam for the same frames; ``inliers`` and ``ok`` are the
-    per-frame VO inlier counts and flags (as in ``frames.csv``) for the odometry noise model
-    (default: the reference sigmas, all frames good); ``covs`` the steps' ``VOResult.cov``, used
-    as the pipeline uses them (``SlamPipeline.vo_covs``). The candidate
-    geometry (radius, frame distance, yaw) is ``cfg.loop``'s, so the oracle sees exactly the
-    revisits SNAPS may close.
-    Each loop carries the tightest noise a verified loop gets (a zero verification covariance:
-    the ``loop_sigma_floor_*``), so no real loop is weighted more.
+    ``vo`` and ``gt``: (N, 4, 4) T_world_cam of the same frames; ``inliers``, ``ok`` and ``covs``
+    (the steps' ``VOResult.cov``) set the odometry noise as in a run (default: reference sigmas, all
+    frames good). The revisit geometry is ``cfg.loop``'s, so the oracle sees the revisits SNAPS may
+    close; each loop has the tightest noise a verified loop gets (the ``loop_sigma_floor_*``).
     """
     vo = np.asarray(vo, dtype=float)
     gt = np.asarray(gt, dtype=float)

@@ -1,13 +1,7 @@
 """Figures: top-down trajectories, position error over frames, latency box plots (paper Fig. 4-5).
 
-matplotlib is imported inside each function, with the non-interactive Agg backend, so
-``import snaps_graph`` stays light and plotting works on a headless machine. Every figure is
-rendered to memory and written with ``io_utils.atomic_write_bytes`` (temporary file in the same
-folder, then ``os.replace``), so a reader never sees half a PNG, and every figure is closed.
-
-Trajectory naming: a key ``"gt"`` (or ``"ground truth"``) is the ground truth and is drawn in
-black; loop pairs are drawn on ``"snaps"`` (the trajectory SNAPS corrected) when present, else on
-the first estimate.
+matplotlib is imported inside each function with the Agg backend, so ``import snaps_graph`` stays
+light and plotting works headless; each PNG is written atomically and every figure closed.
 """
 
 from __future__ import annotations
@@ -93,13 +87,11 @@ def plot_trajectories(
     loops: Sequence[tuple[int, int]] | None = None,
     title: str = "Trajectories",
 ) -> Path:
-    """Top view (x right against z forward, KITTI camera axes) beside height over distance.
+    """Top view (x right against z forward, KITTI camera axes) beside height (-y) over distance.
 
-    ``trajs`` maps a name to an (N, 4, 4) pose stack; ``loops`` are (frame, reference) *row*
-    indices into those stacks, drawn between the two positions on the SNAPS trajectory (the one
-    whose positions the loop moved) and marked at the frame that closed them. Height is -y (KITTI's
-    y points down) against the distance along the ground truth (else the first estimate), which
-    shows the vertical drift the top view cannot. Returns the path written.
+    ``trajs`` maps a name to an (N, 4, 4) pose stack, ``"gt"`` (or ``"ground truth"``) the ground
+    truth; ``loops`` are (frame, reference) *row* indices, drawn on ``"snaps"`` (else the first
+    estimate). Returns the path written.
     """
     if not trajs:
         raise SnapsGraphError(f"{path_png}: no trajectory to plot")
@@ -202,11 +194,8 @@ def plot_latency_box(
     samples: Mapping[str, np.ndarray],
     title: str = "Latency per frame",
 ) -> Path:
-    """Box plots of latency samples in milliseconds on a log axis (paper Fig. 5).
-
-    A log axis because the stages span five decades (SNAPS without candidates: microseconds;
-    a frame: hundreds of milliseconds). Non-positive and non-finite samples cannot sit on a log
-    axis and are left out; a series with no sample left gets no empty column, only a note in a corner.
+    """Box plots of latency samples in milliseconds on a log axis (paper Fig. 5): the stages span five
+    decades. Non-positive and non-finite samples are left out; an empty series gets a note, no column.
     """
     if not samples:
         raise SnapsGraphError(f"{path_png}: no latency series to plot")

@@ -1,49 +1,11 @@
-"""Heuristic-vs-optimised comparison of one run folder (``snaps-graph compare RUN_DIR [--gt GT]``).
+"""``snaps-graph compare RUN_DIR``: the heuristic (SNAPS) against the optimised corrections of one run.
 
-Reads what the pipeline wrote into a run folder and writes, into the same folder:
-
-- ``report.md``: the trajectories table (mean deviation, ATE RMSE, t_rel, r_rel, end drift per
-  trajectory), the per-loop table (UIQI score and its three factors, verification, and the
-  heuristic against the optimised correction at each loop frame), the latency table, and links
-  to the figures;
-- ``trajectories.png`` (top-down, loops drawn on the SNAPS trajectory), ``errors.png`` (position
-  error over frames; only with ground truth), ``latency.png`` (box plots, paper Fig. 5);
-  a loop-closure section (evaluation/loops.py) with ground truth and a ``candidates.csv``, and
-  ``loops_pr.png`` when SNAPS compared a pair (report.md links only the pictures written);
-- ``metrics.json``, updated atomically: existing keys are kept; ``trajectories`` (name ->
-  ``metrics.evaluate`` dict, with ground truth), ``paths`` (frames and path length per
-  trajectory), ``latency_ms`` (same shape as the pipeline's: per stage n / median / mean / p95 /
-  max, SNAPS split into frames with and without candidates) and ``loop_corrections`` (one object
-  per loop) and ``loop_evaluation`` (evaluation/loops.py, without the curve) are (re)written from
-  the files. A metric that cannot be computed is ``null``.
-
-Inputs, as the pipeline writes them: ``poses_vo.txt`` (required), ``poses_snaps.txt``,
-``poses_isam2.txt``, ``poses_batch.txt`` (each when computed), KITTI format, one line per
-processed frame; ``frames.csv`` (required; absent columns are tolerated, the matching figures
-become n/a); ``loops.jsonl`` (optional: a run without loops may omit it); ``poses_gt.txt`` (when
-the run knew the ground truth) or ``gt_path``; ``config.toml`` (optional: read only for the
-discount offset of eq. 6, default from ``LoopConfig``).
-
-Frame numbering: ``frames.csv``'s ``frame`` column holds the dataset frame index of each row, and
-loops.jsonl's ``frame``/``reference`` are dataset indices; both are mapped to rows through it. A
-ground-truth file with one pose per row is used as is; a longer one (the whole sequence) is
-indexed by the ``frame`` column. The selected ground truth is re-based so that its first row is
-the identity, as the estimates' first rows are (pipeline convention). The estimates are used as
-written, not re-based, so the figures here equal the pipeline's own ``evaluate`` on the same
-poses (a refined trajectory's frame 0 may sit a prior sigma away from the identity, and that
-belongs to its error).
-
-Corrections compared per loop (the point of this report):
-- *SNAPS step* = |w gamma_0 delta|, the move eq. 6 prescribes for the loop frame itself
-  (s' = 0, gamma_0 = 1 - exp(-discount_offset)), from loops.jsonl's weight w (Q, or 1 for a
-  verified loop under correction_weight = "verified"; Q when a file has no weight) and delta;
-- *heuristic correction* = |p_snaps - p_vo| at the loop frame: the displacement of that frame's
-  position between the pure VO chain and the SNAPS trajectory (for the first loop it equals the
-  SNAPS step; later loops also carry the earlier loops' corrections, which are composed forward);
-- *optimised correction* = |p_refined - p_vo| at the loop frame, for each of isam2 / batch.
-Measuring both against the same VO positions makes them directly comparable; with ground truth
-the table also gives each trajectory's position error at the loop frame, which says whose
-correction landed closer to the truth.
+Writes report.md (trajectory, per-loop and latency tables; what each column means is in the
+report itself), trajectories.png, errors.png (with ground truth), latency.png and, with ground
+truth and candidates.csv, the loop evaluation (``loops.py``), and rewrites metrics.json's
+comparison keys, keeping the others. Loop frames are dataset indices, mapped to rows by
+frames.csv's ``frame`` column; the ground truth is re-based to the first row and the estimates
+are used as written, so the figures equal the pipeline's own ``evaluate``.
 """
 
 from __future__ import annotations
@@ -328,16 +290,13 @@ def map_section_lines(run_dir: str | Path, map_entry: dict | None) -> list[str]:
 # Entry point
 # ---------------------------------------------------------------------------------------------
 def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accuracy: Callable[..., dict] | None = None) -> dict:
-    """Compare a run's trajectories (VO, SNAPS heuristic, iSAM2 / batch) and write the report.
-
-    ``gt_path`` overrides ``RUN_DIR/poses_gt.txt`` (KITTI, or TUM by a ``.tum`` extension; either
-    one pose per run row or the whole sequence, indexed by frames.csv's ``frame``). Without any
-    ground truth the tables carry no error columns and no errors.png is written. Returns the
-    updated metrics.json content. A missing or malformed input raises SnapsGraphError naming
-    the file. ``map_accuracy(run, trajectories, map_entry, gt, map_config) -> {"accuracy": ...,
-    "world_mesh": ...}`` measures the folder's maps against a true world (the command line passes
-    one built on ``mapping.outputs.accuracy_from_files``: evaluation does not import the map);
-    the result goes into metrics.json's ``map`` entry and the report's map section.
+    """Compare a run's trajectories (VO, SNAPS heuristic, iSAM2 / batch), write the report and return
+    the updated metrics.json content. ``gt_path`` overrides ``RUN_DIR/poses_gt.txt`` (KITTI, or TUM
+    by a ``.tum`` extension; one pose per row or the whole sequence); without ground truth there are
+    no error columns and no errors.png. ``map_accuracy(run, trajectories, map_entry, gt, map_config)``
+    measures the folder's maps against a true world (the command line passes one built on
+    ``mapping.outputs.accuracy_from_files``: evaluation does not import the map). A missing or
+    malformed input raises SnapsGraphError naming the file.
     """
     from .plots import plot_errors, plot_latency_box, plot_trajectories
 

@@ -1,42 +1,10 @@
 """Eq. 6's correction of the heuristic trajectory on a loop (paper §III-C, our reading).
 
-On a loop, corrects positions with our reading of eq. 6 (SPEC "SNAPS loop closure"): with
-δ = p_ref − p_N and α the number of loops closed so far (this one included), for
-s ∈ [N − K, N] (clipped at 0), s' = N − s::
-
-    γ_s = max(0, 1 − exp(−(c − α·r·s')))      c = discount_offset (3), r = discount_rate (0.01)
-    p_s ← p_s + Q·γ_s·δ
-
-The paper prints x_s^new = Q·γ·δ_x, which would throw every pose near the origin; the additive
-reading moves the current frame 95 % (γ = 1 − e^-3 at s' = 0, times Q) of the way to the
-reference and older frames less. γ turns negative once α·r·s' > c, which would push poses away
-from the reference, so it is clamped at 0. The window never reaches the reference or older
-frames (the loop's anchor; only possible when K > M). The current frame becomes the last
-pinned frame.
-
-What moves (``correction_axes``, ``correction_rotation``): the paper corrects x, y, z and keeps
-the VO orientations ("xyz", "none"). The target p_ref (+ R_ref·t_ref_cur) carries the
-reference's own error, and its *height* error is not smaller than the current frame's on our
-renderings (the VO's height error comes from a pitch bias, not a random walk): moving z toward
-it raised the height error. By default δ keeps its ground-plane components only ("ground":
-world x, z; heights stay the VO's) and a verified loop also turns the window about the world
-vertical toward the verified heading R_ref·R_ref_cur by the same w·γ_s ("yaw"), so the frames
-after the loop continue on the corrected heading instead of re-growing the same drift.
-
-The window (``discount_window``, ``discount_shape``): the paper's K = ``discount_length`` and
-γ above; or K following the loop's span N − j ("span": min(``discount_length_max``,
-``discount_span_factor``·(N − j))) with a linear ramp ("linear"), so the correction ends at 0
-instead of stepping there (γ is 0.86 at s' = 100). The ramp runs in the distance driven since
-the window's anchor, not in frames: drift grows with distance, so frames standing still share
-one correction and frames left out (a gap in the frame numbers) carry their distance's share.
-
-The heading turn bends the window: the headings turn progressively (by the same distance
-share) from the window's anchor (frame N − K − 1, fixed) to N, the window's positions are
-re-composed from the VO steps turned with them (a heading error that grew along the loop bent the path, and turning it back
-straightens the middle of the loop, which δ at N cannot see), then what remains of δ is spread
-by the ramp. The share of the turn applied is the gain g = P / (P + s²)
-(``heading_drift_deg``, ``verified_heading_sigma_deg``) with P the heading variance since the
-reference.
+With δ = the target − p_N and α the loops closed so far, every frame s of the window [N − K, N],
+s' = N − s, moves by p_s += w·γ_s·δ, γ_s = max(0, 1 − exp(−(c − α·r·s'))) or a linear ramp in
+the distance driven; by default δ keeps its ground-plane part, and a verified loop also bends
+the window toward the verified heading. Our reading and the choices: docs/loop-closure.md,
+"Eq. 6", and docs/decisions.md, "Loop closure (SNAPS)".
 """
 
 from __future__ import annotations
@@ -56,10 +24,8 @@ def yaw_correction(dR: np.ndarray) -> np.ndarray:
 
 
 def discount(cfg: LoopConfig, alpha: int, s_prime: np.ndarray, window: int | None = None) -> np.ndarray:
-    """γ of eq. 6 for offsets s' = N − s, clamped at 0 (see module docstring).
-
-    With ``window`` = K and ``discount_shape`` "linear": γ = (1 − e^−c)·(1 − s'/(K + 1)), the
-    share of a drift that grew evenly over the window.
+    """γ of eq. 6 for offsets s' = N − s: max(0, 1 − exp(−(c − α·r·s'))); with ``window`` = K and
+    ``discount_shape`` "linear", (1 − e^−c)·(1 − s'/(K + 1)), the share of a drift grown evenly.
     """
     if window is None or cfg.discount_shape == "paper":
         return np.maximum(0.0, 1.0 - np.exp(-(cfg.discount_offset - alpha * cfg.discount_rate * s_prime)))
@@ -80,11 +46,6 @@ class Correction:
         """Re-file the moved frames lo .. stop-1 in the candidate index (the search's; see search.py)."""
         raise NotImplementedError
 
-    def heading_gain(self, frames: int) -> float:
-        """Share of a verified rotation applied by a loop ``frames`` after its reference: the VO's
-        heading variance over that stretch against the measurement's (config comment)."""
-        return self._gain(frames * self.cfg.heading_drift_deg**2)
-
     def _gain(self, prior: float) -> float:
         """Share of a verified turn applied when the heading's prior variance is ``prior`` deg²."""
         var = prior + self.cfg.verified_heading_sigma_deg**2
@@ -98,11 +59,11 @@ class Correction:
 
     def _correct(self, n: int, q: float, delta: np.ndarray, alpha: int, rotvec: np.ndarray | None = None, first: int = 0) -> int:
         """Eq. 6 (our reading): p_s += w·γ_s·δ for s in [max(N−K, first), N], w = Q (or 1 for a
-        verified loop under correction_weight = "verified"); with ``rotvec`` (world-frame
-        axis-angle toward the verified heading) first the bend (module docstring), or, for a
-        window that starts at frame 0 (no anchor), R_s ← Exp(w·γ_s·rotvec)·R_s. ``first``
-        is the frame after the reference: the reference and older frames are the loop's anchor
-        and never move (only possible when K > M). Returns how many moved."""
+        verified loop under correction_weight = "verified"); with ``rotvec`` (world-frame axis-angle
+        toward the verified heading) first the bend, or, for a window that starts at frame 0 (no
+        anchor), R_s ← Exp(w·γ_s·rotvec)·R_s. ``first`` is the frame after the reference: the
+        reference and older frames are the loop's anchor and never move. Returns how many moved.
+        """
         K = self.window_length(n - first + 1)
         lo = max(0, n - K, first)
         gamma = discount(self.cfg, alpha, n - np.arange(lo, n + 1, dtype=float), n - lo)

@@ -1,16 +1,9 @@
 """SNAPS candidate search (paper §III-B): which earlier frames may be the place the car is at now.
 
-Earlier frames j qualify with ‖p_j − p_N‖ within the gate (current, corrected positions;
-``search = "radius"``: the paper's fixed radius; ``"drift"``: n sigma of the drift model's
-uncertainty accrued between j and N), N − j ≥ frame distance M and |wrap(yaw_j − yaw_N)| ≤ max yaw
-difference (widened by the heading drift); nearest first, ties by the older frame.
-
-Spatial look-up: a uniform grid hash with cell = radius maps a cell to the frames inside it, so a
-query reads the 9 ground-plane (x, z) cells around p_N and checks exact distances only there: the
-cost grows with the local density of frames, not with the trajectory. Frame N − M enters the grid
-when frame N arrives (younger frames can never be candidates), and a correction re-files the moved
-frames, so the index always holds the corrected positions. The drift search adds levels of cells
-radius·2^k for frames whose gate has grown past the level below.
+A uniform grid hash over the corrected ground-plane positions (cell = radius; the drift search
+adds levels radius·2^k) maps a cell to its frames, so a query checks exact distances only in the
+9 cells around p_N. Frame N − M enters when frame N arrives and a correction re-files the moved
+frames. The gates: :meth:`CandidateSearch.search` and docs/loop-closure.md, "The search".
 """
 
 from __future__ import annotations
@@ -132,10 +125,6 @@ class CandidateSearch:
         error of a heading error that grows linearly with the distance."""
         D = np.asarray(driven, dtype=float)
         return np.hypot(self._drift_a * D, 0.5 * self._drift_b * D * D)
-
-    def _gate(self, driven: np.ndarray | float) -> np.ndarray:
-        cfg = self.cfg
-        return np.clip(cfg.search_sigmas * self.drift_sigma(driven), cfg.radius_m, cfg.search_max_radius_m)
 
     def _search_drift(self, n: int) -> tuple[np.ndarray, np.ndarray]:
         cfg = self.cfg

@@ -1,34 +1,10 @@
 """SNAPS: similarity and location-based real-time loop closure (paper §III, eq. 6, Table I).
 
-:class:`SnapsLoopCloser` owns the real-time *heuristic* trajectory. Per frame it
-
-1. composes the VO increment onto the previous heuristic pose (already corrected, so corrections
-   persist into every later frame);
-2. stores the frame's 1/6-scale thumbnail (§III-A);
-3. searches loop candidates (§III-B, search.py) if N − last pinned frame > inter-frame pause; at
-   most ``attempts`` of them are compared by UIQI (eq. 4) on thumbnails; candidates with
-   Q ≥ minimum similarity are, highest Q first, the loop. With a verifier (the pipeline always has
-   one), they are tried in that order and the first that passes geometric verification is the
-   loop; with ``require_verification`` none passing means no loop (see :meth:`_try_close`).
-   With ``pause_graph_loops`` the pause still searches candidates (every ``pause_every``-th
-   frame); one that verifies is a loop for the factor graph only (weight 0, nothing corrected,
-   the pause keeps running from the loop that started it);
-4. on a loop corrects the trajectory by eq. 6 (correction.py); the current frame becomes the last
-   pinned frame.
-
-Frame numbering. Internally frames are numbered by their position in the processed stream
-(0, 1, ...): M, K and the pause count processed frames. The caller's ``index`` (the dataset's
-frame number, which differs when a frame range is processed) is what :class:`LoopEvent` records in
-``frame`` and ``reference``; :attr:`indices` maps one to the other.
-
-Similarity cost. UIQI's per-image window sums are cached per thumbnail (LRU, ``stats_cache_frames``)
-so comparing the current frame with a candidate computes only the cross term; the winner's Q and
-its three factors, reported in the LoopEvent, come from the same exact float64 arithmetic.
-
-Timing. ``t_ms`` covers detection and correction: grid insertion, candidate search, similarities
-(including any window sums computed on a cache miss) and eq. 6, measured with perf_counter. It
-excludes making the thumbnail (a resize of the full image) and composing the pose, which the
-pipeline times as part of the frame.
+:class:`SnapsLoopCloser` owns the real-time *heuristic* trajectory. Per frame it composes the VO
+step onto the previous, corrected pose, keeps the 1/6-scale thumbnail and, once the pause after
+the last loop is over, compares up to ``attempts`` candidates (search.py) by UIQI; the loop is
+picked by :meth:`~SnapsLoopCloser._try_close` and corrected by eq. 6 (correction.py). M, K and the
+pause count processed frames (stream positions); :class:`LoopEvent` holds the caller's indices.
 """
 
 from __future__ import annotations
@@ -61,7 +37,7 @@ class SnapsStep:
     pose: np.ndarray  # 4x4 heuristic T_world_cam of this frame, after any correction
     loop: LoopEvent | None  # the loop closed at this frame, if any
     candidates: int  # similarities computed on this frame
-    t_ms: float  # detection + correction time (see module docstring)
+    t_ms: float  # search, similarities and eq. 6, ms (not the thumbnail, the pose or verification)
     t_verify_ms: float = 0.0  # geometric verification time on this frame (tried or successful)
 
 
@@ -218,14 +194,11 @@ class SnapsLoopCloser(CandidateSearch, Correction):
     def _try_close(
         self, n: int, ids: np.ndarray, dists: np.ndarray, verify: Verifier | None = None, in_pause: bool = False
     ) -> tuple[LoopEvent | None, int]:
-        """Compare candidates, pick the loop, correct (eq. 6). ``in_pause``: only a verified
-        candidate makes a loop, and it goes to the graph without correcting.
-
-        δ aims at the reference position p_ref (the paper's same-place assumption). With
-        ``use_verified_offset`` and a verifier that succeeds, δ aims instead at where the current
-        frame really stands relative to the reference, p_ref + R_ref·t_ref_cur: revisits are
-        metres apart along and across the road, and pulling N onto p_ref would add that offset
-        as error. Orientations still keep their VO values.
+        """Compare candidates, pick the loop, correct (eq. 6). Those at or above ``min_similarity`` are
+        verified highest Q first (at most ``verify_attempts``); the first that verifies is the loop, or,
+        without a verifier or under ``require_verification = false``, the best Q. δ aims at p_ref, or with
+        ``use_verified_offset`` at p_ref + R_ref·t_ref_cur. ``in_pause``: only a verified candidate makes
+        a loop, and it goes to the graph without correcting.
         """
         cur = self._window_stats(n)
         if self.cfg.shift_px > 0:  # best horizontal shift per candidate (heading differences)

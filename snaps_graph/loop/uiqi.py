@@ -1,42 +1,10 @@
 """Universal image quality index (Wang & Bovik 2002; the paper's eq. 4-5) and thumbnails.
 
-Q = 4·σxy·x̄·ȳ / ((σx² + σy²)(x̄² + ȳ²)) is evaluated in every B×B window that lies fully inside
-the image (a sliding window with step 1, so (H-B+1)×(W-B+1) windows) and averaged. Q is the product
-of three interpretable factors, kept because they are what makes SNAPS "interpretable":
-
-    correlation  σxy / (σx·σy)            (loss of linear correlation)
-    luminance    2·x̄·ȳ / (x̄² + ȳ²)       (mean-brightness distortion)
-    contrast     2·σx·σy / (σx² + σy²)    (contrast distortion)
-
-How it is computed. Everything comes from window *sums*: Sx = Σx, Sxx = Σx², Sxy = Σxy over a
-window of N = B² pixels (box filters with ``normalize=False`` in float64, no Python loops). With
-Vx = N·Sxx − Sx² = N(N−1)·σx² (eq. 5's unbiased variance, times a constant) and
-Cxy = N·Sxy − Sx·Sy = N(N−1)·σxy, the constants cancel in every factor::
-
-    Q = 4·Cxy·Sx·Sy / ((Vx + Vy)(Sx² + Sy²))
-
-so the unbiased (N−1) normalisation of eq. 5 is honoured exactly without dividing by it. For 8-bit
-images every sum is an integer below 2^53, so Sx, Vx and Cxy are exact and there is no
-cancellation error at all; for float images the error is round-off of the sums (~1e-13 relative).
-
-Why sums are split per image. A comparison needs Sx, Vx of each image and the cross term Sxy of
-the pair. :func:`window_stats` computes the per-image part once (SNAPS caches it per thumbnail), so
-comparing two prepared images costs one box filter plus a few array operations
-(:func:`similarity_q`). The fast path and :func:`uiqi` share the same float64 arithmetic, so the
-fast path is as exact as the reference (no float32 shortcut).
-
-Windows where a denominator is zero (the rule, applied to each factor so that the factors still
-multiply to Q window by window):
-
-- luminance = 1 where both window means are 0 (x̄² + ȳ² = 0);
-- contrast = 1 where both windows are flat (σx² + σy² = 0);
-- correlation = 1 where both windows are flat, 0 where exactly one is flat (a flat window carries
-  no correlation with a textured one);
-- hence Q = 1 for two identical flat windows, Q = 2ab/(a²+b²) for flat windows of levels a and b,
-  Q = 0 for a flat window against a textured one.
-
-"Flat" means Vx ≤ 1e-10·N·Sxx (a window standard deviation below 1e-5 of its RMS value): exact
-zero for integer images, and it absorbs the tiny (even negative) round-off of float images.
+Q = 4·σxy·x̄·ȳ / ((σx² + σy²)(x̄² + ȳ²)) in every B×B window fully inside the image (step 1),
+averaged; each window's Q is the product of its correlation, luminance and contrast, kept because
+they make a loop interpretable. All of it comes from float64 box-filter window sums (exact for
+8-bit images); the per-image part (:func:`window_stats`) is computed once per thumbnail. The
+arithmetic and the rules for zero denominators: docs/loop-closure.md, "The similarity".
 """
 
 from __future__ import annotations
@@ -49,7 +17,7 @@ import numpy as np
 
 from ..errors import SnapsGraphError
 
-# A window whose N·Sxx − Sx² is below this fraction of N·Sxx is treated as flat (see module doc).
+# A window whose N·Sxx − Sx² is below this fraction of N·Sxx is flat (docs/loop-closure.md).
 _FLAT_REL_TOL = 1e-10
 # Up to this window size, uint8 products and their window sums are integers below 2^24 (float32-exact).
 _EXACT_F32_WINDOW = 16
@@ -271,20 +239,10 @@ def _workspace(ns: int, h: int, wc: int, hv: int, wv: int) -> _Workspace:
 
 def similarity_shifted(a: WindowStats, b: WindowStats, max_shift: int, step: int = 1) -> tuple[float, int]:
     """Rank horizontal shifts: the mean Q of a's central columns against b's columns moved by dx
-    (see :func:`shifted_pair`), for dx in [-max_shift, max_shift] every ``step`` pixels; returns
-    (Q at the best shift, that dx).
-
-    Why: a revisit is seen with a heading a few degrees off the first pass; at 1/6 scale one
-    degree moves the thumbnail by about 2 pixels (KITTI's fx = 718 px), which decorrelates B x B
-    windows completely. Comparing at the best shift keeps the index (eq. 4 on the compared
-    columns) while tolerating that.
-
-    Speed: all shifts at once. The products of every shift are stacked into one image and
-    box-filtered in one call (windows that straddle two stacked shifts are dropped), the
-    per-image sums are column slices of the cached ones, and the formula runs in float32 over
-    the stack. The returned Q is that float32 score (it agrees with :func:`uiqi` on the same
-    columns to about 1e-6, plenty to rank candidates and test a threshold); the loop's reported
-    Q and factors are computed exactly by :func:`similarity` on :func:`shifted_pair`.
+    (:func:`shifted_pair`), dx in [-max_shift, max_shift] every ``step`` pixels; returns (Q at the
+    best shift, that dx). All shifts are box-filtered in one stacked call and scored in float32
+    (within about 1e-6 of :func:`uiqi`: enough to rank); a loop's reported Q and factors are
+    computed exactly by :func:`similarity` on :func:`shifted_pair`.
     """
     if a.shape != b.shape or a.window != b.window:
         raise SnapsGraphError(f"UIQI: image sizes differ ({a.shape[1]}x{a.shape[0]} vs {b.shape[1]}x{b.shape[0]})")
@@ -328,10 +286,9 @@ def similarity_shifted(a: WindowStats, b: WindowStats, max_shift: int, step: int
 def uiqi(x: np.ndarray, y: np.ndarray, window: int = 8, return_maps: bool = False) -> UIQI:
     """Universal image quality index of two same-size grey images (eq. 4-5), B×B windows, step 1.
 
-    Returns a :class:`UIQI` with the mean Q and mean factors over all (H-B+1)×(W-B+1) windows, and
-    the per-window maps with ``return_maps=True``. See the module docstring for the arithmetic and
-    the zero-denominator rules. Raises :class:`SnapsGraphError` for mismatched sizes, images smaller
-    than the window, or non-finite pixels.
+    The mean Q and mean factors over all (H-B+1)×(W-B+1) windows, and the per-window maps with
+    ``return_maps=True``. Raises :class:`SnapsGraphError` for mismatched sizes, images smaller than
+    the window, or non-finite pixels.
     """
     return similarity(window_stats(x, window), window_stats(y, window), return_maps=return_maps)
 

@@ -1,8 +1,6 @@
-"""Map (SPEC "Map"): keyframe depth fused into a TSDF mesh under any trajectory (``FusedMap``),
-its files and pictures (``outputs``), accuracy against a true world mesh (``accuracy``).
-
-The only part of the package that imports open3d, and only lazily inside methods, so
-``import snaps_graph`` does not load it.
+"""Map: keyframe depth fused into a TSDF mesh under any trajectory (``FusedMap``), its files and
+pictures (``outputs``), accuracy against a true world mesh (``accuracy``). The only part of the
+package that imports open3d, and only lazily inside methods.
 """
 
 from .outputs import write_map_outputs

@@ -1,16 +1,8 @@
 """Map accuracy against the true world surface (a triangle mesh, e.g. ``synth --world-mesh``).
 
-* **Error**: the distance of each map point (and each mesh vertex) to the nearest point of the
-  true surface (open3d ``RaycastingScene.compute_distance``): median and p90.
-* **Completeness**: the true surface is sampled uniformly by area; samples within
-  ``range_m`` of the path (the camera positions) are the surface the map should hold; the share
-  of them within ``tolerance_m`` of the map (its points and mesh vertices) is the completeness.
-  Also reported over the samples *seen* from the path ("completeness_seen"): a sample counts
-  as seen when it lies in the view of one of its 8 nearest cameras (``views``: poses and image
-  size), at most ``range_m`` ahead of it, and the line from that camera reaches it unblocked.
-  The camera's 29 degree vertical field of view means the upper floors of a building beside the
-  road are never seen within 20 m, nor are roofs, the backs of buildings or the ground behind
-  them; the plain completeness counts all of those as missing.
+Error: each map point's and mesh vertex's distance to the true surface (median, p90).
+Completeness: the share of the true surface near the path, and of the part a camera saw, within
+``tolerance_m`` of the map. The definitions and why both: docs/decisions.md, "Map".
 """
 
 from __future__ import annotations
@@ -67,7 +59,7 @@ class WorldSurface:
     ) -> tuple[np.ndarray, np.ndarray]:
         """Uniform area samples of the surface within ``range_m`` of the positions of ``poses``
         ((n, 4, 4) T_world_cam), and for each whether one of these cameras (intrinsics ``K``,
-        image ``size`` = (w, h)) sees it (see the module docstring). Cached."""
+        image ``size`` = (w, h)) sees: in view of one of its 8 nearest cameras, unblocked. Cached."""
         from scipy.spatial import cKDTree
 
         positions = poses[:, :3, 3]

@@ -1,11 +1,7 @@
 """The map files of a results folder, written in one call (``write_map_outputs``), and the map
-section of ``compare``'s report.
-
-Files: ``map_mesh.ply`` (triangle mesh) and ``map.ply`` (surface points = its vertices) fused under the chosen
-trajectory; ``map.png`` (top-down, height-coloured, trajectories over it); ``map_mesh.png``
-(perspective view of the mesh); with ``per_trajectory`` (``--map-all``) ``map_mesh_<name>.ply``
-and ``map_<name>.ply`` for every trajectory; with a world mesh, accuracy per trajectory
-and ``map_compare.png`` (each trajectory's map coloured by its distance to the true surface).
+section of ``compare``'s report: ``map_mesh.ply``, ``map.ply`` (its vertices), ``map.png``,
+``map_mesh.png``, with ``--map-all`` one map per trajectory, and with a world mesh the accuracy
+per trajectory and ``map_compare.png`` (each map coloured by its distance to the true surface).
 """
 
 from __future__ import annotations

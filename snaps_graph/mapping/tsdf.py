@@ -1,20 +1,9 @@
 """TSDF map: keyframe depth kept compressed, fused into a surface under any trajectory.
 
-Decisions and why:
-
-* **Depth is stored, not clouds.** A keyframe keeps its map depth (``frontend.depth.map_depth``,
-  working size) as a PNG-encoded uint16 millimetre image and its grey image as a PNG, both in
-  memory. Fusing under another trajectory (VO, SNAPS, refined) decodes them again; stereo is
-  never recomputed.
-* **Fusion** is open3d's ``t.geometry.VoxelBlockGrid`` on the CPU (a TSDF in a hash map of 8^3
-  voxel blocks; measured against the legacy ``ScalableTSDFVolume`` in the README). The surface
-  is extracted where at least ``tsdf_min_weight`` keyframes observed it: a one-off wrong depth
-  is outvoted, noise is averaged.
-* **Bounded memory.** Keyframes are fused in path order; when the grid holds
-  ``tsdf_max_blocks`` blocks, its surface (mesh and points) is extracted as compact arrays and
-  the grid starts afresh. A place revisited in a later chunk is then fused separately and
-  appears twice (on top of itself when the trajectory is consistent).
-* open3d is imported inside the methods, so ``import snaps_graph`` stays light.
+A keyframe keeps its map depth (uint16 mm) and grey image PNG-encoded in memory, so a fusion
+under another trajectory never recomputes stereo; fusion is open3d's ``VoxelBlockGrid`` on the
+CPU, in chunks of at most ``tsdf_max_blocks`` (docs/decisions.md, "Map"). open3d is imported
+inside the methods, so ``import snaps_graph`` stays light.
 """
 
 from __future__ import annotations
@@ -51,17 +40,6 @@ class FusedSurface:
     def point_grey(self) -> np.ndarray:
         return self.vertex_grey
 
-    def mesh_o3d(self):
-        import open3d as o3d
-
-        m = o3d.geometry.TriangleMesh()
-        m.vertices = o3d.utility.Vector3dVector(self.vertices.astype(np.float64))
-        m.triangles = o3d.utility.Vector3iVector(self.triangles.astype(np.int32))
-        if len(self.vertex_grey):
-            g = self.vertex_grey.astype(np.float64)[:, None] / 255.0
-            m.vertex_colors = o3d.utility.Vector3dVector(np.repeat(g, 3, axis=1))
-        return m
-
 
 class FusedMap:
     """Compressed keyframe depth; ``fuse(poses)`` integrates it into a TSDF under a trajectory."""
@@ -72,7 +50,6 @@ class FusedMap:
         self.cfg = cfg
         # k -> (depth PNG bytes (uint16 mm), grey PNG bytes or None, (width, height))
         self._kf: dict[int, tuple[bytes, bytes | None, tuple[int, int]]] = {}
-        self.t_fuse_s = 0.0  # time spent in fuse(), all calls
 
     # ---- keyframes ----
     def should_add(self, k: int) -> bool:
@@ -207,7 +184,6 @@ class FusedMap:
         del vbg
         surf = _concat(parts)
         dt = time.perf_counter() - t0
-        self.t_fuse_s += dt
         surf.stats = {
             "keyframes": len(self._kf),
             "chunks": len(parts),

@@ -1,24 +1,9 @@
 """Ray casting and shading of a synthetic world (textures are functions of the world hit point).
 
-Decisions:
-
-* **Rays** are built from precomputed camera-frame directions ``((u - cx)/fx, (v - cy)/fy, 1)``.
-  open3d returns the hit distance in units of the direction's length, so with z = 1 the hit
-  distance *is* the z-depth: the depth map is exact, with no division.
-* **Texture** is a deterministic function of the world hit point and the surface it lies on
-  (face table in ``_world``), never of the pixel or the frame: a place looks the same on every
-  visit and in both cameras, which is what loop closure and stereo matching need.
-* **Noise** is a sum of octaves, each a bilinear lookup (``cv2.remap``, which releases the GIL and
-  is vectorised) into a small precomputed tile of smoothed white noise, at scales that are not
-  multiples of each other and with a per-octave rotation, so the sum never visibly repeats.
-* **Anti-aliasing**: one ray per pixel cannot resolve detail smaller than a pixel, so each
-  octave, brick and window pattern fades to its mean once its wavelength spans fewer than about
-  two pixels at the hit (footprint = distance / fx, stretched at grazing angles). Far surfaces
-  go smooth instead of shimmering, so the same place renders alike from nearby poses.
-* **Light**: ambient + Lambertian from a fixed sun (faces of different orientation differ), a
-  gentle distance haze toward the horizon colour, and a sky whose brightness grows with
-  elevation. No shadows by default (they need a second cast per pixel); with ``lighting`` the
-  sun follows a time of day (``sun_direction``) and each hit casts a shadow ray towards it.
+Rays with z = 1 make the hit distance the exact z-depth; texture is octave noise looked up
+(``cv2.remap``) at the world hit point and faded to its mean below about two pixels' wavelength;
+light is ambient + Lambertian with haze, plus shadow rays with ``lighting``. Why: docs/datasets.md,
+"How the world is rendered".
 """
 
 from __future__ import annotations
@@ -130,12 +115,9 @@ def _edge(dist_inside: np.ndarray, inv_fp: np.ndarray) -> np.ndarray:
 
 
 class Renderer:
-    """Casts a camera's rays into a ``World`` and shades them into grey images.
-
-    Speed (docs/decisions.md, "Speed"): shading runs on chunks of ``CHUNK`` pixels of flat
-    float32 arrays, which the allocator recycles instead of page-faulting; nine multiply-adds on
-    rows instead of a matrix product, whose BLAS threads stall on a busy CPU; the ray buffer is
-    reused per thread and handed to open3d without a copy.
+    """Casts a camera's rays into a ``World`` and shades them into grey images: in chunks of ``CHUNK``
+    pixels and without BLAS (docs/decisions.md, "Speed"), the ray buffer reused per thread and handed
+    to open3d without a copy.
     """
 
     def __init__(self, world: World, fx: float, fy: float, cx: float, cy: float, width: int, height: int, seed: int):

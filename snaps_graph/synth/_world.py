@@ -1,26 +1,9 @@
 """Procedural street world built once along a whole camera path (geometry only; see ``_shade``).
 
-The world is one triangle mesh in open3d's ``RaycastingScene`` (Embree):
-
-* a **ground heightfield** that follows the path: each path sample deposits the height of the
-  point ``camera_height_m`` below the camera (along the camera's down axis) and the grid takes a
-  normalised Gaussian average of them (normalised convolution), blended far from the path into
-  a much smoother average, so the ground under the camera is at ``camera_height_m`` and the
-  height between path points is interpolated smoothly. One ground cannot meet two passes that
-  disagree in height: KITTI 00's ground truth revisits some places up to ~1.5 m higher or lower,
-  and there the ground takes the average (the camera stands up to ~0.75 m off 1.65 m); where
-  the path passes once the error is under 0.06 m;
-* **buildings, low walls and posts**: oriented boxes placed along both sides of the path with
-  random frontage, gaps, setback, depth and height, plus a second row further back. A box is
-  kept only if its whole footprint lies at least ``corridor_m`` from *every* part of the path
-  (an exact Euclidean distance transform of the rasterised path) and does not overlap an
-  earlier box; so crossings and revisits never put a wall in the road, and driving the same
-  street twice finds the same buildings (the second pass finds the slots taken);
-* a **backdrop** of distant hills around the ground's edge, so the horizon is not an empty edge.
-
-Each triangle maps to a *face* (``tri_face``); the face table carries what the shader needs
-(kind, texture origin and tangent, per-surface random offset and style). Everything is a
-deterministic function of the path and the seed, so the same seed gives the same world.
+One triangle mesh in open3d's ``RaycastingScene``: a ground heightfield following the path,
+buildings, walls and posts kept clear of every part of the path, a backdrop of hills. Each
+triangle maps to a face (``tri_face``) whose table carries what the shader needs. Deterministic
+for a path and a seed; the decisions: docs/datasets.md, "How the world is rendered".
 """
 
 from __future__ import annotations
@@ -49,13 +32,8 @@ SCENES = ("street", "open", "mixed")
 
 @dataclass
 class WorldConfig:
-    """Numbers that shape a synthetic world (lengths in metres).
-
-    Defaults give a KITTI-like street: 1.65 m camera height (KITTI's camera is 1.65 m above the
-    road), a free corridor of 5 m each side of the path, buildings 4-24 m tall with gaps.
-    ``scene`` picks a preset (see ``SCENES``); the hard-world switches (``aliasing``,
-    ``traffic``, ``lighting``) combine with any scene. Traffic draws from its own generator and
-    lighting only changes the shading, so switching them on leaves the static world as it was.
+    """Numbers that shape a synthetic world (lengths in metres); the defaults give a KITTI-like street.
+    ``scene`` picks a preset (``SCENES``); ``aliasing``, ``traffic`` and ``lighting`` combine with any.
     """
 
     camera_height_m: float = 1.65  # ground lies this far below the camera (camera down axis)
@@ -148,11 +126,6 @@ class FaceTable:
 
     def __len__(self) -> int:
         return len(self.kind)
-
-    def column(self, name: str) -> np.ndarray:
-        if name in MAIN_FIELDS:
-            return self.main[MAIN_FIELDS.index(name)]
-        return self.detail[DETAIL_FIELDS.index(name)]
 
 
 @dataclass
@@ -931,18 +904,12 @@ class Layer:
 
 
 class Traffic:
-    """Parked and oncoming cars (two boxes each: body and cabin), a function of the frame.
+    """Parked and oncoming cars (two boxes each: body and cabin), a function of the frame; drawn from
+    its own generator, so the static world is the same with or without traffic.
 
-    * **Parked**: slots every car length + 0.8-3 m, ``parked_offset_m`` right of the path, whose
-      footprint clears every part of the path by 1.2 m. A *pass* is a run of consecutive frames
-      within ``pass_radius_m`` of the slot; the slot is taken or free for the whole pass (drawn
-      per pass), so a car never pops in or out in view, but revisits see other cars.
-    * **Oncoming**: cars spawned at random times (mean ``oncoming_period_s`` apart) 80-150 m ahead
-      of the camera along the path, driving back along it ``oncoming_offset_m`` to its left at
-      7-14 m/s; a car whose footprint would come within 1.2 m of any part of the path (a
-      crossing, another pass) is hidden at that instant. Their texture moves with them.
-
-    Drawn from its own generator: the static world is the same with or without traffic.
+    A parking slot is taken or free for a whole pass (consecutive frames within ``pass_radius_m``),
+    so no car pops in view but revisits see other cars; oncoming cars spawn 80-150 m ahead and drive
+    back along the path, hidden while within 1.2 m of any part of it.
     """
 
     def __init__(self, world: "World", positions: np.ndarray, times: np.ndarray | None, seed: int):

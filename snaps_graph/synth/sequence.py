@@ -1,41 +1,9 @@
 """Synthetic stereo sequences: a procedural textured street world, ray-cast along any path.
 
-Users without KITTI (and the tests) drive a rendered stereo camera along a trajectory with
-exact ground truth: the built-in loop (``builtin_loop_trajectory``) or any KITTI pose file, in
-particular the whole ground-truth paths of KITTI 00 (several same-direction revisits) and 07
-(one loop entered ~24 deg off).
-
-Decisions:
-
-* **One world per path.** The world (``_world.World``) is built once along the *whole* path
-  before the first frame: a ground heightfield that follows the path (camera 1.65 m above it),
-  buildings, low walls and posts on both sides with gaps, never within ``corridor_m`` (5 m) of
-  any part of the path, and distant hills. Revisits see the same buildings.
-* **Scenes and hard worlds** (``WorldConfig``; ``snaps-graph synth --scene --aliasing --traffic
-  --lighting``): ``street`` (the above, the default), ``open`` (a road through fields with tree
-  lines and farms 30-200 m away: most features far, where stereo depth is least certain) and
-  ``mixed`` (alternating 150-400 m stretches); ``aliasing`` (facade modules in one repeated
-  block), ``traffic`` (parked cars that differ between passes, oncoming cars; not part of the
-  world mesh) and ``lighting`` (sun and cast shadows follow a time of day along the path's
-  time). Each is deterministic per seed; ``street`` without them renders bit-identically to the
-  world before they existed. ``write_world_mesh`` writes the static geometry (``--world-mesh``).
-* **World-locked texture.** Every grey level is a deterministic function of the world hit
-  point and the surface (``_shade``), so a revisited place looks the same (loop closure by
-  image similarity works) and the two cameras see the same surface (stereo works).
-* **The dataset protocol of KittiSequence**: ``len``, ``seq[i] -> StereoFrame``, iteration,
-  ``camera``, ``gt_poses`` (rebased so frame 0 is the identity), ``timestamps``, ``indices``,
-  plus ``depth(i)``: the exact z-depth of the left camera in metres, **0 where no surface was
-  hit** (the sky), the same "0 = invalid" rule as ``StereoCamera.depth_from_disparity``.
-* **Rendered lazily** frame by frame; the same seed gives bit-identical images (sensor noise
-  and exposure drift are seeded by (seed, frame)).
-* **Optional difficulty**: ``noise_std`` adds Gaussian sensor noise (grey levels, independent
-  in each camera); ``exposure_change`` applies a per-frame gain and offset that drift slowly
-  (periods of 60-400 frames): gain within ``1 +/- exposure_change``, offset within
-  ``+/- 30 * exposure_change`` grey levels, the same for both cameras of a frame, so a
-  revisit is not pixel-identical; ``rectification_error_px`` turns the right camera by a tiny
-  yaw so that every disparity reads that many pixels smaller than ``calib.txt`` implies (a
-  residual of a real rig's rectification; depth then reads long, the more so the farther:
-  z' = fB / (fB/z - error)). All are off by default.
+:class:`SyntheticSequence` reads like a KITTI folder (frames, ``camera``, ``gt_poses`` rebased to
+the identity, ``timestamps``) plus ``depth(i)``, the left camera's exact z-depth (0 where no
+surface was hit). The world is built once along the whole path; frames render lazily, and a seed
+gives bit-identical images. How the world is made: docs/datasets.md, "How the world is rendered".
 """
 
 from __future__ import annotations
@@ -102,8 +70,11 @@ class SyntheticSequence(SequenceBase):
         world_config: WorldConfig | None = None,
         rectification_error_px: float = 0.0,
     ):
-        """``camera`` defaults to KITTI 00's P0/P1 scaled to ``width`` x ``height``; a given
-        camera keeps its own size when it has one. ``baseline_m`` overrides the baseline."""
+        """``camera`` defaults to KITTI 00's P0/P1 scaled to ``width`` x ``height``; a given camera keeps
+        its own size when it has one. ``baseline_m`` overrides the baseline. ``noise_std`` (grey
+        levels), ``exposure_change`` and ``rectification_error_px`` (px) are the sensor options of
+        ``snaps-graph synth`` (``--noise``, ``--exposure``, ``--rectification-error``), off at 0.
+        """
         poses = _check_poses(poses)
         if camera is None:
             if not (isinstance(width, (int, np.integer)) and isinstance(height, (int, np.integer))) or width < 8 or height < 8:
@@ -138,9 +109,7 @@ class SyntheticSequence(SequenceBase):
         self._right_turn = np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
         self._poses = np.linalg.inv(poses[0]) @ poses  # rebased: frame 0 is the identity
         self._times = times
-        t0 = time.perf_counter()
         self.world = World(self._poses[:, :3, 3], self._poses[:, :3, 1], seed=self.seed, config=world_config, times=times)
-        self.build_s = time.perf_counter() - t0  # world construction time, for benchmarks
         self._renderer = Renderer(self.world, camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height, self.seed)
         self._exposure = _exposure_curve(len(poses), self.seed, self.exposure_change)
 
@@ -390,17 +359,11 @@ def render_to_folder(
 ) -> dict[str, float]:
     """Write ``seq`` in the KITTI layout that ``KittiSequence`` reads; return stage timings.
 
-    Writes ``image_0/NNNNNN.png`` and ``image_1/NNNNNN.png`` (8-bit grey, PNG level 1),
-    ``calib.txt`` (P0/P1), ``times.txt``, ``poses.txt`` (the sequence's ground truth: the input
-    path rebased to the identity, KITTI format) and, with ``write_depth``,
-    ``depth_0/NNNNNN.png``: the left depth as **uint16 millimetres**, 0 = invalid (sky, or
-    beyond 65.535 m). ``progress()`` is called once per frame, in order, from the calling
-    thread. ``workers`` threads render and encode frames in parallel (open3d casts hold the GIL
-    but use every core; shading, cv2.remap and PNG encoding release it). A folder that already
-    holds images is refused unless ``overwrite`` (then its old frames are removed first).
-
-    Returns total milliseconds per stage (summed over threads): ``cast``, ``shade``, ``write``,
-    plus ``wall_s`` (elapsed seconds) and ``frames``.
+    ``image_0/``, ``image_1/`` (8-bit grey PNG), ``calib.txt``, ``times.txt``, ``poses.txt`` (the
+    path rebased to the identity) and, with ``write_depth``, ``depth_0/`` (uint16 mm, 0 = sky or
+    beyond 65.535 m). ``workers`` threads render and encode; ``progress()`` is called once per frame,
+    in order, from the calling thread. A folder holding images is refused unless ``overwrite``.
+    Returns total ms per stage over threads (``cast``, ``shade``, ``write``), ``wall_s``, ``frames``.
     """
     out = Path(out_dir)
     if out.exists() and not out.is_dir():

@@ -1,22 +1,14 @@
-"""Loop-verification features independent of the tracker.
+"""Loop-verification features independent of the tracker, whose KLT corners do not repeat when a
+place is revisited metres apart.
 
-The tracker's own per-frame features (KLT corners) are not repeatable when a place is revisited
-metres apart. ``LoopFeatureBank`` keeps,
-for every ``reference_every``-th frame, multi-scale keypoints with descriptors and stereo
-3D points (``FrameFeatures``: no images), and computes the current frame's keypoints only when
-a loop candidate is to be verified (:meth:`LoopFeatureBank.query`, once per frame).
-
-:func:`verify_features` matches a reference's descriptors to the current frame's, solves PnP
-RANSAC (the odometry's estimator), keeps the pose only if enough inliers *also* agree in depth
-with the current frame's own stereo (a place that merely looks alike, e.g. a repeated facade
-module at another distance, fails that), and returns the pose with its covariance from the
-inliers' reprojection Jacobian, so the graph weighs a loop by what verification measured.
-ORB keypoints are refined to sub-pixel at full resolution (``verification.subpixel_px``).
+``LoopFeatureBank`` keeps multi-scale keypoints, descriptors and stereo 3D points of every
+``reference_every``-th frame, and the current frame's only when a candidate is verified.
+:func:`verify_features`: PnP RANSAC of a reference's points, a depth check against the current
+frame's stereo, and the pose's covariance for the graph (docs/decisions.md, "Loop closure (SNAPS)").
 """
 
 from __future__ import annotations
 
-import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -60,10 +52,9 @@ def detect_loop_keypoints(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Multi-scale keypoints for loops: (uv float32 (N,2), descriptors, size float32 (N,)).
 
-    ``detector`` "orb": ORB's own pyramid (``LOOP_ORB_LEVELS`` levels, ratio
-    ``LOOP_ORB_SCALE``), descriptors computed upright (angle 0: the cameras do not roll, and
-    skipping the orientation makes descriptors of a place seen again more alike); "sift": SIFT
-    from the image's own resolution. Strongest first, ties by position (deterministic).
+    ``cfg.detector`` "orb": ORB's own pyramid, descriptors computed upright (``LOOP_ORB_UPRIGHT``: a
+    place seen again gives more alike descriptors), corners refined to sub-pixel with
+    ``subpixel_px`` > 0; "sift": SIFT on the half-size image. Strongest first, ties by position.
     """
     n = LOOP_ORB_FEATURES if n is None else n
     if cfg.detector == "sift":
@@ -275,12 +266,10 @@ def verify_features(
 
 
 class LoopFeatureBank:
-    """Loop features of reference frames (every ``reference_every``-th stream position) and
-    of the current frame on demand. Memory per reference: N x (8 + 12 + descriptor) bytes.
-
-    A reference's features are computed on one worker thread (OpenCV releases the GIL), off the
-    frame's critical path; every read waits for the pending ones, so results do not depend on
-    timing. ``background=False`` computes them inline."""
+    """Loop features of reference frames (every ``reference_every``-th stream position) and of the
+    current frame on demand, computed on one worker thread (``background=False``: inline); every
+    read waits for the pending ones, so results do not depend on timing.
+    """
 
     merged = False  # a reference holds one frame's points (verify with ``unique`` when True)
 
@@ -292,7 +281,6 @@ class LoopFeatureBank:
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="loop-features") if background else None
         self._query_k: int | None = None
         self._query: FrameFeatures | None = None
-        self.t_reference_ms = 0.0  # total time spent on reference features
 
     def __len__(self) -> int:
         self._collect()
@@ -316,10 +304,8 @@ class LoopFeatureBank:
             self._pending[k] = self._pool.submit(self._compute, frame.left, frame.right, offset_px)
 
     def _compute(self, left: np.ndarray, right: np.ndarray, offset_px: float) -> FrameFeatures | None:
-        t0 = time.perf_counter()
         uv, desc, _ = detect_loop_keypoints(left, self.vcfg)
         idx, pts = stereo_points(left, right, uv, self.camera, self.cfg, offset_px)
-        self.t_reference_ms += (time.perf_counter() - t0) * 1000.0
         if len(idx) < MIN_STEREO_POINTS:
             return None
         return FrameFeatures(np.ascontiguousarray(uv[idx]), pts, np.ascontiguousarray(desc[idx]))

@@ -1,14 +1,8 @@
 """Loop verification without stereo: reference points triangulated over the odometry's motion.
 
-One camera sees no depth, and two views of one street fit an essential matrix whatever their
-distance apart (docs/odometry-input.md). So a reference frame's SIFT keypoints are triangulated
-against a later frame of the same pass at least ``BASELINE_M`` away along the odometry (over a
-metre or two its motion is metric and close to exact), and a candidate is then verified like a
-stereo one (``features.verify_features``): PnP RANSAC of those points on the current
-frame's keypoints gives a metric relative pose, refused beyond ``verification.max_distance_m``.
-Triangulation keeps only a tenth of a frame's keypoints, so a reference is verified with its
-neighbouring references' points too (a local map, as ORB-SLAM3 verifies against covisible
-keyframes), each matched keypoint of the current frame counted once.
+A reference's SIFT keypoints are triangulated against a frame at least ``BASELINE_M`` further
+along the odometry, then verified like stereo ones (``features.verify_features``) with the
+neighbouring references' points too. Why and how: docs/odometry-input.md.
 """
 
 from __future__ import annotations

@@ -1,22 +1,8 @@
 """Stream a run to the rerun viewer (``--viewer``) and/or record it to an ``.rrd`` file (``--rrd``).
 
-``RerunLogger`` is a ``SlamPipeline`` observer: ``on_frame(pipeline, frame, output)`` after each
-frame, ``on_finish(pipeline, result)`` at the end. It reads what the pipeline already has; it
-computes nothing the run needs. Without ``--viewer``/``--rrd`` it is never created, so rerun is
-not even imported.
-
-Entities (timelines ``frame``: the dataset's frame number, ``time``: its seconds)::
-
-    world                          view coordinates RDF (the first camera: x right, y down, z ahead)
-    world/camera                   the current pose (best estimate), with a pinhole
-    world/camera/image             left image; .../features the frame's tracked feature points
-    world/trajectory/vo|snaps|refined|gt   line strips (re-logged every ``path_every`` frames,
-                                   on each loop and at the end, so SNAPS corrections show)
-    world/loops                    a segment from each loop's frame to its reference, labelled Q
-    world/map/kf_K                 keyframe K's points in its camera frame, posed by a transform
-    loops                          text log: frame, reference, Q and its three factors
-    metrics/frame_ms, metrics/vo_ms, metrics/inliers, metrics/q   time series (sent as columns
-                                   every ``path_every`` frames: one message per series, not per frame)
+``RerunLogger`` is a ``SlamPipeline`` observer (``on_frame`` after each frame, ``on_finish`` at
+the end) that reads what the pipeline already has and computes nothing the run needs; without
+``--viewer``/``--rrd`` rerun is not even imported. What it logs: docs/usage.md, "run".
 """
 
 from __future__ import annotations
