@@ -1,18 +1,6 @@
-"""Stereo depth: dense (paper §II-B: StereoBM + WLS filter, or SGBM) and sparse (at keypoints).
-
-Both turn disparity d into depth by the paper's eq. 1, z = f·B / d, and mark a pixel invalid
-(depth 0) where d <= 0 or z falls outside [min_depth_m, max_depth_m]: eq. 1's error grows with
-z², so far points would only add noise to PnP.
-
-Dense depth (``dense_depth``) is what the map stage back-projects on keyframes and what the
-paper's faithful front end samples at its SIFT keypoints. The sparse matcher
-(``sparse_disparity``) finds disparity only where the front end needs it: each left keypoint is
-tracked into the right image with pyramidal Lucas-Kanade, the match must stay on the same row
-(rectified images), and the right point is tracked back to the left one (a left-right
-consistency check, the sparse analogue of WLS's left/right matcher pair). This costs a few
-milliseconds for a thousand points instead of tens of milliseconds for a full disparity map,
-and LK's sub-pixel result gives a better z than BM's 1/16-pixel quantised, WLS-smoothed map.
-"""
+"""Stereo depth by eq. 1, z = f·B / d: dense (paper §II-B: StereoBM + WLS, or SGBM) for the map
+and the paper's front end, sparse (LK along the row with a left-right check) at keypoints, where
+it costs milliseconds, not a disparity map (docs/frontend.md)."""
 
 from __future__ import annotations
 

@@ -1,15 +1,6 @@
-"""Odometry from elsewhere (wheels, GNSS/INS, LiDAR, another VO) as the pipeline's front end.
-
-The paper: "it is possible to substitute the visual odometry part with any desired model".
-``PoseFileOdometry`` takes the poses of a pose file (``trajectory_io.read_pose_file``) and
-returns, for each processed frame, the relative pose from the previous processed frame (frame
-numbers may jump: the file carries the pose across a gap) with a covariance from the drift model
-``[odometry]`` (a pose file carries none). Independent steps add up as a random walk, so the model
-is one: a step that drives d metres (along the file's own poses, so a gap counts what was driven
-through it) gets variance (p/100)^2 * L * d, which reaches the model's p % of the distance over a
-drive of L = ``DRIFT_REFERENCE_M`` (rotation alike); the graph adds its ``odom_cov_floor_*``.
-No file I/O: the runner reads the file.
-"""
+"""Odometry from elsewhere (wheels, GNSS/INS, LiDAR, another VO) as the front end: a pose file's
+relative poses with the ``[odometry]`` drift model's covariance, since a pose file carries none
+(docs/frontend.md). No file I/O: the runner reads the file."""
 
 from __future__ import annotations
 

@@ -1,17 +1,6 @@
-"""Keypoints, descriptors, matching and tracking on the left image (paper §II-C).
-
-Three ways to get 2D correspondences between two frames, chosen by ``FrontendConfig.mode``:
-- "sift" (the paper's): SIFT keypoints and descriptors (``sift_features``), matched by nearest
-  neighbour with Lowe's ratio test;
-- "orb": the same with ORB (``orb_features``) and Hamming distance;
-- "klt": Shi-Tomasi corners tracked frame to frame with pyramidal Lucas-Kanade, re-detected
-  where tracks ran out. No descriptors are needed for motion (loop verification detects its
-  own features: ``verification/features.py``).
-
-Every function returns plain float32/uint8 numpy arrays and is deterministic for a given input
-(keypoints are put in a fixed order, ties broken by position), so the front end is
-bit-reproducible.
-"""
+"""Keypoints, descriptors, matching and tracking on the left image (paper §II-C): SIFT, ORB, or
+Shi-Tomasi corners with pyramidal LK; deterministic arrays in a fixed order, so the front end
+is bit-reproducible (docs/frontend.md)."""
 
 from __future__ import annotations
 

@@ -1,12 +1,5 @@
-"""When the local BA runs (klt mode), what it is told about the chain, and what its answer does.
-
-A reference frame becomes a keyframe ``local_ba.every`` frames after the last one, or sooner once the
-drive has gone ``local_ba.keyframe_m`` from it (a fast drive keeps the keyframes' spacing). The
-chain's stereo-BA steps since the last keyframe, their covariance carried along, join the
-window as a relative-pose factor (``local_ba.chain``); the chain continues from the refined pose,
-and the step that carries the correction has its size added to its covariance. Each solve's
-disparity-offset estimate feeds the running estimate (``offset.py``).
-"""
+"""When the local BA runs (klt mode), what it is told about the chain, and what its answer does
+(docs/frontend.md)."""
 
 from __future__ import annotations
 

@@ -1,32 +1,6 @@
-"""Sliding-window local bundle adjustment over keyframes.
-
-Each keyframe brings its pose (the VO's T_world_cam) and its landmarks' stereo measurements
-(u_left, u_right, v) with persistent landmark ids (KLT tracks keep their id while they live).
-On every new keyframe the last ``window`` keyframes and every landmark seen by at least two of
-them form one problem: a stereo reprojection error (u_l, u_r, v) per observation under a Huber
-kernel on its 3-vector, the oldest keyframe of the window held fixed (the gauge: it was handed
-out long ago). Vectorised Gauss-Newton, landmarks eliminated by a Schur complement. At most
-``max_landmarks`` landmarks take part (the longest tracks first). All window poses and landmarks
-are refined; the newest keyframe's refined pose is what the odometry chains from next.
-Landmarks start at the stereo point of their first observation in the window, posed by that
-keyframe's current estimate.
-
-Disparity offset. Disparities are taken as ``measured = true + offset_px * gain`` (a rig's
-rectification residual; ``offset_px`` is set by the caller, the running estimate; ``gain`` is
-``depth.offset_gain`` at the observation's right-image column). With
-``estimate_offset`` the solver adds the offset as one more unknown shared by every
-observation (its right-image residual is ``proj_r - offset * gain - u_r``) under a Gaussian prior
-(``offset_prior_px``) around ``offset_px``; it is observable because a landmark's disparities
-across keyframes at different ranges must follow f·B/Z_k with Z_k tied by the shared motion.
-Each solve records in ``LocalBAStats.offsets`` the offset the data alone say (the prior taken
-back out) and that estimate's information (1/px^2). With ``offset_joint`` False the poses are
-solved with the offset held at ``offset_px`` (the same system as without the estimate) and the
-estimate is one Gauss-Newton step of the offset alone, the cameras marginalised, at the end;
-the caller holds it until its running estimate is applied.
-
-The adjuster does no I/O and never raises for bad data: a failed or non-finite solve leaves the
-poses as given and is reported in ``LocalBAStats``.
-"""
+"""Sliding-window local bundle adjustment over keyframes, with the rig's disparity offset as one
+more unknown (the problem: docs/frontend.md). No I/O; a failed solve leaves the poses as given
+and says so in ``LocalBAStats``."""
 
 from __future__ import annotations
 

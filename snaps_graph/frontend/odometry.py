@@ -1,21 +1,6 @@
 """Stereo visual odometry (paper §II-B..D): ``StereoOdometry.process(frame)`` takes one rectified
-stereo pair at a time and returns a ``VOResult`` at once.
-
-For every frame: 2D correspondences with the reference frame (the last frame whose motion was
-estimated), by KLT tracking (``tracking.py``, the fast default) or descriptor matching
-(``descriptors.py``, the paper's SIFT); PnP RANSAC from the reference's 3D points (eq. 2) and the
-two-view stereo BA (``motion.py``); stereo depth of the frame's keypoints so it can be the next
-reference; in klt mode a sliding-window local BA on keyframes (``lba_schedule.py``). The pose is
-T_world_cur = T_world_ref · T_ref_cur. Every disparity used is corrected for the rig's disparity
-offset (configured, or estimated online: ``offset.py``).
-
-A frame is flagged (``ok=False`` with a ``reason``) when its left image is flat or black, blurred
-against the reference, when PnP has too few inliers, when the motion is non-finite or
-implausible, when stereo finds too few points with depth (a swapped or broken pair), or when
-OpenCV raises. A flagged frame's pose follows the constant-velocity guess (scaled to the index
-gap); its features become the reference only if they are usable, so the guess does not enter the
-chain. With the RANSAC seeded and each thread's inputs fixed, the output is bit-identical run to run.
-"""
+stereo pair and returns its ``VOResult`` at once; a bad frame is flagged and follows the
+constant-velocity guess, never a NaN (docs/frontend.md)."""
 
 from __future__ import annotations
 
@@ -45,7 +30,7 @@ __all__ = ["StereoOdometry", "pnp_ransac"]
 
 
 class StereoOdometry:
-    """Streaming stereo VO. ``process`` one ``StereoFrame`` at a time; see the module docstring."""
+    """Streaming stereo VO. ``process`` one ``StereoFrame`` at a time; docs/frontend.md says what it does."""
 
     def __init__(self, camera: StereoCamera, cfg: FrontendConfig | None = None):
         self.cfg = cfg or FrontendConfig()

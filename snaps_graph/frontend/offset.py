@@ -1,14 +1,6 @@
-"""The running estimate of a rig's disparity offset (measured - true, px, at the centre column).
-
-Each local-BA solve estimates the offset from its window's data alone (``local_ba.py``); their
-information-weighted mean, clamped to +-``max_px`` (``[frontend.offset]``), replaces the configured
-``px`` once ``min_solves`` solves contributed, its standard
-error is at most ``max_sd_px`` (a drive with too little depth change leaves the
-offset unobservable) and it differs from the configured one by at least
-``min_px`` and ``min_z`` standard errors (an offset-free rig's
-early noise stays out). Once applied, older solves fade (weight 1 - 1/``memory_solves`` per new solve):
-they were measured with a worse offset in place.
-"""
+"""The running estimate of a rig's disparity offset (measured - true, px, at the centre column):
+the local-BA solves' information-weighted mean, applied once it is well determined and differs
+from the configured one (the rule: docs/frontend.md)."""
 
 from __future__ import annotations
 

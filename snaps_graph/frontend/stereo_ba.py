@@ -1,27 +1,6 @@
-"""Motion from stereo measurements: a two-view stereo bundle adjustment.
-
-PnP treats each reference point's stereo depth as exact. Depth from z = f·B/d is uncertain and,
-for far points, biased long (E[1/d] > 1/E[d] for noisy d), which pulls the translation. Here the
-current pose T_cur_ref and every landmark are unknowns, and the data are the stereo measurements
-(u_left, v, u_right) of each landmark in *both* frames of the pair, in pixels:
-
-    reference:  u = fx·a + cx,   v = fy·b + cy,   u_r = fx·(a - B·ρ) + cx
-    current:    h = R·(a, b, 1) + t·ρ;   u = fx·h_x/h_z + cx,   v = fy·h_y/h_z + cy,
-                u_r = fx·(h_x - B·ρ)/h_z + cx
-
-with each landmark in inverse depth anchored in the reference camera (a, b = normalised image
-coordinates, ρ = 1/z). The parametrisation stays well conditioned as ρ → 0, so a point whose
-disparity is a pixel or less constrains rotation and (barely) translation without a depth that
-explodes; the residuals live in pixels, where stereo noise is symmetric, so no depth bias enters.
-The reference pose is fixed (it defines the frame). Gauss-Newton with a Huber kernel on each
-(point, view) block; the per-point 3x3 blocks are eliminated with a Schur complement, so an
-iteration costs O(N) in vectorised numpy (a few ms for 1000 points). After the first round,
-points whose error exceeds ``outlier_px`` in either view are dropped and the pose re-solved.
-
-The pose covariance (6x6, left perturbation of T_cur_ref, rotation first) is S⁻¹, with S the
-Schur complement of the information-weighted (1/σ², Huber-weighted) normal equations at the
-solution.
-"""
+"""The two-view stereo bundle adjustment: the pose and every landmark (inverse depth) refined on
+the pixel measurements of both frames, where stereo noise is symmetric, so no depth bias enters
+as in PnP (the model and its Schur complement: docs/frontend.md)."""
 
 from __future__ import annotations
 

@@ -1,14 +1,6 @@
-"""KLT mode: corners tracked from the reference frame into the current one with pyramidal LK,
-PnP (+ the stereo BA) on the tracks, re-detection where tracks ran out.
-
-At speed (large motion, or frames skipped) LK starts from the constant-velocity prediction;
-when PnP on the tracks still fails, it retries once on ORB matches detected
-afresh plus the tracks. Weak texture: goodFeaturesToTrack's quality threshold is relative to the
-image's strongest corner, which on an open road is a far tree line against the sky; when tracked
-plus new points with depth are fewer than ``klt.weak_points`` and most new corners are out of
-range, corners are detected once more at ``KLT_WEAK_QUALITY``. Stereo of the tracked points runs
-beside PnP, re-detection (and its stereo) beside the stereo BA.
-"""
+"""KLT mode: corners tracked from the reference into the current frame with pyramidal LK, PnP and
+the stereo BA on the tracks, re-detection where tracks ran out, an ORB retry at speed
+(docs/frontend.md)."""
 
 from __future__ import annotations
 
