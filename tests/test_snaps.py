@@ -639,10 +639,13 @@ def test_drift_gate_reaches_a_revisit_beyond_the_radius(search, found):
         assert steps[-1].loop.reference == 100
 
 
-def test_drift_sigma_grows_faster_than_linear():
+def test_drift_gate_never_below_radius_and_grows_with_distance():
     from snaps_graph.config import OdometryConfig
 
     closer = SnapsLoopCloser(cfg(search="drift", search_max_radius_m=60.0), OdometryConfig(1.0, 0.1))
+    _, g = closer.gates(np.array([0.0, 10.0, 200.0, 500.0, 1000.0, 1e5]))
+    assert g[0] == g[1] == 5.5  # the paper's radius below
+    assert np.all(np.diff(g[2:5]) > 0) and g[-1] == 60.0
     # faster than linear: heading drift
     s = closer.drift_sigma(np.array([500.0, 1000.0]))
     assert s[1] > 2.0 * s[0]

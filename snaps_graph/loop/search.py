@@ -126,6 +126,13 @@ class CandidateSearch:
         D = np.asarray(driven, dtype=float)
         return np.hypot(self._drift_a * D, 0.5 * self._drift_b * D * D)
 
+    def gates(self, driven: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
+        """(sigma, gate) in metres after ``driven`` metres: the drift sigma, never below the paper's
+        radius / ``search_sigmas``, and ``search_sigmas`` of it, at most ``search_max_radius_m``."""
+        cfg = self.cfg
+        sigma = np.maximum(self.drift_sigma(driven), cfg.radius_m / cfg.search_sigmas)
+        return sigma, np.minimum(cfg.search_sigmas * sigma, cfg.search_max_radius_m)
+
     def _search_drift(self, n: int) -> tuple[np.ndarray, np.ndarray]:
         cfg = self.cfg
         last = n - cfg.frame_distance
@@ -150,8 +157,7 @@ class CandidateSearch:
         ids = np.unique(np.array(found, dtype=np.int64))
         d = np.linalg.norm(self._p[ids] - self._p[n], axis=1)
         driven = self.driven_since(n, ids)
-        sigma = np.maximum(self.drift_sigma(driven), cfg.radius_m / cfg.search_sigmas)
-        gates = np.minimum(cfg.search_sigmas * sigma, cfg.search_max_radius_m)
+        sigma, gates = self.gates(driven)
         # The yaw gate widens by the heading drift too (n sigma of b*D, degrees).
         yaw_gate = cfg.max_yaw_deg + cfg.search_sigmas * np.degrees(self._drift_b * driven)
         ok = (d <= gates) & (np.abs(wrap_deg(self._yaw[ids] - self._yaw[n])) <= yaw_gate)
