@@ -517,6 +517,7 @@ def _check_choice(option: str, value: str | None, literal) -> None:
 
 def main() -> None:
     signal.signal(signal.SIGINT, on_sigint)
+    signal.signal(signal.SIGTERM, on_sigint)  # `kill`, a scheduler's stop: cleaned up as Ctrl-C
     set_malloc_thresholds()  # the process is ours: large frames stop costing page faults
     try:
         rc = app(standalone_mode=False)

@@ -230,7 +230,8 @@ def stdout_failed(exc: OSError) -> None:
 
 
 def exit_interrupted() -> None:
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not interrupt the exit
+    for sig in (signal.SIGINT, signal.SIGTERM):  # a second Ctrl-C or kill must not interrupt the exit
+        signal.signal(sig, signal.SIG_IGN)
     done = committed_folders()
     if done:
         print(f"interrupted after the results were written: {', '.join(map(str, done))} complete", file=sys.stderr)

@@ -19,7 +19,7 @@ import tomllib
 from collections.abc import Generator, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TypeVar
+from typing import Any, TypeVar
 
 from .errors import SnapsGraphError
 
@@ -385,21 +385,28 @@ def remove_results_folder(folder: Path) -> None:
 
 @contextmanager
 def _no_sigint() -> Iterator[None]:
-    """Ctrl-C held back while the results folder is swapped in, then delivered to the handler
-    that was in place (a signal mask would not do: another thread may take the signal)."""
+    """Ctrl-C (and SIGTERM) held back while the results folder is swapped in, then delivered to the
+    handler that was in place (a signal mask would not do: another thread may take the signal)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     pending: list[int] = []
-    old = signal.signal(signal.SIGINT, lambda signum, frame: pending.append(signum))
+    old: dict[int, Any] = {
+        sig: signal.signal(sig, lambda signum, frame: pending.append(signum)) for sig in (signal.SIGINT, signal.SIGTERM)
+    }
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, old)
-        if pending and callable(old):
-            old(signal.SIGINT, None)  # the CLI's raises, a batch driver's sets its flag
-        elif pending and old == signal.SIG_DFL:
-            raise KeyboardInterrupt
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+        if pending:
+            handler = old[pending[0]]
+            if callable(handler):
+                handler(pending[0], None)  # the CLI's raises, a batch driver's sets its flag
+            elif handler == signal.SIG_DFL:
+                if pending[0] == signal.SIGINT:
+                    raise KeyboardInterrupt
+                signal.raise_signal(pending[0])  # the default action, now that the swap is done
 
 
 @contextmanager

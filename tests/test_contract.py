@@ -118,7 +118,9 @@ def _long_sequence(seq: Path, n: int) -> Path:
     return seq
 
 
-def test_ctrl_c_prints_one_line_exits_130_and_leaves_no_folder(seq, tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "kill"])
+def test_ctrl_c_prints_one_line_exits_130_and_leaves_no_folder(seq, tmp_path, sig):
+    """Ctrl-C and a plain `kill` (a scheduler's stop) alike: one line, status 130, nothing left."""
     _long_sequence(seq, 3000)
     out = tmp_path / "run"
     env = dict(os.environ, PYTHONWARNINGS="ignore")
@@ -127,7 +129,7 @@ def test_ctrl_c_prints_one_line_exits_130_and_leaves_no_folder(seq, tmp_path):
     )
     time.sleep(6.0)  # imports (~2 s) done, frames being processed
     assert proc.poll() is None, "the run ended before it could be interrupted"
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(sig)
     stdout, stderr = proc.communicate(timeout=60)
     assert proc.returncode == 130, stderr
     lines = [line for line in (stdout + stderr).splitlines() if line.strip()]
@@ -748,6 +750,39 @@ def test_ctrl_c_during_the_swap_says_the_results_are_complete(tiny_seq, tmp_path
         signal.signal(signal.SIGINT, previous)
     assert (out / "metrics.json").is_file() and out.resolve() in io_utils.committed_folders()
     assert not no_leftovers(tmp_path)
+
+
+def test_kill_during_the_swap_is_held_back_too(tiny_seq, tmp_path, monkeypatch):
+    """SIGTERM at the final rename reaches its handler only once the folder is whole."""
+    import snaps_graph.io_utils as io_utils
+
+    seq = KittiSequence(tiny_seq, frames="0:3")
+    pipe = SlamPipeline(seq.camera, Config(), loops="none", refine="none")
+    for f in seq:
+        pipe.process(f)
+    result = pipe.finish()
+    out = tmp_path / "run"
+    real_replace = os.replace
+    seen: list[bool] = []
+
+    def replace(src, dst):
+        if Path(dst) == out:
+            signal.raise_signal(signal.SIGTERM)
+        real_replace(src, dst)
+
+    def on_term(signum, frame):
+        seen.append((out / "metrics.json").is_file())
+        raise RuntimeError("terminated")
+
+    monkeypatch.setattr(io_utils.os, "replace", replace)
+    previous = signal.signal(signal.SIGTERM, on_term)
+    try:
+        with pytest.raises(RuntimeError, match="terminated"):
+            write_results(out, pipe, result)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert seen == [True]  # delivered once, after the swap
+    assert out.resolve() in io_utils.committed_folders() and not no_leftovers(tmp_path)
 
 
 def test_a_failed_map_stage_keeps_the_trajectories(seq, tmp_path, monkeypatch):
