@@ -154,7 +154,13 @@ class CandidateSearch:
             found = ids[(d2 <= cfg.search_max_radius_m**2) & (ids <= last)].tolist()
         if len(found) <= 48:  # few left (most frames): scalar Python beats numpy's call overhead
             return self._search_drift_small(n, found)
+        return self._search_drift_vector(n, found)
+
+    def _search_drift_vector(self, n: int, found: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`_search_drift`'s rules for a long member list, as numpy arrays."""
+        cfg = self.cfg
         ids = np.unique(np.array(found, dtype=np.int64))
+        ids = ids[ids <= n - cfg.frame_distance]
         d = np.linalg.norm(self._p[ids] - self._p[n], axis=1)
         driven = self.driven_since(n, ids)
         sigma, gates = self.gates(driven)
