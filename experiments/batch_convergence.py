@@ -1,0 +1,129 @@
+"""Where does the batch refinement stop, and where would it go converged? A run's graph re-solved.
+
+Reads a results folder of ``snaps-graph run --refine batch`` (graph.g2o, poses_snaps/vo/gt.txt,
+frames.csv, config.toml) and re-solves its graph (the factors as written, the loops under the
+run's robust kernel again, from the SNAPS poses as the run does) with the run's Levenberg-Marquardt
+stop and to convergence, with the flagged VO steps at their sigmas and at ``--flagged-scale``
+times the reference sigmas instead; the ground-truth loop oracle (snaps_graph.evaluation.oracle)
+likewise. Prints 3D mean deviation / horizontal / vertical / ATE as multiples of VO's, and the
+iterations. Why it matters: docs/loop-closure.md, "Where the refinement stops".
+
+    python experiments/batch_convergence.py RUN [RUN ...] [--flagged-scale 10]
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+import tempfile
+from pathlib import Path
+
+import gtsam
+import numpy as np
+
+from snaps_graph.backend import noise
+from snaps_graph.backend.pose_graph import BATCH_MAX_ITERATIONS, PRIOR_SIGMA_ROT_RAD, PRIOR_SIGMA_TRANS_M, ROBUST_PARAM
+from snaps_graph.config import Config
+from snaps_graph.evaluation.metrics import ate_rmse, mean_deviation
+from snaps_graph.evaluation.oracle import odometry_graph, true_revisit_pairs
+from snaps_graph.trajectory_io import read_poses
+
+CONVERGED_TOL = 1e-10  # relative and absolute error decrease at which "converged" stops
+CONVERGED_MAX_ITERATIONS = 2000
+
+
+def _pose3(T: np.ndarray) -> gtsam.Pose3:
+    return gtsam.Pose3(gtsam.Rot3(T[:3, :3]), gtsam.Point3(*T[:3, 3]))
+
+
+def solve_g2o(g2o: Path, init: np.ndarray, cfg: Config, flagged: np.ndarray, flag_gain: float, converge: bool):
+    """Re-solve a written graph: (poses, iterations). Loops (non-consecutive keys) get the
+    run's kernel back; a flagged step's information is multiplied by ``flag_gain``."""
+    written, _ = gtsam.readG2o(str(g2o), True)
+    graph = gtsam.NonlinearFactorGraph()
+    prior = gtsam.noiseModel.Diagonal.Sigmas(np.array([PRIOR_SIGMA_ROT_RAD] * 3 + [PRIOR_SIGMA_TRANS_M] * 3))
+    graph.add(gtsam.PriorFactorPose3(0, _pose3(init[0]), prior))
+    for i in range(written.size()):
+        f = written.at(i)
+        if f is None:
+            continue
+        a, b = f.keys()
+        R = f.noiseModel().R()
+        info = R.T @ R
+        if b == a + 1:
+            model = gtsam.noiseModel.Gaussian.Information(info * (flag_gain if flagged[b] else 1.0))
+        else:
+            model = gtsam.noiseModel.Gaussian.Information(info)
+            if cfg.graph.robust_kernel != "none":
+                kernel = (
+                    gtsam.noiseModel.mEstimator.Cauchy
+                    if cfg.graph.robust_kernel == "cauchy"
+                    else gtsam.noiseModel.mEstimator.Huber
+                )
+                model = gtsam.noiseModel.Robust.Create(kernel.Create(ROBUST_PARAM), model)
+        graph.add(gtsam.BetweenFactorPose3(a, b, f.measured(), model))
+    values = gtsam.Values()
+    for k, T in enumerate(init):
+        values.insert(k, _pose3(T))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(BATCH_MAX_ITERATIONS)
+    if converge:
+        params.setMaxIterations(CONVERGED_MAX_ITERATIONS)
+        params.setRelativeErrorTol(CONVERGED_TOL)
+        params.setAbsoluteErrorTol(CONVERGED_TOL)
+    opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    result = opt.optimize()
+    return np.array([result.atPose3(k).matrix() for k in range(len(init))]), opt.iterations()
+
+
+def figures(est: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    d = est[:, :3, 3] - gt[:, :3, 3]
+    return np.array([mean_deviation(est, gt), np.hypot(d[:, 0], d[:, 2]).mean(), np.abs(d[:, 1]).mean(), ate_rmse(est, gt)])
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0], epilog=__doc__.split("\n\n", 1)[1])
+    ap.add_argument("runs", type=Path, nargs="+", help="results folders of `snaps-graph run --refine batch`")
+    ap.add_argument(
+        "--flagged-scale", type=float, default=10.0, help="the flagged steps' sigmas in the variant, x the reference sigmas"
+    )
+    args = ap.parse_args(argv)
+    gain = (noise.FLAGGED_SIGMA_SCALE / args.flagged_scale) ** 2
+    print("3D mean deviation / horizontal / vertical / ATE, x VO; it = LM iterations")
+    for run in args.runs:
+        if not (run / "graph.g2o").is_file():
+            print(f"error: {run}: no graph.g2o (run with --refine batch)", file=sys.stderr)
+            return 2
+        gt, vo, snaps = (read_poses(run / f"poses_{n}.txt") for n in ("gt", "vo", "snaps"))
+        with open(run / "frames.csv", newline="") as f:
+            rows = list(csv.DictReader(f))
+        inliers = np.array([int(r["vo_inliers"]) for r in rows])
+        flagged = np.array([r["vo_ok"] != "1" for r in rows])
+        cfg = Config.load(run / "config.toml")
+        base = figures(vo, gt)
+        print(f"{run.name}: VO {' / '.join(f'{v:.3f}' for v in base)} m, {int(flagged.sum())} flagged steps")
+        oracle = odometry_graph(vo, cfg, inliers, ~flagged)
+        pairs = true_revisit_pairs(gt, cfg.loop.radius_m, cfg.loop.frame_distance, cfg.loop.max_yaw_deg)
+        for j, k in pairs:
+            oracle.add_loop(j, k, 1.0, np.linalg.solve(gt[j], gt[k]), covariance=np.zeros((6, 6)))
+        with tempfile.TemporaryDirectory() as tmp:
+            oracle.save_g2o(Path(tmp) / "oracle.g2o")
+            for name, g2o, init in (
+                ("refined", run / "graph.g2o", snaps),
+                (f"oracle ({len(pairs)} loops)", Path(tmp) / "oracle.g2o", vo),
+            ):
+                for label, g in (("flagged as run", 1.0), (f"flagged {args.flagged_scale:g}x", gain)):
+                    for converge in (False, True):
+                        poses, it = solve_g2o(g2o, init, cfg, flagged, g, converge)
+                        r = figures(poses, gt) / base
+                        stop = "converged" if converge else "run's stop"
+                        print(f"  {name:<20} {label:<16} {stop:<11} it {it:4d}  {' / '.join(f'{v:.3f}' for v in r)}", flush=True)
+        if (run / "poses_batch.txt").is_file():
+            r = figures(read_poses(run / "poses_batch.txt"), gt) / base
+            print(f"  {'refined as written':<49} {' / '.join(f'{v:.3f}' for v in r)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
