@@ -559,17 +559,22 @@ def test_pose_file_without_rotations_is_refused(tmp_path):
     assert "not a rotation" in assert_user_error(cli("eval", zeros, "--gt", zeros), f"{zeros}:1")
 
 
+def _tiny_run(tiny_seq: Path):
+    """The tiny sequence's first 3 frames through the pipeline (VO only): (pipeline, result)."""
+    seq = KittiSequence(tiny_seq, frames="0:3")
+    pipe = SlamPipeline(seq.camera, Config(), loops="none", refine="none")
+    for f in seq:
+        pipe.process(f)
+    return pipe, pipe.finish()
+
+
 def test_results_that_cannot_be_written_leave_nothing(tiny_seq, tmp_path, monkeypatch):
     """Disk full (or any OSError) while writing: one-line error, no folder, no temporary folder."""
     import errno
 
     import snaps_graph.runner as runner
 
-    seq = KittiSequence(tiny_seq, frames="0:3")
-    pipe = SlamPipeline(seq.camera, Config(), loops="none", refine="none")
-    for f in seq:
-        pipe.process(f)
-    result = pipe.finish()
+    pipe, result = _tiny_run(tiny_seq)
 
     def full(path, records):
         raise OSError(errno.ENOSPC, "No space left on device", str(path))
@@ -720,11 +725,7 @@ def test_ctrl_c_during_the_swap_says_the_results_are_complete(tiny_seq, tmp_path
     results are then whole and the process knows it (the CLI's message says so)."""
     import snaps_graph.io_utils as io_utils
 
-    seq = KittiSequence(tiny_seq, frames="0:3")
-    pipe = SlamPipeline(seq.camera, Config(), loops="none", refine="none")
-    for f in seq:
-        pipe.process(f)
-    result = pipe.finish()
+    pipe, result = _tiny_run(tiny_seq)
     out = tmp_path / "run"
     real_replace = os.replace
 
@@ -756,11 +757,7 @@ def test_kill_during_the_swap_is_held_back_too(tiny_seq, tmp_path, monkeypatch):
     """SIGTERM at the final rename reaches its handler only once the folder is whole."""
     import snaps_graph.io_utils as io_utils
 
-    seq = KittiSequence(tiny_seq, frames="0:3")
-    pipe = SlamPipeline(seq.camera, Config(), loops="none", refine="none")
-    for f in seq:
-        pipe.process(f)
-    result = pipe.finish()
+    pipe, result = _tiny_run(tiny_seq)
     out = tmp_path / "run"
     real_replace = os.replace
     seen: list[bool] = []
