@@ -289,7 +289,9 @@ def _alive_nodes(cluster) -> list[dict]:
         ray.shutdown()
 
 
-def test_ctrl_c_cancels_the_cells_and_exits_130(cluster, seqs, tmp_path):
+@pytest.mark.parametrize("kill", [False, True], ids=["ctrl-c", "kill"])
+def test_ctrl_c_cancels_the_cells_and_exits_130(cluster, seqs, tmp_path, kill):
+    """Ctrl-C at the terminal (SIGINT to the group) and `kill` (SIGTERM to the driver) alike."""
     variants = "".join(f"[variants.v{i}]\nloop = {{ radius_m = {5 + i}.0 }}\n" for i in range(8))
     plan = write_plan(tmp_path / "plan.toml", f'sequences = ["{seqs["good"]}"]\n{variants}')
     out = tmp_path / "out"
@@ -307,7 +309,10 @@ def test_ctrl_c_cancels_the_cells_and_exits_130(cluster, seqs, tmp_path):
         while time.monotonic() < deadline and not _cell_running(out):
             assert proc.poll() is None, proc.communicate()
             time.sleep(0.05)
-        os.killpg(proc.pid, signal.SIGINT)  # what a terminal's Ctrl-C does
+        if kill:
+            proc.send_signal(signal.SIGTERM)  # what `kill PID` or a scheduler's stop does
+        else:
+            os.killpg(proc.pid, signal.SIGINT)  # what a terminal's Ctrl-C does
         _, err = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:

@@ -199,6 +199,7 @@ def run_batch(
             else:
                 todo.append(cell)
         with _sigint_flag() as interrupted, _ray_session(address, ray_init, bool(todo)) as ray:
+            _flag_on(signal.SIGTERM, interrupted)  # Ray's core took SIGTERM over when it started
             # From here on the summary is written whatever happens (Ctrl-C included).
             bar = _bar(len(plan.cells), len(plan.cells) - len(todo), progress)
             try:
@@ -299,17 +300,25 @@ def _unfinished(cell: Cell) -> dict:
 
 @contextlib.contextmanager
 def _sigint_flag() -> Iterator[threading.Event]:
-    """Ctrl-C sets a flag that the driver's loop checks, instead of raising wherever the main
+    """Ctrl-C (or SIGTERM) sets a flag that the driver's loop checks, instead of raising wherever the main
     thread is: an exception raised inside Ray's own calls comes out as a SystemError."""
     flag = threading.Event()
     if threading.current_thread() is not threading.main_thread():
         yield flag
         return
-    old = signal.signal(signal.SIGINT, lambda *_: flag.set())
+    old = {sig: _flag_on(sig, flag) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         yield flag
     finally:
-        signal.signal(signal.SIGINT, old)
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+
+
+def _flag_on(sig: int, flag: threading.Event) -> Any:
+    """Make signal ``sig`` set ``flag`` (main thread only); returns the handler it replaced."""
+    if threading.current_thread() is not threading.main_thread():
+        return signal.getsignal(sig)
+    return signal.signal(sig, lambda *_: flag.set())
 
 
 @contextlib.contextmanager
