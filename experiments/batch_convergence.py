@@ -14,7 +14,6 @@ iterations. Why it matters: docs/loop-closure.md, "Where the refinement stops".
 from __future__ import annotations
 
 import argparse
-import csv
 import sys
 import tempfile
 from pathlib import Path
@@ -23,18 +22,16 @@ import gtsam
 import numpy as np
 
 from snaps_graph.backend import noise
-from snaps_graph.backend.pose_graph import BATCH_MAX_ITERATIONS, PRIOR_SIGMA_ROT_RAD, PRIOR_SIGMA_TRANS_M, ROBUST_PARAM
+from snaps_graph.backend._values import array_to_values, to_pose3, values_to_array
+from snaps_graph.backend.pose_graph import BATCH_MAX_ITERATIONS, PRIOR_SIGMA_ROT_RAD, PRIOR_SIGMA_TRANS_M, robust_loop_noise
 from snaps_graph.config import Config
 from snaps_graph.evaluation.metrics import ate_rmse, mean_deviation
 from snaps_graph.evaluation.oracle import odometry_graph, true_revisit_pairs
+from snaps_graph.evaluation.results_io import read_frames_csv
 from snaps_graph.trajectory_io import read_poses
 
 CONVERGED_TOL = 1e-10  # relative and absolute error decrease at which "converged" stops
 CONVERGED_MAX_ITERATIONS = 2000
-
-
-def _pose3(T: np.ndarray) -> gtsam.Pose3:
-    return gtsam.Pose3(gtsam.Rot3(T[:3, :3]), gtsam.Point3(*T[:3, 3]))
 
 
 def solve_g2o(g2o: Path, init: np.ndarray, cfg: Config, flagged: np.ndarray, flag_gain: float, converge: bool):
@@ -43,7 +40,7 @@ def solve_g2o(g2o: Path, init: np.ndarray, cfg: Config, flagged: np.ndarray, fla
     written, _ = gtsam.readG2o(str(g2o), True)
     graph = gtsam.NonlinearFactorGraph()
     prior = gtsam.noiseModel.Diagonal.Sigmas(np.array([PRIOR_SIGMA_ROT_RAD] * 3 + [PRIOR_SIGMA_TRANS_M] * 3))
-    graph.add(gtsam.PriorFactorPose3(0, _pose3(init[0]), prior))
+    graph.add(gtsam.PriorFactorPose3(0, to_pose3(init[0]), prior))
     for i in range(written.size()):
         f = written.at(i)
         if f is None:
@@ -54,27 +51,17 @@ def solve_g2o(g2o: Path, init: np.ndarray, cfg: Config, flagged: np.ndarray, fla
         if b == a + 1:
             model = gtsam.noiseModel.Gaussian.Information(info * (flag_gain if flagged[b] else 1.0))
         else:
-            model = gtsam.noiseModel.Gaussian.Information(info)
-            if cfg.graph.robust_kernel != "none":
-                kernel = (
-                    gtsam.noiseModel.mEstimator.Cauchy
-                    if cfg.graph.robust_kernel == "cauchy"
-                    else gtsam.noiseModel.mEstimator.Huber
-                )
-                model = gtsam.noiseModel.Robust.Create(kernel.Create(ROBUST_PARAM), model)
+            model = robust_loop_noise(cfg.graph, gtsam.noiseModel.Gaussian.Information(info))
         graph.add(gtsam.BetweenFactorPose3(a, b, f.measured(), model))
-    values = gtsam.Values()
-    for k, T in enumerate(init):
-        values.insert(k, _pose3(T))
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(BATCH_MAX_ITERATIONS)
     if converge:
         params.setMaxIterations(CONVERGED_MAX_ITERATIONS)
         params.setRelativeErrorTol(CONVERGED_TOL)
         params.setAbsoluteErrorTol(CONVERGED_TOL)
-    opt = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    opt = gtsam.LevenbergMarquardtOptimizer(graph, array_to_values(init), params)
     result = opt.optimize()
-    return np.array([result.atPose3(k).matrix() for k in range(len(init))]), opt.iterations()
+    return values_to_array(result, len(init)), opt.iterations()
 
 
 def figures(est: np.ndarray, gt: np.ndarray) -> np.ndarray:
@@ -96,10 +83,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: {run}: no graph.g2o (run with --refine batch)", file=sys.stderr)
             return 2
         gt, vo, snaps = (read_poses(run / f"poses_{n}.txt") for n in ("gt", "vo", "snaps"))
-        with open(run / "frames.csv", newline="") as f:
-            rows = list(csv.DictReader(f))
-        inliers = np.array([int(r["vo_inliers"]) for r in rows])
-        flagged = np.array([r["vo_ok"] != "1" for r in rows])
+        cols = read_frames_csv(run / "frames.csv")
+        inliers = cols["vo_inliers"].astype(int)
+        flagged = cols["vo_ok"] != 1
         cfg = Config.load(run / "config.toml")
         base = figures(vo, gt)
         print(f"{run.name}: VO {' / '.join(f'{v:.3f}' for v in base)} m, {int(flagged.sum())} flagged steps")

@@ -384,7 +384,7 @@ def remove_results_folder(folder: Path) -> None:
 
 
 @contextmanager
-def _no_sigint() -> Iterator[None]:
+def _signals_held() -> Iterator[None]:
     """Ctrl-C (and SIGTERM) held back while the results folder is swapped in, then delivered to the
     handler that was in place (a signal mask would not do: another thread may take the signal)."""
     if threading.current_thread() is not threading.main_thread():
@@ -435,7 +435,7 @@ def output_folder(path: str | Path, overwrite: bool = False) -> Iterator[Path]:
         check_output_folder(out, overwrite)  # nothing appeared there meanwhile
         fault_step()
         _write_marker(tmp, sorted(p.name for p in tmp.iterdir() if p.name != MARKER))  # what --overwrite may replace
-        with _no_sigint():
+        with _signals_held():
             if full.is_dir() and any(full.iterdir()):
                 old = full.parent / f".{full.name}.old-{os.getpid()}"
                 fault_step()

@@ -267,12 +267,8 @@ class PoseGraph:
             noise = gtsam.noiseModel.Gaussian.Covariance(loop.cov)
         else:
             noise = gtsam.noiseModel.Diagonal.Sigmas(loop.sigmas)
-        if robust and self.cfg.robust_kernel != "none":
-            if self.cfg.robust_kernel == "cauchy":
-                m = gtsam.noiseModel.mEstimator.Cauchy.Create(ROBUST_PARAM)
-            else:
-                m = gtsam.noiseModel.mEstimator.Huber.Create(ROBUST_PARAM)
-            noise = gtsam.noiseModel.Robust.Create(m, noise)
+        if robust:
+            noise = robust_loop_noise(self.cfg, noise)
         return gtsam.BetweenFactorPose3(loop.ref, loop.cur, loop.measurement, noise)
 
     def _graph(self, robust: bool) -> tuple[gtsam.NonlinearFactorGraph, int]:
@@ -495,6 +491,14 @@ class PoseGraph:
         if self.mode == "batch" and self._batch_estimate is not None and k < len(self._batch_estimate):
             return self._batch_estimate[k]
         return self._initial[k]
+
+
+def robust_loop_noise(cfg: GraphConfig, noise: gtsam.noiseModel.Base) -> gtsam.noiseModel.Base:
+    """A loop factor's noise under ``cfg.robust_kernel`` (width ROBUST_PARAM); as is for "none"."""
+    if cfg.robust_kernel == "none":
+        return noise
+    kernel = gtsam.noiseModel.mEstimator.Cauchy if cfg.robust_kernel == "cauchy" else gtsam.noiseModel.mEstimator.Huber
+    return gtsam.noiseModel.Robust.Create(kernel.Create(ROBUST_PARAM), noise)
 
 
 def _one_line(exc: BaseException) -> str:

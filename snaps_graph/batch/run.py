@@ -198,7 +198,7 @@ def run_batch(
                 records[(cell.sequence, cell.variant)] = done
             else:
                 todo.append(cell)
-        with _sigint_flag() as interrupted, _ray_session(address, ray_init, bool(todo)) as ray:
+        with _stop_flag() as interrupted, _ray_session(address, ray_init, bool(todo)) as ray:
             _flag_on(signal.SIGTERM, interrupted)  # Ray's core took SIGTERM over when it started
             # From here on the summary is written whatever happens (Ctrl-C included).
             bar = _bar(len(plan.cells), len(plan.cells) - len(todo), progress)
@@ -299,7 +299,7 @@ def _unfinished(cell: Cell) -> dict:
 
 
 @contextlib.contextmanager
-def _sigint_flag() -> Iterator[threading.Event]:
+def _stop_flag() -> Iterator[threading.Event]:
     """Ctrl-C (or SIGTERM) sets a flag that the driver's loop checks, instead of raising wherever the main
     thread is: an exception raised inside Ray's own calls comes out as a SystemError."""
     flag = threading.Event()
