@@ -260,7 +260,9 @@ class LoopConfig(Section):
     discount_length_max: int = _f(1000, "longest span window, frames", _nn(MAX_FRAMES))
     discount_shape: Literal["paper", "linear"] = _f("linear", "gamma over the window: paper (eq. 6) or a linear ramp")
     pause_graph_loops: bool = _f(
-        True, "in the pause, verified loops still go to the factor graph, eq. 6 not applied (false = the paper's pause)"
+        True,
+        "in the pause and along a verified revisit, verified loops still go to the factor graph, eq. 6 not applied "
+        "(false = the paper's pause)",
     )
 
     def _cross_checks(self, source: str) -> None:

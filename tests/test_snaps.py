@@ -616,6 +616,57 @@ def test_closer_loop_keeps_the_pause_of_the_loop_that_started_it():
     assert step.loop is not None and step.loop.reference == 1 and closer.last_pinned == 16
 
 
+def _track_case(pause: int, offset_m: float) -> tuple[list, SnapsLoopCloser]:
+    """Frames 0..4 lie 20 m apart; frame 5 (z = 4) revisits frame 0 and verifies; frames 6, 7 and
+    8 (z = 3, 2, 1) pass frame 0 again showing textures unlike it (Q near 0, below
+    ``min_similarity``) and verify at their true poses, frame 8 ``offset_m`` off its true pose."""
+    closer = SnapsLoopCloser(cfg(inter_frame_pause=pause, pause_graph_loops=True, correction_weight="verified"))
+    poses = [pose(z=20.0 * k) for k in range(5)] + [pose(z=4.0), pose(z=3.0), pose(z=2.0), pose(z=1.0)]
+    images = [tex(k) for k in range(5)] + [tex(0) // 2, tex(77), tex(78), tex(79)]
+    meas = {k: poses[k] for k in range(5, 9)}
+    meas[8] = pose(z=1.0 + offset_m)
+    steps = []
+    for k in range(9):
+        T_rel = np.eye(4) if k == 0 else inv(poses[k - 1]) @ poses[k]
+        steps.append(closer.step(k, T_rel, images[k], verify=cast(Verifier, lambda ref, k=k: (meas[k], 50))))
+    return steps, closer
+
+
+@pytest.mark.parametrize("pause", [10, 2])
+def test_a_verified_revisit_is_followed_on_verification_alone(pause):
+    """Along a verified revisit, frames whose Q has fallen below ``min_similarity`` still give the
+    graph loops where verification agrees with the loop that started the track, inside the pause
+    (pause 10) and after it (pause 2: frame 8 searches normally, 2 frames after frame 6's loop);
+    a verified pose 5 m off the track's prediction (an aliased match) gives none."""
+    steps, closer = _track_case(pause, 0.0)
+    assert steps[5].loop is not None and steps[5].loop.weight == 1.0
+    for k in (6, 7, 8):
+        ev = steps[k].loop
+        assert ev is not None and ev.reference == 0 and ev.verified and ev.q < 0.6
+        assert ev.weight == 0.0 and ev.n_corrected == 0  # the graph's, the heuristic is not moved
+    assert closer.last_pinned == 5
+    steps_off, closer_off = _track_case(pause, 5.0)
+    assert steps_off[7].loop is not None and steps_off[8].loop is None
+    np.testing.assert_array_equal(closer_off.positions, closer.positions)
+
+
+def test_no_track_without_a_verified_loop():
+    """Without a verified loop to follow, a candidate below ``min_similarity`` is not verified."""
+    closer = SnapsLoopCloser(cfg(inter_frame_pause=10, pause_graph_loops=True))
+    poses = [pose(z=20.0 * k) for k in range(5)] + [pose(z=3.0)]
+    images = [tex(k) for k in range(5)] + [tex(77)]
+    calls: list[int] = []
+
+    def verify(ref: int) -> tuple[np.ndarray, int]:
+        calls.append(ref)
+        return poses[5], 50
+
+    for k in range(6):
+        T_rel = np.eye(4) if k == 0 else inv(poses[k - 1]) @ poses[k]
+        step = closer.step(k, T_rel, images[k], verify=verify)
+    assert step.candidates == 1 and step.loop is None and calls == []
+
+
 # ---------------------------------------------------------------- drift-aware search
 def drifted_revisit(offset_x: float, n_out: int = 300) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """A drive n_out metres along z (1 m per frame), then, as estimated, back beside frame 100

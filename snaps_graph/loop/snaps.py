@@ -25,6 +25,10 @@ from .correction import Correction, discount, yaw_correction
 from .search import CandidateSearch
 from .uiqi import WindowStats, make_thumbnail, shifted_pair, similarity, similarity_q, similarity_shifted, window_stats
 
+FOLLOW_TOL_M = 1.0  # a graph-only loop on verification alone must land this close to the track's prediction, m
+FOLLOW_TOL_PER_M = 0.02  # ... plus this much per metre driven on both passes since the track's loop
+FOLLOW_TOL_DEG = 3.0  # ... and turn this close, degrees
+
 # Geometric verification, injected by the pipeline (loop/ never imports the front end):
 # reference dataset index -> (T_ref_cur, inliers) or None.
 Verifier = Callable[[int], "tuple[np.ndarray, int] | None"]
@@ -56,6 +60,7 @@ class SnapsLoopCloser(CandidateSearch, Correction):
         self.odometry = odometry if odometry is not None else OdometryConfig()
         self.odometry.validate()
         self._last_loop: tuple[int, int] | None = None  # (frame, reference) of the last verified loop
+        self._track: tuple[int, int, np.ndarray] | None = None  # (frame, reference, T_ref_cur): the last verified loop
         self._speed = 0.0  # metres per frame number, running mean (see step)
         cap = 1024
         self._R = np.empty((cap, 3, 3))
@@ -177,7 +182,7 @@ class SnapsLoopCloser(CandidateSearch, Correction):
             ids, dists = self.search(n)
             if ids.size:
                 pick = self._pick(len(ids))
-                loop, computed = self._try_close(n, ids[pick], dists[pick], verify)
+                loop, computed = self._try_close(n, ids[pick], dists[pick], verify, follow=self._following(n))
         elif self.cfg.pause_graph_loops and (n - self._pause_from) % self.pause_every == 0:  # verified revisits for the graph
             ids, dists = self.search(n)
             if ids.size:
@@ -191,14 +196,45 @@ class SnapsLoopCloser(CandidateSearch, Correction):
         return SnapsStep(pose=self.pose(n), loop=loop, candidates=computed, t_ms=t_ms, t_verify_ms=t_verify_ms)
 
     # ---- candidates ----
+    def _tracking(self, n: int) -> bool:
+        """Whether frame n follows a verified revisit: a verified loop (of any kind) lies at most
+        ``inter_frame_pause`` frames back, with graph-only loops allowed (``pause_graph_loops``)."""
+        return self.cfg.pause_graph_loops and self._track is not None and 0 < n - self._track[0] <= self.cfg.inter_frame_pause
+
+    def _following(self, n: int) -> bool:
+        """Whether frame n, searched outside the pause, may take a graph-only loop on verification
+        alone: it follows a verified revisit, on the pause's cadence since its last loop."""
+        return self._tracking(n) and (n - self._track[0]) % self.pause_every == 0  # type: ignore[index]
+
+    def _agrees(self, n: int, ref: int, T_ref_cur: np.ndarray) -> bool:
+        """Whether a verified pose of n in ref agrees with the last verified loop carried along both
+        passes (the estimate's relative poses since then): an aliased match lands elsewhere."""
+        assert self._track is not None
+        n0, r0, M0 = self._track
+        W = self.pose
+        pred = np.linalg.solve(W(ref), W(r0)) @ M0 @ np.linalg.solve(W(n0), W(n))
+        E = np.linalg.solve(pred, np.asarray(T_ref_cur, float))
+        driven = abs(self._s[n] - self._s[n0]) + abs(self._s[ref] - self._s[r0])
+        tol_m = FOLLOW_TOL_M + FOLLOW_TOL_PER_M * driven
+        ang = math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(E[:3, :3]) - 1.0) / 2.0))))
+        return bool(np.linalg.norm(E[:3, 3]) <= tol_m and ang <= FOLLOW_TOL_DEG)
+
     def _try_close(
-        self, n: int, ids: np.ndarray, dists: np.ndarray, verify: Verifier | None = None, in_pause: bool = False
+        self,
+        n: int,
+        ids: np.ndarray,
+        dists: np.ndarray,
+        verify: Verifier | None = None,
+        in_pause: bool = False,
+        follow: bool = False,
     ) -> tuple[LoopEvent | None, int]:
         """Compare candidates, pick the loop, correct (eq. 6). Those at or above ``min_similarity`` are
         verified highest Q first (at most ``verify_attempts``); the first that verifies is the loop, or,
         without a verifier or under ``require_verification = false``, the best Q. δ aims at p_ref, or with
         ``use_verified_offset`` at p_ref + R_ref·t_ref_cur. ``in_pause``: only a verified candidate makes
-        a loop, and it goes to the graph without correcting.
+        a loop, and it goes to the graph without correcting. While a verified revisit is followed
+        (:meth:`_tracking`; ``follow`` outside the pause), candidates below the threshold are verified
+        too, and one that agrees with the track (:meth:`_agrees`) is a graph-only loop.
         """
         cur = self._window_stats(n)
         if self.cfg.shift_px > 0:  # best horizontal shift per candidate (heading differences)
@@ -217,7 +253,8 @@ class SnapsLoopCloser(CandidateSearch, Correction):
         best, verified, T_ref_cur, inliers, t_verify_ms = -1, False, None, 0, 0.0
         if passing:
             best = passing[0]
-        if verify is not None and (passing or self.cfg.verify_all_candidates):
+        tracking = follow or (in_pause and self._tracking(n))
+        if verify is not None and (passing or tracking or self.cfg.verify_all_candidates):
             # Geometric verification of the best candidates in turn: the first that verifies is
             # the loop. With require_verification, none verifying means no loop (a same-place
             # assumption up to the radius away does more harm than a missed loop); otherwise the
@@ -233,6 +270,16 @@ class SnapsLoopCloser(CandidateSearch, Correction):
                 for i in order.tolist():
                     if i not in outcome:
                         outcome[i] = verify(int(self._index[int(ids[i])]))
+            if not verified and tracking:
+                # Along a verified revisit Q falls with traffic and light while the place is the
+                # same: verification and the track's geometry decide, for the graph only.
+                for i in [int(i) for i in order if int(i) not in outcome][: max(1, self.cfg.verify_attempts)]:
+                    outcome[i] = result = verify(int(self._index[int(ids[i])]))
+                    if result is not None and self._agrees(n, int(ids[i]), result[0]):
+                        best, (T_ref_cur, inliers), verified = i, result, True
+                        in_pause = True
+                        passing = passing or [i]
+                        break
             t_verify_ms = (perf_counter() - tv) * 1e3
             self._t_verify_ms = t_verify_ms
         accept = bool(passing) and (verified or (not in_pause and (verify is None or not self.cfg.require_verification)))
@@ -269,6 +316,8 @@ class SnapsLoopCloser(CandidateSearch, Correction):
             self._last_pinned = self._pause_from = n
             if verified:  # the search's uncertainty restarts from this measurement
                 self._last_loop = (n, ref)
+        if verified:
+            self._track = (n, ref, np.asarray(T_ref_cur, float).copy())
         event = LoopEvent(
             frame=int(self._index[n]),
             reference=int(self._index[ref]),
