@@ -12,7 +12,7 @@ import numpy as np
 
 from ..camera import StereoCamera
 from ..config import FrontendConfig
-from ..geometry import adjoint, exp_so3, log_so3
+from ..geometry import adjoint, exp_so3, log_so3, rotation_angle_deg
 from .depth import offset_gain
 from .stereo_ba import _inv3
 
@@ -114,7 +114,7 @@ class LocalBundleAdjuster:
             # (a window bridging a tracking gap, a poorly constrained far-field window): discard.
             d = np.linalg.solve(given[-1], out)
             shift = float(np.linalg.norm(d[:3, 3]))
-            turn = float(np.degrees(np.arccos(np.clip((np.trace(d[:3, :3]) - 1) / 2, -1, 1))))
+            turn = rotation_angle_deg(d)
             if shift > self.max_shift_m or turn > self.max_turn_deg:
                 self.stats.failures.append((kf.key, f"local BA moved the keyframe {shift:.2f} m, {turn:.2f} deg: discarded"))
                 for k, p in zip(self.kfs, given):

@@ -19,7 +19,7 @@ import numpy as np
 
 from ..config import LoopConfig, OdometryConfig
 from ..errors import SnapsGraphError
-from ..geometry import wrap_deg, yaw_deg
+from ..geometry import rotation_angle_deg, wrap_deg, yaw_deg
 from ..types import CandidateRecord, LoopEvent
 from .correction import Correction, discount, yaw_correction
 from .search import CandidateSearch
@@ -182,7 +182,7 @@ class SnapsLoopCloser(CandidateSearch, Correction):
             ids, dists = self.search(n)
             if ids.size:
                 pick = self._pick(len(ids))
-                loop, computed = self._try_close(n, ids[pick], dists[pick], verify, follow=self._following(n))
+                loop, computed = self._try_close(n, ids[pick], dists[pick], verify, follow=self._tracking(n, cadence=True))
         elif self.cfg.pause_graph_loops and (n - self._pause_from) % self.pause_every == 0:  # verified revisits for the graph
             ids, dists = self.search(n)
             if ids.size:
@@ -196,15 +196,14 @@ class SnapsLoopCloser(CandidateSearch, Correction):
         return SnapsStep(pose=self.pose(n), loop=loop, candidates=computed, t_ms=t_ms, t_verify_ms=t_verify_ms)
 
     # ---- candidates ----
-    def _tracking(self, n: int) -> bool:
+    def _tracking(self, n: int, cadence: bool = False) -> bool:
         """Whether frame n follows a verified revisit: a verified loop (of any kind) lies at most
-        ``inter_frame_pause`` frames back, with graph-only loops allowed (``pause_graph_loops``)."""
-        return self.cfg.pause_graph_loops and self._track is not None and 0 < n - self._track[0] <= self.cfg.inter_frame_pause
-
-    def _following(self, n: int) -> bool:
-        """Whether frame n, searched outside the pause, may take a graph-only loop on verification
-        alone: it follows a verified revisit, on the pause's cadence since its last loop."""
-        return self._tracking(n) and (n - self._track[0]) % self.pause_every == 0  # type: ignore[index]
+        ``inter_frame_pause`` frames back, with graph-only loops allowed (``pause_graph_loops``);
+        ``cadence``: and n is on the pause's cadence since that loop (a frame outside the pause)."""
+        if not self.cfg.pause_graph_loops or self._track is None:
+            return False
+        age = n - self._track[0]
+        return 0 < age <= self.cfg.inter_frame_pause and (not cadence or age % self.pause_every == 0)
 
     def _agrees(self, n: int, ref: int, T_ref_cur: np.ndarray) -> bool:
         """Whether a verified pose of n in ref agrees with the last verified loop carried along both
@@ -216,8 +215,18 @@ class SnapsLoopCloser(CandidateSearch, Correction):
         E = np.linalg.solve(pred, np.asarray(T_ref_cur, float))
         driven = abs(self._s[n] - self._s[n0]) + abs(self._s[ref] - self._s[r0])
         tol_m = FOLLOW_TOL_M + FOLLOW_TOL_PER_M * driven
-        ang = math.degrees(math.acos(max(-1.0, min(1.0, (np.trace(E[:3, :3]) - 1.0) / 2.0))))
-        return bool(np.linalg.norm(E[:3, 3]) <= tol_m and ang <= FOLLOW_TOL_DEG)
+        return bool(np.linalg.norm(E[:3, 3]) <= tol_m and rotation_angle_deg(E) <= FOLLOW_TOL_DEG)
+
+    def _first_verified(
+        self, n: int, ids: np.ndarray, tries: list[int], verify: Verifier, outcome: dict, on_track: bool
+    ) -> "tuple[int, tuple[np.ndarray, int]] | None":
+        """Verify candidates ``tries`` in turn (each answer into ``outcome``): the first that verifies,
+        and with ``on_track`` agrees with the track (:meth:`_agrees`), as (i, (T_ref_cur, inliers))."""
+        for i in tries:
+            outcome[i] = result = verify(int(self._index[int(ids[i])]))
+            if result is not None and (not on_track or self._agrees(n, int(ids[i]), result[0])):
+                return i, result
+        return None
 
     def _try_close(
         self,
@@ -251,6 +260,7 @@ class SnapsLoopCloser(CandidateSearch, Correction):
         # Verification outcome per candidate: None = not tried, else the verifier's answer.
         outcome: dict[int, "tuple[np.ndarray, int] | None"] = {}
         best, verified, T_ref_cur, inliers, t_verify_ms = -1, False, None, 0, 0.0
+        graph_only = in_pause  # a loop for the factor graph only, the heuristic not corrected
         if passing:
             best = passing[0]
         tracking = follow or (in_pause and self._tracking(n))
@@ -261,28 +271,25 @@ class SnapsLoopCloser(CandidateSearch, Correction):
             # paper's rule: the highest Q, unverified. verify_all_candidates verifies the rest
             # too, for the record only.
             tv = perf_counter()
-            for i in passing[: max(1, self.cfg.verify_attempts)]:
-                outcome[i] = result = verify(int(self._index[int(ids[i])]))
-                if result is not None:
-                    best, (T_ref_cur, inliers), verified = i, result, True
-                    break
+            attempts = max(1, self.cfg.verify_attempts)
+            hit = self._first_verified(n, ids, passing[:attempts], verify, outcome, on_track=False)
             if self.cfg.verify_all_candidates:
                 for i in order.tolist():
                     if i not in outcome:
                         outcome[i] = verify(int(self._index[int(ids[i])]))
-            if not verified and tracking:
+            if hit is None and tracking:
                 # Along a verified revisit Q falls with traffic and light while the place is the
                 # same: verification and the track's geometry decide, for the graph only.
-                for i in [int(i) for i in order if int(i) not in outcome][: max(1, self.cfg.verify_attempts)]:
-                    outcome[i] = result = verify(int(self._index[int(ids[i])]))
-                    if result is not None and self._agrees(n, int(ids[i]), result[0]):
-                        best, (T_ref_cur, inliers), verified = i, result, True
-                        in_pause = True
-                        passing = passing or [i]
-                        break
+                rest = [int(i) for i in order if int(i) not in outcome][:attempts]
+                hit = self._first_verified(n, ids, rest, verify, outcome, on_track=True)
+                graph_only = graph_only or hit is not None
+            if hit is not None:
+                best, (T_ref_cur, inliers) = hit
+                verified = True
             t_verify_ms = (perf_counter() - tv) * 1e3
             self._t_verify_ms = t_verify_ms
-        accept = bool(passing) and (verified or (not in_pause and (verify is None or not self.cfg.require_verification)))
+        # A verified loop is taken; an unverified best Q only by the paper's rule, outside the pause.
+        accept = verified or (bool(passing) and not in_pause and (verify is None or not self.cfg.require_verification))
         if passing and not accept:
             self.rejected_unverified += 1
         self._record(n, ids, dists, qs, shifts, outcome, best if accept else -1)
@@ -299,14 +306,14 @@ class SnapsLoopCloser(CandidateSearch, Correction):
         if self.cfg.correction_axes == "ground":  # the reference's height error stays out
             delta[1] = 0.0
         rotvec = None
-        if verified and self.cfg.correction_rotation != "none" and not in_pause:
+        if verified and self.cfg.correction_rotation != "none" and not graph_only:
             gain = self._gain((n - ref) * self.cfg.heading_drift_deg**2)
             rotvec = yaw_correction(self._R[ref] @ np.asarray(T_ref_cur, float)[:3, :3] @ self._R[n].T) * gain
         # Eq. 6 weighs the move by Q: the confidence that N stands where the reference stood. A
         # verified loop measured where N stands, so with correction_weight = "verified" it moves
         # with weight 1 (gamma still discounts older poses); "q" is the paper's rule everywhere.
         weight = 1.0 if (verified and self.cfg.correction_weight == "verified") else sim.q
-        if in_pause:
+        if graph_only:
             # Correcting again re-bends what the last loop explained: the loop goes to the factor
             # graph only and the pause keeps running.
             weight, n_corrected, alpha = 0.0, 0, self._alpha
