@@ -616,11 +616,11 @@ def test_closer_loop_keeps_the_pause_of_the_loop_that_started_it():
     assert step.loop is not None and step.loop.reference == 1 and closer.last_pinned == 16
 
 
-def _track_case(pause: int, offset_m: float) -> tuple[list, SnapsLoopCloser]:
+def _track_case(pause: int, offset_m: float, **kw) -> tuple[list, SnapsLoopCloser]:
     """Frames 0..4 lie 20 m apart; frame 5 (z = 4) revisits frame 0 and verifies; frames 6, 7 and
     8 (z = 3, 2, 1) pass frame 0 again showing textures unlike it (Q near 0, below
     ``min_similarity``) and verify at their true poses, frame 8 ``offset_m`` off its true pose."""
-    closer = SnapsLoopCloser(cfg(inter_frame_pause=pause, pause_graph_loops=True, correction_weight="verified"))
+    closer = SnapsLoopCloser(cfg(inter_frame_pause=pause, pause_graph_loops=True, correction_weight="verified", **kw))
     poses = [pose(z=20.0 * k) for k in range(5)] + [pose(z=4.0), pose(z=3.0), pose(z=2.0), pose(z=1.0)]
     images = [tex(k) for k in range(5)] + [tex(0) // 2, tex(77), tex(78), tex(79)]
     meas = {k: poses[k] for k in range(5, 9)}
@@ -648,6 +648,15 @@ def test_a_verified_revisit_is_followed_on_verification_alone(pause):
     steps_off, closer_off = _track_case(pause, 5.0)
     assert steps_off[7].loop is not None and steps_off[8].loop is None
     np.testing.assert_array_equal(closer_off.positions, closer.positions)
+
+
+def test_verifying_every_candidate_for_the_record_keeps_the_tracks_loops():
+    """``verify_all_candidates`` only records: the followed revisit's loops are the same with it."""
+    steps, _ = _track_case(10, 5.0)
+    steps_all, _ = _track_case(10, 5.0, verify_all_candidates=True)
+    got = [(s.loop.frame, s.loop.reference) if s.loop else None for s in steps]
+    assert got == [(s.loop.frame, s.loop.reference) if s.loop else None for s in steps_all]
+    assert got[6:] == [(6, 0), (7, 0), None]
 
 
 def test_no_track_without_a_verified_loop():

@@ -273,16 +273,16 @@ class SnapsLoopCloser(CandidateSearch, Correction):
             tv = perf_counter()
             attempts = max(1, self.cfg.verify_attempts)
             hit = self._first_verified(n, ids, passing[:attempts], verify, outcome, on_track=False)
-            if self.cfg.verify_all_candidates:
-                for i in order.tolist():
-                    if i not in outcome:
-                        outcome[i] = verify(int(self._index[int(ids[i])]))
             if hit is None and tracking:
                 # Along a verified revisit Q falls with traffic and light while the place is the
                 # same: verification and the track's geometry decide, for the graph only.
                 rest = [int(i) for i in order if int(i) not in outcome][:attempts]
                 hit = self._first_verified(n, ids, rest, verify, outcome, on_track=True)
                 graph_only = graph_only or hit is not None
+            if self.cfg.verify_all_candidates:
+                for i in order.tolist():
+                    if i not in outcome:
+                        outcome[i] = verify(int(self._index[int(ids[i])]))
             if hit is not None:
                 best, (T_ref_cur, inliers) = hit
                 verified = True
