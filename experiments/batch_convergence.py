@@ -6,9 +6,13 @@ run's robust kernel again, from the SNAPS poses as the run does) with the run's 
 stop and to convergence, with the flagged VO steps at their sigmas and at ``--flagged-scale``
 times the reference sigmas instead; the ground-truth loop oracle (snaps_graph.evaluation.oracle)
 likewise. Prints 3D mean deviation / horizontal / vertical / ATE as multiples of VO's, and the
-iterations. Why it matters: docs/loop-closure.md, "Where the refinement stops".
+iterations. ``--exact-loops`` and ``--add-oracle A-B`` solve once instead (flagged at
+``--flagged-scale``, converged): the run's loops measured by the ground truth instead, and the
+oracle's exact loops whose current frame lies in A..B added. Why it matters: docs/loop-closure.md,
+"Where the refinement stops".
 
     python experiments/batch_convergence.py RUN [RUN ...] [--flagged-scale 10]
+    python experiments/batch_convergence.py RUN --exact-loops [--add-oracle 4200-4300]
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ from __future__ import annotations
 import argparse
 import sys
 import tempfile
+from collections.abc import Sequence
 from pathlib import Path
 
 import gtsam
@@ -34,9 +39,20 @@ CONVERGED_TOL = 1e-10  # relative and absolute error decrease at which "converge
 CONVERGED_MAX_ITERATIONS = 2000
 
 
-def solve_g2o(g2o: Path, init: np.ndarray, cfg: Config, flagged: np.ndarray, flag_gain: float, converge: bool):
+def solve_g2o(
+    g2o: Path,
+    init: np.ndarray,
+    cfg: Config,
+    flagged: np.ndarray,
+    flag_gain: float,
+    converge: bool,
+    exact: np.ndarray | None = None,
+    extra: Sequence[tuple[int, int]] = (),
+):
     """Re-solve a written graph: (poses, iterations). Loops (non-consecutive keys) get the
-    run's kernel back; a flagged step's information is multiplied by ``flag_gain``."""
+    run's kernel back; a flagged step's information is multiplied by ``flag_gain``. With ``exact``
+    (ground-truth poses) every loop measures the truth, and the pairs ``extra`` are added as exact
+    loops at the tightest noise a verified loop gets."""
     written, _ = gtsam.readG2o(str(g2o), True)
     graph = gtsam.NonlinearFactorGraph()
     prior = gtsam.noiseModel.Diagonal.Sigmas(np.array([PRIOR_SIGMA_ROT_RAD] * 3 + [PRIOR_SIGMA_TRANS_M] * 3))
@@ -48,11 +64,20 @@ def solve_g2o(g2o: Path, init: np.ndarray, cfg: Config, flagged: np.ndarray, fla
         a, b = f.keys()
         R = f.noiseModel().R()
         info = R.T @ R
+        measured = f.measured()
         if b == a + 1:
             model = gtsam.noiseModel.Gaussian.Information(info * (flag_gain if flagged[b] else 1.0))
         else:
             model = robust_loop_noise(cfg.graph, gtsam.noiseModel.Gaussian.Information(info))
-        graph.add(gtsam.BetweenFactorPose3(a, b, f.measured(), model))
+            if exact is not None:
+                measured = to_pose3(np.linalg.solve(exact[a], exact[b]))
+        graph.add(gtsam.BetweenFactorPose3(a, b, measured, model))
+    if extra:
+        assert exact is not None
+        cov = noise.loop_covariance(cfg.graph, np.zeros((6, 6)))
+        tight = robust_loop_noise(cfg.graph, gtsam.noiseModel.Gaussian.Covariance(cov))
+        for j, k in extra:
+            graph.add(gtsam.BetweenFactorPose3(j, k, to_pose3(np.linalg.solve(exact[j], exact[k])), tight))
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(BATCH_MAX_ITERATIONS)
     if converge:
@@ -75,7 +100,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--flagged-scale", type=float, default=10.0, help="the flagged steps' sigmas in the variant, x the reference sigmas"
     )
+    ap.add_argument("--exact-loops", action="store_true", help="solve once instead: the run's loops measured by the ground truth")
+    ap.add_argument("--add-oracle", metavar="A-B", help="... and the oracle's exact loops whose current frame is in A..B")
     args = ap.parse_args(argv)
+    span = tuple(int(v) for v in args.add_oracle.split("-")) if args.add_oracle else None
     gain = (noise.FLAGGED_SIGMA_SCALE / args.flagged_scale) ** 2
     print("3D mean deviation / horizontal / vertical / ATE, x VO; it = LM iterations")
     for run in args.runs:
@@ -93,6 +121,14 @@ def main(argv: list[str] | None = None) -> int:
         pairs = true_revisit_pairs(gt, cfg.loop.radius_m, cfg.loop.frame_distance, cfg.loop.max_yaw_deg)
         for j, k in pairs:
             oracle.add_loop(j, k, 1.0, np.linalg.solve(gt[j], gt[k]), covariance=np.zeros((6, 6)))
+        if args.exact_loops or span:
+            extra = [(j, k) for j, k in pairs if span and span[0] <= k <= span[1]]
+            poses, it = solve_g2o(run / "graph.g2o", snaps, cfg, flagged, gain, True, exact=gt, extra=extra)
+            r = figures(poses, gt) / base
+            name = "refined, loops exact" + (f" + {len(extra)} oracle loops {args.add_oracle}" if span else "")
+            label = f"flagged {args.flagged_scale:g}x"
+            print(f"  {name:<37} {label:<16} converged   it {it:4d}  {' / '.join(f'{v:.3f}' for v in r)}", flush=True)
+            continue
         with tempfile.TemporaryDirectory() as tmp:
             oracle.save_g2o(Path(tmp) / "oracle.g2o")
             for name, g2o, init in (
