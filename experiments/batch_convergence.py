@@ -8,11 +8,13 @@ times the reference sigmas instead; the ground-truth loop oracle (snaps_graph.ev
 likewise. Prints 3D mean deviation / horizontal / vertical / ATE as multiples of VO's, and the
 iterations. ``--exact-loops`` and ``--add-oracle A-B`` solve once instead (flagged at
 ``--flagged-scale``, converged): the run's loops measured by the ground truth instead, and the
-oracle's exact loops whose current frame lies in A..B added. Why it matters: docs/loop-closure.md,
-"Where the refinement stops".
+oracle's exact loops whose current frame lies in A..B added. ``--oracle-skip A-B`` leaves out of
+the oracle its loops whose current frame lies in A..B (frames no verification measures:
+experiments/revisit_start.py). Why it matters: docs/loop-closure.md, "Where the refinement stops".
 
     python experiments/batch_convergence.py RUN [RUN ...] [--flagged-scale 10]
     python experiments/batch_convergence.py RUN --exact-loops [--add-oracle 4200-4300]
+    python experiments/batch_convergence.py RUN --oracle-skip 4150-4237
 """
 
 from __future__ import annotations
@@ -102,8 +104,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--exact-loops", action="store_true", help="solve once instead: the run's loops measured by the ground truth")
     ap.add_argument("--add-oracle", metavar="A-B", help="... and the oracle's exact loops whose current frame is in A..B")
+    ap.add_argument("--oracle-skip", metavar="A-B", help="the oracle without its loops whose current frame is in A..B")
     args = ap.parse_args(argv)
     span = tuple(int(v) for v in args.add_oracle.split("-")) if args.add_oracle else None
+    skip = tuple(int(v) for v in args.oracle_skip.split("-")) if args.oracle_skip else None
     gain = (noise.FLAGGED_SIGMA_SCALE / args.flagged_scale) ** 2
     print("3D mean deviation / horizontal / vertical / ATE, x VO; it = LM iterations")
     for run in args.runs:
@@ -119,6 +123,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{run.name}: VO {' / '.join(f'{v:.3f}' for v in base)} m, {int(flagged.sum())} flagged steps")
         oracle = odometry_graph(vo, cfg, inliers, ~flagged)
         pairs = true_revisit_pairs(gt, cfg.loop.radius_m, cfg.loop.frame_distance, cfg.loop.max_yaw_deg)
+        if skip:
+            pairs = [(j, k) for j, k in pairs if not skip[0] <= k <= skip[1]]
         for j, k in pairs:
             oracle.add_loop(j, k, 1.0, np.linalg.solve(gt[j], gt[k]), covariance=np.zeros((6, 6)))
         if args.exact_loops or span:
