@@ -5,9 +5,7 @@ Runs the pipeline (default config, ``--loops``, ``--refine``) over the frames, r
 (``read_grey``, two images), KLT tracking, PnP, the stereo of the tracked points and the
 re-detection with its stereo (worker thread), the stereo BA, the local BA, SNAPS (with its
 thumbnail), the graph. CPU is ``time.thread_time`` of the calling thread (OpenCV's own pool
-threads are not in it); it is the robust figure on a loaded machine, the wall time is not. An LK
-call split in two halves (``lk_split_min``) runs its second half on another thread: the
-stereo stages then count only their own thread's half, "sparse stereo, all calls" both.
+threads are not in it); it is the robust figure on a loaded machine, the wall time is not.
 Also prints minor page faults and process CPU per frame, and the load average.
 
     python benchmarks/bench_stages.py [--seq results/data/street00_1000] [--frames 0:500]
@@ -65,8 +63,8 @@ def main() -> None:
 
     SO = odometry.StereoOdometry
     _wrap(kitti, "read_grey", "read (2 images)")
-    _wrap(features, "track_klt", "KLT tracking")  # both halves of a split call, each in its thread
-    _wrap(depth, "sparse_depth", "sparse stereo, all calls")  # inside the two stereo stages below, both halves
+    _wrap(features, "track_klt", "KLT tracking")
+    _wrap(depth, "sparse_depth", "sparse stereo, all calls")  # inside the two stereo stages below
     _wrap(tracking, "pnp_ransac", "PnP RANSAC")
     _wrap(tracking.KltTracker, "_stereo_tracked", "stereo of tracked points")
     _wrap(tracking.KltTracker, "_detect_new", "re-detection + its stereo")

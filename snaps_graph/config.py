@@ -181,7 +181,6 @@ class FrontendConfig(Section):
     max_step_m: float = _f(4.0, "a larger step between frames is implausible (flagged), m", _pos(1000))
     max_step_deg: float = _f(20.0, "a larger turn between frames is implausible (flagged), deg", ANGLE)
     threads: int = _f(2, "worker threads (OpenCV releases the GIL)", Range(1, 256))
-    lk_split_min: int = _f(200, "an LK call on at least this many points runs in two threads (0 = never)", _nn(MAX_POINTS))
     stereo_guess_levels: int = _f(4, "sparse stereo LK pyramid levels for points with a predicted disparity", _nn(MAX_LEVELS))
     frame_features: int = _f(
         500, "keypoints with depth kept per frame in the VO result (the viewer's points)", _in(1, MAX_POINTS)

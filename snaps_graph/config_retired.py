@@ -35,6 +35,7 @@ _RETIRED_GROUPS = {
         "frontend.lba_select",
     ),
     "far points are not used": ("frontend.sba_far_points", "frontend.far_min_disparity_px"),
+    "an LK call spreads over OpenCV's own threads, never split in two": ("frontend.lk_split_min",),
     "KLT always retries a failed frame on ORB matches": ("frontend.klt_retry",),
     "the disparity offset is modelled as a turned right camera": ("frontend.disparity_offset_model",),
     "loops verify with their own features against the nearest stored reference, PnP pose": (

@@ -2,17 +2,13 @@
 
 from __future__ import annotations
 
-import dataclasses
-from typing import cast
-
 import numpy as np
 import pytest
 
 from snaps_graph.camera import StereoCamera
-from snaps_graph.config import FrontendConfig, KltConfig, StereoBAConfig
+from snaps_graph.config import KltConfig, StereoBAConfig
 from snaps_graph.frontend.stereo_ba import stereo_two_view_ba
 from snaps_graph.geometry import exp_so3
-from snaps_graph.types import FrameFeatures
 
 CAM = StereoCamera(fx=718.0, fy=718.0, cx=607.0, cy=185.0, baseline_m=0.54, width=1241, height=376)
 
@@ -71,33 +67,6 @@ def test_stereo_ba_covariance_is_the_inverse_schur_complement_of_numeric_jacobia
     H = J.T @ J / 0.5**2  # sigma_px = 0.5
     S = H[:6, :6] - H[:6, 6:] @ np.linalg.solve(H[6:, 6:], H[6:, :6])
     np.testing.assert_allclose(r.cov, np.linalg.inv(S), rtol=1e-4, atol=1e-14)
-
-
-@pytest.fixture(scope="module")
-def small_rendering():
-    """16 frames of the built-in loop at 620x188, rendered once."""
-    from snaps_graph.synth import SyntheticSequence, builtin_loop_trajectory
-
-    seq = SyntheticSequence(builtin_loop_trajectory(300)[:16], width=620, height=188, seed=0)
-    return seq, [seq[i] for i in range(len(seq))]
-
-
-def test_split_lk_calls_give_bit_identical_poses(small_rendering):
-    """Splitting the LK calls (KLT tracking, sparse stereo) in two halves run in two threads
-    (``lk_split_min``) gives the same poses, bit for bit, as one call on all points."""
-    from snaps_graph.frontend import StereoOdometry
-
-    seq, frames = small_rendering
-    out = []
-    for split in (0, 50):
-        with StereoOdometry(seq.camera, dataclasses.replace(FrontendConfig(), lk_split_min=split)) as vo:
-            if split:
-                assert vo._workers._split_pool is not None
-            res = [vo.process(f) for f in frames]
-        assert all(r.ok for r in res)
-        out.append((np.array([r.pose for r in res]), [cast(FrameFeatures, r.features).uv for r in res]))
-    assert np.array_equal(out[0][0], out[1][0])
-    assert all(np.array_equal(a, b) for a, b in zip(out[0][1], out[1][1]))
 
 
 @pytest.mark.parametrize("b", [0, 1, 16, 40])

@@ -17,7 +17,6 @@ from ..types import FrameFeatures, StereoFrame
 from . import depth as depth_mod
 from .depth import correct_disparity
 from .motion import Flag, check_motion
-from .threads import Workers
 
 MIN_STEREO_POINTS = 40  # a frame with fewer keypoints with depth cannot be a reference
 
@@ -52,8 +51,8 @@ def empty_features(mode: str) -> FrameFeatures:
 class Stereo:
     """Sparse stereo at left points, corrected for the disparity offset applied now (``offset()``)."""
 
-    def __init__(self, camera: StereoCamera, cfg: FrontendConfig, workers: Workers, offset: Callable[[], float]):
-        self.camera, self.cfg, self.workers, self.offset = camera, cfg, workers, offset
+    def __init__(self, camera: StereoCamera, cfg: FrontendConfig, offset: Callable[[], float]):
+        self.camera, self.cfg, self.offset = camera, cfg, offset
 
     def true(self, uv: np.ndarray, d: np.ndarray) -> np.ndarray:
         """Measured disparities ``d`` at left points ``uv`` corrected for the offset."""
@@ -62,7 +61,7 @@ class Stereo:
 
     def depth(self, left: np.ndarray, right: np.ndarray, uv: np.ndarray, guess: np.ndarray | None = None):
         """(depth from the corrected disparity, measured disparity) at ``uv``."""
-        z, d = self.workers.split(lambda u, g: depth_mod.sparse_depth(left, right, u, self.camera, self.cfg, g), uv, guess)
+        z, d = depth_mod.sparse_depth(left, right, uv, self.camera, self.cfg, guess)
         if self.offset() != 0.0:
             z = depth_mod.depth_from_disparity(self.true(uv, d), self.camera, self.cfg)
         return z, d

@@ -36,11 +36,11 @@ class StereoOdometry:
         self.cfg = cfg or FrontendConfig()
         self.cfg.validate()
         self.camera = camera
-        self._workers = Workers(self.cfg.threads, self.cfg.lk_split_min)
+        self._workers = Workers(self.cfg.threads)
         klt = self.cfg.mode == "klt"
         # the local BA needs persistent tracks (landmark ids): klt only
         self._lba = LocalBAScheduler(camera, self.cfg) if self.cfg.local_ba.enabled and klt else None
-        stereo = Stereo(camera, self.cfg, self._workers, lambda: self.disparity_offset_px)
+        stereo = Stereo(camera, self.cfg, lambda: self.disparity_offset_px)
         self._klt = KltTracker(camera, self.cfg, stereo, self._workers) if klt else None
         self._matcher = DescriptorMatcher(camera, self.cfg, stereo, self._workers)
         self._ref: Keyframe | None = None

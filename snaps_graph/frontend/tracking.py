@@ -67,7 +67,7 @@ class KltTracker:
                 dp = cam.fx * cam.baseline_m / np.maximum(zp, 1e-6)
                 gain = offset_gain(guess[:, 0], dp, cam)
                 dguess = np.where(zp > 0, dp + self.stereo.offset() * gain, ref.disp)
-        uv_cur, ok = self.workers.split(lambda u, g: feat.track_klt(ref.left, frame.left, u, cfg.klt, g), ref.uv, guess)
+        uv_cur, ok = feat.track_klt(ref.left, frame.left, ref.uv, cfg.klt, guess)
         idx = np.flatnonzero(ok)
         timings["match"] = (time.perf_counter() - t0) * 1000.0
         stereo = self.workers.submit(self._stereo_tracked, frame, uv_cur[idx], dguess[idx], timings)
