@@ -17,22 +17,22 @@ those that verify, with their ground-truth distance. Why it matters: docs/loop-c
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
 
 from snaps_graph.config import Config
 from snaps_graph.datasets.kitti import KittiSequence
-from snaps_graph.evaluation.results_io import read_frames_csv
+from snaps_graph.evaluation.results_io import read_frames_csv, read_loops
 from snaps_graph.trajectory_io import read_poses
 from snaps_graph.verification.features import LoopFeatureBank, verify_features
 
 
-def first_loops(run: Path, pause: int) -> list[tuple[int, int]]:
-    """(frame, reference) of each verified loop with no verified loop in the ``pause`` frames before it."""
-    loops = [json.loads(line) for line in (run / "loops.jsonl").read_text().splitlines() if line.strip()]
-    verified = sorted((int(d["frame"]), int(d["reference"])) for d in loops if d.get("verified"))
+def first_loops(run: Path, row: dict[int, int], pause: int) -> list[tuple[int, int]]:
+    """(row, reference row) of frames.csv of each verified loop with no verified loop in the
+    ``pause`` frames before it."""
+    loops = read_loops(run / "loops.jsonl", row)
+    verified = sorted((d["row"], d["reference_row"]) for d in loops if d.get("verified"))
     out, last = [], None
     for n, r in verified:
         if last is None or n - last > pause:
@@ -58,10 +58,10 @@ def main() -> None:
     offset = frames["vo_disparity_offset_px"]
     every = cfg.verification.reference_every
     bank = LoopFeatureBank(cam, cfg.frontend, cfg.verification, background=False)
-    for n, r in first_loops(args.run, cfg.loop.inter_frame_pause):
-        print(f"first verified loop {n} -> {r} (ground truth {np.linalg.norm(gt[row[n]] - gt[row[r]]):.1f} m apart)")
-        kn = row[n]
-        for km in range(kn - kn % every - (every if kn % every == 0 else 0), kn - args.back - 1, -every):
+    added: set[int] = set()  # references computed (a frame with too few stereo points stores none)
+    for kn, kr0 in first_loops(args.run, row, cfg.loop.inter_frame_pause):
+        print(f"first verified loop {ids[kn]} -> {ids[kr0]} (ground truth {np.linalg.norm(gt[kn] - gt[kr0]):.1f} m apart)")
+        for km in range((kn - 1) // every * every, kn - args.back - 1, -every):
             earlier = km - cfg.loop.frame_distance
             if earlier <= 0:
                 break
@@ -72,8 +72,9 @@ def main() -> None:
             tried, passed = 0, []
             lo = max(0, near - args.span)
             for kr in range(lo + (-lo) % every, min(earlier, near + args.span) + 1, every):
-                if bank.reference(kr) is None:
+                if kr not in added:
                     bank.add(kr, seq[kr])
+                    added.add(kr)
                 m = verify_features(bank.reference(kr), query, frame, cam, cfg.frontend, cfg.verification, float(offset[km]))
                 tried += 1
                 if m is not None and np.linalg.norm(m.T_ref_cur[:3, 3]) <= cfg.verification.max_distance_m:
