@@ -23,6 +23,10 @@ rectified images. Our poses' SHA-256 is printed per run: the runs must agree bit
     python benchmarks/bench_peers.py [--seqs kitti06,euroc] [--repeats 3]
         [--peer-venv results/orb-venv] [--vocab results/ORBvoc.txt]
         [--peer-script ../shared/peers/peer_orbslam3.py] [--work results/peers] [--config ours.toml]
+        [--clip street=results/data/street00@0:500 ...]
+
+``--clip`` adds any KITTI-layout folder (a frame range of it), run with the peer's KITTI feature
+settings and the folder's own calibration; accuracy where it has ground truth.
 """
 
 from __future__ import annotations
@@ -38,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
+from snaps_graph.errors import SnapsGraphError
 from snaps_graph.evaluation.metrics import evaluate
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -62,22 +67,22 @@ def kitti_folder(name: str, path: Path, work: Path) -> Path:
     return out
 
 
-def run_ours(seq: Path, out: Path, config: str | None = None) -> dict:
+def run_ours(seq: Path, out: Path, config: str | None = None, frames: str | None = None) -> dict:
     """One run of our pipeline in this process (called in a fresh interpreter per run);
-    ``config``: a TOML file (default: the default configuration)."""
+    ``config``: a TOML file (default: the default configuration); ``frames``: a range A:B."""
     from snaps_graph._malloc import set_malloc_thresholds
     from snaps_graph.config import Config
     from snaps_graph.datasets.kitti import KittiSequence
     from snaps_graph.pipeline import SlamPipeline
 
     set_malloc_thresholds()  # as `snaps-graph run` has them (idempotent)
-    ds = KittiSequence(seq)
-    frames = [ds[i] for i in range(len(ds))]
+    ds = KittiSequence(seq, frames=frames)
+    stereo_frames = [ds[i] for i in range(len(ds))]
     cfg = Config.load(config) if config else Config()
     pipe = SlamPipeline(ds.camera, cfg, loops="snaps", refine="isam2", build_map=False)
     wall, cpu = [], []
     c_run, t_run = time.process_time(), time.perf_counter()
-    for f in frames:
+    for f in stereo_frames:
         t, c = time.perf_counter(), time.process_time()
         pipe.process(f)
         wall.append((time.perf_counter() - t) * 1e3)
@@ -89,26 +94,27 @@ def run_ours(seq: Path, out: Path, config: str | None = None) -> dict:
     return {
         "wall_ms": wall,
         "cpu_ms": cpu,
-        "run_cpu_ms_per_frame": c_run * 1e3 / len(frames),
+        "run_cpu_ms_per_frame": c_run * 1e3 / len(stereo_frames),
         "run_wall_s": t_run,
         "digest": hashlib.sha256(poses.tobytes()).hexdigest(),
         "vo_digest": hashlib.sha256(np.ascontiguousarray(res.trajectories["vo"], np.float64).tobytes()).hexdigest(),
     }
 
 
-def ours_subprocess(seq: Path, out: Path, config: str | None) -> dict:
+def ours_subprocess(seq: Path, out: Path, config: str | None, frames: str | None = None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ, PYTHONPATH=str(ROOT))
-    extra = ["--config", str(config)] if config else []
+    extra = (["--config", str(config)] if config else []) + (["--frames", frames] if frames else [])
     subprocess.run([sys.executable, __file__, "--ours-run", str(seq), str(out), *extra], check=True, env=env)
     d = json.loads((out / "ours.json").read_text())
     d["poses"] = np.load(out / "poses.npy")
     return d
 
 
-def peer_subprocess(args, seq: Path, preset: str, out: Path) -> dict:
+def peer_subprocess(args, seq: Path, preset: str, out: Path, frames: str | None = None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     cmd = [str(args.peer_python), str(args.peer_script), str(seq), str(out), "--vocab", str(args.vocab), "--preset", preset]
+    cmd += ["--frames", frames] if frames else []
     r = subprocess.run(cmd, capture_output=True, text=True)
     if r.returncode != 0:
         raise RuntimeError(f"peer run failed ({r.returncode}): {r.stderr.strip().splitlines()[-1:]}")
@@ -144,12 +150,16 @@ def peer_missing(args) -> str | None:
     return None
 
 
-def read_cpu_ms(seq: Path) -> float:
+def read_cpu_ms(seq: Path, frames: str | None = None) -> float:
     """CPU ms per frame of reading a pair as the peer script does (two grey imreads): taken off
-    ORB-SLAM3's whole-loop CPU, whose loop reads the images and ours does not."""
+    ORB-SLAM3's whole-loop CPU, whose loop reads the images and ours does not (at most 100
+    pairs of ``frames`` are timed)."""
     import cv2
 
-    lefts = sorted((seq / "image_0").glob("*.png"))
+    from snaps_graph.datasets.kitti import KittiSequence
+
+    ds = KittiSequence(seq, frames=frames)
+    lefts = sorted((seq / "image_0").glob("*.png"))[ds.start : ds.stop][:100]
     c = time.process_time()
     for a in lefts:
         cv2.imread(str(a), cv2.IMREAD_GRAYSCALE)
@@ -157,10 +167,10 @@ def read_cpu_ms(seq: Path) -> float:
     return (time.process_time() - c) * 1e3 / max(len(lefts), 1)
 
 
-def gt_of(seq: Path, n: int) -> np.ndarray | None:
+def gt_of(seq: Path, n: int, frames: str | None = None) -> np.ndarray | None:
     from snaps_graph.datasets.kitti import KittiSequence
 
-    ds = KittiSequence(seq)
+    ds = KittiSequence(seq, frames=frames)
     gt = ds.gt_poses
     return None if gt is None else np.asarray(gt)[:n]
 
@@ -215,12 +225,28 @@ def main() -> int:
     ap.add_argument("--peer-script", type=Path, default=ROOT.parent / "shared" / "peers" / "peer_orbslam3.py")
     ap.add_argument("--work", type=Path, default=ROOT / "results" / "peers")
     ap.add_argument("--config", default=None, help="TOML config for our runs (default: the defaults)")
+    ap.add_argument(
+        "--clip",
+        action="append",
+        default=[],
+        metavar="NAME=PATH[@A:B]",
+        help="also a KITTI-layout folder (frames A:B of it), run with the peer's KITTI settings; repeatable",
+    )
+    ap.add_argument("--frames", default=None, help=argparse.SUPPRESS)  # a clip's range, for --ours-run
     ap.add_argument("--ours-run", nargs=2, metavar=("SEQ", "OUT"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.ours_run:
         seq, out = Path(args.ours_run[0]), Path(args.ours_run[1])
-        (out / "ours.json").write_text(json.dumps(run_ours(seq, out, args.config)))
+        (out / "ours.json").write_text(json.dumps(run_ours(seq, out, args.config, args.frames)))
         return 0
+    clips: dict[str, tuple[Path, str | None]] = {}
+    for item in args.clip:
+        name, sep, rest = item.partition("=")
+        path, _, frames = rest.partition("@")
+        if not sep or not name or not path or name in SEQUENCES or name in clips:
+            print(f"error: --clip {item}: expected NAME=PATH[@A:B] with a new name")
+            return 2
+        clips[name] = (Path(path).resolve(), frames or None)
     args.peer_python = args.peer_venv / "bin" / "python"
     why = peer_missing(args)
     if why:
@@ -229,22 +255,33 @@ def main() -> int:
     print(f"load before: {' '.join(f'{x:.2f}' for x in os.getloadavg())} ({os.cpu_count()} cores)")
 
     rows = []
-    for name in args.seqs.split(","):
-        if name not in SEQUENCES:
-            print(f"error: unknown sequence '{name}' (known: {', '.join(SEQUENCES)})")
+    names = [n for n in args.seqs.split(",") if n] + list(clips)
+    for name in names:
+        frames = None
+        if name in clips:
+            src, frames = clips[name]
+            preset = "kitti"
+        elif name in SEQUENCES:
+            rel, preset = SEQUENCES[name]
+            src = (ROOT / rel).resolve()
+        else:
+            print(f"error: unknown sequence '{name}' (known: {', '.join(SEQUENCES)}; others through --clip)")
             return 2
-        rel, preset = SEQUENCES[name]
-        src = (ROOT / rel).resolve()
         if not src.exists():
             print(f"{name}: skipped, {src} not found")
             continue
-        seq = kitti_folder(name, src, args.work)
+        try:
+            seq = src if name in clips else kitti_folder(name, src, args.work)
+            gt = gt_of(seq, 10**9, frames)
+        except SnapsGraphError as exc:
+            print(f"error: {name}: {exc}")
+            return 2
         runs: dict[str, list[dict]] = {"ours": [], "orb": []}
         for rep in range(args.repeats):
-            runs["ours"].append(ours_subprocess(seq, args.work / name / f"ours_{rep}", args.config))
+            runs["ours"].append(ours_subprocess(seq, args.work / name / f"ours_{rep}", args.config, frames))
             if not why:
                 try:
-                    runs["orb"].append(peer_subprocess(args, seq, preset, args.work / name / f"orb_{rep}"))
+                    runs["orb"].append(peer_subprocess(args, seq, preset, args.work / name / f"orb_{rep}", frames))
                 except (RuntimeError, OSError, ValueError, KeyError) as exc:  # its output unreadable too
                     why = str(exc)
                     print(f"ORB-SLAM3 skipped from here on: {why}")
@@ -256,9 +293,9 @@ def main() -> int:
                 flush=True,
             )
         n = len(runs["ours"][0]["wall_ms"])
-        read_ms = read_cpu_ms(seq)
+        read_ms = read_cpu_ms(seq, frames)
         print(f"{name}: reading a pair (two grey imreads) takes {read_ms:.1f} ms CPU", flush=True)
-        gt = gt_of(seq, n)
+        gt = None if gt is None else gt[:n]
         for system, rs in runs.items():
             if not rs:
                 continue

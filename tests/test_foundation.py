@@ -50,6 +50,25 @@ def test_shipped_benchmark_configs_load(path):
     assert cfg.to_dict() != Config().to_dict()  # each one changes something
 
 
+def test_budget_benchmark_variants_are_valid_overrides(tmp_path):
+    """bench_budget.py's built-in variants: each a key the config has, in range, and not the default."""
+    import importlib.util
+    import sys
+
+    path = ROOT / "benchmarks" / "bench_budget.py"
+    sys.path.insert(0, str(path.parent))
+    try:
+        spec = importlib.util.spec_from_file_location("bench_budget", path)
+        assert spec and spec.loader
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+    finally:
+        sys.path.remove(str(path.parent))
+    for item in mod.COST_VARIANTS + mod.PERTURBATION_VARIANTS:
+        cfg = Config.load(mod.write_config(item, tmp_path))
+        assert cfg.to_dict() != Config().to_dict(), item
+
+
 def test_config_table1_defaults():
     """Table I's values, except the similarity settings tuned for the exact index and the
     discount length K = 300 where gamma itself ends for the first loop (README, measured)."""
