@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import os
+import subprocess
 import sys
 from pathlib import Path
 
@@ -128,7 +129,11 @@ def main() -> int:
                 print(f"ORB-SLAM3 skipped from here on: {why}")
                 orb = []
         for i, item in enumerate(items):
-            runs[item].append(peers.ours_subprocess(seq, args.work / f"r{rnd}" / f"v{i}", str(configs[item])))
+            try:
+                runs[item].append(peers.ours_subprocess(seq, args.work / f"r{rnd}" / f"v{i}", str(configs[item])))
+            except subprocess.CalledProcessError as exc:
+                print(f"error: {label(item)}: our run failed (exit status {exc.returncode}; its message above)")
+                return 2
             print(f"round {rnd}: {item or 'default'}: {np.median(runs[item][-1]['cpu_ms']):.1f} ms CPU", flush=True)
     print(f"load after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
 

@@ -237,7 +237,11 @@ def main() -> int:
     args = ap.parse_args()
     if args.ours_run:
         seq, out = Path(args.ours_run[0]), Path(args.ours_run[1])
-        (out / "ours.json").write_text(json.dumps(run_ours(seq, out, args.config, args.frames)))
+        try:
+            (out / "ours.json").write_text(json.dumps(run_ours(seq, out, args.config, args.frames)))
+        except SnapsGraphError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
         return 0
     clips: dict[str, tuple[Path, str | None]] = {}
     for item in args.clip:
@@ -273,12 +277,18 @@ def main() -> int:
         try:
             seq = src if name in clips else kitti_folder(name, src, args.work)
             gt = gt_of(seq, 10**9, frames)
+            if not (seq / "image_1").is_dir():
+                raise SnapsGraphError(f"{seq}: no right images (image_1/); both systems run stereo")
         except SnapsGraphError as exc:
             print(f"error: {name}: {exc}")
             return 2
         runs: dict[str, list[dict]] = {"ours": [], "orb": []}
         for rep in range(args.repeats):
-            runs["ours"].append(ours_subprocess(seq, args.work / name / f"ours_{rep}", args.config, frames))
+            try:
+                runs["ours"].append(ours_subprocess(seq, args.work / name / f"ours_{rep}", args.config, frames))
+            except subprocess.CalledProcessError as exc:
+                print(f"error: {name}: our run failed (exit status {exc.returncode}; its message above)")
+                return 2
             if not why:
                 try:
                     runs["orb"].append(peer_subprocess(args, seq, preset, args.work / name / f"orb_{rep}", frames))
