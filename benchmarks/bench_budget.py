@@ -34,11 +34,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_peers as peers  # noqa: E402
 
 from snaps_graph.config import Config  # noqa: E402
+from snaps_graph.errors import SnapsGraphError  # noqa: E402
 
 ROOT = peers.ROOT
 SEQ = "kitti06"
-MAX_ATE_M = 0.045
-MAX_DRIFT_PERCENT = 0.85
+MAX_ATE_M, MAX_DRIFT_PERCENT, MAX_RATIO = peers.MAX_ATE_M, peers.MAX_DRIFT_PERCENT, peers.MAX_RATIO
 
 # settings that remove work from every frame (or every keyframe / loop reference)
 COST_VARIANTS = [
@@ -108,8 +108,8 @@ def main() -> int:
     items = [""] + [v for vs in groups.values() for v in vs]
     try:
         configs = {item: write_config(item, args.work) for item in items}
-    except Exception as exc:  # a malformed or out-of-range item: its one-line reason
-        print(f"error: {str(exc).strip().splitlines()[-1]}")
+    except SnapsGraphError as exc:  # a malformed or out-of-range item: its one-line reason
+        print(f"error: {exc}")
         return 2
     args.peer_python = args.peer_venv / "bin" / "python"
     why = peers.peer_missing(args)
@@ -134,10 +134,11 @@ def main() -> int:
             except subprocess.CalledProcessError as exc:
                 print(f"error: {label(item)}: our run failed (exit status {exc.returncode}; its message above)")
                 return 2
-            print(f"round {rnd}: {item or 'default'}: {np.median(runs[item][-1]['cpu_ms']):.1f} ms CPU", flush=True)
+            print(f"round {rnd}: {label(item)}: {np.median(runs[item][-1]['cpu_ms']):.1f} ms CPU", flush=True)
     print(f"load after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
 
-    gt = peers.gt_of(seq, len(runs[""][0]["wall_ms"]))
+    gt = peers.gt_of(seq)
+    gt = None if gt is None else gt[: len(runs[""][0]["wall_ms"])]
     cpu_of = {item: np.array([np.median(r["cpu_ms"]) for r in rs]) for item, rs in runs.items()}
     orb_cpu = np.array([np.median(r["cpu_ms"]) for r in orb]) if len(orb) == args.rounds else None
     base_digest = runs[""][0]["digest"]
@@ -159,7 +160,7 @@ def main() -> int:
             ate, drift = peers.accuracy(rs[0]["poses"], gt)
             to_default = float(np.median(cpu_of[item] / cpu_of[""]))
             ratio = float(np.median(cpu_of[item] / orb_cpu)) if orb_cpu is not None else float("nan")
-            cpu_ok = "n/a" if orb_cpu is None else ("met" if ratio <= 0.5 else "NOT met")
+            cpu_ok = "n/a" if orb_cpu is None else ("met" if ratio <= MAX_RATIO else "NOT met")
             acc_ok = "kept" if ate <= MAX_ATE_M and drift <= MAX_DRIFT_PERCENT else "lost"
             same = "yes" if rs[0]["digest"] == base_digest else "no"
             print(
