@@ -561,17 +561,24 @@ def drift(
     pct: Optional[float] = typer.Option(
         None, "--pct", help="Rescale the model so the end drift is this percent of the distance driven."
     ),
-    scale_bias_pct: Optional[float] = typer.Option(None, "--scale-bias-pct", help="Translation scale error, percent."),
+    scale_pct: Optional[float] = typer.Option(None, "--scale-pct", help="Translation scale error, percent."),
     heading_rw: Optional[float] = typer.Option(None, "--heading-rw", help="Heading random walk, deg per sqrt(m)."),
     pitch_rw: Optional[float] = typer.Option(None, "--pitch-rw", help="Pitch random walk, deg per sqrt(m)."),
-    roll: Optional[float] = typer.Option(None, "--roll", help="Slow roll drift, deg per 100 m (default 0)."),
+    roll_rw: Optional[float] = typer.Option(None, "--roll-rw", help="Roll random walk, deg per sqrt(m)."),
+    trans_rw: Optional[float] = typer.Option(None, "--trans-rw", help="Translation random walk of a step, m per sqrt(m)."),
+    heading_rate: Optional[float] = typer.Option(
+        None, "--heading-rate", help="Constant heading rate, deg per 100 m (default 0)."
+    ),
+    roll_rate: Optional[float] = typer.Option(None, "--roll-rate", help="Constant roll rate, deg per 100 m (default 0)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace OUT if it exists."),
 ) -> None:
-    """Perturb a ground-truth trajectory with a stereo VO's errors (scale bias, heading and pitch
-    random walks, optional roll); defaults from our VO on real KITTI 06."""
+    """Perturb a ground-truth trajectory with an odometry's drift: the drift model the graph and
+    the loop search assume (heading, pitch and roll random walks, scale error, step noise, optional
+    constant rates); defaults from our stereo VO against real ground truth."""
     import dataclasses
 
-    from .evaluation.drift import DriftModel, drift_trajectory, end_drift_pct
+    from .drift_model import DriftModel
+    from .evaluation.drift import drift_trajectory, end_drift_pct
     from .trajectory_io import read_kitti_poses, write_kitti_poses
 
     if out.exists() and not overwrite:
@@ -579,15 +586,65 @@ def drift(
     if out.exists() and out.resolve() == gt.resolve():
         raise_user(f"{out} is the input ground truth")
     poses = read_kitti_poses(gt)
-    changes = {"scale_bias_pct": scale_bias_pct, "heading_rw_deg_per_sqrt_m": heading_rw}
-    changes |= {"pitch_rw_deg_per_sqrt_m": pitch_rw, "roll_deg_per_100m": roll}
-    for name, value in changes.items():
-        if value is not None and not (value >= 0 and value < 1e3):
-            raise_user(f"drift: --{name} must be a number in [0, 1000), got {value}")
+    flags = {
+        "scale-pct": ("scale_pct", scale_pct),
+        "heading-rw": ("heading_deg_per_sqrt_m", heading_rw),
+        "pitch-rw": ("pitch_deg_per_sqrt_m", pitch_rw),
+        "roll-rw": ("roll_deg_per_sqrt_m", roll_rw),
+        "trans-rw": ("trans_m_per_sqrt_m", trans_rw),
+        "heading-rate": ("heading_deg_per_100m", heading_rate),
+        "roll-rate": ("roll_deg_per_100m", roll_rate),
+    }
+    changes = {}
+    for flag, (name, value) in flags.items():
+        if value is None:
+            continue
+        if not (abs(value) < 1e3 and (value >= 0 or flag.endswith("rate"))):
+            raise_user(f"drift: --{flag} must be a number in [0, 1000), got {value}")
+        changes[name] = value
     model = dataclasses.replace(DriftModel(), **{k: v for k, v in changes.items() if v is not None})
     drifted = drift_trajectory(poses, seed, model, pct)
     write_kitti_poses(out, drifted)
     typer.echo(f"wrote {out}: {len(drifted)} poses, end drift {end_drift_pct(drifted, poses):.3f} % of the distance")
+
+
+@app.command("drift-fit")
+def drift_fit(
+    est: Path = typer.Argument(..., help="The odometry's trajectory (KITTI or TUM pose file, e.g. a run's poses_vo.txt)."),
+    gt: Path = typer.Argument(..., help="Its ground truth, the same frames (e.g. the run's poses_gt.txt)."),
+    segment_m: Optional[float] = typer.Option(
+        None, "--segment-m", help="Measure over stretches this long, m (default 100, or a third of a shorter path)."
+    ),
+) -> None:
+    """Measure an odometry's drift model against ground truth and print it as the [odometry] section
+    of a config: the graph, the loop search and the correction then assume the drift it really has."""
+    import math
+
+    from .drift_model import DriftModel
+    from .evaluation.drift import fit_drift_model
+    from .trajectory_io import read_poses
+
+    if segment_m is not None and not (0 < segment_m < 1e6):
+        raise_user(f"drift-fit: --segment-m must be a length in (0, 1e6) m, got {segment_m}")
+    E, G = read_poses(est), read_poses(gt)
+    if len(E) != len(G):
+        raise_user(f"{est}: {len(E)} poses, but {gt} has {len(G)}: the two must hold the same frames")
+    model, L = fit_drift_model(E, G, segment_m)
+    folded = DriftModel(
+        heading_deg_per_sqrt_m=math.degrees(math.sqrt(float(model.rotation_var_per_m()[1]))),
+        pitch_deg_per_sqrt_m=model.pitch_deg_per_sqrt_m,
+        roll_deg_per_sqrt_m=math.degrees(math.sqrt(float(model.rotation_var_per_m()[2]))),
+        scale_pct=model.scale_pct,
+        trans_m_per_sqrt_m=model.trans_m_per_sqrt_m,
+    )
+    typer.echo(
+        f"# {est} against {gt}: {len(E)} poses, stretches of {L:.0f} m; constant rates "
+        f"heading {model.heading_deg_per_100m:+.3f} and roll {model.roll_deg_per_100m:+.3f} deg/100 m, "
+        "folded into the walks below"
+    )
+    typer.echo("[odometry]")
+    for name in ("heading_deg_per_sqrt_m", "pitch_deg_per_sqrt_m", "roll_deg_per_sqrt_m", "scale_pct", "trans_m_per_sqrt_m"):
+        typer.echo(f"{name} = {max(getattr(folded, name), 1e-6):.6g}")
 
 
 signal.signal(signal.SIGINT, _SIGINT_BEFORE)  # the module is imported: main() takes over

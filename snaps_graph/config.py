@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from .config_retired import FIXED, MOVED, RETIRED
+from .config_retired import FIXED, MOVED, RENAMED_VALUES, RETIRED
 from .config_schema import (
     Range,
     Section,
@@ -31,6 +31,7 @@ from .config_schema import (
     settings,
     toml_value,
 )
+from .drift_model import DriftModel
 from .errors import SnapsGraphError
 from .io_utils import atomic_write_text, read_toml
 
@@ -250,14 +251,15 @@ class LoopConfig(Section):
     correction_rotation: Literal["none", "yaw"] = _f(
         "yaw", "verified loop turns the window's heading (yaw) or not (none, the paper)"
     )
-    heading_drift_deg: float = _f(0.003, "VO heading random walk per sqrt(frame) in the turn's gain, deg", _nn(180))
     verified_heading_sigma_deg: float = _f(0.1, "sigma of a verified heading in the turn's gain, deg", _nn(180))
     discount_window: Literal["fixed", "span"] = _f(
         "span", "eq. 6's window: fixed = discount_length (the paper), span = scaled with N - j"
     )
     discount_span_factor: float = _f(1.0, "span window = this x (N - j) frames", _pos(1000))
     discount_length_max: int = _f(1000, "longest span window, frames", _nn(MAX_FRAMES))
-    discount_shape: Literal["paper", "linear"] = _f("linear", "gamma over the window: paper (eq. 6) or a linear ramp")
+    discount_shape: Literal["paper", "drift"] = _f(
+        "drift", "gamma over the window: paper (eq. 6) or drift (each frame's expected share under the [odometry] drift model)"
+    )
     pause_graph_loops: bool = _f(
         True,
         "in the pause and along a verified revisit, verified loops still go to the factor graph, eq. 6 not applied "
@@ -288,8 +290,6 @@ class GraphConfig(Section):
     loop_q_floor: float = _f(0.0, "Q at which a loop's sigmas would be infinite", Range(0, 1, hi_open=True))
     robust_kernel: Literal["huber", "cauchy", "none"] = _f("cauchy", "robust kernel on loop factors")
     odom_cov_scale: float = _f(1.0, "a stereo-BA step covariance is multiplied by this squared", _pos(MAX_SCALE))
-    odom_cov_floor_rot_rad: float = _f(1e-4, "rotation sigma added to a step covariance's diagonal, rad", SIGMA_ROT)
-    odom_cov_floor_trans_m: float = _f(1e-3, "translation sigma added to a step covariance's diagonal, m", SIGMA_TRANS)
     loop_cov_scale: float = _f(4.0, "a verified loop's PnP covariance multiplier", _pos(MAX_SCALE))
     loop_sigma_floor_rot_rad: float = _f(0.002, "rotation sigma added in quadrature to a verified loop's, rad", _nn(math.pi))
     loop_sigma_floor_trans_m: float = _f(0.02, "translation sigma added in quadrature to a verified loop's, m", _nn(1e4))
@@ -335,15 +335,28 @@ class MapConfig(Section):
 
 @dataclass
 class OdometryConfig(Section):
-    """Odometry drift model: how fast a trajectory's error grows with the distance driven (1 sigma).
-
-    A pose file (``run --odometry``) carries no covariance, so its factors take their noise from
-    here; the drift-aware loop search and the ``drift`` tool use the same model."""
+    """The odometry's drift model (1 sigma, per metre driven; snaps_graph.drift_model): the pose
+    graph's odometry noise, the drift-aware loop search's gate and the heuristic correction's shape
+    all follow it; ``snaps-graph drift-fit EST GT`` measures it for an odometry with ground truth."""
 
     _name = "odometry"
 
-    trans_drift_pct: float = _f(1.0, "translation drift per distance driven, percent", Range(0, 50, lo_open=True))
-    rot_drift_deg_per_100m: float = _f(0.1, "heading drift per 100 m driven, deg", Range(0, 90, lo_open=True))
+    heading_deg_per_sqrt_m: float = _f(0.07, "heading random walk, deg per sqrt(m)", Range(0, 90, lo_open=True))
+    pitch_deg_per_sqrt_m: float = _f(0.017, "pitch random walk, deg per sqrt(m)", _nn(90))
+    roll_deg_per_sqrt_m: float = _f(0.017, "roll random walk, deg per sqrt(m)", _nn(90))
+    scale_pct: float = _f(0.02, "translation scale error, percent", _nn(50))
+    trans_m_per_sqrt_m: float = _f(
+        0.002, "translation random walk of a step, every axis, m per sqrt(m)", Range(0, 10, lo_open=True)
+    )
+
+    def model(self) -> DriftModel:
+        return DriftModel(
+            heading_deg_per_sqrt_m=self.heading_deg_per_sqrt_m,
+            pitch_deg_per_sqrt_m=self.pitch_deg_per_sqrt_m,
+            roll_deg_per_sqrt_m=self.roll_deg_per_sqrt_m,
+            scale_pct=self.scale_pct,
+            trans_m_per_sqrt_m=self.trans_m_per_sqrt_m,
+        )
 
 
 @dataclass
@@ -524,6 +537,10 @@ def _apply_table(obj: Any, data: dict[str, Any], source: str, prefix: str) -> No
             hint = f" (did you mean [{prefix}{close[0]}]?)" if close else ""
             raise SnapsGraphError(f"{source}: [{path}] is not a section{hint}")
         else:
+            renamed = RENAMED_VALUES.get((path, value)) if isinstance(value, str) else None
+            if renamed is not None:
+                print(f"note: {source}: {path} = {toml_value(value)} is {toml_value(renamed[0])} now ({renamed[1]})", file=sys.stderr)
+                value = renamed[0]
             setattr(obj, key, coerce(current, value, f"{source}: {path}"))
 
 

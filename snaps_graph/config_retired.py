@@ -54,6 +54,13 @@ _RETIRED_GROUPS = {
     "a step with a stereo-BA covariance uses it, others their inlier count": ("graph.odom_noise",),
     "a verified loop with a covariance uses it, others their Q": ("graph.loop_sigma_source",),
     "the top-down PNG is coloured by height at a fixed resolution": ("map.topdown_colour_by", "map.topdown_dpi"),
+    "the drift model's random walks per sqrt(m) replace one translation and one heading rate "
+    "(snaps-graph drift-fit measures them)": ("odometry.trans_drift_pct", "odometry.rot_drift_deg_per_100m"),
+    "every odometry step's noise holds the [odometry] drift model's error for its distance": (
+        "graph.odom_cov_floor_rot_rad",
+        "graph.odom_cov_floor_trans_m",
+    ),
+    "a verified turn's gain takes the heading's prior from the [odometry] drift model": ("loop.heading_drift_deg",),
 }
 RETIRED = {key: why for why, keys in _RETIRED_GROUPS.items() for key in keys}
 RETIRED |= {
@@ -152,4 +159,9 @@ MOVED: dict[str, str] = {
     "frontend.loop_depth_check_px": "verification.depth_check_px",
     "frontend.loop_max_distance_m": "verification.max_distance_m",
     "frontend.loop_subpixel_px": "verification.subpixel_px",
+}
+
+# Values older versions wrote that mean another value now: read with a note, applied as the new one.
+RENAMED_VALUES: dict[tuple[str, Any], tuple[Any, str]] = {
+    ("loop.discount_shape", "linear"): ("drift", "the ramp follows the [odometry] drift model; a translation walk gives the linear ramp"),
 }

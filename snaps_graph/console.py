@@ -168,6 +168,12 @@ def print_summary(metrics: dict, out: Path, wall_rate: float | None = None, part
     typer.echo(f"peak memory {metrics.get('peak_rss_mb', 0):.0f} MiB")
     if metrics.get("graph_failures"):
         typer.echo(f"graph: {len(metrics['graph_failures'])} flagged updates (see metrics.json)")
+    graph = metrics.get("graph", {})
+    doubtful = graph.get("consistency", {}).get("doubtful")
+    if doubtful:
+        typer.echo(f"warning: the refined trajectory is doubtful: {doubtful} (metrics.json, graph.consistency)", err=True)
+    if graph.get("batch_stop", "converged") not in ("converged", ""):
+        typer.echo(f"warning: the batch solve stopped at the {graph['batch_stop']} (metrics.json, graph)", err=True)
     typer.echo(f"results in {out}")
     if (out / "poses_gt.txt").is_file():
         which = "the ground truth of exactly these frames, re-based" if partial else "the ground truth, re-based"

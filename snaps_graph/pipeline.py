@@ -28,7 +28,7 @@ from .mapping.tsdf import FusedMap
 from .trajectory_io import PoseFile
 from .types import FrameRecord, FrontEnd, LoopEvent, StereoFrame, VOResult
 from .verification.features import LoopFeatureBank, verify_features
-from .verification.mono import MonoFeatureBank
+from .verification.mono import MonoFeatureBank, two_view_covariance
 
 
 @dataclass
@@ -106,7 +106,9 @@ class SlamPipeline:
             if self.loops_mode == "snaps"
             else None
         )
-        self.graph = PoseGraph(self.cfg.graph, mode="isam2" if self.refine == "both" else self.refine)
+        self.graph = PoseGraph(
+            self.cfg.graph, mode="isam2" if self.refine == "both" else self.refine, drift=self.cfg.odometry.model()
+        )
         self.map = FusedMap(camera, self.cfg.map) if self.cfg.map.enabled else None
         if loop_features is None and self.snaps is not None:
             loop_features = LoopFeatureBank(camera, self.cfg.frontend, self.cfg.verification)
@@ -211,7 +213,9 @@ class SlamPipeline:
             heuristic = vo.pose
 
         tg = time.perf_counter()
-        self.graph.add_frame(k, heuristic, None if k == 0 else vo.T_rel, inliers=vo.inliers, ok=vo.ok, cov=vo.cov)
+        self.graph.add_frame(
+            k, heuristic, None if k == 0 else vo.T_rel, inliers=vo.inliers, ok=vo.ok, cov=vo.cov, drift_cov=vo.drift_cov
+        )
         self.vo_covs.append(vo.cov)
         if loop is not None:
             self._add_loop_factor(loop, vo)
@@ -291,7 +295,7 @@ class SlamPipeline:
             T = np.linalg.solve(self._vo_poses[k_ref], self._vo_poses[k_feat]) @ T
         if np.linalg.norm(T[:3, 3]) > self.cfg.verification.max_distance_m:  # not the same place
             return None
-        self._loop_cov[int(ref_index)] = m.cov
+        self._loop_cov[int(ref_index)] = two_view_covariance(m.cov) if self._monocular else m.cov
         return T, m.inliers
 
     def _start_monocular(self, mono: bool) -> None:

@@ -127,6 +127,9 @@ class VOResult:
     # 6x6 covariance of T_rel from the stereo BA (rotation rad, translation m: GTSAM's Pose3
     # tangent at T_rel); None when not estimated (flagged, PnP only, not measured from the previous frame)
     cov: np.ndarray | None = None
+    # The drift model's covariance of this step along the path it drove, from a front end that
+    # knows the path (a pose file's step across frames left out); None: the graph takes the chord.
+    drift_cov: np.ndarray | None = None
 
 
 class FrontEnd(Protocol):

@@ -272,3 +272,18 @@ def test_a_misspelled_nested_table_in_a_file_gets_did_you_mean(tmp_path):
     path.write_text("[frontend.stereoba]\nhuber_px = 1.0\n")
     with pytest.raises(SnapsGraphError, match=r"did you mean 'frontend\.stereo_ba'\?"):
         Config.load(path)
+
+
+def test_an_old_drift_model_and_ramp_load_with_notes(tmp_path, capsys):
+    """A config of the version before the drift model: its translation/heading rates and floors are
+    read with a note and ignored, and its "linear" ramp is the drift-model ramp now."""
+    p = tmp_path / "old.toml"
+    p.write_text(
+        '[loop]\ndiscount_shape = "linear"\nheading_drift_deg = 0.003\n'
+        "[graph]\nodom_cov_floor_rot_rad = 1e-4\n[odometry]\ntrans_drift_pct = 1.0\nrot_drift_deg_per_100m = 0.1\n"
+    )
+    cfg = Config.load(p)
+    err = capsys.readouterr().err
+    assert cfg.loop.discount_shape == "drift" and cfg.odometry == Config().odometry
+    for key in ("loop.discount_shape", "loop.heading_drift_deg", "graph.odom_cov_floor_rot_rad", "odometry.trans_drift_pct"):
+        assert key in err

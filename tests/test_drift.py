@@ -7,8 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from snaps_graph.drift_model import DriftModel
 from snaps_graph.errors import SnapsGraphError
-from snaps_graph.evaluation.drift import DriftModel, drift_trajectory, end_drift_pct
+from snaps_graph.evaluation.drift import drift_trajectory, end_drift_pct
 
 GT00 = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "kitti_gt" / "00.txt"
 
@@ -49,9 +50,9 @@ def test_end_drift_hits_pct(pct):
 def test_frame0_identity_and_zero_model_is_gt():
     gt = _square(50)
     assert np.allclose(drift_trajectory(gt, 0)[0], np.eye(4))
-    assert np.allclose(drift_trajectory(gt, 0, DriftModel(0, 0, 0, 0)), gt)
+    assert np.allclose(drift_trajectory(gt, 0, DriftModel(0, 0, 0, 0, 0)), gt)
     with pytest.raises(SnapsGraphError):
-        drift_trajectory(gt, 0, DriftModel(0, 0, 0, 0), pct=1.0)
+        drift_trajectory(gt, 0, DriftModel(0, 0, 0, 0, 0), pct=1.0)
     with pytest.raises(SnapsGraphError):
         drift_trajectory(gt[:1], 0)
 

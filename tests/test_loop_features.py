@@ -165,7 +165,7 @@ def test_discount_shapes_fall_to_zero_at_the_window_start():
     from snaps_graph.config import LoopConfig
     from snaps_graph.loop.snaps import discount
 
-    cfg = LoopConfig(discount_shape="linear")
+    cfg = LoopConfig(discount_shape="drift")
     s = np.arange(0, 201, dtype=float)
     g = discount(cfg, 3, s, window=200)
     assert g[0] == pytest.approx(1 - np.exp(-3)) and np.all(np.diff(g) < 0)

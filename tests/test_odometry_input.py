@@ -16,8 +16,9 @@ from conftest import SHARED_DATA
 
 from snaps_graph.config import Config, OdometryConfig
 from snaps_graph.datasets.kitti import KittiSequence
+from snaps_graph.drift_model import path_covariance
 from snaps_graph.errors import SnapsGraphError
-from snaps_graph.frontend.external import DRIFT_REFERENCE_M, PoseFileOdometry, drift_covariance
+from snaps_graph.frontend.external import PoseFileOdometry
 from snaps_graph.pipeline import SlamPipeline
 from snaps_graph.trajectory_io import kitti_text, read_kitti_poses, read_pose_file, tum_text
 
@@ -97,25 +98,22 @@ def test_bad_pose_files(tmp_path, text, fmt, where, words):
 def test_relative_poses_across_a_gap_and_drift_noise(tmp_path):
     P = _poses(20, step=1.5)
     P[7, 0, 3] = 2.0  # a detour inside the gap: 2.5 m in and 2.5 m out instead of 1.5 and 1.5
-    odo = PoseFileOdometry(read_pose_file(_write(tmp_path / "p.txt", kitti_text(P))), OdometryConfig(2.0, 3.0))
+    model = OdometryConfig(heading_deg_per_sqrt_m=2.0, pitch_deg_per_sqrt_m=3.0)
+    odo = PoseFileOdometry(read_pose_file(_write(tmp_path / "p.txt", kitti_text(P))), model)
     from snaps_graph.types import StereoFrame
 
     img = np.zeros((64, 64), np.uint8)
     empty = np.zeros((0, 0), np.uint8)
     outs = [odo.process(StereoFrame(i, 0.1 * i, img, empty)) for i in (3, 4, 10)]
-    assert np.allclose(outs[0].pose, np.eye(4)) and outs[0].cov is None
+    assert np.allclose(outs[0].pose, np.eye(4)) and outs[0].cov is None and outs[0].drift_cov is None
     assert np.allclose(outs[2].T_rel, np.linalg.solve(P[4], P[10]), atol=1e-9)  # carried across 5..9
     assert np.allclose(outs[2].pose, np.linalg.solve(P[3], P[10]), atol=1e-9)
-    # A random walk in the distance driven through the file (11 m across the gap, 9 m straight),
-    # calibrated to 2 % / 3 deg per 100 m over the reference drive: variance (p/100)^2 * L * d.
-    d, L = 4 * 1.5 + 2 * 2.5, DRIFT_REFERENCE_M
-    assert outs[2].cov is not None
-    sig = np.sqrt(np.diag(outs[2].cov))
-    assert np.allclose(sig[3:], 0.02 * math.sqrt(L * d)) and np.allclose(sig[:3], math.radians(0.03 * math.sqrt(L * d)))
-    # Over the reference drive the steps add up to the model's percentages.
-    total = sum(np.diag(drift_covariance(1.0, OdometryConfig(2.0, 3.0)))[3] for _ in range(int(L)))
-    assert math.isclose(math.sqrt(total), 0.02 * L, rel_tol=1e-9)
-    assert np.allclose(drift_covariance(0.0, OdometryConfig()), 0.0)  # standing still: the graph's floor
+    # No measurement noise of its own: the graph adds the drift model's. Across the gap the model's
+    # covariance along the file's own poses (the detour's 11 m), which the chord (9 m) would not give.
+    assert outs[1].cov is not None and np.allclose(outs[1].cov, 0.0) and outs[1].drift_cov is None  # one step: the graph's chord
+    assert outs[2].drift_cov is not None
+    assert np.allclose(outs[2].drift_cov, path_covariance(model.model(), P[4:11]))
+    assert outs[2].drift_cov[1, 1] == pytest.approx(math.radians(2.0) ** 2 * (4 * 1.5 + 2 * 2.5))
 
 
 def test_frames_without_a_pose(tmp_path):

@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 
 from snaps_graph.backend import PoseGraph, loop_sigma_scale, loop_sigmas, odometry_covariance, odometry_sigmas
-from snaps_graph.backend.noise import LOOP_SIGMA_SCALE_MAX
+from snaps_graph.backend.noise import LOOP_SIGMA_SCALE_MAX, ODOM_FLOOR_ROT_RAD, ODOM_FLOOR_TRANS_M, odometry_step_covariance
 from snaps_graph.config import GraphConfig
+from snaps_graph.drift_model import DriftModel
 from snaps_graph.errors import SnapsGraphError
 
 SIDE = 10  # square: 4 sides of SIDE 1 m steps, frame 4*SIDE back at the origin
@@ -131,15 +132,30 @@ def test_odometry_sigmas_follow_inliers_and_flag():
     assert np.allclose(odometry_sigmas(cfg, 200, False), 100 * base)  # flagged
 
 
-def test_odometry_covariance_scaled_floored_and_checked():
+def test_odometry_covariance_scaled_and_checked():
     C = np.diag([1e-8] * 3 + [1e-6] * 3)
-    cfg = GraphConfig(odom_cov_scale=2.0, odom_cov_floor_rot_rad=1e-3, odom_cov_floor_trans_m=1e-2)
+    cfg = GraphConfig(odom_cov_scale=2.0)
     scaled = odometry_covariance(cfg, C)
-    assert scaled is not None and np.allclose(scaled, 4 * C + np.diag([1e-6] * 3 + [1e-4] * 3))
+    assert scaled is not None and np.allclose(scaled, 4 * C)
     assert odometry_covariance(cfg, None) is None
     assert odometry_covariance(cfg, np.full((6, 6), np.nan)) is None
     assert odometry_covariance(cfg, np.eye(3)) is None
     assert odometry_covariance(cfg, -np.eye(6)) is None
+
+
+def test_every_step_carries_the_drift_model():
+    """A factor's covariance is the step's measurement noise plus the drift model's for its
+    distance plus the floor: a 2 m step carries twice the 1 m step's heading variance, and a
+    front end's path covariance replaces the chord's."""
+    cfg, model = GraphConfig(), DriftModel()
+    floor = np.diag([ODOM_FLOOR_ROT_RAD**2] * 3 + [ODOM_FLOOR_TRANS_M**2] * 3)
+    zero = np.zeros((6, 6))
+    one = odometry_step_covariance(cfg, model, pose(t=(0, 0, 1.0)), 200, True, zero) - floor
+    two = odometry_step_covariance(cfg, model, pose(t=(0, 0, 2.0)), 200, True, zero) - floor
+    assert np.isclose(two[1, 1], 2 * one[1, 1]) and np.isclose(one[1, 1], np.radians(model.heading_deg_per_sqrt_m) ** 2)
+    path = np.diag([1.0] * 6)
+    given = odometry_step_covariance(cfg, model, pose(t=(0, 0, 1.0)), 200, True, zero, drift_cov=path)
+    assert np.allclose(given, path + floor)
 
 
 def test_ba_noise_puts_the_correction_on_the_uncertain_step():

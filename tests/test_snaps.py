@@ -14,7 +14,7 @@ from typing import Any, cast
 import numpy as np
 import pytest
 
-from snaps_graph.config import LoopConfig
+from snaps_graph.config import LoopConfig, OdometryConfig
 from snaps_graph.errors import SnapsGraphError
 from snaps_graph.geometry import inv, wrap_deg, yaw_deg
 from snaps_graph.loop import SnapsLoopCloser
@@ -461,7 +461,8 @@ def test_eq6_rotation_correction_turns_window_to_verified_heading(sigma, gain):
     rotation at the loop (frame 5 vs frame 0) bends the window [1, 5] back from its anchor
     (frame 0): frame s turns by g*w*3*s/5 deg, and a frame composed afterwards keeps the
     corrected heading. The gain g weighs the drift over the 5 frames (5 * 1 deg^2) against the
-    measurement's variance sigma^2: 1 with an exact measurement, 0.5 when sigma^2 = 5."""
+    measurement's variance sigma^2: 1 with an exact measurement, 0.5 when sigma^2 = 5 (the drift
+    model's heading walk, 1 deg per sqrt(m), over the 5 m driven)."""
     true = [pose(z=float(k)) for k in range(6)]
     est = [true[0]] + [pose(z=float(k), yaw=3.0) for k in range(1, 6)]
     images = [tex(k) for k in range(6)]
@@ -472,9 +473,9 @@ def test_eq6_rotation_correction_turns_window_to_verified_heading(sigma, gain):
             correction_weight="verified",
             correction_axes="ground",
             correction_rotation="yaw",
-            heading_drift_deg=1.0,
             verified_heading_sigma_deg=sigma,
-        )
+        ),
+        OdometryConfig(heading_deg_per_sqrt_m=1.0),  # 1 deg^2 of heading variance per metre
     )
     for k in range(6):
         T_rel = np.eye(4) if k == 0 else inv(est[k - 1]) @ est[k]
@@ -533,7 +534,7 @@ def _circle_case():
             correction_rotation="yaw",
             verified_heading_sigma_deg=0.0,  # exact measurement: the full turn
             discount_window="span",
-            discount_shape="linear",
+            discount_shape="drift",
         )
     )
     turn = pose(yaw=0.2)  # the VO's extra 0.2 deg per frame
@@ -690,8 +691,8 @@ def drifted_revisit(offset_x: float, n_out: int = 300) -> tuple[list[np.ndarray]
 def test_drift_gate_reaches_a_revisit_beyond_the_radius(search, found):
     from snaps_graph.config import OdometryConfig
 
-    # 20 m off after ~1400 m driven: outside radius 5.5, inside 3 sigma of a 1 %/0.1 deg model.
-    closer = SnapsLoopCloser(cfg(search=search, search_max_radius_m=60.0, attempts=100), OdometryConfig(1.0, 0.1))
+    # 20 m off after ~1400 m driven: outside radius 5.5, inside 3 sigma of the default drift model.
+    closer = SnapsLoopCloser(cfg(search=search, search_max_radius_m=60.0, attempts=100), OdometryConfig())
     poses, images = drifted_revisit(20.0, n_out=800)
     steps = drive(closer, poses, images)
     assert (steps[-1].loop is not None) == found
@@ -702,13 +703,14 @@ def test_drift_gate_reaches_a_revisit_beyond_the_radius(search, found):
 def test_drift_gate_never_below_radius_and_grows_with_distance():
     from snaps_graph.config import OdometryConfig
 
-    closer = SnapsLoopCloser(cfg(search="drift", search_max_radius_m=60.0), OdometryConfig(1.0, 0.1))
+    closer = SnapsLoopCloser(cfg(search="drift", search_max_radius_m=60.0), OdometryConfig())
     _, g = closer.gates(np.array([0.0, 10.0, 200.0, 500.0, 1000.0, 1e5]))
     assert g[0] == g[1] == 5.5  # the paper's radius below
     assert np.all(np.diff(g[2:5]) > 0) and g[-1] == 60.0
-    # faster than linear: heading drift
+    # faster than linear: a heading walk's sideways error grows as D^1.5
     s = closer.drift_sigma(np.array([500.0, 1000.0]))
     assert s[1] > 2.0 * s[0]
+    assert s[1] == pytest.approx(math.radians(0.07) * math.sqrt(1000.0**3 / 3), rel=0.01)
 
 
 @pytest.mark.parametrize("last_loop", [None, (150, 20)])
@@ -718,7 +720,7 @@ def test_drift_gate_scalar_and_vector_paths_agree(last_loop):
     same order, with the same distances."""
     from snaps_graph.config import OdometryConfig
 
-    closer = SnapsLoopCloser(cfg(search="drift", search_max_radius_m=40.0), OdometryConfig(2.0, 0.5))
+    closer = SnapsLoopCloser(cfg(search="drift", search_max_radius_m=40.0), OdometryConfig(heading_deg_per_sqrt_m=0.2))
     rng = np.random.default_rng(7)
     poses, yaw, x, z = [], 0.0, 0.0, 0.0
     for _ in range(240):  # circles of ~60 m, heading noise, sideways jitter
@@ -742,7 +744,7 @@ def test_drift_gate_scalar_and_vector_paths_agree(last_loop):
 def test_verified_loop_restarts_the_uncertainty():
     from snaps_graph.config import OdometryConfig
 
-    closer = SnapsLoopCloser(cfg(search="drift"), OdometryConfig(1.0, 0.1))
+    closer = SnapsLoopCloser(cfg(search="drift"), OdometryConfig())
     poses, images = drifted_revisit(0.0, n_out=300)
     drive(closer, poses[:300], images[:300])
     ids = np.array([50])
@@ -766,7 +768,11 @@ def test_wide_gate_samples_across_it_within_attempts():
 def test_correction_ramp_follows_the_distance_driven():
     """Drift grows with distance: frames standing still share one correction, and a jump in the
     frame numbers (frames left out, driven at the speed before it) carries its share of it."""
-    closer = SnapsLoopCloser(cfg(discount_window="span", discount_shape="linear", correction_rotation="none"))
+    # A drift model of translation noise alone: each frame's share is its share of the distance.
+    walk = OdometryConfig(
+        heading_deg_per_sqrt_m=1e-9, pitch_deg_per_sqrt_m=0, roll_deg_per_sqrt_m=0, scale_pct=0, trans_m_per_sqrt_m=0.1
+    )
+    closer = SnapsLoopCloser(cfg(discount_window="span", discount_shape="drift", correction_rotation="none"), walk)
     zs = [0, 1, 2, 3, 3, 3, 3, 4, 5, 6]  # a stop at z = 3 (frames 3-6)
     index = list(range(10)) + [30]  # frame 30 after 20 frames left out, 20 m later
     zs.append(26)
@@ -778,3 +784,19 @@ def test_correction_ramp_follows_the_distance_driven():
     moved = (closer.positions - before)[:, 0]
     share = (1.0 - math.exp(-3.0)) * np.array([0, 1, 2, 3, 3, 3, 3, 4, 5, 6, 26], float) / 26.0
     np.testing.assert_allclose(moved, share, atol=1e-12)
+
+
+def test_correction_spares_the_frames_a_heading_walk_did_not_drift():
+    """Under a heading walk (the default model's main term) the first frames after the anchor hold a
+    small share of the loop's offset: (3x^2 - x^3) / 2 of the distance share x, not x."""
+    heading = OdometryConfig(pitch_deg_per_sqrt_m=0, roll_deg_per_sqrt_m=0, scale_pct=0, trans_m_per_sqrt_m=1e-9)
+    closer = SnapsLoopCloser(cfg(discount_window="span", discount_shape="drift", correction_rotation="none"), heading)
+    for k in range(21):
+        closer.step(k, np.eye(4) if k == 0 else pose(z=1.0), tex(k))
+    before = closer.positions
+    closer._correct(20, 1.0, np.array([1.0, 0.0, 0.0]), 1, first=1)
+    moved = (closer.positions - before)[:, 0]
+    x = np.arange(21) / 20.0
+    assert moved[0] == 0.0 and moved[20] == pytest.approx(1.0 - math.exp(-3.0))
+    assert np.all(moved[1:10] < 0.6 * (1.0 - math.exp(-3.0)) * x[1:10])  # well under the linear ramp
+    assert moved[2] == pytest.approx((1.0 - math.exp(-3.0)) * (3 * x[2] ** 2 - x[2] ** 3) / 2, rel=0.05)

@@ -1,8 +1,10 @@
 """Noise models of the pose graph's factors (sigmas as [rx, ry, rz, tx, ty, tz]: GTSAM's Pose3 tangent order).
 
-Odometry: the front end's stereo-BA covariance, scaled and floored, else sigmas that shrink as
-1/sqrt(inliers) and are 100x looser on a flagged step. Loops: the verification's covariance,
-scaled and floored, else base sigmas scaled by the similarity Q (:func:`loop_sigma_scale`).
+Odometry: the step's own measurement noise (the front end's stereo-BA covariance, scaled, else
+sigmas that shrink as 1/sqrt(inliers), 100x looser on a flagged step) plus the drift model's
+error for the distance it drove (:func:`odometry_step_covariance`): the process every part of
+the package assumes. Loops: the verification's covariance, scaled and floored, else base sigmas
+scaled by the similarity Q (:func:`loop_sigma_scale`).
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ import math
 import numpy as np
 
 from ..config import GraphConfig
+from ..drift_model import DriftModel, step_covariance
 
 ODOM_MIN_INLIERS = 20  # inlier counts below this count as this many
 UNVERIFIED_SIGMA_ROT_RAD = 0.5  # rotation sigma of an unverified loop (same-place assumption), rad
@@ -20,6 +23,9 @@ ODOM_SIGMA_SCALE_MIN = 0.5  # clamp of the inlier scale sqrt(ODOM_REF_INLIERS / 
 ODOM_SIGMA_SCALE_MAX = 4.0
 FLAGGED_SIGMA_SCALE = 100.0  # a flagged VO step's sigmas are this much looser
 LOOP_SIGMA_SCALE_MAX = 10.0  # clip of a loop's Q scale (1 - q0) / (Q - q0)
+# Added to every step's diagonal: a step that did not move still gets a determinate factor.
+ODOM_FLOOR_ROT_RAD = 1e-4
+ODOM_FLOOR_TRANS_M = 1e-3
 
 
 def odometry_sigmas(cfg: GraphConfig, inliers: int, ok: bool) -> np.ndarray:
@@ -38,9 +44,9 @@ def odometry_sigmas(cfg: GraphConfig, inliers: int, ok: bool) -> np.ndarray:
 
 
 def odometry_covariance(cfg: GraphConfig, cov: np.ndarray | None) -> np.ndarray | None:
-    """The step covariance: ``odom_cov_scale^2 * cov`` plus the floor sigmas squared on the
-    diagonal; None (use :func:`odometry_sigmas`) when ``cov`` is missing, not a finite symmetric
-    6x6 or not positive semi-definite."""
+    """The step's own measurement covariance, ``odom_cov_scale^2 * cov``; None (use
+    :func:`odometry_sigmas`) when ``cov`` is missing, not a finite symmetric 6x6 or not positive
+    semi-definite."""
     if cov is None:
         return None
     C = np.asarray(cov, dtype=float)
@@ -49,8 +55,30 @@ def odometry_covariance(cfg: GraphConfig, cov: np.ndarray | None) -> np.ndarray 
     C = 0.5 * (C + C.T)
     if np.linalg.eigvalsh(C).min() < -1e-12 * max(float(np.abs(C).max()), 1e-300):
         return None
-    floor = np.array([cfg.odom_cov_floor_rot_rad] * 3 + [cfg.odom_cov_floor_trans_m] * 3)
-    return cfg.odom_cov_scale**2 * C + np.diag(floor**2)
+    return cfg.odom_cov_scale**2 * C
+
+
+def odometry_step_covariance(
+    cfg: GraphConfig,
+    drift: DriftModel,
+    T_rel: np.ndarray,
+    inliers: int,
+    ok: bool,
+    cov: np.ndarray | None,
+    drift_cov: np.ndarray | None = None,
+) -> np.ndarray:
+    """An odometry factor's 6x6 covariance: the step's measurement noise (:func:`odometry_covariance`
+    of a good step's ``cov``, else :func:`odometry_sigmas`) plus the drift model's for the
+    path the step drove (``drift_cov`` when the front end knows it, else along the chord), plus the floor."""
+    C = odometry_covariance(cfg, cov) if ok else None
+    if C is None:
+        C = np.diag(odometry_sigmas(cfg, inliers, ok) ** 2)
+    t = np.asarray(T_rel, dtype=float)[:3, 3]
+    chord = np.asarray(T_rel, dtype=float)[:3, :3].T @ t
+    floor = np.array([ODOM_FLOOR_ROT_RAD] * 3 + [ODOM_FLOOR_TRANS_M] * 3)
+    if drift_cov is None or np.shape(drift_cov) != (6, 6) or not np.all(np.isfinite(drift_cov)):
+        drift_cov = step_covariance(drift, float(np.linalg.norm(t)), chord)
+    return C + np.asarray(drift_cov, dtype=float) + np.diag(floor**2)
 
 
 def loop_sigma_scale(cfg: GraphConfig, q: float) -> float:

@@ -17,12 +17,13 @@ import gtsam
 import numpy as np
 
 from ..config import GraphConfig
+from ..drift_model import DriftModel
 from ..errors import SnapsGraphError
 from ..io_utils import atomic_output
 from ._values import array_to_values as _array_to_values
 from ._values import to_pose3 as _to_pose3
 from ._values import values_to_array as _values_to_array
-from .noise import loop_covariance, loop_sigmas, odometry_covariance, odometry_sigmas
+from .noise import loop_covariance, loop_sigmas, odometry_step_covariance
 
 PRIOR_SIGMA_ROT_RAD = 1e-4  # sigma of the first pose's prior, rad
 PRIOR_SIGMA_TRANS_M = 1e-3  # sigma of the first pose's prior, m
@@ -32,6 +33,10 @@ ISAM2_RELINEARIZE_SKIP = 1  # iSAM2 relinearises every this many updates
 ISAM2_LOOP_ITERATIONS = 0  # extra iSAM2 steps after an update with a loop (later updates converge it; converge() finishes)
 ISAM2_FINAL_ITERATIONS = 10  # PoseGraph.converge(): at most this many extra iSAM2 steps
 BATCH_MAX_ITERATIONS = 100  # batch Levenberg-Marquardt iterations
+BATCH_RELATIVE_TOL = 1e-8  # LM stops when an iteration lowers the error by less than this share
+# A solved graph is doubtful when its loops or its odometry disagree by more than this many sigmas
+# on average (sqrt of chi-square per degree of freedom; about 1 when the noise models are right).
+DOUBTFUL_SIGMAS = 3.0
 
 MODES = ("none", "isam2", "batch")  # graph.refine's values but "both" (= isam2 here + optimize_batch)
 
@@ -70,6 +75,10 @@ class GraphStats:
     loop_update_ms: list[float] = field(default_factory=list)  # updates that carried a loop
     batch_ms: float = 0.0
     batch_iterations: int = 0
+    batch_error_initial: float = 0.0  # the graph's error (half the chi-square) at the initial estimate
+    batch_error_final: float = 0.0
+    batch_stop: str = ""  # why LM stopped: converged, iteration limit, damping limit, failed
+    consistency: dict = field(default_factory=dict)  # PoseGraph.consistency() of the final estimate
 
     @property
     def n_factors(self) -> int:
@@ -98,6 +107,10 @@ class GraphStats:
             "loop_update_ms_max": max(self.loop_update_ms, default=0.0),
             "batch_ms": self.batch_ms,
             "batch_iterations": self.batch_iterations,
+            "batch_error_initial": self.batch_error_initial,
+            "batch_error_final": self.batch_error_final,
+            "batch_stop": self.batch_stop,
+            "consistency": self.consistency,
         }
 
 
@@ -132,8 +145,11 @@ class PoseGraph:
     :class:`LoopFactorInfo` per :meth:`add_loop` call.
     """
 
-    def __init__(self, cfg: GraphConfig, mode: str | None = None) -> None:
+    def __init__(self, cfg: GraphConfig, mode: str | None = None, drift: DriftModel | None = None) -> None:
+        """``drift``: the odometry's drift model (``Config.odometry.model()``), whose error for each
+        step's distance joins its factor's noise; default :class:`DriftModel`."""
         self.cfg = cfg
+        self.drift = drift if drift is not None else DriftModel()
         if mode is None:  # "both" = iSAM2 online; the batch runs on optimize_batch()
             mode = "isam2" if cfg.refine == "both" else cfg.refine
         self.mode = mode
@@ -171,13 +187,16 @@ class PoseGraph:
         inliers: int = 0,
         ok: bool = True,
         cov: np.ndarray | None = None,
+        drift_cov: np.ndarray | None = None,
     ) -> None:
         """Add frame ``k`` (stream position; must be the next one) with its initial estimate.
 
         ``initial_pose`` is the heuristic (SNAPS-corrected) T_world_cam. Frame 0 gets a prior at
         it; frame k > 0 gets BetweenFactorPose3(k-1, k, T_rel) with :func:`odometry_sigmas`.
         ``T_rel`` None for k > 0 falls back on the relative pose of the two initial estimates.
-        ``cov`` (6x6, Pose3 tangent at ``T_rel``) is the step's noise (else :func:`odometry_sigmas`).
+        ``cov`` (6x6, Pose3 tangent at ``T_rel``) is the step's measurement noise (else
+        :func:`odometry_sigmas`); the drift model's error along the step's path (``drift_cov``, default
+        along the chord) is added to it.
         """
         if k != len(self._initial):
             raise SnapsGraphError(f"graph: frame key {k} out of order (expected {len(self._initial)})")
@@ -191,11 +210,8 @@ class PoseGraph:
             if T_rel is None:
                 T_rel = np.linalg.solve(self._initial[k - 1], T)
             T_rel = _check_pose(T_rel, f"graph frame {k} relative pose")
-            C = odometry_covariance(self.cfg, cov) if ok else None
-            if C is not None:
-                noise = gtsam.noiseModel.Gaussian.Covariance(C)
-            else:
-                noise = gtsam.noiseModel.Diagonal.Sigmas(odometry_sigmas(self.cfg, int(inliers), bool(ok)))
+            C = odometry_step_covariance(self.cfg, self.drift, T_rel, int(inliers), bool(ok), cov, drift_cov)
+            noise = gtsam.noiseModel.Gaussian.Covariance(C)
             factor = gtsam.BetweenFactorPose3(k - 1, k, _to_pose3(T_rel), noise)
             self.stats.n_odometry_factors += 1
             self.stats.n_flagged_odometry += int(not ok)
@@ -351,6 +367,7 @@ class PoseGraph:
             self.failures.append((k, f"isam2 final iterations failed: {_one_line(exc)}"))
             self._rebuild_isam2(k, self._last_good_estimate())
         self._estimate_cache = None
+        self.stats.consistency = self.consistency(self.estimates())
         return (time.perf_counter() - t0) * 1e3
 
     def _last_good_estimate(self) -> np.ndarray:
@@ -399,24 +416,66 @@ class PoseGraph:
             raise SnapsGraphError("graph: optimize_batch on an empty graph")
         t0 = time.perf_counter()
         k = len(self._initial) - 1
+        graph, _ = self._graph(robust=True)
+        e0 = float(graph.error(self._initial_values))
         try:
             lm = gtsam.LevenbergMarquardtParams()
             lm.setMaxIterations(BATCH_MAX_ITERATIONS)
-            graph, _ = self._graph(robust=True)
+            lm.setRelativeErrorTol(BATCH_RELATIVE_TOL)
             opt = gtsam.LevenbergMarquardtOptimizer(graph, self._initial_values, lm)
             result = opt.optimize()
             iterations = opt.iterations()
             poses = _values_to_array(result, len(self._initial))
             if not np.all(np.isfinite(poses)):
                 raise RuntimeError("non-finite result")
+            e1 = float(graph.error(result))
+            if iterations >= BATCH_MAX_ITERATIONS:
+                stop = "iteration limit"
+            elif opt.lambda_() >= lm.getlambdaUpperBound():
+                stop = "damping limit (no step lowered the error)"
+            else:
+                stop = "converged"
         except RuntimeError as exc:
             self.failures.append((k, f"batch optimisation failed: {_one_line(exc)}"))
-            poses = self._initial_array()
-            iterations = 0
+            poses, iterations, e1, stop = self._initial_array(), 0, e0, "failed: the initial estimates kept"
+        if e1 > e0:  # LM never raises the error it minimises; a rise means a failed solve
+            self.failures.append((k, f"batch error rose from {e0:.4g} to {e1:.4g}: the initial estimates kept"))
+            poses, e1, stop = self._initial_array(), e0, "failed: the initial estimates kept"
         self.stats.batch_ms = (time.perf_counter() - t0) * 1e3
         self.stats.batch_iterations = iterations
+        self.stats.batch_error_initial, self.stats.batch_error_final, self.stats.batch_stop = e0, e1, stop
         self._batch_estimate = poses
+        self.stats.consistency = self.consistency(poses)
         return poses.copy()
+
+    def consistency(self, poses: np.ndarray) -> dict:
+        """How well ``poses`` fit the graph, judged without ground truth: per factor type the
+        chi-square per degree of freedom (about 1 when the noise models describe the errors), each
+        loop's residual in sigmas (the root of its chi-square per degree of freedom), the loops
+        beyond ``DOUBTFUL_SIGMAS``, and ``doubtful`` with the reason when the fit is suspect."""
+        values = _array_to_values(np.asarray(poses, dtype=float))
+        graph, n_base = self._graph(robust=False)
+        chi = np.array([2.0 * graph.at(i).error(values) for i in range(graph.size())])
+        n_odo = max(n_base - self.stats.n_prior_factors, 0)
+        odo = chi[self.stats.n_prior_factors : n_base]
+        loops = chi[n_base:]
+        loop_sig = np.sqrt(loops / 6.0)
+        out: dict = {
+            "odometry_chi2_per_dof": float(odo.sum() / (6 * n_odo)) if n_odo else None,
+            "loop_chi2_per_dof": float(loops.sum() / (6 * len(loops))) if len(loops) else None,
+            "loop_residual_sigmas": [round(float(x), 3) for x in loop_sig],
+            "loops_beyond": int(np.count_nonzero(loop_sig > DOUBTFUL_SIGMAS)),
+            "doubtful": "",
+        }
+        why = []
+        if out["loop_chi2_per_dof"] is not None and out["loop_chi2_per_dof"] > DOUBTFUL_SIGMAS**2:
+            why.append(f"loops disagree with the odometry by {math.sqrt(out['loop_chi2_per_dof']):.1f} sigmas on average")
+        elif out["loops_beyond"]:
+            why.append(f"{out['loops_beyond']} of {len(loops)} loops are beyond {DOUBTFUL_SIGMAS:g} sigmas")
+        if out["odometry_chi2_per_dof"] is not None and out["odometry_chi2_per_dof"] > DOUBTFUL_SIGMAS**2:
+            why.append(f"the odometry is bent by {math.sqrt(out['odometry_chi2_per_dof']):.1f} sigmas on average")
+        out["doubtful"] = "; ".join(why)
+        return out
 
     # ------------------------------------------------------------------ results
     def estimates(self) -> np.ndarray:

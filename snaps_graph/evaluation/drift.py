@@ -1,38 +1,20 @@
-"""Drifted odometry from a ground-truth trajectory: the errors a real stereo VO makes.
+"""Drifted odometry from a ground-truth trajectory, and the drift model fitted to an estimate.
 
-Each ground-truth step is driven again with a scale bias, heading and pitch random walks and an
-optional roll rate; ``pct`` rescales them together to an end error of ``pct`` % of the distance.
-What each term is, and the defaults' source: docs/loop-closure.md, "The drift tool".
+Each ground-truth step is driven again with the errors of a :class:`~snaps_graph.drift_model.DriftModel`
+(the model the graph and the search assume); ``pct`` rescales them together to an end error of
+``pct`` % of the distance. :func:`fit_drift_model` measures a model from an estimate and its
+ground truth. The terms and the defaults' source: docs/loop-closure.md, "The drift model".
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ..drift_model import DriftModel
 from ..errors import SnapsGraphError
-
-
-@dataclass(frozen=True)
-class DriftModel:
-    """Error rates of a drifted odometry (1 sigma where random)."""
-
-    # Defaults: our stereo VO on real KITTI 06 frames 0-50 (docs/loop-closure.md, "The drift tool").
-    scale_bias_pct: float = 0.02  # translation scale error, percent (the sign is drawn per seed)
-    heading_rw_deg_per_sqrt_m: float = 0.07  # heading random walk
-    pitch_rw_deg_per_sqrt_m: float = 0.017  # pitch random walk
-    roll_deg_per_100m: float = 0.0  # slow roll drift (0 = off)
-
-    def scaled(self, k: float) -> DriftModel:
-        return DriftModel(
-            self.scale_bias_pct * k,
-            self.heading_rw_deg_per_sqrt_m * k,
-            self.pitch_rw_deg_per_sqrt_m * k,
-            self.roll_deg_per_100m * k,
-        )
 
 
 def _steps(gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -59,22 +41,26 @@ def _compose(gt0: np.ndarray, R_rel: np.ndarray, t_rel: np.ndarray, err: np.ndar
     return out
 
 
-def _draws(gt: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray, float]:
-    """Standard normal increments per step for heading and pitch, and the scale bias's sign."""
+def _draws(gt: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray]:
+    """Standard normal increments per step (heading, pitch, then roll and the three translation
+    axes), and the scale error's sign; the first three draws keep their order across versions."""
     rng = np.random.default_rng(seed)
     m = len(gt) - 1
-    return rng.standard_normal(m), rng.standard_normal(m), float(rng.choice([-1.0, 1.0]))
+    xi_h, xi_p, sign = rng.standard_normal(m), rng.standard_normal(m), float(rng.choice([-1.0, 1.0]))
+    return xi_h, xi_p, sign, rng.standard_normal(m), rng.standard_normal((m, 3))
 
 
 def _apply(gt: np.ndarray, model: DriftModel, draws, R_rel, t_rel, ds) -> np.ndarray:
-    xi_h, xi_p, sign = draws
+    xi_h, xi_p, sign, xi_r, xi_t = draws
     rad = math.pi / 180.0
+    root = np.sqrt(ds)
     rotvec = np.zeros((len(ds), 3))
-    rotvec[:, 1] = model.heading_rw_deg_per_sqrt_m * rad * np.sqrt(ds) * xi_h
-    rotvec[:, 0] = model.pitch_rw_deg_per_sqrt_m * rad * np.sqrt(ds) * xi_p
-    rotvec[:, 2] = model.roll_deg_per_100m * rad * ds / 100.0
+    rotvec[:, 1] = model.heading_deg_per_sqrt_m * rad * root * xi_h + model.heading_deg_per_100m * rad * ds / 100.0
+    rotvec[:, 0] = model.pitch_deg_per_sqrt_m * rad * root * xi_p
+    rotvec[:, 2] = model.roll_deg_per_sqrt_m * rad * root * xi_r + model.roll_deg_per_100m * rad * ds / 100.0
     err = Rotation.from_rotvec(rotvec).as_matrix()
-    return _compose(gt[0], R_rel, t_rel, err, 1.0 + sign * model.scale_bias_pct / 100.0)
+    t_noisy = t_rel + model.trans_m_per_sqrt_m * root[:, None] * xi_t
+    return _compose(gt[0], R_rel, t_noisy, err, 1.0 + sign * model.scale_pct / 100.0)
 
 
 def end_drift_pct(est: np.ndarray, gt: np.ndarray) -> float:
@@ -85,26 +71,30 @@ def end_drift_pct(est: np.ndarray, gt: np.ndarray) -> float:
     return 100.0 * float(np.linalg.norm(est[-1, :3, 3] - gt[-1, :3, 3])) / length
 
 
-def drift_trajectory(gt: np.ndarray, seed: int, model: DriftModel | None = None, pct: float | None = None) -> np.ndarray:
-    """(N, 4, 4) drifted poses of ground truth ``gt`` (N, 4, 4); frame 0 keeps its pose, and a seed
-    always gives the same poses. Raises SnapsGraphError for non-finite input, fewer than 2 poses, or
-    a ``pct`` no rescaling reaches (a path that does not move, or a model with every rate at 0).
-    """
+def _check(gt: np.ndarray, what: str = "the ground truth") -> np.ndarray:
     gt = np.asarray(gt, dtype=float)
     if gt.ndim != 3 or gt.shape[1:] != (4, 4) or len(gt) < 2:
         raise SnapsGraphError("drift: needs at least 2 poses (N, 4, 4)")
     if not np.all(np.isfinite(gt)):
-        raise SnapsGraphError("drift: the ground truth has non-finite values")
+        raise SnapsGraphError(f"drift: {what} has non-finite values")
+    return gt
+
+
+def drift_process(gt: np.ndarray, seed: int, model: DriftModel | None = None, pct: float | None = None) -> DriftModel:
+    """The model :func:`drift_trajectory` drives ``gt`` with for this ``seed``: ``model`` (default
+    :class:`DriftModel`), rescaled when ``pct`` is given so the end drift is ``pct`` % of the path.
+    Raises SnapsGraphError for bad input or a ``pct`` no rescaling reaches."""
+    gt = _check(gt)
     model = model or DriftModel()
-    R_rel, t_rel = _steps(gt)
-    ds = np.linalg.norm(t_rel, axis=1)
-    draws = _draws(gt, seed)
     if pct is None:
-        return _apply(gt, model, draws, R_rel, t_rel, ds)
+        return model
     if pct < 0 or not math.isfinite(pct):
         raise SnapsGraphError(f"drift: --pct must be a finite percentage >= 0, got {pct}")
     if pct == 0:
-        return gt.copy()
+        return model.scaled(0.0)
+    R_rel, t_rel = _steps(gt)
+    ds = np.linalg.norm(t_rel, axis=1)
+    draws = _draws(gt, seed)
 
     def err(k: float) -> float:
         return end_drift_pct(_apply(gt, model.scaled(k), draws, R_rel, t_rel, ds), gt)
@@ -120,7 +110,68 @@ def drift_trajectory(gt: np.ndarray, seed: int, model: DriftModel | None = None,
             lo = mid
         else:
             hi = mid
-    return _apply(gt, model.scaled(hi), draws, R_rel, t_rel, ds)
+    return model.scaled(hi)
 
 
-__all__ = ["DriftModel", "drift_trajectory", "end_drift_pct"]
+def drift_trajectory(gt: np.ndarray, seed: int, model: DriftModel | None = None, pct: float | None = None) -> np.ndarray:
+    """(N, 4, 4) drifted poses of ground truth ``gt`` (N, 4, 4); frame 0 keeps its pose, and a seed
+    always gives the same poses. Raises SnapsGraphError for non-finite input, fewer than 2 poses, or
+    a ``pct`` no rescaling reaches (a path that does not move, or a model with every rate at 0).
+    """
+    gt = _check(gt)
+    used = drift_process(gt, seed, model, pct)
+    if pct == 0:
+        return gt.copy()
+    R_rel, t_rel = _steps(gt)
+    return _apply(gt, used, _draws(gt, seed), R_rel, t_rel, np.linalg.norm(t_rel, axis=1))
+
+
+def fit_drift_model(est: np.ndarray, gt: np.ndarray, segment_m: float | None = None) -> tuple[DriftModel, float]:
+    """The drift model of an estimate ``est`` against its ground truth ``gt`` (same frames), and the
+    segment length (m) it was measured over: the relative errors over every stretch of about
+    ``segment_m`` metres (default: 100 m, or a third of a shorter path). A rotation error's mean
+    over a stretch of L metres is its rate x L, its variance the walk's squared rate x L; the
+    scale error is the mean relative length error; the translation walk is what the steps'
+    sideways and vertical errors add beyond the rotations'."""
+    gt = _check(gt)
+    est = _check(est, "the estimate")
+    if est.shape != gt.shape:
+        raise SnapsGraphError(f"drift: the estimate has {len(est)} poses and the ground truth {len(gt)}")
+    R_g, t_g = _steps(gt)
+    R_e, t_e = _steps(est)
+    ds = np.linalg.norm(t_g, axis=1)
+    s = np.concatenate([[0.0], np.cumsum(ds)])
+    if s[-1] <= 0.0:
+        raise SnapsGraphError("drift: the ground truth does not move")
+    L = float(segment_m) if segment_m else min(100.0, s[-1] / 3.0)
+    starts = np.arange(len(gt))
+    ends = np.searchsorted(s, s + L)
+    ok = ends < len(gt)
+    starts, ends = starts[ok], ends[ok]
+    if len(starts) < 2:
+        raise SnapsGraphError(f"drift: the path is shorter than one {L:g} m stretch")
+    lengths = s[ends] - s[starts]
+    rel_g = np.linalg.solve(gt[starts], gt[ends])
+    rel_e = np.linalg.solve(est[starts], est[ends])
+    err_R = np.einsum("kji,kjl->kil", rel_g[:, :3, :3], rel_e[:, :3, :3])
+    rv = Rotation.from_matrix(err_R).as_rotvec() * 180.0 / math.pi  # [pitch, heading, roll], deg
+    rate = rv.mean(axis=0) / lengths.mean()
+    walk = np.sqrt(np.maximum(np.mean((rv - np.outer(lengths, rate)) ** 2, axis=0) / lengths.mean(), 0.0))
+    s_e = np.concatenate([[0.0], np.cumsum(np.linalg.norm(t_e, axis=1))])
+    scale = 100.0 * float(np.mean((s_e[ends] - s_e[starts]) / np.maximum(lengths, 1e-9) - 1.0))
+    moving = ds > 1e-3
+    step_err = t_e[moving] - t_g[moving]  # in the step's start frame: x sideways, y vertical
+    trans = float(np.sqrt(np.mean(step_err[:, :2] ** 2) / max(float(np.mean(ds[moving])), 1e-9))) if moving.any() else 0.0
+    model = DriftModel(
+        heading_deg_per_sqrt_m=float(walk[1]),
+        pitch_deg_per_sqrt_m=float(walk[0]),
+        roll_deg_per_sqrt_m=float(walk[2]),
+        scale_pct=abs(scale),
+        trans_m_per_sqrt_m=trans,
+        heading_deg_per_100m=100.0 * float(rate[1]),
+        roll_deg_per_100m=100.0 * float(rate[2]),
+    )
+    return model, L
+
+
+__all__ = ["DriftModel", "drift_process", "drift_trajectory", "end_drift_pct", "fit_drift_model"]

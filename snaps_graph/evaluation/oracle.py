@@ -65,7 +65,7 @@ def odometry_graph(
     inliers = np.zeros(n, int) if inliers is None else np.asarray(inliers, int)
     ok = np.ones(n, bool) if ok is None else np.asarray(ok, bool)
     initial = vo if initial is None else initial
-    graph = PoseGraph(cfg.graph, mode="batch")
+    graph = PoseGraph(cfg.graph, mode="batch", drift=cfg.odometry.model())
     for k in range(n):
         T_rel = None if k == 0 else np.linalg.solve(vo[k - 1], vo[k])
         cov = None if covs is None else covs[k]

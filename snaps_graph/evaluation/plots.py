@@ -223,3 +223,24 @@ def plot_latency_box(
     ax.set_title(title + " (whiskers: 5th-95th percentile)")
     ax.grid(True, which="both", axis="y", lw=0.3)
     return _save(fig, path_png)
+
+
+def plot_segments(path_png: str | Path, rows: list[dict], title: str = "Mean position error per stretch") -> Path:
+    """Grouped bars: each trajectory's mean error over each stretch of the run (segments.segment_errors)."""
+    if not rows:
+        raise SnapsGraphError(f"{path_png}: no stretch to plot")
+    plt = _pyplot()
+    names = list(rows[0]["mean_error_m"])
+    fig, ax = plt.subplots(figsize=(max(6.0, 0.9 * len(rows) * max(1, len(names)) / 2), 4))
+    width = 0.8 / max(1, len(names))
+    x = np.arange(len(rows))
+    for i, name in enumerate(names):
+        ax.bar(
+            x + (i - (len(names) - 1) / 2) * width,
+            [r["mean_error_m"][name] for r in rows],
+            width,
+            color=_colour(name, i),
+            label=name,
+        )
+    ax.set_xticks(x, [f"{r['from_m']:.0f}-{r['to_m']:.0f}" for r in rows], rotation=30)
+    return _finish(fig, ax, path_png, title, "stretch of the ground truth, m driven", "mean position error [m]")

@@ -33,6 +33,7 @@ from .results_io import (
     read_trajectories,
     write_metrics_json,
 )
+from .segments import segment_errors, worse_than
 
 REFINED_NAMES = ("isam2", "batch")
 TRAJECTORY_LABELS = {
@@ -195,6 +196,31 @@ def _loop_lines(corrections: list[dict], trajs: dict, with_gt: bool) -> list[str
     return _table(header, rows)
 
 
+def _segment_lines(rows: list[dict], trajs: dict) -> list[str]:
+    """The per-stretch table: mean error of each trajectory, and the stretches a correction made
+    worse than the odometry (more than 5 %)."""
+    names = list(trajs)
+    md = ["## Per stretch", "", "Mean position error (m) over stretches of equal ground-truth distance.", ""]
+    md += _table(
+        ["stretch (m driven)", "frames (rows)"] + names,
+        [
+            [f"{r['from_m']:.0f}-{r['to_m']:.0f}", f"{r['rows'][0]}-{r['rows'][1]}"]
+            + [_f(r["mean_error_m"][k], 3) for k in names]
+            for r in rows
+        ],
+    )
+    md.append("")
+    for name in names:
+        if name == "vo":
+            continue
+        bad = worse_than(rows, name, "vo")
+        if bad:
+            spans = ", ".join(f"{rows[i]['from_m']:.0f}-{rows[i]['to_m']:.0f} m" for i in bad)
+            md.append(f"- **{name}** is worse than the odometry (by more than 5 %) over {spans}.")
+    md += ["", "![error per stretch](segments.png)", ""]
+    return md
+
+
 def _latency_lines(latency: dict) -> list[str]:
     header = ["stage", "frames", "median [ms]", "mean [ms]", "p95 [ms]", "max [ms]"]
     rows = []
@@ -298,7 +324,7 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accu
     ``mapping.outputs.accuracy_from_files``: evaluation does not import the map). A missing or
     malformed input raises SnapsGraphError naming the file.
     """
-    from .plots import plot_errors, plot_latency_box, plot_trajectories
+    from .plots import plot_errors, plot_latency_box, plot_segments, plot_trajectories
 
     run = Path(run_dir)
     if not run.is_dir():
@@ -340,6 +366,9 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accu
             frames=frame_ids,
         )
         figures.append("errors.png")
+        segments = segment_errors(trajs, gt)
+        plot_segments(run / "segments.png", segments, title=f"{run.name}: mean position error per stretch")
+        figures.append("segments.png")
     if samples:
         plot_latency_box(run / "latency.png", {LATENCY_LABELS[k]: v for k, v in samples.items()}, title=f"{run.name}: latency")
         figures.append("latency.png")
@@ -368,6 +397,7 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accu
     md += ["", "![trajectories](trajectories.png)", ""]
     if gt is not None:
         md += ["![position error](errors.png)", ""]
+        md += _segment_lines(segments, trajs)
     md += ["## Loops: heuristic vs optimised corrections", ""]
     if corrections:
         md += [
@@ -427,6 +457,7 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accu
     atomic_write_text(run / "report.md", "\n".join(md))
     if per_traj is not None:
         metrics["trajectories"] = per_traj
+        metrics["segments"] = segments
     metrics["paths"] = paths
     metrics["latency_ms"] = latency
     metrics["loop_corrections"] = corrections

@@ -1,33 +1,18 @@
 """Odometry from elsewhere (wheels, GNSS/INS, LiDAR, another VO) as the front end: a pose file's
-relative poses with the ``[odometry]`` drift model's covariance, since a pose file carries none
+relative poses with the ``[odometry]`` drift model's step covariance, since a pose file carries none
 (docs/frontend.md). No file I/O: the runner reads the file."""
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from ..config import OdometryConfig
+from ..drift_model import path_covariance
 from ..errors import SnapsGraphError
 from ..trajectory_io import PoseFile
 from ..types import StereoFrame, VOResult
 
 TIME_TOLERANCE_S = 0.02  # TUM stamps: a frame takes the nearest pose within this (KITTI 10 Hz, EuRoC 20 Hz)
-
-
-# The drive over which the drift model's percentages hold as one sigma (a random walk is
-# calibrated at one length; KITTI's relative errors average segments of 100-800 m).
-DRIFT_REFERENCE_M = 1000.0
-
-
-def drift_covariance(driven_m: float, cfg: OdometryConfig) -> np.ndarray:
-    """6x6 diagonal covariance (rot rad, trans m: GTSAM's Pose3 tangent) of a step that drove
-    ``driven_m`` metres, from the drift model as a random walk in the distance driven."""
-    scale = math.sqrt(DRIFT_REFERENCE_M * max(float(driven_m), 0.0))
-    s_t = cfg.trans_drift_pct / 100.0 * scale
-    s_r = math.radians(cfg.rot_drift_deg_per_100m / 100.0 * scale)
-    return np.diag([s_r**2] * 3 + [s_t**2] * 3)
 
 
 def driven_distance(track: PoseFile) -> np.ndarray:
@@ -64,6 +49,7 @@ class PoseFileOdometry:
         dataset whose frame times count from its first frame: see :func:`time_origin`)."""
         self.track = track
         self.cfg = cfg or OdometryConfig()
+        self._model = self.cfg.model()
         self.tolerance_s = float(tolerance_s)
         self.time_origin_s = float(time_origin_s)
         self._origin_inv: np.ndarray | None = None
@@ -114,11 +100,16 @@ class PoseFileOdometry:
             cov = None
         else:
             T_rel = np.linalg.solve(self._prev, P)
-            cov = drift_covariance(abs(self._driven[at] - self._driven[self._prev_at]), self.cfg)
+            cov = np.zeros((6, 6))  # no measurement noise of its own: the graph adds the drift model's
         assert self._origin_inv is not None
+        prev_at = self._prev_at
         self._prev, self._prev_at = P, at
         self._pose = self._origin_inv @ P
-        return VOResult(int(frame.index), T_rel, self._pose.copy(), True, cov=cov)
+        drift_cov = None
+        if cov is not None and abs(at - prev_at) > 1:  # frames left out: the drift along the file's own path
+            lo, hi = sorted((prev_at, at))
+            drift_cov = path_covariance(self._model, self.track.poses[lo : hi + 1][:: 1 if at > prev_at else -1])
+        return VOResult(int(frame.index), T_rel, self._pose.copy(), True, cov=cov, drift_cov=drift_cov)
 
     def close(self) -> None:
         pass

@@ -2,7 +2,7 @@
 
 With δ = the target − p_N and α the loops closed so far, every frame s of the window [N − K, N],
 s' = N − s, moves by p_s += w·γ_s·δ, γ_s = max(0, 1 − exp(−(c − α·r·s'))) or a linear ramp in
-the distance driven; by default δ keeps its ground-plane part, and a verified loop also bends
+the distance driven, shaped by the drift model; by default δ keeps its ground-plane part, and a verified loop also bends
 the window toward the verified heading. Our reading and the choices: docs/loop-closure.md,
 "Eq. 6", and docs/decisions.md, "Loop closure (SNAPS)".
 """
@@ -14,6 +14,7 @@ import math
 import numpy as np
 
 from ..config import LoopConfig
+from ..drift_model import DriftModel
 from ..geometry import exp_so3_scaled, yaw_deg
 
 
@@ -25,11 +26,31 @@ def yaw_correction(dR: np.ndarray) -> np.ndarray:
 
 def discount(cfg: LoopConfig, alpha: int, s_prime: np.ndarray, window: int | None = None) -> np.ndarray:
     """γ of eq. 6 for offsets s' = N − s: max(0, 1 − exp(−(c − α·r·s'))); with ``window`` = K and
-    ``discount_shape`` "linear", (1 − e^−c)·(1 − s'/(K + 1)), the share of a drift grown evenly.
-    """
+    ``discount_shape`` "drift", (1 − e^−c)·(1 − s'/(K + 1)) until :func:`drift_share` reshapes it
+    by the distance driven."""
     if window is None or cfg.discount_shape == "paper":
         return np.maximum(0.0, 1.0 - np.exp(-(cfg.discount_offset - alpha * cfg.discount_rate * s_prime)))
     return (1.0 - math.exp(-cfg.discount_offset)) * np.clip(1.0 - s_prime / (window + 1.0), 0.0, 1.0)
+
+
+def drift_share(model: DriftModel, driven: np.ndarray, heading_known: bool) -> np.ndarray:
+    """Each window frame's expected share of the position error found at its end, under the drift
+    model: Cov(e(u), e(U)) / Var(e(U)) for frames ``driven`` u metres past the window's fixed anchor
+    (U = the last). A heading walk's lateral error grows as u^1.5, so the frames near the anchor
+    drifted far less than a linear ramp moves them; with the end's heading measured (the window
+    already turned to it) the walk is a bridge and the share a smoothstep."""
+    U = float(driven[-1])
+    u = np.asarray(driven, dtype=float)
+    qh = math.radians(model.heading_deg_per_sqrt_m) ** 2
+    qt = model.trans_m_per_sqrt_m**2
+    qb = (model.scale_pct / 100.0) ** 2
+    if heading_known:
+        num, den = qh * u * u * (3.0 * U - 2.0 * u) / 12.0, qh * U**3 / 12.0
+    else:
+        num, den = qh * u * u * (3.0 * U - u) / 6.0, qh * U**3 / 3.0
+    num = num + qt * u + qb * u * U
+    den = den + qt * U + qb * U * U
+    return num / den if den > 0.0 else u / U
 
 
 class Correction:
@@ -37,6 +58,7 @@ class Correction:
     closer owns the arrays; re-filing moved frames is the search's)."""
 
     cfg: LoopConfig
+    drift_model: DriftModel
     _R: np.ndarray  # (cap, 3, 3) orientations
     _p: np.ndarray  # (cap, 3) positions
     _yaw: np.ndarray  # (cap,) headings, degrees
@@ -74,8 +96,9 @@ class Correction:
             driven = self._s[lo : n + 1] - self._s[lo - 1]
             if driven[-1] > 1e-9:
                 frac = driven / driven[-1]
-                if self.cfg.discount_shape == "linear":
-                    gamma = (1.0 - math.exp(-self.cfg.discount_offset)) * frac
+                if self.cfg.discount_shape == "drift":
+                    share = drift_share(self.drift_model, driven, heading_known=rotvec is not None)
+                    gamma = (1.0 - math.exp(-self.cfg.discount_offset)) * share
         if rotvec is not None and lo > 0:
             # Turn the window's headings progressively from its anchor (frame lo - 1, fixed) to N
             # and re-compose its positions from the VO steps turned with them; the ramp below

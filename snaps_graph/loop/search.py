@@ -13,6 +13,7 @@ import math
 import numpy as np
 
 from ..config import LoopConfig, OdometryConfig
+from ..drift_model import heading_sigma_deg, position_sigma
 from ..geometry import wrap_deg
 
 # Grid cell keys pack (x, z) cell numbers into one Python int: unique while every cell
@@ -54,9 +55,16 @@ class CandidateSearch:
     _last_loop: tuple[int, int] | None
 
     def _init_search(self) -> None:
-        # Drift model of the search gate: sigma(D)^2 = (a D)^2 + (b D^2 / 2)^2 for D metres driven.
-        self._drift_a = self.odometry.trans_drift_pct / 100.0
-        self._drift_b = math.radians(self.odometry.rot_drift_deg_per_100m) / 100.0
+        # The drift model's position variance after D metres, as c1 D + c2 D^2 + c3 D^3
+        # (drift_model.position_sigma, no rates), inlined in the per-frame loop below.
+        model = self.odometry.model()
+        self._model = model
+        self._var_coef = (
+            model.trans_m_per_sqrt_m**2,
+            (model.scale_pct / 100.0) ** 2,
+            math.radians(model.heading_deg_per_sqrt_m) ** 2 / 3.0,
+        )
+        self._heading_walk = model.heading_deg_per_sqrt_m
         r = self.cfg.radius_m
         # Grid levels (drift search): cell sizes radius * 2^k up to the largest gate.
         self._levels = [r * 2.0**k for k in range(1 + max(0, math.ceil(math.log2(max(1.0, self.cfg.search_max_radius_m / r)))))]
@@ -118,13 +126,11 @@ class CandidateSearch:
         if self._last_loop is not None:
             frame, ref = self._last_loop
             d = np.minimum(d, s[n] - s[frame] + np.abs(s[ids] - s[ref]))
-        return d
+        return np.maximum(d, 0.0)
 
     def drift_sigma(self, driven: np.ndarray | float) -> np.ndarray:
-        """1-sigma position error (m) after ``driven`` metres: translation drift plus the lateral
-        error of a heading error that grows linearly with the distance."""
-        D = np.asarray(driven, dtype=float)
-        return np.hypot(self._drift_a * D, 0.5 * self._drift_b * D * D)
+        """1-sigma position error (m) after ``driven`` metres, by the drift model."""
+        return position_sigma(self._model, driven)
 
     def gates(self, driven: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
         """(sigma, gate) in metres after ``driven`` metres: the drift sigma, never below the paper's
@@ -164,8 +170,8 @@ class CandidateSearch:
         d = np.linalg.norm(self._p[ids] - self._p[n], axis=1)
         driven = self.driven_since(n, ids)
         sigma, gates = self.gates(driven)
-        # The yaw gate widens by the heading drift too (n sigma of b*D, degrees).
-        yaw_gate = cfg.max_yaw_deg + cfg.search_sigmas * np.degrees(self._drift_b * driven)
+        # The yaw gate widens by the heading drift too (n sigma of the heading walk, degrees).
+        yaw_gate = cfg.max_yaw_deg + cfg.search_sigmas * heading_sigma_deg(self._model, driven)
         ok = (d <= gates) & (np.abs(wrap_deg(self._yaw[ids] - self._yaw[n])) <= yaw_gate)
         if not ok.any():
             return _NO_IDS, _NO_DISTS
@@ -183,9 +189,9 @@ class CandidateSearch:
         loop = self._last_loop
         if loop is not None:
             via, s_ref = s_n - float(self._s[loop[0]]), float(self._s[loop[1]])
-        a2, hb = self._drift_a**2, 0.5 * self._drift_b
+        c1, c2, c3 = self._var_coef
         k, floor, cap = cfg.search_sigmas, cfg.radius_m / cfg.search_sigmas, cfg.search_max_radius_m
-        yaw_k = k * math.degrees(self._drift_b)
+        yaw_k = k * self._heading_walk
         hits = []
         for j in set(found):
             if j > last:
@@ -197,13 +203,13 @@ class CandidateSearch:
             s_j = float(self._s[j])
             D = s_n - s_j
             if loop is not None:
-                D = min(D, via + abs(s_j - s_ref))
-            sigma = max(math.sqrt(a2 * D * D + (hb * D * D) ** 2), floor)
+                D = max(min(D, via + abs(s_j - s_ref)), 0.0)
+            sigma = max(math.sqrt(D * (c1 + D * (c2 + D * c3))), floor)
             gate = min(k * sigma, cap)
             if d2 > gate * gate:
                 continue
             dyaw = (float(self._yaw[j]) - yaw_n + 180.0) % 360.0 - 180.0
-            if abs(dyaw) <= cfg.max_yaw_deg + yaw_k * D:
+            if abs(dyaw) <= cfg.max_yaw_deg + yaw_k * math.sqrt(D):
                 d = math.sqrt(d2)
                 hits.append((d / sigma, j, d))
         if not hits:

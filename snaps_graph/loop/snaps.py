@@ -18,6 +18,7 @@ from time import perf_counter
 import numpy as np
 
 from ..config import LoopConfig, OdometryConfig
+from ..drift_model import heading_sigma_deg
 from ..errors import SnapsGraphError
 from ..geometry import rotation_angle_deg, wrap_deg, yaw_deg
 from ..types import CandidateRecord, LoopEvent
@@ -59,6 +60,7 @@ class SnapsLoopCloser(CandidateSearch, Correction):
         self.cfg.validate()
         self.odometry = odometry if odometry is not None else OdometryConfig()
         self.odometry.validate()
+        self.drift_model = self.odometry.model()
         self._last_loop: tuple[int, int] | None = None  # (frame, reference) of the last verified loop
         self._track: tuple[int, int, np.ndarray] | None = None  # (frame, reference, T_ref_cur): the last verified loop
         self._speed = 0.0  # metres per frame number, running mean (see step)
@@ -307,7 +309,7 @@ class SnapsLoopCloser(CandidateSearch, Correction):
             delta[1] = 0.0
         rotvec = None
         if verified and self.cfg.correction_rotation != "none" and not graph_only:
-            gain = self._gain((n - ref) * self.cfg.heading_drift_deg**2)
+            gain = self._gain(float(heading_sigma_deg(self.drift_model, self._s[n] - self._s[ref])) ** 2)
             rotvec = yaw_correction(self._R[ref] @ np.asarray(T_ref_cur, float)[:3, :3] @ self._R[n].T) * gain
         # Eq. 6 weighs the move by Q: the confidence that N stands where the reference stood. A
         # verified loop measured where N stands, so with correction_weight = "verified" it moves

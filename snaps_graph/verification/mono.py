@@ -29,6 +29,16 @@ RANSAC_PROB = 0.999
 REFERENCE_FEATURES = 1000  # keypoints of a reference and of its partner before matching
 NEIGHBOURS = 1  # a reference's local map adds the points of this many stored references on each side
 DETECTOR: Literal["orb", "sift"] = "sift"  # monocular verification's features (docs/odometry-input.md: SIFT against ORB)
+# Added to a two-view loop's PnP covariance, which takes the triangulated points as exact: with
+# one camera a turn and a sideways offset explain the same image motion of points 10-30 m away,
+# and the real revisit's loops err by up to 1.8 deg and 0.7 m that way (docs/odometry-input.md).
+TWO_VIEW_SIGMA_ROT_RAD = 0.02
+TWO_VIEW_SIGMA_TRANS_M = 0.5
+
+
+def two_view_covariance(cov: np.ndarray) -> np.ndarray:
+    """A two-view loop's covariance: the PnP's plus the turn / offset ambiguity it cannot see."""
+    return np.asarray(cov, dtype=float) + np.diag([TWO_VIEW_SIGMA_ROT_RAD**2] * 3 + [TWO_VIEW_SIGMA_TRANS_M**2] * 3)
 
 
 def two_view_features(
