@@ -9,6 +9,20 @@ import numpy as np
 
 REVISIT = (1573, 1630)  # frames that pass within 1 m of the first pass
 WINDOW = (1560, 1660)  # the deviation is measured over these frames
+FIRST_PASS = (100, 230)  # the first drive through the street, 1064 m before the revisit
+
+
+def whole_run(poses: np.ndarray, gt: np.ndarray, frames: list[int]) -> dict[str, float]:
+    """Mean position error over the whole run (3D, horizontal, vertical) and over the first pass, m."""
+    d = poses[:, :3, 3] - gt[:, :3, 3]
+    first = [k for k, f in enumerate(frames) if FIRST_PASS[0] <= f <= FIRST_PASS[1]]
+    e = np.linalg.norm(d, axis=1)
+    return {
+        "3d": float(e.mean()),
+        "hor": float(np.hypot(d[:, 0], d[:, 2]).mean()),
+        "vert": float(np.abs(d[:, 1]).mean()),
+        "first": float(e[first].mean()),
+    }
 
 
 def frame_ids(seq: Path) -> list[int]:

@@ -30,7 +30,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-from _revisit import REVISIT, WINDOW, frame_ids, window_deviation
+from _revisit import REVISIT, WINDOW, frame_ids, whole_run, window_deviation
 
 from snaps_graph.evaluation.drift import drift_trajectory
 from snaps_graph.evaluation.loops import label_pairs, loops_run, pr_curve, read_candidates_csv
@@ -84,11 +84,12 @@ def one_run(seq: Path, gt_all: np.ndarray, pct: float, seed: int, work: Path, ar
         "true_inliers_min": int(inl[true & passed].min()) if (true & passed).any() else 0,
         "recall_floor": {fl: pr_curve(q, lab, passed & (inl >= fl))["max_recall_at_100_precision"] for fl in args.inlier_floor},
     }
-    est = {}
+    est, whole = {}, {}
     for traj in ("vo", "snaps", "batch"):
         f = out / f"poses_{traj}.txt"
         if f.is_file():
             est[traj] = window_deviation(read_kitti_poses(f), run_gt, frames)
+            whole[traj] = whole_run(read_kitti_poses(f), run_gt, frames)
     return {
         "pct": pct,
         "seed": seed,
@@ -97,6 +98,7 @@ def one_run(seq: Path, gt_all: np.ndarray, pct: float, seed: int, work: Path, ar
         "false_loops": len(false),
         "recall_p1": ev.get("max_recall_at_100_precision_verified"),
         "dev": est,
+        "whole": whole,
         "breakdown": breakdown,
     }
 
@@ -157,6 +159,18 @@ def main(argv: list[str] | None = None) -> int:
                     f"{rec if rec is not None else float('nan'):5.2f} {odo:7.2f} {sn:7.2f} {ba:7.2f} {sn / odo:9.2f} {ba / odo:9.2f}  {loops}",
                     flush=True,
                 )
+                w = r["whole"]
+                if "batch" in w:
+                    print(
+                        f"{'':9} whole run 3D / horizontal / vertical, m: odometry "
+                        + " / ".join(f"{w['vo'][k]:.2f}" for k in ("3d", "hor", "vert"))
+                        + "; heuristic "
+                        + " / ".join(f"{w['snaps'][k]:.2f}" for k in ("3d", "hor", "vert"))
+                        + "; refined "
+                        + " / ".join(f"{w['batch'][k]:.2f}" for k in ("3d", "hor", "vert"))
+                        + f"; first pass {w['vo']['first']:.2f} / {w['snaps']['first']:.2f} / {w['batch']['first']:.2f}",
+                        flush=True,
+                    )
                 b = r["breakdown"]
                 floors = " ".join(f"R@P1(inliers>={fl}) {v:.2f}" for fl, v in b["recall_floor"].items())
                 print(
@@ -173,6 +187,15 @@ def main(argv: list[str] | None = None) -> int:
     sn = [r["dev"]["snaps"] / r["dev"]["vo"] for r in rows if "snaps" in r["dev"]]
     ba = [r["dev"]["batch"] / r["dev"]["vo"] for r in rows if "batch" in r["dev"]]
     recs = [r["recall_p1"] for r in rows if r["recall_p1"] is not None]
+    whole = [r["whole"] for r in rows if "batch" in r["whole"]]
+    if whole:
+        rb_h = [w["batch"]["3d"] <= w["snaps"]["3d"] for w in whole]
+        rb_o = [w["batch"]["3d"] / w["vo"]["3d"] for w in whole]
+        rh_o = [w["snaps"]["3d"] <= w["vo"]["3d"] for w in whole]
+        print(
+            f"whole run (3D): refined <= heuristic in {sum(rb_h)}/{len(whole)}; refined / odometry median "
+            f"{float(np.median(rb_o)):.2f}, max {max(rb_o):.2f}; heuristic <= odometry in {sum(rh_o)}/{len(whole)}"
+        )
     print(
         f"closed in the revisit {closed}/{len(rows)}; false loops {false}; recall@P1 min {min(recs) if recs else float('nan'):.2f}; "
         f"snaps/odo max {max(sn) if sn else float('nan'):.2f}; batch/odo max {max(ba) if ba else float('nan'):.2f}"
