@@ -539,7 +539,10 @@ def _apply_table(obj: Any, data: dict[str, Any], source: str, prefix: str) -> No
         else:
             renamed = RENAMED_VALUES.get((path, value)) if isinstance(value, str) else None
             if renamed is not None:
-                print(f"note: {source}: {path} = {toml_value(value)} is {toml_value(renamed[0])} now ({renamed[1]})", file=sys.stderr)
+                print(
+                    f"note: {source}: {path} = {toml_value(value)} is {toml_value(renamed[0])} now ({renamed[1]})",
+                    file=sys.stderr,
+                )
                 value = renamed[0]
             setattr(obj, key, coerce(current, value, f"{source}: {path}"))
 

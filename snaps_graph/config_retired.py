@@ -163,5 +163,8 @@ MOVED: dict[str, str] = {
 
 # Values older versions wrote that mean another value now: read with a note, applied as the new one.
 RENAMED_VALUES: dict[tuple[str, Any], tuple[Any, str]] = {
-    ("loop.discount_shape", "linear"): ("drift", "the ramp follows the [odometry] drift model; a translation walk gives the linear ramp"),
+    ("loop.discount_shape", "linear"): (
+        "drift",
+        "the ramp follows the [odometry] drift model; a translation walk gives the linear ramp",
+    ),
 }
