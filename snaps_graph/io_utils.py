@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from .errors import SnapsGraphError
+from .locks import writer_lock
 
 
 def atomic_write_text(path: str | Path, text: str) -> None:
@@ -255,6 +256,12 @@ def check_output_folder(path: str | Path, overwrite: bool = False, reuse: bool =
             if not os.access(parent, os.W_OK | os.X_OK):
                 raise SnapsGraphError(f"{parent}: not writable, cannot create {out}")
             break
+    with writer_lock(full, create_parents=False):  # another live writer: refused here, at once
+        _check_folder_unlocked(out, full, overwrite, reuse)
+    return out
+
+
+def _check_folder_unlocked(out: Path, full: Path, overwrite: bool, reuse: bool) -> None:
     for note in recover_leftovers(full):
         print(f"note: {note}", file=sys.stderr)
     if out.is_dir() and not reuse and any(out.iterdir()):
@@ -271,7 +278,6 @@ def check_output_folder(path: str | Path, overwrite: bool = False, reuse: bool =
             raise SnapsGraphError(
                 f"{out}: holds {shown}, which this tool did not write; move it out first (--overwrite replaces the folder whole)"
             )
-    return out
 
 
 def inside(path: str | Path, folder: str | Path) -> bool:
@@ -415,7 +421,15 @@ def output_folder(path: str | Path, overwrite: bool = False) -> Iterator[Path]:
     it is renamed onto ``path`` (an old folder, with ``overwrite``, is moved aside to
     ``.NAME.old-PID`` first and then deleted), on any error or Ctrl-C it is deleted. So ``path``
     is either the whole new result or untouched; a kill -9 in between leaves the sibling
-    folders, which the next start recovers (``recover_leftovers``)."""
+    folders, which the next start recovers (``recover_leftovers``). The folder's lock
+    (``locks.writer_lock``) is held throughout: a second writer is refused, never overwritten."""
+    check_output_folder(path, overwrite)  # refuses a bad path before the lock creates any folder
+    with writer_lock(path), _output_folder(path, overwrite) as tmp:
+        yield tmp
+
+
+@contextmanager
+def _output_folder(path: str | Path, overwrite: bool) -> Iterator[Path]:
     out = check_output_folder(path, overwrite)
     full = _abs(out)
     tmp = full.parent / f".{full.name}.tmp-{os.getpid()}"

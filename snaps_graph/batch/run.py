@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import json
 import math
 import os
@@ -31,6 +30,7 @@ from ..io_utils import (
     is_results_folder,
     recover_leftovers,
 )
+from ..locks import writer_lock
 from ..runner import mostly_flagged, run_sequence
 from .plan import Cell, Plan, git_commit
 from .summary import write_summary
@@ -87,13 +87,14 @@ def run_cell(cell: Cell, out_dir: str, threads: int) -> dict:
     folder = cell.folder(out_dir)
     set_malloc_thresholds()  # a worker process runs the pipeline as the CLI does
     try:
-        _remove_stale_temp(folder)
-        seq = cell.open()
-        try:
-            with pinned_threads(threads):
-                _, metrics = run_sequence(seq, folder, cell.cfg, overwrite=True)
-        finally:
-            seq.close()
+        with writer_lock(folder):  # held through the run: any other process's leftovers are stale
+            _remove_stale_temp(folder)
+            seq = cell.open()
+            try:
+                with pinned_threads(threads):
+                    _, metrics = run_sequence(seq, folder, cell.cfg, overwrite=True)
+            finally:
+                seq.close()
         rec["wall_s"] = round(time.perf_counter() - t0, 3)
         rec["status"] = "ok"
         if mostly_flagged(metrics):
@@ -134,7 +135,7 @@ def pinned_threads(n: int) -> Iterator[None]:
 
 def _remove_stale_temp(folder: Path) -> None:
     """Temporary siblings left by a killed earlier attempt (``.NAME.tmp-PID``, ``.NAME.old-PID``).
-    The batch lock makes this task the only writer of ``folder``, so any other process's are stale."""
+    The cell's lock makes this task the only writer of ``folder``, so any other process's are stale."""
     for note in recover_leftovers(folder, any_pid=True):
         print(f"note: {note}", file=sys.stderr)
 
@@ -187,9 +188,10 @@ def run_batch(
         raise SnapsGraphError(
             f"{plan.source}: cpus_per_task = {plan.cpus_per_task:g}, but this machine has {os.cpu_count()} CPUs (no cell could start)"
         )
-    out = _prepare_out(out_dir)
+    out = _check_out(out_dir)
     t0 = time.perf_counter()
-    with _lock(out):
+    with writer_lock(out):  # one batch per folder: two would race on the same cells
+        out = _check_out(out_dir)
         records: dict[tuple[str, str], dict] = {}
         todo: list[Cell] = []
         for cell in plan.cells:
@@ -199,6 +201,7 @@ def run_batch(
             else:
                 todo.append(cell)
         with _stop_flag() as interrupted, _ray_session(address, ray_init, bool(todo)) as ray:
+            _make_out(out)  # after Ray started or joined: a refused cluster leaves no folder
             _flag_on(signal.SIGTERM, interrupted)  # Ray's core took SIGTERM over when it started
             # From here on the summary is written whatever happens (Ctrl-C included).
             bar = _bar(len(plan.cells), len(plan.cells) - len(todo), progress)
@@ -229,49 +232,22 @@ def check_cell_folders(plan: Plan, out_dir: str | Path) -> None:
                 )
 
 
-def _prepare_out(out_dir: str | Path) -> Path:
+def _check_out(out_dir: str | Path) -> Path:
     """The batch folder: new, empty, or one a batch wrote (MARKER); never a user's folder whose
     summary.csv / summary.md a batch would replace."""
     out = check_output_folder(out_dir, reuse=True)
     if out.is_dir() and not is_results_folder(out):
         raise SnapsGraphError(f"{out}: not a folder this tool wrote (no {MARKER} file); choose a new or empty --out for a batch")
+    return out
+
+
+def _make_out(out: Path) -> None:
     try:
         out.mkdir(parents=True, exist_ok=True)
         if not (out / MARKER).is_file():
             atomic_write_text(out / MARKER, json.dumps({"snaps_graph": __version__, "batch": True, "files": None}) + "\n")
     except OSError as exc:
         raise SnapsGraphError(f"{out}: cannot create the folder ({exc.strerror or exc})") from None
-    return out
-
-
-@contextlib.contextmanager
-def _lock(out: Path) -> Iterator[None]:
-    """One batch at a time per output folder (two would race on the same cells). The lock file
-    is removed at the end, by its holder; a lock taken on a file removed meanwhile is retaken."""
-    path = out / ".batch.lock"
-    for _ in range(3):
-        fh = open(path, "w")
-        try:
-            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            fh.close()
-            raise SnapsGraphError(f"{out}: another batch is running into this folder") from None
-        try:
-            same = os.fstat(fh.fileno()).st_ino == os.stat(path).st_ino
-        except FileNotFoundError:
-            same = False
-        if same:
-            break
-        fh.close()
-    else:
-        raise SnapsGraphError(f"{out}: another batch is running into this folder")
-    try:
-        yield
-    finally:
-        with contextlib.suppress(OSError):
-            path.unlink()
-        fcntl.flock(fh, fcntl.LOCK_UN)
-        fh.close()
 
 
 def _bar(total: int, initial: int, progress: bool):
