@@ -518,6 +518,7 @@ def _check_choice(option: str, value: str | None, literal) -> None:
 def main() -> None:
     signal.signal(signal.SIGINT, on_sigint)
     signal.signal(signal.SIGTERM, on_sigint)  # `kill`, a scheduler's stop: cleaned up as Ctrl-C
+    signal.signal(signal.SIGHUP, on_sigint)  # the terminal closed: the same
     set_malloc_thresholds()  # the process is ours: large frames stop costing page faults
     try:
         rc = app(standalone_mode=False)
@@ -574,8 +575,11 @@ def drift(
     from .evaluation.drift import DriftModel, drift_trajectory, end_drift_pct
     from .trajectory_io import read_kitti_poses, write_kitti_poses
 
-    if out.exists() and not overwrite:
-        raise_user(f"{out} exists (pass --overwrite to replace it)")
+    from .locks import writer_lock
+
+    with writer_lock(out, create_parents=False):  # another drift writing OUT: refused at once
+        if out.exists() and not overwrite:
+            raise_user(f"{out} exists (pass --overwrite to replace it)")
     if out.exists() and out.resolve() == gt.resolve():
         raise_user(f"{out} is the input ground truth")
     poses = read_kitti_poses(gt)
@@ -586,7 +590,10 @@ def drift(
             raise_user(f"drift: --{name} must be a number in [0, 1000), got {value}")
     model = dataclasses.replace(DriftModel(), **{k: v for k, v in changes.items() if v is not None})
     drifted = drift_trajectory(poses, seed, model, pct)
-    write_kitti_poses(out, drifted)
+    with writer_lock(out):
+        if out.exists() and not overwrite:  # written meanwhile by another command
+            raise_user(f"{out} exists (pass --overwrite to replace it)")
+        write_kitti_poses(out, drifted)
     typer.echo(f"wrote {out}: {len(drifted)} poses, end drift {end_drift_pct(drifted, poses):.3f} % of the distance")
 
 

@@ -449,6 +449,8 @@ def parse_set(items: list[str] | tuple[str, ...], source: str = "--set") -> dict
         parts = [p.strip() for p in key.split(".")]
         if not sep or len(parts) < 2 or not all(parts):
             raise SnapsGraphError(f"{source} {item!r}: expected section.key=value")
+        if "\n" in value or "\r" in value:  # a second line could carry tables the key would not show
+            raise SnapsGraphError(f"{source} {item!r}: the value must be one TOML value on one line")
         try:
             parsed = tomllib.loads(f"v = {value.strip()}")["v"]
         except tomllib.TOMLDecodeError:

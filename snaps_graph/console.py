@@ -230,7 +230,7 @@ def stdout_failed(exc: OSError) -> None:
 
 
 def exit_interrupted() -> None:
-    for sig in (signal.SIGINT, signal.SIGTERM):  # a second Ctrl-C or kill must not interrupt the exit
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):  # a second Ctrl-C or kill must not interrupt the exit
         signal.signal(sig, signal.SIG_IGN)
     done = committed_folders()
     if done:

@@ -327,7 +327,31 @@ def check_recording_path(rrd: str | Path, out: str | Path) -> Path | None:
             if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
                 raise SnapsGraphError(f"{parent}: not a writable folder, cannot write the recording {rrd}")
             break
+    with writer_lock(rrd, create_parents=False):  # another run recording there: refused at once
+        for note in remove_stale_recordings(rrd):
+            print(f"note: {note}", file=sys.stderr)
     return None
+
+
+def remove_stale_recordings(rrd: str | Path) -> list[str]:
+    """Delete the temporary ``.NAME.tmp-PID`` recordings beside ``rrd`` that a killed run left:
+    only of processes no longer running, only files that are rerun recordings (or empty). Returns
+    one note per file removed."""
+    full = _abs(rrd)
+    notes = []
+    for p in sorted(full.parent.glob(f".{glob.escape(full.name)}.tmp-*")):
+        pid = p.name.rsplit("-", 1)[1]
+        if not (pid.isascii() and pid.isdigit()) or p.is_symlink() or not p.is_file() or _alive(int(pid)):
+            continue
+        try:
+            with open(p, "rb") as fh:
+                if fh.read(len(RRD_MAGIC)) not in (b"", RRD_MAGIC):
+                    continue
+            p.unlink()
+        except OSError:
+            continue
+        notes.append(f"{full}: removed {p.name}, the unfinished recording of a killed run")
+    return notes
 
 
 def _alive(pid: int) -> bool:
@@ -356,7 +380,7 @@ def recover_leftovers(out: str | Path, any_pid: bool = False) -> list[str]:
     for kind in found:
         for p in parent.glob(f".{glob.escape(out.name)}.{kind}-*"):
             pid = p.name.rsplit("-", 1)[1]
-            if not pid.isdigit() or not p.is_dir() or p.is_symlink() or not is_results_folder(p):
+            if not (pid.isascii() and pid.isdigit()) or not p.is_dir() or p.is_symlink() or not is_results_folder(p):
                 continue
             if int(pid) == os.getpid() or (not any_pid and _alive(int(pid))):
                 continue
@@ -391,14 +415,14 @@ def remove_results_folder(folder: Path) -> None:
 
 @contextmanager
 def _signals_held() -> Iterator[None]:
-    """Ctrl-C (and SIGTERM) held back while the results folder is swapped in, then delivered to the
+    """Ctrl-C (and SIGTERM, SIGHUP) held back while the results folder is swapped in, then delivered to the
     handler that was in place (a signal mask would not do: another thread may take the signal)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     pending: list[int] = []
     old: dict[int, Any] = {
-        sig: signal.signal(sig, lambda signum, frame: pending.append(signum)) for sig in (signal.SIGINT, signal.SIGTERM)
+        sig: signal.signal(sig, lambda signum, frame: pending.append(signum)) for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
     }
     try:
         yield
