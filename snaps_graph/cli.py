@@ -410,9 +410,9 @@ def eval_(
         est, gt = second, est
     if gt is None:
         raise SnapsGraphError("eval: no ground truth: `eval EST --gt GT` or, in evo's order (reference first), `eval GT EST`")
-    for given in (est, gt):
-        if not given.exists():
-            raise_user(f"{given}: pose file not found")
+    missing = [str(given) for given in (est, gt) if not given.exists()]
+    if missing:
+        raise_user(f"{', '.join(missing)}: pose file{'s' if len(missing) > 1 else ''} not found")
     from .evaluation.metrics import evaluate
     from .trajectory_io import read_poses
 

@@ -33,7 +33,7 @@ from ..io_utils import (
 from ..locks import writer_lock
 from ..runner import mostly_flagged, run_sequence
 from .plan import Cell, Plan, git_commit
-from .summary import write_summary
+from .summary import SUMMARY_FILES, write_summary
 
 CELL_FILE = "batch.json"  # written into a cell's folder after its run: the resume record
 # Environment variables that size BLAS / OpenMP thread pools (read when the library loads).
@@ -220,6 +220,10 @@ def check_cell_folders(plan: Plan, out_dir: str | Path) -> None:
     named like a sequence's subfolder, ``--out`` on the folder holding the data)."""
     for cell in plan.cells:
         folder = cell.folder(out_dir)
+        if cell.sequence in SUMMARY_FILES:
+            raise SnapsGraphError(
+                f"{plan.source}: cell {cell.sequence}/{cell.variant}: a sequence named {cell.sequence} would make the batch's {cell.sequence} a folder; name it otherwise"
+            )
         inputs = [("sequence", cell.seq_path), ("ground truth", cell.gt), *((k, v) for k, v in cell.reader if k == "calib")]
         try:
             check_inputs_outside(folder, inputs)
@@ -238,6 +242,9 @@ def _check_out(out_dir: str | Path) -> Path:
     out = check_output_folder(out_dir, reuse=True)
     if out.is_dir() and not is_results_folder(out):
         raise SnapsGraphError(f"{out}: not a folder this tool wrote (no {MARKER} file); choose a new or empty --out for a batch")
+    for name in SUMMARY_FILES:
+        if (out / name).is_dir() or (out / name).is_symlink():
+            raise SnapsGraphError(f"{out / name}: is a folder or a link, where the batch writes its summary; move it away")
     return out
 
 

@@ -11,6 +11,7 @@ are used as written, so the figures equal the pipeline's own ``evaluate``.
 from __future__ import annotations
 
 import math
+import sys
 import tomllib
 from collections.abc import Callable
 from pathlib import Path
@@ -26,6 +27,7 @@ from .loops import loops_run, summary_lines
 from .metrics import evaluate, path_length, position_errors
 from .results_io import frame_ids as frame_ids_of
 from .results_io import (
+    check_run_files,
     load_gt,
     read_frames_csv,
     read_loops,
@@ -35,6 +37,8 @@ from .results_io import (
 )
 
 REFINED_NAMES = ("isam2", "batch")
+# What compare reads of a run: one it wrote and that is gone since is named, never passed over.
+COMPARED_FILES = ("poses_*.txt", "metrics.json", "loops.jsonl", "candidates.csv", "config.toml")
 TRAJECTORY_LABELS = {
     "vo": "pure visual odometry",
     "snaps": "SNAPS heuristic (eq. 6)",
@@ -303,6 +307,9 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accu
     run = Path(run_dir)
     if not run.is_dir():
         raise SnapsGraphError(f"{run}: run folder not found")
+    gone = check_run_files(run, ("poses_vo.txt", "frames.csv"), COMPARED_FILES)
+    if gone:
+        print(f"warning: {run}: {', '.join(gone)} missing (the run wrote them); compared without them", file=sys.stderr)
     trajs = read_trajectories(run)
     n = len(trajs["vo"])
     csv_path = run / "frames.csv"
@@ -353,6 +360,8 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accu
         else "Ground truth: none (no poses_gt.txt and no --gt), so no error columns and no errors.png."
     )
     md.append("Trajectories: " + "; ".join(f"**{k}** = {TRAJECTORY_LABELS[k]}" for k in trajs) + ".")
+    if gone:
+        md.append(f"Missing: {', '.join(f'`{name}`' for name in gone)}, written by the run and deleted since; left out here.")
     md += ["", "## Trajectories", ""]
     md += _trajectory_lines(trajs, per_traj, paths)
     md.append("")
@@ -386,7 +395,7 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accu
         md.append("No loop closed in this run" + ("" if (run / "loops.jsonl").is_file() else " (no loops.jsonl)") + ".")
     loop_eval = None
     if gt is not None and (run / "candidates.csv").is_file():
-        loop_eval = loops_run(run, gt_path)
+        loop_eval = loops_run(run, gt_path, name_missing=False)
         md += ["", "## Loop closure against ground truth", ""]
         md += [f"- {line}" for line in summary_lines(loop_eval)]
         md += [
