@@ -136,6 +136,9 @@ def metrics_table(per_traj: dict[str, dict]) -> str:
             f"{fmt(m.get('mean_deviation_horizontal')):>8}{fmt(m.get('mean_deviation_vertical')):>8}{fmt(m.get('ate_rmse')):>10}"
             f"{fmt(m.get('t_rel'), 2):>9}{fmt(m.get('r_rel'), 3):>14}{fmt(m.get('end_drift_percent'), 2):>13}"
         )
+    from .evaluation.metrics import notes_text
+
+    lines += [f"note: {line}" for line in notes_text(per_traj)]
     return "\n".join(lines)
 
 

@@ -24,7 +24,7 @@ from ..errors import SnapsGraphError
 from ..io_utils import atomic_write_text, read_text
 from .latency import LATENCY_LABELS, latency_samples, summarise_samples
 from .loops import loops_run, summary_lines
-from .metrics import evaluate, path_length, position_errors
+from .metrics import evaluate, notes_text, path_length, position_errors
 from .results_io import frame_ids as frame_ids_of
 from .results_io import (
     check_run_files,
@@ -144,7 +144,7 @@ def _trajectory_lines(trajs: dict, metrics: dict | None, paths: dict) -> list[st
         if name == "vo":
             change = "reference"
         else:
-            change = "n/a" if md_vo <= 0 else f"{(m['mean_deviation'] - md_vo) / md_vo * 100.0:+.1f}%"
+            change = "n/a" if not (md_vo > 0 and math.isfinite(m["mean_deviation"])) else f"{(m['mean_deviation'] - md_vo) / md_vo * 100.0:+.1f}%"
         split = f"{_f(m.get('mean_deviation_horizontal'), 3)} / {_f(m.get('mean_deviation_vertical'), 3)}"
         rows.append(
             [
@@ -160,7 +160,8 @@ def _trajectory_lines(trajs: dict, metrics: dict | None, paths: dict) -> list[st
                 _f(m["end_drift_percent"], 3),
             ]
         )
-    return _table(header, rows)
+    notes = notes_text(metrics)  # why a figure is n/a, said once for every row it concerns
+    return _table(header, rows) + ([""] + [f"- {line}" for line in notes] if notes else [])
 
 
 def _loop_lines(corrections: list[dict], trajs: dict, with_gt: bool) -> list[str]:
