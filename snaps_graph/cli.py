@@ -54,6 +54,7 @@ from .io_utils import (  # noqa: E402
     check_recording_path,
     inside,
     output_folder,
+    why_absent,
 )
 from .trajectory_io import ODOMETRY_FORMATS  # noqa: E402
 
@@ -239,10 +240,10 @@ def run(
     _check_choice("--mode", mode, FrontendMode)
     cfg = (Config.load(config) if config else Config()).with_overrides(set_)
     if not str(seq_dir).startswith("live:") and not seq_dir.exists():  # a mistyped path: at once
-        raise_user(f"{seq_dir}: sequence folder not found (nor a bag file)")
+        raise_user(f"{seq_dir}: {why_absent(seq_dir, 'sequence folder not found (nor a bag file)')}")
     for given, what in ((gt, "ground-truth"), (calib, "calibration")):
         if given is not None and not given.exists():
-            raise_user(f"{given}: {what} file not found")
+            raise_user(f"{given}: {why_absent(given, f'{what} file not found')}")
     if mode is not None:
         cfg.frontend.mode = mode  # type: ignore[assignment]
     if map_all:
@@ -261,7 +262,7 @@ def run(
     if odometry_format is not None and odometry_format not in ODOMETRY_FORMATS:
         raise_user(f"--odometry-format must be one of {', '.join(ODOMETRY_FORMATS)}, not '{odometry_format}'")
     if odometry is not None and not odometry.is_file():
-        raise_user(f"{odometry}: odometry file not found")
+        raise_user(f"{odometry}: {'is a folder, not an odometry (pose) file' if odometry.is_dir() else why_absent(odometry, 'odometry file not found')}")
     from .datasets.open import open_dataset  # the heavy imports (OpenCV, gtsam) after the checks
     from .runner import mostly_flagged, run_sequence
 

@@ -397,6 +397,11 @@ class Config:
         if build_map is not None:
             out.map.enabled = bool(build_map)
         out.validate()
+        mesh = out.map.world_mesh
+        if out.map.enabled and mesh and not Path(mesh).is_file():  # else the map stage fails after every frame
+            what = "is a folder, not a world mesh" if Path(mesh).is_dir() else "world mesh not found"
+            where = f" in {out.source}" if out.source and out.source != "config" else ""
+            raise SnapsGraphError(f"{mesh}: {what} (map.world_mesh{where})")
         return out
 
     # ---- TOML ----

@@ -5,6 +5,8 @@ background thread (``prefetch``)."""
 from __future__ import annotations
 
 import contextlib
+import errno
+import fcntl
 import fnmatch
 import glob
 import json
@@ -12,6 +14,7 @@ import os
 import queue
 import shutil
 import signal
+import struct
 import sys
 import tempfile
 import threading
@@ -99,8 +102,9 @@ os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", str(MAX_IMAGE_PIXELS))
 
 def check_image_file(path: str | Path) -> None:
     """Before decoding: a PNG's or JPEG's size from its header (a small file can decode to
-    gigabytes), and a JPEG's end marker (libjpeg fills a truncated file with grey and goes
-    on). A one-line SnapsGraphError naming the file; other formats are left to the decoder."""
+    gigabytes), a JPEG's end marker (libjpeg fills a truncated file with grey and goes on) and
+    a PNG's end chunk (libpng prints its own line about a truncated one). A one-line
+    SnapsGraphError naming the file; other formats are left to the decoder."""
     path = Path(path)
     try:
         with open(path, "rb") as fh:
@@ -113,6 +117,8 @@ def check_image_file(path: str | Path) -> None:
         raise SnapsGraphError(f"{path}: cannot read the image ({exc.strerror or exc})") from None
     wh = None
     if head.startswith(b"\x89PNG\r\n\x1a\n") and len(head) >= 24:
+        if b"IEND" not in tail:  # libpng would print its own line about it before ours
+            raise SnapsGraphError(f"{path}: truncated PNG (no IEND chunk)")
         wh = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
     elif head.startswith(b"\xff\xd8"):
         if b"\xff\xd9" not in tail:
@@ -264,6 +270,11 @@ def check_output_folder(path: str | Path, overwrite: bool = False, reuse: bool =
 def _check_folder_unlocked(out: Path, full: Path, overwrite: bool, reuse: bool) -> None:
     for note in recover_leftovers(full):
         print(f"note: {note}", file=sys.stderr)
+    if out.is_dir() and not reuse:  # the swap renames or removes it: found out now, not after every frame
+        if os.path.ismount(full):
+            raise SnapsGraphError(f"{out}: is a mount point, which a run cannot replace; name a folder inside it")
+        if _immutable(full):
+            raise SnapsGraphError(f"{out}: is immutable or append-only (chattr +i / +a), so a run cannot replace it")
     if out.is_dir() and not reuse and any(out.iterdir()):
         if not overwrite:
             raise SnapsGraphError(f"{out}: folder exists and is not empty (use --overwrite to replace it)")
@@ -278,6 +289,36 @@ def _check_folder_unlocked(out: Path, full: Path, overwrite: bool, reuse: bool) 
             raise SnapsGraphError(
                 f"{out}: holds {shown}, which this tool did not write; move it out first (--overwrite replaces the folder whole)"
             )
+
+
+def why_absent(path: str | Path, default: str) -> str:
+    """Why ``path`` (which does not exist) is not there: a loop of symbolic links or a link to
+    nothing said as such, else ``default`` ("sequence folder not found")."""
+    try:
+        os.stat(path)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            return "a loop of symbolic links (a link that leads back to itself)"
+        if os.path.islink(path):
+            return f"a symbolic link to {os.readlink(path)}, which does not exist"
+    return default
+
+
+# Linux's inode flags (linux/fs.h): FS_IOC_GETFLAGS, and the flags that forbid a rename or removal.
+_FS_IOC_GETFLAGS, _FS_IMMUTABLE_FL, _FS_APPEND_FL = 0x80086601, 0x10, 0x20
+
+
+def _immutable(folder: Path) -> bool:
+    """The folder carries the immutable or append-only flag (False where flags cannot be read)."""
+    try:
+        fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
+        try:
+            flags = struct.unpack("i", fcntl.ioctl(fd, _FS_IOC_GETFLAGS, bytes(8))[:4])[0]
+        finally:
+            os.close(fd)
+    except OSError:
+        return False
+    return bool(flags & (_FS_IMMUTABLE_FL | _FS_APPEND_FL))
 
 
 def inside(path: str | Path, folder: str | Path) -> bool:
