@@ -262,7 +262,9 @@ def run(
     if odometry_format is not None and odometry_format not in ODOMETRY_FORMATS:
         raise_user(f"--odometry-format must be one of {', '.join(ODOMETRY_FORMATS)}, not '{odometry_format}'")
     if odometry is not None and not odometry.is_file():
-        raise_user(f"{odometry}: {'is a folder, not an odometry (pose) file' if odometry.is_dir() else why_absent(odometry, 'odometry file not found')}")
+        raise_user(
+            f"{odometry}: {'is a folder, not an odometry (pose) file' if odometry.is_dir() else why_absent(odometry, 'odometry file not found')}"
+        )
     from .datasets.open import open_dataset  # the heavy imports (OpenCV, gtsam) after the checks
     from .runner import mostly_flagged, run_sequence
 
@@ -574,9 +576,8 @@ def drift(
     import dataclasses
 
     from .evaluation.drift import DriftModel, drift_trajectory, end_drift_pct
-    from .trajectory_io import read_kitti_poses, write_kitti_poses
-
     from .locks import writer_lock
+    from .trajectory_io import read_kitti_poses, write_kitti_poses
 
     with writer_lock(out, create_parents=False):  # another drift writing OUT: refused at once
         if out.exists() and not overwrite:

@@ -463,7 +463,8 @@ def _signals_held() -> Iterator[None]:
         return
     pending: list[int] = []
     old: dict[int, Any] = {
-        sig: signal.signal(sig, lambda signum, frame: pending.append(signum)) for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+        sig: signal.signal(sig, lambda signum, frame: pending.append(signum))
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
     }
     try:
         yield

@@ -20,8 +20,8 @@ from numpy.typing import ArrayLike
 from ..errors import SnapsGraphError
 from ..geometry import wrap_deg, yaw_deg
 from ..types import CandidateRecord
-from .results_io import frame_ids as frame_ids_of
 from .results_io import check_run_files, json_clean, load_gt, read_candidates_csv, read_frames_csv, read_loops
+from .results_io import frame_ids as frame_ids_of
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,6 @@ from ..io_utils import atomic_write_text, read_text
 from .latency import LATENCY_LABELS, latency_samples, summarise_samples
 from .loops import loops_run, summary_lines
 from .metrics import evaluate, notes_text, path_length, position_errors
-from .results_io import frame_ids as frame_ids_of
 from .results_io import (
     check_run_files,
     load_gt,
@@ -35,6 +34,7 @@ from .results_io import (
     read_trajectories,
     write_metrics_json,
 )
+from .results_io import frame_ids as frame_ids_of
 
 REFINED_NAMES = ("isam2", "batch")
 # What compare reads of a run: one it wrote and that is gone since is named, never passed over.
@@ -144,7 +144,11 @@ def _trajectory_lines(trajs: dict, metrics: dict | None, paths: dict) -> list[st
         if name == "vo":
             change = "reference"
         else:
-            change = "n/a" if not (md_vo > 0 and math.isfinite(m["mean_deviation"])) else f"{(m['mean_deviation'] - md_vo) / md_vo * 100.0:+.1f}%"
+            change = (
+                "n/a"
+                if not (md_vo > 0 and math.isfinite(m["mean_deviation"]))
+                else f"{(m['mean_deviation'] - md_vo) / md_vo * 100.0:+.1f}%"
+            )
         split = f"{_f(m.get('mean_deviation_horizontal'), 3)} / {_f(m.get('mean_deviation_vertical'), 3)}"
         rows.append(
             [
