@@ -14,9 +14,10 @@ import contextlib
 import fcntl
 import json
 import os
+import signal
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -36,17 +37,23 @@ def lock_path(target: str | Path) -> Path:
 _HELD: dict[Path, list[int]] = {}
 
 
-def holds(target: str | Path) -> bool:
-    """This process holds ``target``'s lock."""
-    return Path(os.path.abspath(target)) in _HELD
+def record_signal(target: str | Path, signum: int) -> None:
+    """Write into ``target``'s lock, held by this process, the signal that is ending it: the
+    process that finds the lock stale (a batch's driver) can then say what stopped the writer."""
+    held = _HELD.get(Path(os.path.abspath(target)))
+    if held is not None:
+        _write_record(held[0], signal=signal.Signals(signum).name)
 
 
 @contextmanager
-def writer_lock(target: str | Path, *, create_parents: bool = True) -> Iterator[None]:
+def writer_lock(
+    target: str | Path, *, create_parents: bool = True, stale: Callable[[dict], None] | None = None
+) -> Iterator[None]:
     """Hold ``target``'s lock for the block (nested uses in one process share it); a one-line
     SnapsGraphError naming the holder when another process holds it. Missing parent folders
     are created (``create_parents``; those still empty at the end are removed again) or, when
-    not, there is nothing to lock and the block runs without it."""
+    not, there is nothing to lock and the block runs without it. A lock a killed writer left is
+    taken over with a note, or handed to ``stale`` (its record: pid, started, signal)."""
     full = Path(os.path.abspath(target))
     if full in _HELD:
         _HELD[full][1] += 1
@@ -60,7 +67,7 @@ def writer_lock(target: str | Path, *, create_parents: bool = True) -> Iterator[
         return
     created = _make_parents(full.parent)
     try:
-        fd = _acquire(full)
+        fd = _acquire(full, stale)
     except BaseException:
         _remove_empty(created)
         raise
@@ -73,7 +80,7 @@ def writer_lock(target: str | Path, *, create_parents: bool = True) -> Iterator[
         _remove_empty(created)
 
 
-def _acquire(full: Path) -> int:
+def _acquire(full: Path, stale: Callable[[dict], None] | None) -> int:
     path = lock_path(full)
     for _ in range(5):
         try:
@@ -102,16 +109,23 @@ def _acquire(full: Path) -> int:
         if previous is None:
             os.close(fd)
             raise SnapsGraphError(f"{path}: exists and is not a lock file this tool wrote; move it away")
-        if previous:
+        if previous and stale is not None:
+            stale(previous)
+        elif previous:
             print(
                 f"note: {full}: cleared the lock left by {_describe(previous)}, a run killed before it finished",
                 file=sys.stderr,
             )
-        record = json.dumps({LOCK_KEY: 1, "pid": os.getpid(), "started": _process_start()}).encode() + b"\n"
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, record, 0)
+        _write_record(fd)
         return fd
     raise SnapsGraphError(f"{full}: cannot take the lock {path.name}: other runs keep replacing it")
+
+
+def _write_record(fd: int, **extra: str) -> None:
+    record = {LOCK_KEY: 1, "pid": os.getpid(), "started": _process_start()} | extra
+    data = json.dumps(record).encode() + b"\n"
+    os.ftruncate(fd, 0)  # a refused writer reading meanwhile sees it empty and reads again
+    os.pwrite(fd, data, 0)
 
 
 def _release(full: Path, fd: int) -> None:

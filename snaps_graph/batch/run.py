@@ -30,7 +30,7 @@ from ..io_utils import (
     is_results_folder,
     recover_leftovers,
 )
-from ..locks import writer_lock
+from ..locks import record_signal, writer_lock
 from ..runner import mostly_flagged, run_sequence
 from .plan import Cell, Plan, git_commit
 from .summary import SUMMARY_FILES, write_summary
@@ -87,7 +87,7 @@ def run_cell(cell: Cell, out_dir: str, threads: int) -> dict:
     folder = cell.folder(out_dir)
     set_malloc_thresholds()  # a worker process runs the pipeline as the CLI does
     try:
-        with writer_lock(folder):  # held through the run: any other process's leftovers are stale
+        with writer_lock(folder), _signals_recorded(folder):  # held through the run: others' leftovers are stale
             _remove_stale_temp(folder)
             seq = cell.open()
             try:
@@ -131,6 +131,30 @@ def pinned_threads(n: int) -> Iterator[None]:
                 os.environ.pop(var, None)
             else:
                 os.environ[var] = value
+
+
+# Signals that end a worker and that it can catch: written into the cell's lock before it dies,
+# for the driver's report (SIGKILL, the out-of-memory killer's, cannot be caught).
+RECORDED_SIGNALS = (signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1, signal.SIGUSR2)
+
+
+@contextlib.contextmanager
+def _signals_recorded(folder: Path) -> Iterator[None]:
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def record_and_die(signum, frame) -> None:
+        record_signal(folder, signum)
+        signal.signal(signum, signal.SIG_DFL)
+        os.kill(os.getpid(), signum)
+
+    old = {sig: signal.signal(sig, record_and_die) for sig in RECORDED_SIGNALS}
+    try:
+        yield
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
 
 
 def _remove_stale_temp(folder: Path) -> None:
@@ -348,7 +372,7 @@ def _run_tasks(ray, plan, todo, out, records, bar, max_parallel, progress, inter
             ready, _ = ray.wait(list(pending), num_returns=1, timeout=0.5)
             for ref in ready:
                 cell = pending.pop(ref)
-                rec = _result(ray, ref, cell)
+                rec = _result(ray, ref, cell, out)
                 records[(cell.sequence, cell.variant)] = rec
                 failed += rec["status"] == "failed"
                 bar.update(1)
@@ -357,11 +381,11 @@ def _run_tasks(ray, plan, todo, out, records, bar, max_parallel, progress, inter
                 if progress:
                     bar.write(_cell_line(rec), file=sys.stderr)
     except BaseException:
-        _cancel(ray, pending, records)
+        _cancel(ray, pending, records, out)
         raise
 
 
-def _result(ray, ref, cell: Cell) -> dict:
+def _result(ray, ref, cell: Cell, out: Path) -> dict:
     try:
         return ray.get(ref)
     except ray.exceptions.TaskCancelledError:
@@ -371,12 +395,33 @@ def _result(ray, ref, cell: Cell) -> dict:
             "sequence": cell.sequence,
             "variant": cell.variant,
             "status": "failed",
-            "reason": _one_line(f"{type(exc).__name__}: {exc}"),
+            "reason": _after_death(cell, out) or _one_line(f"{type(exc).__name__}: {exc}"),
             "config_hash": cell.config_hash,
         }
 
 
-def _cancel(ray, pending: dict, records: dict) -> None:
+def _after_death(cell: Cell, out: Path) -> str:
+    """The cell's worker died holding the cell's lock: what stopped it (the signal it recorded,
+    else one it cannot catch), its unfinished folder removed. "" when no worker held the lock."""
+    folder = cell.folder(out)
+    dead: dict = {}
+    try:
+        with writer_lock(folder, create_parents=False, stale=dead.update):  # free: its holder is gone
+            removed = [n for n in recover_leftovers(folder, any_pid=True) if "unfinished" in n]
+    except SnapsGraphError:  # held: another attempt runs
+        return ""
+    if not dead:
+        return ""
+    how = (
+        f"by {dead['signal']}"
+        if dead.get("signal")
+        else "by a signal it cannot catch (SIGKILL: kill -9, the out-of-memory killer) or a crash"
+    )
+    tail = "; its unfinished folder removed" if removed else ""
+    return f"the worker (PID {dead.get('pid', '?')}) was killed {how} while running the cell{tail}"
+
+
+def _cancel(ray, pending: dict, records: dict, out: Path) -> None:
     """Cancel the running tasks (KeyboardInterrupt inside them: the runner deletes its temporary
     folder); after CANCEL_GRACE_S, kill what still runs. Cells that finished meanwhile count."""
     for ref in pending:
@@ -387,7 +432,7 @@ def _cancel(ray, pending: dict, records: dict) -> None:
         ready, _ = ray.wait(list(left), num_returns=len(left), timeout=0.5)
         for ref in ready:
             cell = left.pop(ref)
-            rec = _result(ray, ref, cell)
+            rec = _result(ray, ref, cell, out)
             if rec["status"] == "ok":
                 records[(cell.sequence, cell.variant)] = rec
     for ref in left:
