@@ -27,10 +27,12 @@ import sys
 import tempfile
 import time
 from dataclasses import dataclass, field
+from fnmatch import fnmatch
 from pathlib import Path
 
+from snaps_graph.io_utils import ADDED_LATER, MARKER
+
 ROOT = Path(__file__).resolve().parents[1]
-MARKER = ".snaps_graph_results"
 REFUSED = "another run is writing it (PID "
 
 
@@ -104,12 +106,13 @@ def last_writer(r: Race) -> int | None:
 
 
 def whole_run(out: Path) -> list[str]:
-    """A results folder holds exactly the files its marker lists (a whole run)."""
+    """A results folder holds exactly the files its marker lists (a whole run), and what later
+    commands add (a batch's batch.json)."""
     try:
         listed = json.loads((out / MARKER).read_text())["files"]
     except (OSError, ValueError, KeyError):
         return [f"{out}: no readable marker"]
-    have = sorted(p.name for p in out.iterdir() if p.name != MARKER)
+    have = sorted(p.name for p in out.iterdir() if p.name != MARKER and not any(fnmatch(p.name, pat) for pat in ADDED_LATER))
     return [] if listed and have == sorted(listed) and "metrics.json" in have else [f"{out}: holds {have}, lists {listed}"]
 
 
