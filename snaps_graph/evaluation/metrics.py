@@ -2,7 +2,8 @@
 
 Poses are (N, 4, 4) T_world_cam; row i of the estimate and of the ground truth is the same frame.
 Why these three, each computed as its field does: docs/decisions.md, "Evaluation". A metric that
-cannot be computed is NaN here and ``null`` / ``n/a`` downstream; a NaN never stands for a pose.
+cannot be computed is NaN here and ``null`` / ``n/a`` downstream, with a note naming why
+(``evaluate``'s ``notes``); a NaN never stands for a pose.
 """
 
 from __future__ import annotations
