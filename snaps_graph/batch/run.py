@@ -307,13 +307,13 @@ def _unfinished(cell: Cell) -> dict:
 
 @contextlib.contextmanager
 def _stop_flag() -> Iterator[threading.Event]:
-    """Ctrl-C (or SIGTERM) sets a flag that the driver's loop checks, instead of raising wherever the main
+    """Ctrl-C (or SIGTERM, SIGHUP) sets a flag that the driver's loop checks, instead of raising wherever the main
     thread is: an exception raised inside Ray's own calls comes out as a SystemError."""
     flag = threading.Event()
     if threading.current_thread() is not threading.main_thread():
         yield flag
         return
-    old = {sig: _flag_on(sig, flag) for sig in (signal.SIGINT, signal.SIGTERM)}
+    old = {sig: _flag_on(sig, flag) for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
     try:
         yield flag
     finally:
