@@ -54,8 +54,8 @@ from .io_utils import (  # noqa: E402
     check_recording_path,
     inside,
     output_folder,
-    why_absent,
 )
+from .paths import why_absent  # noqa: E402
 from .trajectory_io import ODOMETRY_FORMATS  # noqa: E402
 
 # Heavy modules (OpenCV, gtsam, open3d, matplotlib) are imported inside the commands that use
@@ -262,9 +262,7 @@ def run(
     if odometry_format is not None and odometry_format not in ODOMETRY_FORMATS:
         raise_user(f"--odometry-format must be one of {', '.join(ODOMETRY_FORMATS)}, not '{odometry_format}'")
     if odometry is not None and not odometry.is_file():
-        raise_user(
-            f"{odometry}: {'is a folder, not an odometry (pose) file' if odometry.is_dir() else why_absent(odometry, 'odometry file not found')}"
-        )
+        raise_user(f"{odometry}: {why_absent(odometry, 'odometry file not found')}")
     from .datasets.open import open_dataset  # the heavy imports (OpenCV, gtsam) after the checks
     from .runner import mostly_flagged, run_sequence
 
@@ -413,8 +411,7 @@ def eval_(
         est, gt = second, est
     if gt is None:
         raise SnapsGraphError("eval: no ground truth: `eval EST --gt GT` or, in evo's order (reference first), `eval GT EST`")
-    missing = [str(given) for given in (est, gt) if not given.exists()]
-    if missing:
+    if missing := [str(given) for given in (est, gt) if not given.exists()]:
         raise_user(f"{', '.join(missing)}: pose file{'s' if len(missing) > 1 else ''} not found")
     from .evaluation.metrics import evaluate
     from .trajectory_io import read_poses
@@ -519,9 +516,8 @@ def _check_choice(option: str, value: str | None, literal) -> None:
 
 
 def main() -> None:
-    signal.signal(signal.SIGINT, on_sigint)
-    signal.signal(signal.SIGTERM, on_sigint)  # `kill`, a scheduler's stop: cleaned up as Ctrl-C
-    signal.signal(signal.SIGHUP, on_sigint)  # the terminal closed: the same
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):  # `kill`, a scheduler's stop, a closed terminal: as Ctrl-C
+        signal.signal(sig, on_sigint)
     set_malloc_thresholds()  # the process is ours: large frames stop costing page faults
     try:
         rc = app(standalone_mode=False)
@@ -579,22 +575,19 @@ def drift(
     from .locks import writer_lock
     from .trajectory_io import read_kitti_poses, write_kitti_poses
 
-    with writer_lock(out, create_parents=False):  # another drift writing OUT: refused at once
+    with writer_lock(out):  # another drift into OUT is refused at once, never overwritten
         if out.exists() and not overwrite:
             raise_user(f"{out} exists (pass --overwrite to replace it)")
-    if out.exists() and out.resolve() == gt.resolve():
-        raise_user(f"{out} is the input ground truth")
-    poses = read_kitti_poses(gt)
-    changes = {"scale_bias_pct": scale_bias_pct, "heading_rw_deg_per_sqrt_m": heading_rw}
-    changes |= {"pitch_rw_deg_per_sqrt_m": pitch_rw, "roll_deg_per_100m": roll}
-    for name, value in changes.items():
-        if value is not None and not (value >= 0 and value < 1e3):
-            raise_user(f"drift: --{name} must be a number in [0, 1000), got {value}")
-    model = dataclasses.replace(DriftModel(), **{k: v for k, v in changes.items() if v is not None})
-    drifted = drift_trajectory(poses, seed, model, pct)
-    with writer_lock(out):
-        if out.exists() and not overwrite:  # written meanwhile by another command
-            raise_user(f"{out} exists (pass --overwrite to replace it)")
+        if out.exists() and out.resolve() == gt.resolve():
+            raise_user(f"{out} is the input ground truth")
+        poses = read_kitti_poses(gt)
+        changes = {"scale_bias_pct": scale_bias_pct, "heading_rw_deg_per_sqrt_m": heading_rw}
+        changes |= {"pitch_rw_deg_per_sqrt_m": pitch_rw, "roll_deg_per_100m": roll}
+        for name, value in changes.items():
+            if value is not None and not (value >= 0 and value < 1e3):
+                raise_user(f"drift: --{name} must be a number in [0, 1000), got {value}")
+        model = dataclasses.replace(DriftModel(), **{k: v for k, v in changes.items() if v is not None})
+        drifted = drift_trajectory(poses, seed, model, pct)
         write_kitti_poses(out, drifted)
     typer.echo(f"wrote {out}: {len(drifted)} poses, end drift {end_drift_pct(drifted, poses):.3f} % of the distance")
 

@@ -5,8 +5,6 @@ background thread (``prefetch``)."""
 from __future__ import annotations
 
 import contextlib
-import errno
-import fcntl
 import fnmatch
 import glob
 import json
@@ -14,7 +12,6 @@ import os
 import queue
 import shutil
 import signal
-import struct
 import sys
 import tempfile
 import threading
@@ -26,6 +23,7 @@ from typing import Any, TypeVar
 
 from .errors import SnapsGraphError
 from .locks import writer_lock
+from .paths import unreplaceable
 
 
 def atomic_write_text(path: str | Path, text: str) -> None:
@@ -270,11 +268,9 @@ def check_output_folder(path: str | Path, overwrite: bool = False, reuse: bool =
 def _check_folder_unlocked(out: Path, full: Path, overwrite: bool, reuse: bool) -> None:
     for note in recover_leftovers(full):
         print(f"note: {note}", file=sys.stderr)
-    if out.is_dir() and not reuse:  # the swap renames or removes it: found out now, not after every frame
-        if os.path.ismount(full):
-            raise SnapsGraphError(f"{out}: is a mount point, which a run cannot replace; name a folder inside it")
-        if _immutable(full):
-            raise SnapsGraphError(f"{out}: is immutable or append-only (chattr +i / +a), so a run cannot replace it")
+    why = unreplaceable(full) if out.is_dir() and not reuse else None  # found now, not after every frame
+    if why:
+        raise SnapsGraphError(f"{out}: {why}, so a run cannot replace it")
     if out.is_dir() and not reuse and any(out.iterdir()):
         if not overwrite:
             raise SnapsGraphError(f"{out}: folder exists and is not empty (use --overwrite to replace it)")
@@ -289,36 +285,6 @@ def _check_folder_unlocked(out: Path, full: Path, overwrite: bool, reuse: bool) 
             raise SnapsGraphError(
                 f"{out}: holds {shown}, which this tool did not write; move it out first (--overwrite replaces the folder whole)"
             )
-
-
-def why_absent(path: str | Path, default: str) -> str:
-    """Why ``path`` (which does not exist) is not there: a loop of symbolic links or a link to
-    nothing said as such, else ``default`` ("sequence folder not found")."""
-    try:
-        os.stat(path)
-    except OSError as exc:
-        if exc.errno == errno.ELOOP:
-            return "a loop of symbolic links (a link that leads back to itself)"
-        if os.path.islink(path):
-            return f"a symbolic link to {os.readlink(path)}, which does not exist"
-    return default
-
-
-# Linux's inode flags (linux/fs.h): FS_IOC_GETFLAGS, and the flags that forbid a rename or removal.
-_FS_IOC_GETFLAGS, _FS_IMMUTABLE_FL, _FS_APPEND_FL = 0x80086601, 0x10, 0x20
-
-
-def _immutable(folder: Path) -> bool:
-    """The folder carries the immutable or append-only flag (False where flags cannot be read)."""
-    try:
-        fd = os.open(folder, os.O_RDONLY | os.O_DIRECTORY)
-        try:
-            flags = struct.unpack("i", fcntl.ioctl(fd, _FS_IOC_GETFLAGS, bytes(8))[:4])[0]
-        finally:
-            os.close(fd)
-    except OSError:
-        return False
-    return bool(flags & (_FS_IMMUTABLE_FL | _FS_APPEND_FL))
 
 
 def inside(path: str | Path, folder: str | Path) -> bool:

@@ -299,7 +299,7 @@ def test_an_immutable_empty_out_is_refused_before_the_first_frame(tmp_path):
 
 def test_odometry_naming_a_folder_and_a_symlink_loop_say_so(seq, tmp_path):
     out = tmp_path / "run"
-    one_error(cli("run", seq, "--out", out, "--odometry", seq), seq, "is a folder, not an odometry (pose) file")
+    one_error(cli("run", seq, "--out", out, "--odometry", seq), seq, "is a folder, where a file is wanted")
     (tmp_path / "a").symlink_to(tmp_path / "b")
     (tmp_path / "b").symlink_to(tmp_path / "a")
     one_error(cli("run", tmp_path / "a", "--out", out), tmp_path / "a", "a loop of symbolic links")
