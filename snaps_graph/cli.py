@@ -412,7 +412,7 @@ def eval_(
     if gt is None:
         raise SnapsGraphError("eval: no ground truth: `eval EST --gt GT` or, in evo's order (reference first), `eval GT EST`")
     if missing := [str(given) for given in (est, gt) if not given.exists()]:
-        raise_user(f"{', '.join(missing)}: pose file{'s' if len(missing) > 1 else ''} not found")
+        raise_user("; ".join(f"{m}: pose file not found" for m in missing))
     from .evaluation.metrics import evaluate
     from .trajectory_io import read_poses
 
