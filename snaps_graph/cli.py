@@ -55,6 +55,7 @@ from .io_utils import (  # noqa: E402
     inside,
     output_folder,
 )
+from .paths import why_absent  # noqa: E402
 from .trajectory_io import ODOMETRY_FORMATS  # noqa: E402
 
 # Heavy modules (OpenCV, gtsam, open3d, matplotlib) are imported inside the commands that use
@@ -239,10 +240,10 @@ def run(
     _check_choice("--mode", mode, FrontendMode)
     cfg = (Config.load(config) if config else Config()).with_overrides(set_)
     if not str(seq_dir).startswith("live:") and not seq_dir.exists():  # a mistyped path: at once
-        raise_user(f"{seq_dir}: sequence folder not found (nor a bag file)")
+        raise_user(f"{seq_dir}: {why_absent(seq_dir, 'sequence folder not found (nor a bag file)')}")
     for given, what in ((gt, "ground-truth"), (calib, "calibration")):
         if given is not None and not given.exists():
-            raise_user(f"{given}: {what} file not found")
+            raise_user(f"{given}: {why_absent(given, f'{what} file not found')}")
     if mode is not None:
         cfg.frontend.mode = mode  # type: ignore[assignment]
     if map_all:
@@ -261,7 +262,7 @@ def run(
     if odometry_format is not None and odometry_format not in ODOMETRY_FORMATS:
         raise_user(f"--odometry-format must be one of {', '.join(ODOMETRY_FORMATS)}, not '{odometry_format}'")
     if odometry is not None and not odometry.is_file():
-        raise_user(f"{odometry}: odometry file not found")
+        raise_user(f"{odometry}: {why_absent(odometry, 'odometry file not found')}")
     from .datasets.open import open_dataset  # the heavy imports (OpenCV, gtsam) after the checks
     from .runner import mostly_flagged, run_sequence
 
@@ -410,9 +411,8 @@ def eval_(
         est, gt = second, est
     if gt is None:
         raise SnapsGraphError("eval: no ground truth: `eval EST --gt GT` or, in evo's order (reference first), `eval GT EST`")
-    for given in (est, gt):
-        if not given.exists():
-            raise_user(f"{given}: pose file not found")
+    if missing := [str(given) for given in (est, gt) if not given.exists()]:
+        raise_user("; ".join(f"{m}: pose file not found" for m in missing))
     from .evaluation.metrics import evaluate
     from .trajectory_io import read_poses
 
@@ -516,8 +516,8 @@ def _check_choice(option: str, value: str | None, literal) -> None:
 
 
 def main() -> None:
-    signal.signal(signal.SIGINT, on_sigint)
-    signal.signal(signal.SIGTERM, on_sigint)  # `kill`, a scheduler's stop: cleaned up as Ctrl-C
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):  # `kill`, a scheduler's stop, a closed terminal: as Ctrl-C
+        signal.signal(sig, on_sigint)
     set_malloc_thresholds()  # the process is ours: large frames stop costing page faults
     try:
         rc = app(standalone_mode=False)
@@ -579,13 +579,9 @@ def drift(
 
     from .drift_model import DriftModel
     from .evaluation.drift import drift_trajectory, end_drift_pct
+    from .locks import writer_lock
     from .trajectory_io import read_kitti_poses, write_kitti_poses
 
-    if out.exists() and not overwrite:
-        raise_user(f"{out} exists (pass --overwrite to replace it)")
-    if out.exists() and out.resolve() == gt.resolve():
-        raise_user(f"{out} is the input ground truth")
-    poses = read_kitti_poses(gt)
     flags = {
         "scale-pct": ("scale_pct", scale_pct),
         "heading-rw": ("heading_deg_per_sqrt_m", heading_rw),
@@ -597,14 +593,18 @@ def drift(
     }
     changes = {}
     for flag, (name, value) in flags.items():
-        if value is None:
-            continue
-        if not (abs(value) < 1e3 and (value >= 0 or flag.endswith("rate"))):
+        if value is not None and not (abs(value) < 1e3 and (value >= 0 or flag.endswith("rate"))):
             raise_user(f"drift: --{flag} must be a number in [0, 1000), got {value}")
-        changes[name] = value
-    model = dataclasses.replace(DriftModel(), **{k: v for k, v in changes.items() if v is not None})
-    drifted = drift_trajectory(poses, seed, model, pct)
-    write_kitti_poses(out, drifted)
+        if value is not None:
+            changes[name] = value
+    with writer_lock(out):  # another drift into OUT is refused at once, never overwritten
+        if out.exists() and not overwrite:
+            raise_user(f"{out} exists (pass --overwrite to replace it)")
+        if out.exists() and out.resolve() == gt.resolve():
+            raise_user(f"{out} is the input ground truth")
+        poses = read_kitti_poses(gt)
+        drifted = drift_trajectory(poses, seed, dataclasses.replace(DriftModel(), **changes), pct)
+        write_kitti_poses(out, drifted)
     typer.echo(f"wrote {out}: {len(drifted)} poses, end drift {end_drift_pct(drifted, poses):.3f} % of the distance")
 
 

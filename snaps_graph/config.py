@@ -410,6 +410,11 @@ class Config:
         if build_map is not None:
             out.map.enabled = bool(build_map)
         out.validate()
+        mesh = out.map.world_mesh
+        if out.map.enabled and mesh and not Path(mesh).is_file():  # else the map stage fails after every frame
+            what = "is a folder, not a world mesh" if Path(mesh).is_dir() else "world mesh not found"
+            where = f" in {out.source}" if out.source and out.source != "config" else ""
+            raise SnapsGraphError(f"{mesh}: {what} (map.world_mesh{where})")
         return out
 
     # ---- TOML ----
@@ -462,6 +467,8 @@ def parse_set(items: list[str] | tuple[str, ...], source: str = "--set") -> dict
         parts = [p.strip() for p in key.split(".")]
         if not sep or len(parts) < 2 or not all(parts):
             raise SnapsGraphError(f"{source} {item!r}: expected section.key=value")
+        if "\n" in value or "\r" in value:  # a second line could carry tables the key would not show
+            raise SnapsGraphError(f"{source} {item!r}: the value must be one TOML value on one line")
         try:
             parsed = tomllib.loads(f"v = {value.strip()}")["v"]
         except tomllib.TOMLDecodeError:

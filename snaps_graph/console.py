@@ -136,6 +136,9 @@ def metrics_table(per_traj: dict[str, dict]) -> str:
             f"{fmt(m.get('mean_deviation_horizontal')):>8}{fmt(m.get('mean_deviation_vertical')):>8}{fmt(m.get('ate_rmse')):>10}"
             f"{fmt(m.get('t_rel'), 2):>9}{fmt(m.get('r_rel'), 3):>14}{fmt(m.get('end_drift_percent'), 2):>13}"
         )
+    from .evaluation.metrics import notes_text
+
+    lines += [f"note: {line}" for line in notes_text(per_traj)]
     return "\n".join(lines)
 
 
@@ -236,7 +239,7 @@ def stdout_failed(exc: OSError) -> None:
 
 
 def exit_interrupted() -> None:
-    for sig in (signal.SIGINT, signal.SIGTERM):  # a second Ctrl-C or kill must not interrupt the exit
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):  # a second Ctrl-C or kill must not interrupt the exit
         signal.signal(sig, signal.SIG_IGN)
     done = committed_folders()
     if done:

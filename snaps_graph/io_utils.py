@@ -22,6 +22,8 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from .errors import SnapsGraphError
+from .locks import writer_lock
+from .paths import unreplaceable
 
 
 def atomic_write_text(path: str | Path, text: str) -> None:
@@ -98,8 +100,9 @@ os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", str(MAX_IMAGE_PIXELS))
 
 def check_image_file(path: str | Path) -> None:
     """Before decoding: a PNG's or JPEG's size from its header (a small file can decode to
-    gigabytes), and a JPEG's end marker (libjpeg fills a truncated file with grey and goes
-    on). A one-line SnapsGraphError naming the file; other formats are left to the decoder."""
+    gigabytes), a JPEG's end marker (libjpeg fills a truncated file with grey and goes on) and
+    a PNG's end chunk (libpng prints its own line about a truncated one). A one-line
+    SnapsGraphError naming the file; other formats are left to the decoder."""
     path = Path(path)
     try:
         with open(path, "rb") as fh:
@@ -112,6 +115,8 @@ def check_image_file(path: str | Path) -> None:
         raise SnapsGraphError(f"{path}: cannot read the image ({exc.strerror or exc})") from None
     wh = None
     if head.startswith(b"\x89PNG\r\n\x1a\n") and len(head) >= 24:
+        if b"IEND" not in tail:  # libpng would print its own line about it before ours
+            raise SnapsGraphError(f"{path}: truncated PNG (no IEND chunk)")
         wh = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
     elif head.startswith(b"\xff\xd8"):
         if b"\xff\xd9" not in tail:
@@ -255,8 +260,17 @@ def check_output_folder(path: str | Path, overwrite: bool = False, reuse: bool =
             if not os.access(parent, os.W_OK | os.X_OK):
                 raise SnapsGraphError(f"{parent}: not writable, cannot create {out}")
             break
+    with writer_lock(full, create_parents=False):  # another live writer: refused here, at once
+        _check_folder_unlocked(out, full, overwrite, reuse)
+    return out
+
+
+def _check_folder_unlocked(out: Path, full: Path, overwrite: bool, reuse: bool) -> None:
     for note in recover_leftovers(full):
         print(f"note: {note}", file=sys.stderr)
+    why = unreplaceable(full) if out.is_dir() and not reuse else None  # found now, not after every frame
+    if why:
+        raise SnapsGraphError(f"{out}: {why}, so a run cannot replace it")
     if out.is_dir() and not reuse and any(out.iterdir()):
         if not overwrite:
             raise SnapsGraphError(f"{out}: folder exists and is not empty (use --overwrite to replace it)")
@@ -271,7 +285,6 @@ def check_output_folder(path: str | Path, overwrite: bool = False, reuse: bool =
             raise SnapsGraphError(
                 f"{out}: holds {shown}, which this tool did not write; move it out first (--overwrite replaces the folder whole)"
             )
-    return out
 
 
 def inside(path: str | Path, folder: str | Path) -> bool:
@@ -321,7 +334,31 @@ def check_recording_path(rrd: str | Path, out: str | Path) -> Path | None:
             if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
                 raise SnapsGraphError(f"{parent}: not a writable folder, cannot write the recording {rrd}")
             break
+    with writer_lock(rrd, create_parents=False):  # another run recording there: refused at once
+        for note in remove_stale_recordings(rrd):
+            print(f"note: {note}", file=sys.stderr)
     return None
+
+
+def remove_stale_recordings(rrd: str | Path) -> list[str]:
+    """Delete the temporary ``.NAME.tmp-PID`` recordings beside ``rrd`` that a killed run left:
+    only of processes no longer running, only files that are rerun recordings (or empty). Returns
+    one note per file removed."""
+    full = _abs(rrd)
+    notes = []
+    for p in sorted(full.parent.glob(f".{glob.escape(full.name)}.tmp-*")):
+        pid = p.name.rsplit("-", 1)[1]
+        if not (pid.isascii() and pid.isdigit()) or p.is_symlink() or not p.is_file() or _alive(int(pid)):
+            continue
+        try:
+            with open(p, "rb") as fh:
+                if fh.read(len(RRD_MAGIC)) not in (b"", RRD_MAGIC):
+                    continue
+            p.unlink()
+        except OSError:
+            continue
+        notes.append(f"{full}: removed {p.name}, the unfinished recording of a killed run")
+    return notes
 
 
 def _alive(pid: int) -> bool:
@@ -350,7 +387,7 @@ def recover_leftovers(out: str | Path, any_pid: bool = False) -> list[str]:
     for kind in found:
         for p in parent.glob(f".{glob.escape(out.name)}.{kind}-*"):
             pid = p.name.rsplit("-", 1)[1]
-            if not pid.isdigit() or not p.is_dir() or p.is_symlink() or not is_results_folder(p):
+            if not (pid.isascii() and pid.isdigit()) or not p.is_dir() or p.is_symlink() or not is_results_folder(p):
                 continue
             if int(pid) == os.getpid() or (not any_pid and _alive(int(pid))):
                 continue
@@ -385,14 +422,15 @@ def remove_results_folder(folder: Path) -> None:
 
 @contextmanager
 def _signals_held() -> Iterator[None]:
-    """Ctrl-C (and SIGTERM) held back while the results folder is swapped in, then delivered to the
+    """Ctrl-C (and SIGTERM, SIGHUP) held back while the results folder is swapped in, then delivered to the
     handler that was in place (a signal mask would not do: another thread may take the signal)."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     pending: list[int] = []
     old: dict[int, Any] = {
-        sig: signal.signal(sig, lambda signum, frame: pending.append(signum)) for sig in (signal.SIGINT, signal.SIGTERM)
+        sig: signal.signal(sig, lambda signum, frame: pending.append(signum))
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
     }
     try:
         yield
@@ -415,7 +453,15 @@ def output_folder(path: str | Path, overwrite: bool = False) -> Iterator[Path]:
     it is renamed onto ``path`` (an old folder, with ``overwrite``, is moved aside to
     ``.NAME.old-PID`` first and then deleted), on any error or Ctrl-C it is deleted. So ``path``
     is either the whole new result or untouched; a kill -9 in between leaves the sibling
-    folders, which the next start recovers (``recover_leftovers``)."""
+    folders, which the next start recovers (``recover_leftovers``). The folder's lock
+    (``locks.writer_lock``) is held throughout: a second writer is refused, never overwritten."""
+    check_output_folder(path, overwrite)  # refuses a bad path before the lock creates any folder
+    with writer_lock(path), _output_folder(path, overwrite) as tmp:
+        yield tmp
+
+
+@contextmanager
+def _output_folder(path: str | Path, overwrite: bool) -> Iterator[Path]:
     out = check_output_folder(path, overwrite)
     full = _abs(out)
     tmp = full.parent / f".{full.name}.tmp-{os.getpid()}"

@@ -422,3 +422,44 @@ def test_an_address_where_something_else_listens_fails_at_once_and_leaves_no_loc
     assert time.monotonic() - t0 < 10
     assert not (tmp_path / "out" / ".batch.lock").exists()
     server.close()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL], ids=["term", "kill-9"])
+def test_a_worker_killed_by_a_signal_is_reported_with_it_and_leaves_no_temporary_folder(cluster, seqs, tmp_path, sig):
+    """The cell's worker killed (each attempt: Ray retries a lost worker once): the summary names
+    the signal (one the worker cannot catch said as such) and the cell's folder holds nothing."""
+    import threading
+
+    long = tmp_path / "long"
+    shutil.copytree(seqs["good"], long)
+    for side in ("image_0", "image_1"):  # the 24 pairs repeated to 3000 frames: a cell of minutes
+        src = sorted((long / side).glob("*.png"))
+        for i in range(len(src), 3000):
+            os.link(src[i % len(src)], long / side / f"{i:06d}.png")
+    (long / "times.txt").write_text("".join(f"{0.1 * i:.6e}\n" for i in range(3000)))
+    (long / "poses.txt").unlink()
+    out = tmp_path / "out"
+    rows: list[dict] = []
+    driver = threading.Thread(
+        target=lambda: rows.extend(
+            run_batch(plan_from_dict({"sequences": [str(long)]}), out, address=cluster.address, progress=False)
+        )
+    )
+    driver.start()
+    killed: set[int] = set()
+    deadline = time.monotonic() + 240
+    while driver.is_alive() and time.monotonic() < deadline:
+        folder = out / "long"
+        for tmp in folder.glob(".default.tmp-*") if folder.is_dir() else []:
+            pid = int(tmp.name.rsplit("-", 1)[1])  # the worker running the cell
+            if pid not in killed:
+                time.sleep(0.5)  # into the frames
+                killed.add(pid)
+                os.kill(pid, sig)
+        time.sleep(0.05)
+    driver.join(timeout=60)
+    assert killed and rows and rows[0]["status"] == "failed", rows
+    reason = rows[0]["reason"]
+    expect = "killed by SIGTERM" if sig == signal.SIGTERM else "killed by a signal it cannot catch (SIGKILL"
+    assert expect in reason and "its unfinished folder removed" in reason, reason
+    assert [p.name for p in (out / "long").iterdir()] == []  # no temporary folder, no lock

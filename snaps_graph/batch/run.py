@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import json
 import math
 import os
@@ -31,9 +30,10 @@ from ..io_utils import (
     is_results_folder,
     recover_leftovers,
 )
+from ..locks import record_signal, writer_lock
 from ..runner import mostly_flagged, run_sequence
 from .plan import Cell, Plan, git_commit
-from .summary import write_summary
+from .summary import SUMMARY_FILES, write_summary
 
 CELL_FILE = "batch.json"  # written into a cell's folder after its run: the resume record
 # Environment variables that size BLAS / OpenMP thread pools (read when the library loads).
@@ -87,13 +87,14 @@ def run_cell(cell: Cell, out_dir: str, threads: int) -> dict:
     folder = cell.folder(out_dir)
     set_malloc_thresholds()  # a worker process runs the pipeline as the CLI does
     try:
-        _remove_stale_temp(folder)
-        seq = cell.open()
-        try:
-            with pinned_threads(threads):
-                _, metrics = run_sequence(seq, folder, cell.cfg, overwrite=True)
-        finally:
-            seq.close()
+        with writer_lock(folder), _signals_recorded(folder):  # held through the run: others' leftovers are stale
+            _remove_stale_temp(folder)
+            seq = cell.open()
+            try:
+                with pinned_threads(threads):
+                    _, metrics = run_sequence(seq, folder, cell.cfg, overwrite=True)
+            finally:
+                seq.close()
         rec["wall_s"] = round(time.perf_counter() - t0, 3)
         rec["status"] = "ok"
         if mostly_flagged(metrics):
@@ -132,9 +133,33 @@ def pinned_threads(n: int) -> Iterator[None]:
                 os.environ[var] = value
 
 
+# Signals that end a worker and that it can catch: written into the cell's lock before it dies,
+# for the driver's report (SIGKILL, the out-of-memory killer's, cannot be caught).
+RECORDED_SIGNALS = (signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT, signal.SIGUSR1, signal.SIGUSR2)
+
+
+@contextlib.contextmanager
+def _signals_recorded(folder: Path) -> Iterator[None]:
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def record_and_die(signum, frame) -> None:
+        record_signal(folder, signum)
+        signal.signal(signum, signal.SIG_DFL)
+        os.kill(os.getpid(), signum)
+
+    old = {sig: signal.signal(sig, record_and_die) for sig in RECORDED_SIGNALS}
+    try:
+        yield
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+
+
 def _remove_stale_temp(folder: Path) -> None:
     """Temporary siblings left by a killed earlier attempt (``.NAME.tmp-PID``, ``.NAME.old-PID``).
-    The batch lock makes this task the only writer of ``folder``, so any other process's are stale."""
+    The cell's lock makes this task the only writer of ``folder``, so any other process's are stale."""
     for note in recover_leftovers(folder, any_pid=True):
         print(f"note: {note}", file=sys.stderr)
 
@@ -187,9 +212,10 @@ def run_batch(
         raise SnapsGraphError(
             f"{plan.source}: cpus_per_task = {plan.cpus_per_task:g}, but this machine has {os.cpu_count()} CPUs (no cell could start)"
         )
-    out = _prepare_out(out_dir)
+    out = _check_out(out_dir)
     t0 = time.perf_counter()
-    with _lock(out):
+    with writer_lock(out):  # one batch per folder: two would race on the same cells
+        out = _check_out(out_dir)
         records: dict[tuple[str, str], dict] = {}
         todo: list[Cell] = []
         for cell in plan.cells:
@@ -199,6 +225,7 @@ def run_batch(
             else:
                 todo.append(cell)
         with _stop_flag() as interrupted, _ray_session(address, ray_init, bool(todo)) as ray:
+            _make_out(out)  # after Ray started or joined: a refused cluster leaves no folder
             _flag_on(signal.SIGTERM, interrupted)  # Ray's core took SIGTERM over when it started
             # From here on the summary is written whatever happens (Ctrl-C included).
             bar = _bar(len(plan.cells), len(plan.cells) - len(todo), progress)
@@ -217,6 +244,10 @@ def check_cell_folders(plan: Plan, out_dir: str | Path) -> None:
     named like a sequence's subfolder, ``--out`` on the folder holding the data)."""
     for cell in plan.cells:
         folder = cell.folder(out_dir)
+        if cell.sequence in SUMMARY_FILES:
+            raise SnapsGraphError(
+                f"{plan.source}: cell {cell.sequence}/{cell.variant}: a sequence named {cell.sequence} would make the batch's {cell.sequence} a folder; name it otherwise"
+            )
         inputs = [("sequence", cell.seq_path), ("ground truth", cell.gt), *((k, v) for k, v in cell.reader if k == "calib")]
         try:
             check_inputs_outside(folder, inputs)
@@ -229,49 +260,25 @@ def check_cell_folders(plan: Plan, out_dir: str | Path) -> None:
                 )
 
 
-def _prepare_out(out_dir: str | Path) -> Path:
+def _check_out(out_dir: str | Path) -> Path:
     """The batch folder: new, empty, or one a batch wrote (MARKER); never a user's folder whose
     summary.csv / summary.md a batch would replace."""
     out = check_output_folder(out_dir, reuse=True)
     if out.is_dir() and not is_results_folder(out):
         raise SnapsGraphError(f"{out}: not a folder this tool wrote (no {MARKER} file); choose a new or empty --out for a batch")
+    for name in SUMMARY_FILES:
+        if (out / name).is_dir() or (out / name).is_symlink():
+            raise SnapsGraphError(f"{out / name}: is a folder or a link, where the batch writes its summary; move it away")
+    return out
+
+
+def _make_out(out: Path) -> None:
     try:
         out.mkdir(parents=True, exist_ok=True)
         if not (out / MARKER).is_file():
             atomic_write_text(out / MARKER, json.dumps({"snaps_graph": __version__, "batch": True, "files": None}) + "\n")
     except OSError as exc:
         raise SnapsGraphError(f"{out}: cannot create the folder ({exc.strerror or exc})") from None
-    return out
-
-
-@contextlib.contextmanager
-def _lock(out: Path) -> Iterator[None]:
-    """One batch at a time per output folder (two would race on the same cells). The lock file
-    is removed at the end, by its holder; a lock taken on a file removed meanwhile is retaken."""
-    path = out / ".batch.lock"
-    for _ in range(3):
-        fh = open(path, "w")
-        try:
-            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            fh.close()
-            raise SnapsGraphError(f"{out}: another batch is running into this folder") from None
-        try:
-            same = os.fstat(fh.fileno()).st_ino == os.stat(path).st_ino
-        except FileNotFoundError:
-            same = False
-        if same:
-            break
-        fh.close()
-    else:
-        raise SnapsGraphError(f"{out}: another batch is running into this folder")
-    try:
-        yield
-    finally:
-        with contextlib.suppress(OSError):
-            path.unlink()
-        fcntl.flock(fh, fcntl.LOCK_UN)
-        fh.close()
 
 
 def _bar(total: int, initial: int, progress: bool):
@@ -300,13 +307,13 @@ def _unfinished(cell: Cell) -> dict:
 
 @contextlib.contextmanager
 def _stop_flag() -> Iterator[threading.Event]:
-    """Ctrl-C (or SIGTERM) sets a flag that the driver's loop checks, instead of raising wherever the main
+    """Ctrl-C (or SIGTERM, SIGHUP) sets a flag that the driver's loop checks, instead of raising wherever the main
     thread is: an exception raised inside Ray's own calls comes out as a SystemError."""
     flag = threading.Event()
     if threading.current_thread() is not threading.main_thread():
         yield flag
         return
-    old = {sig: _flag_on(sig, flag) for sig in (signal.SIGINT, signal.SIGTERM)}
+    old = {sig: _flag_on(sig, flag) for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
     try:
         yield flag
     finally:
@@ -365,7 +372,7 @@ def _run_tasks(ray, plan, todo, out, records, bar, max_parallel, progress, inter
             ready, _ = ray.wait(list(pending), num_returns=1, timeout=0.5)
             for ref in ready:
                 cell = pending.pop(ref)
-                rec = _result(ray, ref, cell)
+                rec = _result(ray, ref, cell, out)
                 records[(cell.sequence, cell.variant)] = rec
                 failed += rec["status"] == "failed"
                 bar.update(1)
@@ -374,11 +381,11 @@ def _run_tasks(ray, plan, todo, out, records, bar, max_parallel, progress, inter
                 if progress:
                     bar.write(_cell_line(rec), file=sys.stderr)
     except BaseException:
-        _cancel(ray, pending, records)
+        _cancel(ray, pending, records, out)
         raise
 
 
-def _result(ray, ref, cell: Cell) -> dict:
+def _result(ray, ref, cell: Cell, out: Path) -> dict:
     try:
         return ray.get(ref)
     except ray.exceptions.TaskCancelledError:
@@ -388,12 +395,33 @@ def _result(ray, ref, cell: Cell) -> dict:
             "sequence": cell.sequence,
             "variant": cell.variant,
             "status": "failed",
-            "reason": _one_line(f"{type(exc).__name__}: {exc}"),
+            "reason": _after_death(cell, out) or _one_line(f"{type(exc).__name__}: {exc}"),
             "config_hash": cell.config_hash,
         }
 
 
-def _cancel(ray, pending: dict, records: dict) -> None:
+def _after_death(cell: Cell, out: Path) -> str:
+    """The cell's worker died holding the cell's lock: what stopped it (the signal it recorded,
+    else one it cannot catch), its unfinished folder removed. "" when no worker held the lock."""
+    folder = cell.folder(out)
+    dead: dict = {}
+    try:
+        with writer_lock(folder, create_parents=False, stale=dead.update):  # free: its holder is gone
+            removed = [n for n in recover_leftovers(folder, any_pid=True) if "unfinished" in n]
+    except SnapsGraphError:  # held: another attempt runs
+        return ""
+    if not dead:
+        return ""
+    how = (
+        f"by {dead['signal']}"
+        if dead.get("signal")
+        else "by a signal it cannot catch (SIGKILL: kill -9, the out-of-memory killer) or a crash"
+    )
+    tail = "; its unfinished folder removed" if removed else ""
+    return f"the worker (PID {dead.get('pid', '?')}) was killed {how} while running the cell{tail}"
+
+
+def _cancel(ray, pending: dict, records: dict, out: Path) -> None:
     """Cancel the running tasks (KeyboardInterrupt inside them: the runner deletes its temporary
     folder); after CANCEL_GRACE_S, kill what still runs. Cells that finished meanwhile count."""
     for ref in pending:
@@ -404,7 +432,7 @@ def _cancel(ray, pending: dict, records: dict) -> None:
         ready, _ = ray.wait(list(left), num_returns=len(left), timeout=0.5)
         for ref in ready:
             cell = left.pop(ref)
-            rec = _result(ray, ref, cell)
+            rec = _result(ray, ref, cell, out)
             if rec["status"] == "ok":
                 records[(cell.sequence, cell.variant)] = rec
     for ref in left:

@@ -14,6 +14,7 @@ from ..io_utils import (
 )
 
 STATUSES = ("ok", "failed", "skipped", "cancelled")
+SUMMARY_FILES = ("summary.csv", "summary.md")  # in the batch folder, beside the sequences' folders
 
 
 # ---------------------------------------------------------------- summary
@@ -51,7 +52,7 @@ def write_summary(out: str | Path, records: list[dict], wall_s: float | None = N
     w = csv.DictWriter(buf, fieldnames=cols, extrasaction="ignore", lineterminator="\n")
     w.writeheader()
     w.writerows(rows)
-    atomic_write_text(out / "summary.csv", buf.getvalue())
+    atomic_write_text(out / SUMMARY_FILES[0], buf.getvalue())
 
     counts = {s: sum(r.get("status") == s for r in records) for s in STATUSES}
     head = f"# Batch summary\n\n{len(records)} cells: " + ", ".join(f"{n} {s}" for s, n in counts.items() if n)
@@ -69,4 +70,4 @@ def write_summary(out: str | Path, records: list[dict], wall_s: float | None = N
                 v = "n/a"
             cells.append(str(v).replace("|", "\\|"))
         lines.append("| " + " | ".join(cells) + " |")
-    atomic_write_text(out / "summary.md", "\n".join(lines) + "\n")
+    atomic_write_text(out / SUMMARY_FILES[1], "\n".join(lines) + "\n")

@@ -24,17 +24,22 @@ from ._selection import FrameSelection
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".pgm", ".bmp", ".tif", ".tiff")
 
 
+def _numbered(p: Path) -> bool:
+    """The stem is a whole number in ASCII digits (str.isdigit also accepts '²', which int refuses)."""
+    return p.stem.isascii() and p.stem.isdigit()
+
+
 def _list_images(folder: Path) -> list[Path]:
     """Image files in file-number order: stems that are whole numbers sort as numbers (0.png,
     2.png, 10.png), others after them, by name."""
     files = [p for p in folder.iterdir() if p.suffix.lower() in IMAGE_EXTS and p.is_file()]
-    return sorted(files, key=lambda p: (0, int(p.stem), p.name) if p.stem.isdigit() else (1, 0, p.name))
+    return sorted(files, key=lambda p: (0, int(p.stem), p.name) if _numbered(p) else (1, 0, p.name))
 
 
 def _frame_numbers(files: list[Path]) -> np.ndarray:
     """The frames' numbers: the files' numbers when every stem is a whole number (KITTI's
     000000.png), else positions 0, 1, 2, ... A number used twice (1.png, 01.png) is an error."""
-    named = [p for p in files if not p.stem.isdigit()]
+    named = [p for p in files if not _numbered(p)]
     if named and len(named) < len(files):  # the order between the two kinds is a guess: times and poses would slip
         raise SnapsGraphError(f"{named[0]}: a named image among numbered ones (name them all 000000.png, 000001.png, ...)")
     if named:
@@ -87,7 +92,7 @@ class KittiSequence(FrameSelection):
             if lp.stem != rp.stem:
                 raise SnapsGraphError(f"{rp}: right image does not pair with left image {lp.name}")
         self._numbers = _frame_numbers(self._left)
-        self._numbered = all(p.stem.isdigit() for p in self._left)
+        self._numbered = all(_numbered(p) for p in self._left)
         n_all = len(self._left)
         self.camera = StereoCamera.from_calib_file(self.path / "calib.txt")
 

@@ -22,7 +22,7 @@ from .rectify import StereoRectifier, to_grey
 def open_capture(device: str | int):
     import cv2
 
-    dev = int(device) if isinstance(device, str) and device.strip().isdigit() else device
+    dev = int(device) if isinstance(device, str) and device.strip().isascii() and device.strip().isdigit() else device
     cap = cv2.VideoCapture(dev)
     if not cap.isOpened():
         raise SnapsGraphError(f"live:{device}: cannot open the capture device")

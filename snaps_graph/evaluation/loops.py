@@ -10,6 +10,7 @@ in, dict out); :func:`loops_run` reads a run folder, writes the PR plot and retu
 from __future__ import annotations
 
 import json
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,8 +20,8 @@ from numpy.typing import ArrayLike
 from ..errors import SnapsGraphError
 from ..geometry import wrap_deg, yaw_deg
 from ..types import CandidateRecord
+from .results_io import check_run_files, json_clean, load_gt, read_candidates_csv, read_frames_csv, read_loops
 from .results_io import frame_ids as frame_ids_of
-from .results_io import json_clean, load_gt, read_candidates_csv, read_frames_csv, read_loops
 
 
 @dataclass(frozen=True)
@@ -276,14 +277,24 @@ def loops_run(
     true_m: float = 5.0,
     false_m: float = 10.0,
     png: str | Path | None = None,
+    name_missing: bool = True,
 ) -> dict:
     """Evaluate a run folder's loop closure against ground truth; writes the PR plot (default
-    RUN_DIR/loops_pr.png) and returns :func:`evaluate_loops`'s dict (with ``plot``)."""
+    RUN_DIR/loops_pr.png) and returns :func:`evaluate_loops`'s dict (with ``plot``).
+    ``name_missing``: warn of the run's files deleted since (False: the caller has)."""
     run = Path(run_dir)
     if not run.is_dir():
         raise SnapsGraphError(f"{run}: run folder not found")
     if not 0 < true_m <= false_m:
         raise SnapsGraphError(f"need 0 < true distance <= false distance, got {true_m} and {false_m}")
+    needed = ("frames.csv", "candidates.csv") + (("poses_gt.txt",) if gt_path is None else ())
+    try:
+        gone = check_run_files(run, needed, ("loops.jsonl", "config.toml"))
+    except SnapsGraphError as exc:
+        hint = " (pass --gt for the ground truth)" if gt_path is None and not (run / "poses_gt.txt").is_file() else ""
+        raise SnapsGraphError(f"{exc}{hint}") from None
+    if gone and name_missing:
+        print(f"warning: {run}: {', '.join(gone)} missing (the run wrote them); evaluated without them", file=sys.stderr)
     csv_path = run / "frames.csv"
     cols = read_frames_csv(csv_path)
     n = len(next(iter(cols.values())))

@@ -2,7 +2,8 @@
 
 Poses are (N, 4, 4) T_world_cam; row i of the estimate and of the ground truth is the same frame.
 Why these three, each computed as its field does: docs/decisions.md, "Evaluation". A metric that
-cannot be computed is NaN here and ``null`` / ``n/a`` downstream; a NaN never stands for a pose.
+cannot be computed is NaN here and ``null`` / ``n/a`` downstream, with a note naming why
+(``evaluate``'s ``notes``); a NaN never stands for a pose.
 """
 
 from __future__ import annotations
@@ -42,7 +43,8 @@ def _check_pair(est: np.ndarray, gt: np.ndarray) -> tuple[np.ndarray, np.ndarray
 def position_errors(est: np.ndarray, gt: np.ndarray) -> np.ndarray:
     """Per-frame Euclidean distance between estimated and true positions, metres, no alignment."""
     est, gt = _check_pair(est, gt)
-    return np.linalg.norm(est[:, :3, 3] - gt[:, :3, 3], axis=1)
+    with np.errstate(over="ignore"):  # inf beyond ~1e154 m: evaluate() names why
+        return np.linalg.norm(est[:, :3, 3] - gt[:, :3, 3], axis=1)
 
 
 def mean_deviation(est: np.ndarray, gt: np.ndarray) -> float:
@@ -55,7 +57,8 @@ def mean_deviation(est: np.ndarray, gt: np.ndarray) -> float:
 def path_length(poses: np.ndarray) -> float:
     """Length of the polyline through the positions, metres."""
     p = _check_poses(poses, "trajectory")[:, :3, 3]
-    return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
+    with np.errstate(over="ignore", invalid="ignore"):  # inf beyond ~1e154 m: evaluate() names why
+        return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
 
 
 def ate_rmse(est: np.ndarray, gt: np.ndarray) -> float:
@@ -152,23 +155,77 @@ def evaluate(est: np.ndarray, gt: np.ndarray) -> dict:
     Keys: mean_deviation, ate_rmse, t_rel, r_rel, frames, path_length_m (ground truth), end_error_m,
     end_drift_percent, and the mean deviation split into horizontal (x-z plane) and vertical (|y|):
     KITTI's world frame is the first camera's, y down, so this separates drift along the ground from
-    drift in height. NaN where undefined (t_rel / r_rel under 100 m, end drift on a zero-length path).
+    drift in height. NaN where undefined (t_rel / r_rel under 100 m, end drift on a zero-length path,
+    every figure for positions that overflow when squared), with ``notes``: figure -> why, one line.
     """
     est, gt = _check_pair(est, gt)
-    errors = position_errors(est, gt)
-    t_rel, r_rel = kitti_relative_errors(est, gt)
-    length = path_length(gt)
-    end_error = float(errors[-1])
-    d = est[:, :3, 3] - gt[:, :3, 3]
-    return {
-        "mean_deviation": float(errors.mean()),
-        "mean_deviation_horizontal": float(np.hypot(d[:, 0], d[:, 2]).mean()),
-        "mean_deviation_vertical": float(np.abs(d[:, 1]).mean()),
-        "ate_rmse": ate_rmse(est, gt),
-        "t_rel": t_rel,
-        "r_rel": r_rel,
-        "frames": int(len(est)),
-        "path_length_m": length,
-        "end_error_m": end_error,
-        "end_drift_percent": end_error / length * 100.0 if length > 0 else math.nan,
-    }
+    big = max(float(np.abs(est[:, :3, 3]).max()), float(np.abs(gt[:, :3, 3]).max()))
+    if big > _SQUARE_LIMIT_M:  # every figure would overflow, or be computed from ones that did
+        why = f"positions of up to {big:.3g} m overflow double precision when squared; no figure from them"
+        keys = [k for k in EVALUATE_KEYS if k != "frames"]
+        return {k: math.nan for k in keys} | {"frames": int(len(est)), "notes": dict.fromkeys(keys, why)}
+    with np.errstate(over="ignore", invalid="ignore"):  # what is not finite is named in ``notes``
+        errors = position_errors(est, gt)
+        t_rel, r_rel = kitti_relative_errors(est, gt)
+        length = path_length(gt)
+        end_error = float(errors[-1])
+        d = est[:, :3, 3] - gt[:, :3, 3]
+        try:
+            ate = ate_rmse(est, gt)
+        except np.linalg.LinAlgError:  # the alignment's SVD on overflowed (non-finite) sums
+            ate = math.nan
+        m = {
+            "mean_deviation": float(errors.mean()),
+            "mean_deviation_horizontal": float(np.hypot(d[:, 0], d[:, 2]).mean()),
+            "mean_deviation_vertical": float(np.abs(d[:, 1]).mean()),
+            "ate_rmse": ate,
+            "t_rel": t_rel,
+            "r_rel": r_rel,
+            "frames": int(len(est)),
+            "path_length_m": length,
+            "end_error_m": end_error,
+            "end_drift_percent": end_error / length * 100.0 if 0 < length < math.inf else math.nan,
+        }
+    notes = {k: _why_not(k, length) for k, v in m.items() if not math.isfinite(v)}
+    return m | ({"notes": notes} if notes else {})
+
+
+# Positions beyond this many metres overflow a double when squared and summed (1.8e308).
+_SQUARE_LIMIT_M = 1e150
+EVALUATE_KEYS = (
+    "mean_deviation",
+    "mean_deviation_horizontal",
+    "mean_deviation_vertical",
+    "ate_rmse",
+    "t_rel",
+    "r_rel",
+    "frames",
+    "path_length_m",
+    "end_error_m",
+    "end_drift_percent",
+)
+
+
+def notes_text(per_traj: dict[str, dict]) -> list[str]:
+    """The ``notes`` of :func:`evaluate` results by trajectory, one line per reason: the figures
+    and trajectories it leaves without a number, and why."""
+    why: dict[str, tuple[list[str], list[str]]] = {}
+    for name, m in per_traj.items():
+        for key, reason in (m.get("notes") or {}).items():
+            keys, names = why.setdefault(reason, ([], []))
+            keys += [key] if key not in keys else []
+            names += [name] if name not in names else []
+    every = len(EVALUATE_KEYS) - 1  # all but the frame count
+    return [
+        f"{'every figure' if len(keys) == every else ', '.join(keys)} n/a for {', '.join(names)}: {reason}"
+        for reason, (keys, names) in why.items()
+    ]
+
+
+def _why_not(key: str, length: float) -> str:
+    """One line: why the figure ``key`` of :func:`evaluate` could not be computed."""
+    if key in ("t_rel", "r_rel"):
+        return f"the ground-truth path is {length:.1f} m, shorter than KITTI's shortest segment ({KITTI_LENGTHS_M[0]:g} m)"
+    if key == "end_drift_percent":
+        return "the ground-truth path has zero length"
+    return "not a finite number"

@@ -11,6 +11,7 @@ are used as written, so the figures equal the pipeline's own ``evaluate``.
 from __future__ import annotations
 
 import math
+import sys
 import tomllib
 from collections.abc import Callable
 from pathlib import Path
@@ -23,9 +24,9 @@ from ..errors import SnapsGraphError
 from ..io_utils import atomic_write_text, read_text
 from .latency import LATENCY_LABELS, latency_samples, summarise_samples
 from .loops import loops_run, summary_lines
-from .metrics import evaluate, path_length, position_errors
-from .results_io import frame_ids as frame_ids_of
+from .metrics import evaluate, notes_text, path_length, position_errors
 from .results_io import (
+    check_run_files,
     load_gt,
     read_frames_csv,
     read_loops,
@@ -33,9 +34,12 @@ from .results_io import (
     read_trajectories,
     write_metrics_json,
 )
+from .results_io import frame_ids as frame_ids_of
 from .segments import segment_errors, worse_than
 
 REFINED_NAMES = ("isam2", "batch")
+# What compare reads of a run: one it wrote and that is gone since is named, never passed over.
+COMPARED_FILES = ("poses_*.txt", "metrics.json", "loops.jsonl", "candidates.csv", "config.toml")
 TRAJECTORY_LABELS = {
     "vo": "pure visual odometry",
     "snaps": "SNAPS heuristic (eq. 6)",
@@ -141,7 +145,11 @@ def _trajectory_lines(trajs: dict, metrics: dict | None, paths: dict) -> list[st
         if name == "vo":
             change = "reference"
         else:
-            change = "n/a" if md_vo <= 0 else f"{(m['mean_deviation'] - md_vo) / md_vo * 100.0:+.1f}%"
+            change = (
+                "n/a"
+                if not (md_vo > 0 and math.isfinite(m["mean_deviation"]))
+                else f"{(m['mean_deviation'] - md_vo) / md_vo * 100.0:+.1f}%"
+            )
         split = f"{_f(m.get('mean_deviation_horizontal'), 3)} / {_f(m.get('mean_deviation_vertical'), 3)}"
         rows.append(
             [
@@ -157,7 +165,8 @@ def _trajectory_lines(trajs: dict, metrics: dict | None, paths: dict) -> list[st
                 _f(m["end_drift_percent"], 3),
             ]
         )
-    return _table(header, rows)
+    notes = notes_text(metrics)  # why a figure is n/a, said once for every row it concerns
+    return _table(header, rows) + ([""] + [f"- {line}" for line in notes] if notes else [])
 
 
 def _loop_lines(corrections: list[dict], trajs: dict, with_gt: bool) -> list[str]:
@@ -329,6 +338,9 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accu
     run = Path(run_dir)
     if not run.is_dir():
         raise SnapsGraphError(f"{run}: run folder not found")
+    gone = check_run_files(run, ("poses_vo.txt", "frames.csv"), COMPARED_FILES)
+    if gone:
+        print(f"warning: {run}: {', '.join(gone)} missing (the run wrote them); compared without them", file=sys.stderr)
     trajs = read_trajectories(run)
     n = len(trajs["vo"])
     csv_path = run / "frames.csv"
@@ -382,6 +394,8 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accu
         else "Ground truth: none (no poses_gt.txt and no --gt), so no error columns and no errors.png."
     )
     md.append("Trajectories: " + "; ".join(f"**{k}** = {TRAJECTORY_LABELS[k]}" for k in trajs) + ".")
+    if gone:
+        md.append(f"Missing: {', '.join(f'`{name}`' for name in gone)}, written by the run and deleted since; left out here.")
     md += ["", "## Trajectories", ""]
     md += _trajectory_lines(trajs, per_traj, paths)
     md.append("")
@@ -416,7 +430,7 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accu
         md.append("No loop closed in this run" + ("" if (run / "loops.jsonl").is_file() else " (no loops.jsonl)") + ".")
     loop_eval = None
     if gt is not None and (run / "candidates.csv").is_file():
-        loop_eval = loops_run(run, gt_path)
+        loop_eval = loops_run(run, gt_path, name_missing=False)
         md += ["", "## Loop closure against ground truth", ""]
         md += [f"- {line}" for line in summary_lines(loop_eval)]
         md += [

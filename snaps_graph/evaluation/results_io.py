@@ -21,7 +21,7 @@ import numpy as np
 
 from ..errors import SnapsGraphError
 from ..geometry import inv
-from ..io_utils import atomic_write_text, read_text
+from ..io_utils import MARKER, atomic_write_text, read_text
 from ..trajectory_io import read_kitti_poses, read_poses, write_kitti_poses, write_tum_poses
 from ..types import CANDIDATE_COLUMNS, FRAME_COLUMNS, CandidateRecord, FrameRecord, LoopEvent
 
@@ -61,6 +61,26 @@ def read_trajectories(run: Path) -> dict[str, np.ndarray]:
         if len(poses) != n:
             raise SnapsGraphError(f"{run / f'poses_{name}.txt'}: {len(poses)} poses, but poses_vo.txt has {n}")
     return trajs
+
+
+def check_run_files(run: Path, required: tuple[str, ...], wanted: tuple[str, ...] = ()) -> list[str]:
+    """One SnapsGraphError naming every ``required`` file missing from the run folder; returns the
+    ``wanted`` ones (``fnmatch`` patterns) that the run wrote (its marker lists them) and that are
+    gone since, for the caller to name: a command never works on a part of a run without saying so."""
+    import fnmatch
+
+    missing = [name for name in required if not (run / name).is_file()]
+    if missing:
+        raise SnapsGraphError(f"{run}: {', '.join(missing)} not found in the run folder")
+    try:
+        listed = json.loads((run / MARKER).read_text()).get("files") or []
+    except (OSError, ValueError, AttributeError):
+        return []  # not a folder a run wrote (or an older one): nothing is known to be expected
+    return [
+        name
+        for name in listed
+        if isinstance(name, str) and any(fnmatch.fnmatch(name, pat) for pat in wanted) and not (run / name).exists()
+    ]
 
 
 def rebase(poses: np.ndarray) -> np.ndarray:

@@ -7,12 +7,14 @@ the end) that reads what the pipeline already has and computes nothing the run n
 
 from __future__ import annotations
 
+import contextlib
 import os
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import SnapsGraphError
+from ..locks import writer_lock
 
 TRAJ_COLOURS = {"gt": (150, 150, 150), "vo": (230, 80, 60), "snaps": (60, 140, 240), "refined": (60, 200, 90)}
 
@@ -98,6 +100,7 @@ class RerunLogger:
         self._loop_labels: list[str] = []
         self._rrd: Path | None = None
         self._rrd_tmp: Path | None = None
+        self._lock = contextlib.ExitStack()
         if recording is not None:
             self.rec = recording
         else:
@@ -117,6 +120,7 @@ class RerunLogger:
             if rrd is not None:  # written under a temporary name, renamed by close(): whole or absent
                 self._rrd = Path(rrd)
                 self._rrd.parent.mkdir(parents=True, exist_ok=True)
+                self._lock.enter_context(writer_lock(self._rrd))  # one run per recording, until close()
                 self._rrd_tmp = self._rrd.parent / f".{self._rrd.name}.tmp-{os.getpid()}"
                 sinks.append(rr.FileSink(str(self._rrd_tmp)))
             self.rec.set_sinks(*sinks, default_blueprint=bp)
@@ -204,6 +208,7 @@ class RerunLogger:
         if self._rrd_tmp is not None and self._rrd is not None:
             os.replace(self._rrd_tmp, self._rrd)
             self._rrd_tmp = None
+        self._lock.close()
 
     def abort(self) -> None:
         """The run failed: disconnect and delete the unfinished recording."""
@@ -211,6 +216,7 @@ class RerunLogger:
         if self._rrd_tmp is not None:
             self._rrd_tmp.unlink(missing_ok=True)
             self._rrd_tmp = None
+        self._lock.close()
 
     # ---- pieces ----
     def _positions(self, pipe, trajs: dict | None = None) -> dict[str, np.ndarray]:
