@@ -43,6 +43,7 @@ from .console import (  # noqa: E402  # progress, summary, Ctrl-C
     print_input_notes,
     print_summary,
     progress,
+    replacing,
     stdout_failed,
     warn_mostly_flagged,
 )
@@ -79,7 +80,9 @@ def _print_version(value: bool) -> None:
 
 @app.callback()
 def _main_options(
-    version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True, help="Print the version and exit."),
+    version: bool = typer.Option(
+        False, "--version", "-V", callback=_print_version, is_eager=True, help="Print the version and exit."
+    ),
 ) -> None:
     """Stereo visual SLAM with SNAPS loop closure and a GTSAM pose graph."""
 
@@ -155,6 +158,7 @@ def synth(
     if not mesh_only:
         check_inputs_outside(out, [("trajectory", Path(trajectory) if trajectory != "loop" else None), ("times", times)])
         check_output_folder(out, overwrite)
+        replacing(out, overwrite)
         if world_mesh is not None and inside(world_mesh, out):  # written with the sequence, not deleted by it
             mesh_inside = world_mesh.resolve().relative_to(out.resolve())
     if world_mesh is not None and mesh_inside is None:
@@ -257,6 +261,7 @@ def run(
     inputs = [("sequence", seq_dir), ("config", config), ("ground truth", gt), ("calibration", calib), ("odometry", odometry)]
     check_inputs_outside(out, inputs + [("world mesh", world_mesh)])
     check_output_folder(out, overwrite)
+    replacing(out, overwrite)
     rrd_inside = check_recording_path(rrd, out) if rrd is not None else None
     if odometry_format is not None and odometry_format not in ODOMETRY_FORMATS:
         raise_user(f"--odometry-format must be one of {', '.join(ODOMETRY_FORMATS)}, not '{odometry_format}'")
@@ -382,6 +387,7 @@ def convert(
     """Write any readable source as a KITTI folder of rectified pairs."""
     check_inputs_outside(out, [("source", src), ("ground truth", gt), ("calibration", calib)])
     check_output_folder(out, overwrite)
+    replacing(out, overwrite)
     from .datasets.convert import write_kitti_folder
     from .datasets.open import open_dataset
 
@@ -413,19 +419,63 @@ def eval_(
     for given in (est, gt):
         if not given.exists():
             raise_user(f"{given}: pose file not found")
+    import numpy as np
+
     from .evaluation.metrics import evaluate
     from .trajectory_io import read_poses
 
     est_poses, gt_poses = read_poses(est), read_poses(gt)
+    ids = _run_frame_ids(est, len(est_poses))
     if len(est_poses) != len(gt_poses):
-        raise_user(f"{est}: {len(est_poses)} poses, but {gt} has {len(gt_poses)} (one pose per frame in both)")
-    m = evaluate(est_poses, gt_poses)
+        if ids is None or gt.suffix.lower() == ".tum" or ids[-1] >= len(gt_poses):
+            raise_user(
+                f"{est}: {len(est_poses)} poses, but {gt} has {len(gt_poses)} (one pose per frame in both; "
+                "a run's own poses_gt.txt holds exactly its frames)"
+            )
+        # A run of part of a sequence against the sequence's whole ground truth (the official
+        # KITTI file): its frames, re-based to the first, as the run's poses_gt.txt holds them.
+        gt_poses = np.linalg.solve(gt_poses[ids[0]], gt_poses[ids])
+        typer.echo(f"note: {gt}: the run's {len(ids)} frames ({_spans(ids)}) of its {len(read_poses(gt))}", err=True)
+    m = evaluate(est_poses, gt_poses, ids)
     if as_json:
         from .evaluation.results_io import json_clean
 
         typer.echo(json.dumps(json_clean(m)))  # a metric that cannot be computed is null
         return
     typer.echo(metrics_table({est.name: m}))
+
+
+def _run_frame_ids(est: Path, n: int):
+    """The dataset frame numbers of a run's pose file (its folder's frames.csv), else None."""
+    frames_csv = est.parent / "frames.csv"
+    if not frames_csv.is_file():
+        return None
+    import numpy as np
+
+    from .evaluation.results_io import frame_ids, read_frames_csv
+
+    cols = read_frames_csv(frames_csv)
+    if len(next(iter(cols.values()), [])) != n:
+        return None  # not this file's rows
+    ids = frame_ids(cols, n, frames_csv)
+    return ids if len(ids) and np.all(np.diff(ids) > 0) else None
+
+
+def _spans(ids) -> str:
+    from .evaluation.metrics import parts
+
+    return ", ".join(f"{ids[r[0]]}-{ids[r[-1]]}" for r in parts(ids, len(ids)))
+
+
+def _check_run_folder(run_dir: Path) -> None:
+    """A mistyped path, or a folder that holds runs (``demo``'s OUT holds OUT/run): said before
+    the heavy imports, naming the run folders inside."""
+    if not run_dir.exists():
+        raise_user(f"{run_dir}: run folder not found")
+    if run_dir.is_dir() and not (run_dir / "poses_vo.txt").is_file():
+        inner = sorted(p.parent for p in run_dir.glob("*/poses_vo.txt"))
+        if inner:
+            raise_user(f"{run_dir}: not a run folder itself; the run is in {', '.join(map(str, inner))}")
 
 
 @app.command()
@@ -437,8 +487,7 @@ def compare(
     ),
 ) -> None:
     """Heuristic (SNAPS) against optimised corrections: report.md, PNGs and metrics.json."""
-    if not run_dir.exists():  # a mistyped path: before the heavy imports
-        raise_user(f"{run_dir}: run folder not found")
+    _check_run_folder(run_dir)
     from .evaluation.report import compare_run
 
     measure = None
@@ -465,8 +514,7 @@ def loops(
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object instead of text."),
 ) -> None:
     """Loop-closure evaluation: precision-recall over the Q threshold, revisits found, false loops."""
-    if not run_dir.exists():  # a mistyped path: before the heavy imports
-        raise_user(f"{run_dir}: run folder not found")
+    _check_run_folder(run_dir)
     from .evaluation.loops import json_text, loops_run, summary_lines
 
     ev = loops_run(run_dir, gt, true_m=true_m, false_m=false_m, png=png)
@@ -520,7 +568,7 @@ def main() -> None:
     signal.signal(signal.SIGTERM, on_sigint)  # `kill`, a scheduler's stop: cleaned up as Ctrl-C
     set_malloc_thresholds()  # the process is ours: large frames stop costing page faults
     try:
-        rc = app(standalone_mode=False)
+        rc = _command()(standalone_mode=False)
         sys.stdout.flush()
     except OSError as exc:
         if exc.filename is not None or exc.errno not in STDOUT_ERRNOS:
@@ -590,6 +638,42 @@ def drift(
     typer.echo(f"wrote {out}: {len(drifted)} poses, end drift {end_drift_pct(drifted, poses):.3f} % of the distance")
 
 
+def _plain_metavars() -> None:
+    """Help shows a value's shape only where one is typed: no ``<bool>`` after a flag, and
+    ``--set`` as the KEY=VALUE it takes rather than typer's ``<list[str]>``."""
+    import inspect
+    import typing
+
+    callbacks = [cmd.callback for cmd in app.registered_commands]
+    if app.registered_callback is not None:
+        callbacks.append(app.registered_callback.callback)
+    for fn in callbacks:
+        assert fn is not None
+        hints = typing.get_type_hints(fn)
+        for name, param in inspect.signature(fn).parameters.items():
+            info = param.default
+            if not isinstance(info, typer.models.OptionInfo) or info.metavar is not None:
+                continue
+            if hints.get(name) in (bool, Optional[bool]):
+                info.metavar = ""
+            elif "--set" in info.param_decls:
+                info.metavar = "SECTION.KEY=VALUE"
+
+
+def _command():
+    """The click command ``app()`` would run, its ``-h/--help`` flags shown without ``<bool>`` too."""
+    from types import SimpleNamespace
+
+    command = typer.main.get_command(app)
+    names = SimpleNamespace(help_option_names=app.info.context_settings["help_option_names"])
+    for cmd in [command, *getattr(command, "commands", {}).values()]:
+        help_option = cmd.get_help_option(names)
+        if help_option is not None:
+            help_option.metavar = ""
+    return command
+
+
+_plain_metavars()
 signal.signal(signal.SIGINT, _SIGINT_BEFORE)  # the module is imported: main() takes over
 
 if __name__ == "__main__":
