@@ -262,8 +262,10 @@ def perspective_png(
     dist = 0.5 * extent / np.tan(np.deg2rad(fov_deg) / 2.0) * 1.1 + 5.0
     e = np.deg2rad(elevation_deg)
     eye = centre + dist * (np.cos(e) * horiz + np.sin(e) * np.array([0.0, -1.0, 0.0]))
+    # open3d's pinhole rays run the image's rows along `up` (first row nearest -up): KITTI's y,
+    # pointing down, gives an upright picture (with -y it came out turned by 180 degrees).
     rays = o3d.t.geometry.RaycastingScene.create_rays_pinhole(
-        fov_deg=fov_deg, center=centre.tolist(), eye=eye.tolist(), up=[0.0, -1.0, 0.0], width_px=width, height_px=height
+        fov_deg=fov_deg, center=centre.tolist(), eye=eye.tolist(), up=[0.0, 1.0, 0.0], width_px=width, height_px=height
     )
     ans = scene.cast_rays(rays)
     t = ans["t_hit"].numpy()
