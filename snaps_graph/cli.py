@@ -665,7 +665,7 @@ def _plain_metavars() -> None:
                 continue
             if hints.get(name) in (bool, Optional[bool]):
                 info.metavar = ""
-            elif "--set" in info.param_decls:
+            elif "--set" in (info.param_decls or ()):
                 info.metavar = "SECTION.KEY=VALUE"
 
 
@@ -674,7 +674,7 @@ def _command():
     from types import SimpleNamespace
 
     command = typer.main.get_command(app)
-    names = SimpleNamespace(help_option_names=app.info.context_settings["help_option_names"])
+    names = SimpleNamespace(help_option_names=(app.info.context_settings or {}).get("help_option_names", ["--help"]))
     for cmd in [command, *getattr(command, "commands", {}).values()]:
         help_option = cmd.get_help_option(names)
         if help_option is not None:

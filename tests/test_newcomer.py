@@ -251,7 +251,9 @@ def test_demo_second_pass_is_another_lane_in_other_traffic_and_light():
     assert np.all((aside >= 1.0) & (aside <= 3.0)), (aside.min(), aside.max())
     cfg = seq.world.config
     assert cfg.traffic and cfg.lighting
-    assert np.degrees(np.arccos(np.clip(seq.sun(5) @ seq.sun(255), -1, 1))) > 10.0  # the sun moved between the passes
+    sun_a, sun_b = seq.sun(5), seq.sun(255)
+    assert sun_a is not None and sun_b is not None
+    assert np.degrees(np.arccos(np.clip(sun_a @ sun_b, -1, 1))) > 10.0  # the sun moved between the passes
     qs = []
     for k in (5, 20, 35, 48):
         a, b = (window_stats(make_thumbnail(seq.render(i, with_depth=False).left), 16) for i in (k, k + 250))
