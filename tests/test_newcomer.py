@@ -410,3 +410,41 @@ def test_ctrl_c_over_an_earlier_run_with_overwrite_says_it_was_kept(bin_dir, tin
     assert proc.returncode == 130, stderr
     assert "no results written" not in stderr and "earlier results in old are kept" in stderr, stderr
     assert (tmp_path / "old" / "poses_vo.txt").read_text() == before
+
+
+# ------------------------------------------------------------------ pictures
+def test_trajectory_picture_notes_lines_that_coincide(tmp_path):
+    from snaps_graph.evaluation.plots import coinciding, plot_trajectories
+    from snaps_graph.synth import builtin_loop_trajectory
+
+    gt = builtin_loop_trajectory(120)
+    vo = gt.copy()
+    vo[:, 0, 3] += np.linspace(0.0, 2.0, len(gt))  # drifts sideways
+    snaps = vo.copy()
+    snaps[:, 2, 3] += 1e-4  # no loop corrected anything: on the odometry
+    isam2 = gt.copy()
+    same = coinciding({"gt": gt, "vo": vo, "snaps": snaps, "isam2": isam2})
+    assert set(same) == {"snaps"} and same["snaps"][0] == "vo" and same["snaps"][1] == pytest.approx(1e-4)
+    png = plot_trajectories(tmp_path / "t.png", {"gt": gt, "vo": vo, "snaps": snaps, "isam2": isam2}, loops=[(110, 5)])
+    assert png.stat().st_size > 10_000
+
+
+def test_mesh_picture_projection_is_upright_and_turned_as_the_top_view():
+    """The perspective picture looks from -z with x to the right and the far side up, as the top
+    view does; the axes drawn on it are projected through the picture's own rays."""
+    import open3d as o3d
+
+    from snaps_graph.mapping.render import _project, _round_length
+
+    eye, centre = np.array([0.0, -30.0, -60.0]), np.zeros(3)
+    rays = o3d.t.geometry.RaycastingScene.create_rays_pinhole(
+        fov_deg=50.0, center=centre.tolist(), eye=eye.tolist(), up=[0.0, 1.0, 0.0], width_px=400, height_px=240
+    ).numpy()
+    uv = _project(rays, np.array([centre, [10.0, 0.0, 0.0], [0.0, 0.0, 10.0]]))
+    assert np.allclose(uv[0], [199.5, 119.5], atol=1.0)  # the centre in the middle
+    assert uv[1, 0] > uv[0, 0] + 20  # +x to the right
+    assert uv[2, 1] < uv[0, 1] - 5  # +z (away from the eye) up the picture
+    hit = rays[int(round(uv[1, 1])), int(round(uv[1, 0]))]
+    d = np.array([10.0, 0.0, 0.0]) - hit[:3]
+    assert np.degrees(np.arccos(d @ hit[3:] / np.linalg.norm(d) / np.linalg.norm(hit[3:]))) < 0.5  # the pixel's ray passes it
+    assert [_round_length(x) for x in (0.05, 3.0, 17.0, 240.0)] == [0.1, 2.0, 10.0, 200.0]
