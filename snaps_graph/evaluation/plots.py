@@ -114,12 +114,14 @@ def plot_trajectories(
     trajs: Mapping[str, np.ndarray],
     loops: Sequence[tuple[int, int]] | None = None,
     title: str = "Trajectories",
+    frames: Sequence[int] | np.ndarray | None = None,
 ) -> Path:
     """Top view (x right against z forward, KITTI camera axes) beside height (-y) over distance.
 
     ``trajs`` maps a name to an (N, 4, 4) pose stack, ``"gt"`` (or ``"ground truth"``) the ground
     truth; ``loops`` are (frame, reference) *row* indices, drawn on ``"snaps"`` (else the first
-    estimate). Returns the path written.
+    estimate); ``frames``, the rows' frame numbers: lines break across a gap in them, and the
+    distance does not count the jump. Returns the path written.
     """
     if not trajs:
         raise SnapsGraphError(f"{path_png}: no trajectory to plot")
@@ -130,6 +132,17 @@ def plot_trajectories(
     gt_name = next((n for n in names if n.lower() in GT_NAMES), None)
     ref = np.asarray(trajs[gt_name if gt_name is not None else names[0]])[:, :3, 3]
     dist = _distance_along(ref)
+    gaps = np.zeros(len(ref), bool)  # row i starts a part after a gap in the frame numbers
+    if frames is not None and len(frames) == len(ref):
+        gaps[1:] = np.diff(np.asarray(frames, dtype=np.int64)) != 1
+        step = np.linalg.norm(np.diff(ref, axis=0), axis=1) * ~gaps[1:]
+        dist = np.concatenate([[0.0], np.cumsum(step)])
+
+    def broken(v: np.ndarray) -> np.ndarray:
+        """``v`` with NaN before each part after a gap: the line is not drawn across it."""
+        v = np.asarray(v, dtype=float)
+        return np.insert(v, np.flatnonzero(gaps), np.nan, axis=0) if len(v) == len(gaps) and gaps.any() else v
+
     same_as = coinciding(trajs)
     for i, name in enumerate(names):
         # Earlier estimates are drawn wider, so VO stays visible where SNAPS left it unchanged.
@@ -143,9 +156,9 @@ def plot_trajectories(
             label=name if name not in same_as else f"{name} (on {same_as[name][0]}: within {_length(same_as[name][1])})",
             zorder=1 if is_gt else 2,
         )
-        ax.plot(p[:, 0], p[:, 2], **style)
+        ax.plot(broken(p[:, 0]), broken(p[:, 2]), **style)
         if len(p) == len(dist):
-            axh.plot(dist, -p[:, 1], **style)
+            axh.plot(broken(dist), broken(-p[:, 1]), **style)
     ax.plot([0.0], [0.0], "ko", ms=4, zorder=4)
     if loops and names:
         on = next((n for n in estimates if n.lower() == "snaps"), estimates[0] if estimates else names[0])
@@ -190,6 +203,8 @@ def plot_trajectories(
         ax.set_aspect("equal", adjustable="datalim")
     if same_as:
         note += "\n" + "; ".join(f"{n} lies on {o}" for n, (o, _) in same_as.items())
+    if gaps.any():
+        note += f"\n{int(gaps.sum()) + 1} parts of the sequence: no line across the frames not run"
     ax.set_title("top view" + note, fontsize=10)
     ax.set_xlabel("x [m] (right)")
     ax.set_ylabel("z [m] (forward)")

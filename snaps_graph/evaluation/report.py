@@ -342,6 +342,7 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accu
         ({"gt": gt} if gt is not None else {}) | trajs,
         loops=[(lp["row"], lp["reference_row"]) for lp in loops],
         title=f"{run.name}: trajectories",
+        frames=frame_ids,
     )
     figures.append("trajectories.png")
     if gt is not None:
