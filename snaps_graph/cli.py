@@ -27,6 +27,7 @@ from typing import Optional  # noqa: E402
 
 import typer  # noqa: E402
 
+from . import cli_support as support  # noqa: E402  # help, folders, a run's frames
 from ._malloc import set_malloc_thresholds  # noqa: E402
 from .config import Config, FrontendMode, LoopMode, RefineMode  # noqa: E402
 from .config_schema import choices  # noqa: E402
@@ -43,7 +44,6 @@ from .console import (  # noqa: E402  # progress, summary, Ctrl-C
     print_input_notes,
     print_summary,
     progress,
-    replacing,
     stdout_failed,
     warn_mostly_flagged,
 )
@@ -51,7 +51,6 @@ from .errors import SnapsGraphError, interrupted  # noqa: E402
 from .io_utils import (  # noqa: E402
     PREFETCH_FRAMES,
     check_inputs_outside,
-    check_output_folder,
     check_recording_path,
     inside,
     output_folder,
@@ -81,13 +80,11 @@ def _print_version(value: bool) -> None:
 @app.callback()
 def _main_options(
     version: bool = typer.Option(
-        False, "--version", "-V", callback=_print_version, is_eager=True, help="Print the version and exit."
+        False, "--version", "-V", callback=_print_version, is_eager=True, help="Print the version, exit."
     ),
 ) -> None:
     """Stereo visual SLAM with SNAPS loop closure and a GTSAM pose graph."""
 
-
-RRD_JPEG_QUALITY = 75  # --rrd images: a KITTI frame 0.46 MB raw, about 0.1 MB as JPEG 75
 
 # The renderer holds about a hundred bytes per pixel: 16 Mpixel is about 2 GB.
 SYNTH_MAX_SIDE, SYNTH_MAX_PIXELS = 8192, 16 * 2**20
@@ -159,8 +156,7 @@ def synth(
     mesh_inside = None
     if not mesh_only:
         check_inputs_outside(out, [("trajectory", Path(trajectory) if trajectory != "loop" else None), ("times", times)])
-        check_output_folder(out, overwrite)
-        replacing(out, overwrite)
+        support.check_output(out, overwrite)
         if world_mesh is not None and inside(world_mesh, out):  # written with the sequence, not deleted by it
             mesh_inside = world_mesh.resolve().relative_to(out.resolve())
     if world_mesh is not None and mesh_inside is None:
@@ -227,9 +223,7 @@ def run(
     ),
     viewer: bool = typer.Option(False, "--viewer", help="Spawn the rerun viewer and stream the run to it (needs rerun-sdk)."),
     rrd: Optional[Path] = typer.Option(None, "--rrd", help="Record the run to a rerun .rrd file (needs rerun-sdk)."),
-    rrd_images: int = typer.Option(
-        10, "--rrd-images", help="With --rrd: the camera image every N frames, JPEG (1: every frame, as --viewer shows)."
-    ),
+    rrd_images: int = typer.Option(10, "--rrd-images", min=1, help="With --rrd: the camera image every N frames, JPEG."),
     odometry: Optional[Path] = typer.Option(
         None,
         "--odometry",
@@ -265,11 +259,8 @@ def run(
     cfg.resolved(loops=loops, refine=refine, build_map=map_)
     inputs = [("sequence", seq_dir), ("config", config), ("ground truth", gt), ("calibration", calib), ("odometry", odometry)]
     check_inputs_outside(out, inputs + [("world mesh", world_mesh)])
-    check_output_folder(out, overwrite)
-    replacing(out, overwrite)
+    support.check_output(out, overwrite)
     rrd_inside = check_recording_path(rrd, out) if rrd is not None else None
-    if rrd_images < 1:
-        raise_user(f"--rrd-images must be at least 1 (an image every N frames), got {rrd_images}")
     if odometry_format is not None and odometry_format not in ODOMETRY_FORMATS:
         raise_user(f"--odometry-format must be one of {', '.join(ODOMETRY_FORMATS)}, not '{odometry_format}'")
     if odometry is not None and not odometry.is_file():
@@ -291,8 +282,9 @@ def run(
         from .viz.rerun_logger import RerunLogger
 
         target = tmp / rrd_inside if rrd_inside is not None else rrd
-        thin = {"image_every": rrd_images, "jpeg_quality": RRD_JPEG_QUALITY} if rrd is not None else {}
-        loggers.append(RerunLogger(seq.camera, spawn=viewer, rrd=target, name=str(seq_dir), gt_poses=seq.gt_poses, **thin))
+        loggers.append(
+            RerunLogger(seq.camera, spawn=viewer, rrd=target, name=str(seq_dir), gt_poses=seq.gt_poses, image_every=rrd_images)
+        )
         return loggers[0]
 
     def close_recording(tmp: Path) -> None:
@@ -331,8 +323,7 @@ def run(
                 loggers[0].abort()  # no half-written recording
             raise
     if rrd is not None:
-        size_mb = rrd.stat().st_size / 1e6 if rrd.is_file() else float("nan")
-        typer.echo(f"rerun recording in {rrd}: {size_mb:.1f} MB, {size_mb / max(metrics['frames'], 1):.3f} MB per frame")
+        typer.echo(f"rerun recording in {rrd}: {support.rrd_size_text(rrd, metrics['frames'])}")
     print_summary(metrics, out, bar.rate, partial=frames is not None)
     if mostly_flagged(metrics):
         warn_mostly_flagged(metrics)
@@ -395,8 +386,7 @@ def convert(
 ) -> None:
     """Write any readable source as a KITTI folder of rectified pairs."""
     check_inputs_outside(out, [("source", src), ("ground truth", gt), ("calibration", calib)])
-    check_output_folder(out, overwrite)
-    replacing(out, overwrite)
+    support.check_output(out, overwrite)
     from .datasets.convert import write_kitti_folder
     from .datasets.open import open_dataset
 
@@ -428,23 +418,12 @@ def eval_(
     for given in (est, gt):
         if not given.exists():
             raise_user(f"{given}: pose file not found")
-    import numpy as np
-
     from .evaluation.metrics import evaluate
     from .trajectory_io import read_poses
 
-    est_poses, gt_poses = read_poses(est), read_poses(gt)
-    ids = _run_frame_ids(est, len(est_poses))
-    if len(est_poses) != len(gt_poses):
-        if ids is None or gt.suffix.lower() == ".tum" or ids[-1] >= len(gt_poses):
-            raise_user(
-                f"{est}: {len(est_poses)} poses, but {gt} has {len(gt_poses)} (one pose per frame in both; "
-                "a run's own poses_gt.txt holds exactly its frames)"
-            )
-        # A run of part of a sequence against the sequence's whole ground truth (the official
-        # KITTI file): its frames, re-based to the first, as the run's poses_gt.txt holds them.
-        gt_poses = np.linalg.solve(gt_poses[ids[0]], gt_poses[ids])
-        typer.echo(f"note: {gt}: the run's {len(ids)} frames ({_spans(ids)}) of its {len(read_poses(gt))}", err=True)
+    est_poses = read_poses(est)
+    ids = support.run_frame_ids(est, len(est_poses))
+    gt_poses = support.run_ground_truth(est, len(est_poses), gt, read_poses(gt), ids)
     m = evaluate(est_poses, gt_poses, ids)
     if as_json:
         from .evaluation.results_io import json_clean
@@ -452,39 +431,6 @@ def eval_(
         typer.echo(json.dumps(json_clean(m)))  # a metric that cannot be computed is null
         return
     typer.echo(metrics_table({est.name: m}))
-
-
-def _run_frame_ids(est: Path, n: int):
-    """The dataset frame numbers of a run's pose file (its folder's frames.csv), else None."""
-    frames_csv = est.parent / "frames.csv"
-    if not frames_csv.is_file():
-        return None
-    import numpy as np
-
-    from .evaluation.results_io import frame_ids, read_frames_csv
-
-    cols = read_frames_csv(frames_csv)
-    if len(next(iter(cols.values()), [])) != n:
-        return None  # not this file's rows
-    ids = frame_ids(cols, n, frames_csv)
-    return ids if len(ids) and np.all(np.diff(ids) > 0) else None
-
-
-def _spans(ids) -> str:
-    from .evaluation.metrics import parts
-
-    return ", ".join(f"{ids[r[0]]}-{ids[r[-1]]}" for r in parts(ids, len(ids)))
-
-
-def _check_run_folder(run_dir: Path) -> None:
-    """A mistyped path, or a folder that holds runs (``demo``'s OUT holds OUT/run): said before
-    the heavy imports, naming the run folders inside."""
-    if not run_dir.exists():
-        raise_user(f"{run_dir}: run folder not found")
-    if run_dir.is_dir() and not (run_dir / "poses_vo.txt").is_file():
-        inner = sorted(p.parent for p in run_dir.glob("*/poses_vo.txt"))
-        if inner:
-            raise_user(f"{run_dir}: not a run folder itself; the run is in {', '.join(map(str, inner))}")
 
 
 @app.command()
@@ -496,7 +442,7 @@ def compare(
     ),
 ) -> None:
     """Heuristic (SNAPS) against optimised corrections: report.md, PNGs and metrics.json."""
-    _check_run_folder(run_dir)
+    support.check_run_folder(run_dir)
     from .evaluation.report import compare_run
 
     measure = None
@@ -523,7 +469,7 @@ def loops(
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object instead of text."),
 ) -> None:
     """Loop-closure evaluation: precision-recall over the Q threshold, revisits found, false loops."""
-    _check_run_folder(run_dir)
+    support.check_run_folder(run_dir)
     from .evaluation.loops import json_text, loops_run, summary_lines
 
     ev = loops_run(run_dir, gt, true_m=true_m, false_m=false_m, png=png)
@@ -577,7 +523,7 @@ def main() -> None:
     signal.signal(signal.SIGTERM, on_sigint)  # `kill`, a scheduler's stop: cleaned up as Ctrl-C
     set_malloc_thresholds()  # the process is ours: large frames stop costing page faults
     try:
-        rc = _command()(standalone_mode=False)
+        rc = support.click_command(app)(standalone_mode=False)
         sys.stdout.flush()
     except OSError as exc:
         if exc.filename is not None or exc.errno not in STDOUT_ERRNOS:
@@ -647,42 +593,7 @@ def drift(
     typer.echo(f"wrote {out}: {len(drifted)} poses, end drift {end_drift_pct(drifted, poses):.3f} % of the distance")
 
 
-def _plain_metavars() -> None:
-    """Help shows a value's shape only where one is typed: no ``<bool>`` after a flag, and
-    ``--set`` as the KEY=VALUE it takes rather than typer's ``<list[str]>``."""
-    import inspect
-    import typing
-
-    callbacks = [cmd.callback for cmd in app.registered_commands]
-    if app.registered_callback is not None:
-        callbacks.append(app.registered_callback.callback)
-    for fn in callbacks:
-        assert fn is not None
-        hints = typing.get_type_hints(fn)
-        for name, param in inspect.signature(fn).parameters.items():
-            info = param.default
-            if not isinstance(info, typer.models.OptionInfo) or info.metavar is not None:
-                continue
-            if hints.get(name) in (bool, Optional[bool]):
-                info.metavar = ""
-            elif "--set" in (info.param_decls or ()):
-                info.metavar = "SECTION.KEY=VALUE"
-
-
-def _command():
-    """The click command ``app()`` would run, its ``-h/--help`` flags shown without ``<bool>`` too."""
-    from types import SimpleNamespace
-
-    command = typer.main.get_command(app)
-    names = SimpleNamespace(help_option_names=(app.info.context_settings or {}).get("help_option_names", ["--help"]))
-    for cmd in [command, *getattr(command, "commands", {}).values()]:
-        help_option = cmd.get_help_option(names)
-        if help_option is not None:
-            help_option.metavar = ""
-    return command
-
-
-_plain_metavars()
+support.plain_metavars(app)
 signal.signal(signal.SIGINT, _SIGINT_BEFORE)  # the module is imported: main() takes over
 
 if __name__ == "__main__":

@@ -69,6 +69,9 @@ def blueprint():
     )
 
 
+RRD_JPEG_QUALITY = 75  # `run --rrd` images: a KITTI frame 0.46 MB raw, about 0.1 MB as JPEG 75
+
+
 class RerunLogger:
     """Log a run to rerun. ``spawn``: start a viewer and stream to it; ``rrd``: record to a file
     (both may be given). ``recording``: an existing ``rr.RecordingStream`` (tests)."""
@@ -87,9 +90,13 @@ class RerunLogger:
         image_every: int = 1,
         jpeg_quality: int | None = None,
     ):
-        """``image_every``: the camera image (and its features) every this many frames;
-        ``jpeg_quality``: images JPEG-compressed at this quality (None: raw). Both thin a
-        recording: a raw KITTI image is 0.46 MB."""
+        """With ``rrd``, a recording thinned for its size (a raw KITTI image is 0.46 MB): the camera
+        image (and its features) every ``image_every`` frames, JPEG-compressed at ``jpeg_quality``
+        (default ``RRD_JPEG_QUALITY``). A viewer alone gets every image, raw."""
+        if rrd is None:
+            image_every = 1
+        elif jpeg_quality is None:
+            jpeg_quality = RRD_JPEG_QUALITY
         rr, _rrb = _import_rerun()
         self.rr = rr
         self.camera = camera
