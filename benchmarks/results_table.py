@@ -1,18 +1,24 @@
-"""The README's results table: VO / SNAPS / refined accuracy, loops and speed, measured now.
+"""The README's results table: VO / SNAPS / iSAM2 / batch accuracy, loops and speed, and ORB-SLAM3
+beside us, measured now.
 
 Runs the command-line tool on each input it has data for and writes the table (markdown) to
-``--out`` and to stdout. Every row is one ``snaps-graph`` command, printed under the table:
+``--out`` and to stdout. Every row is one ``snaps-graph`` command with ``--refine both``, printed
+under the table, so each column means one trajectory in every row:
 
-* ``kitti06``: the real KITTI 06 clip (frames 0-50, 59.9 m, no revisit), ``run --refine isam2 --map``;
-* ``demo``: the built-in 300-frame synthetic loop, ``snaps-graph demo`` (VO + SNAPS + iSAM2 + map);
+* ``kitti06``: the real KITTI 06 clip (frames 0-50, 59.9 m, no revisit), ``run --map``;
+* ``demo``: the built-in 300-frame synthetic loop, ``snaps-graph demo`` (what ``make demo`` runs,
+  with the batch refinement too);
 * ``revisit``: the real KITTI 00 revisit (left images of frames 100-230 and 1540-1660) with
   odometry from ``snaps-graph drift`` (the ground truth with 1 % end drift, seed 0) and
-  ``run --odometry DRIFTED --refine batch``; below the table, the mean deviation over frames
-  1560-1660 (the revisit, as ``benchmarks/bench_revisit.py`` measures it) and the loops.
+  ``run --odometry DRIFTED``; below the table, the mean deviation over frames 1560-1660 (the
+  revisit, as ``benchmarks/bench_revisit.py`` measures it) and the loops.
 
 Rows whose input is not at hand (a rendering not made yet) say so and how to make it; nothing is
-estimated. ``street07`` / ``street00``: the street renderings of KITTI 07 and 00
-(``make data``), ``run --refine batch``.
+estimated. ``street07`` / ``street00``: the street renderings of KITTI 07 and 00 (``make data``).
+
+The second table puts ORB-SLAM3 (stereo, the peer kit in ``../shared/peers``, set up as its
+README says) beside our pipeline on the KITTI 06 clip, run alternately ``--peer-repeats`` times
+each by ``bench_peers.py``'s functions; without the kit it says what is missing.
 
     python benchmarks/results_table.py                          # data from ../shared/data
     python benchmarks/results_table.py --kitti06 DATA/kitti/sequences/06 --out docs/results/README-table.md
@@ -83,12 +89,13 @@ def _f(v: float | None, nd: int = 3) -> str:
     return "n/a" if v is None else f"{v:.{nd}f}"
 
 
+TRAJECTORIES = ("vo", "snaps", "isam2", "batch")  # every row runs --refine both: one meaning per column
+
+
 def _row(name: str, m: dict) -> str:
     traj = m["trajectories"]
-    refined = next((k for k in ("isam2", "batch") if k in traj), None)
-    names = ["vo", "snaps"] + ([refined] if refined else [])
-    ate = " / ".join(_f(traj[k]["ate_rmse"]) for k in names)
-    drift = " / ".join(_f(traj[k]["end_drift_percent"], 2) for k in names)
+    ate = " / ".join(_f(traj[k]["ate_rmse"]) if k in traj else "n/a" for k in TRAJECTORIES)
+    drift = " / ".join(_f(traj[k]["end_drift_percent"], 2) if k in traj else "n/a" for k in TRAJECTORIES)
     path = traj["vo"]["path_length_m"]
     fps = m["latency_ms"].get("frames_per_s")
     return f"| {name} | {m['frames']} | {path:.0f} | {m['loops']} | {ate} | {drift} | {m['flagged_frames']} | {_f(fps, 1)} |"
@@ -129,6 +136,12 @@ def main() -> int:
     )
     ap.add_argument("--reuse", action="store_true", help="read the run folders already in --work instead of running")
     ap.add_argument(
+        "--peer-venv", type=Path, default=ROOT / "results" / "orb-venv", help="ORB-SLAM3's venv (../shared/peers/README.md)"
+    )
+    ap.add_argument("--vocab", type=Path, default=ROOT / "results" / "ORBvoc.txt", help="ORB vocabulary for ORB-SLAM3")
+    ap.add_argument("--peer-script", type=Path, default=ROOT.parent / "shared" / "peers" / "peer_orbslam3.py")
+    ap.add_argument("--peer-repeats", type=int, default=3, help="alternating runs of each system for the ORB-SLAM3 table")
+    ap.add_argument(
         "--readme",
         type=Path,
         default=None,
@@ -142,7 +155,7 @@ def main() -> int:
 
     if (args.kitti06 / "image_0").is_dir():
         run_dir = args.work / "kitti06"
-        cmd = _cli("run", str(args.kitti06), "--out", str(run_dir), "--refine", "isam2", "--map", "--overwrite")
+        cmd = _cli("run", str(args.kitti06), "--out", str(run_dir), "--refine", "both", "--map", "--overwrite")
         if not args.reuse and run_dir.exists() and not (run_dir / "metrics.json").is_file():
             raise SystemExit(f"error: {run_dir}: exists and is not a results folder; choose another --work")
         rows.append(_row("real KITTI 06 clip (stereo)", _run(cmd, run_dir / "metrics.json", args.reuse)))
@@ -155,7 +168,7 @@ def main() -> int:
         raise SystemExit(f"error: {demo_dir}: exists and is not a demo folder; choose another --work")
     if not args.reuse and demo_dir.exists():
         shutil.rmtree(demo_dir)  # a demo folder this script wrote before (it holds run/metrics.json)
-    cmd = _cli("demo", "--out", str(demo_dir))
+    cmd = _cli("demo", "--out", str(demo_dir), "--refine", "both")
     rows.append(_row("built-in synthetic loop (`demo`)", _run(cmd, demo_dir / "run" / "metrics.json", args.reuse)))
     commands.append(_shown(cmd))
 
@@ -164,7 +177,7 @@ def main() -> int:
     if (seq00 / "image_0").is_dir() and gt00.is_file():
         drifted, run_dir = args.work / "revisit_drifted.txt", args.work / "revisit"
         drift_cmd = _cli("drift", str(gt00), "--out", str(drifted), "--seed", "0", "--pct", "1", "--overwrite")
-        cmd = _cli("run", str(seq00), "--odometry", str(drifted), "--out", str(run_dir), "--refine", "batch", "--overwrite")
+        cmd = _cli("run", str(seq00), "--odometry", str(drifted), "--out", str(run_dir), "--refine", "both", "--overwrite")
         if not args.reuse:
             _run(drift_cmd, None, False)
         rows.append(
@@ -180,21 +193,28 @@ def main() -> int:
         seq, name = getattr(args, recipe), f"rendered KITTI {nn} path, street (stereo)"
         if (seq / "image_0").is_dir():
             run_dir = args.work / recipe
-            cmd = _cli("run", str(seq), "--out", str(run_dir), "--refine", "batch", "--overwrite")
+            cmd = _cli("run", str(seq), "--out", str(run_dir), "--refine", "both", "--overwrite")
             rows.append(_row(name, _run(cmd, run_dir / "metrics.json", args.reuse)))
             commands.append(_shown(cmd, {str(seq): shown}))
         else:
             rows.append(f"| {name} | not measured: no rendering at --{recipe} (`make data DATASETS={recipe}`) | | | | | | |")
 
+    peer = _peer_table(args)
     load = f"load average up to {max(LOADS):.1f} while measuring" if LOADS else "rows read from earlier runs (--reuse)"
     md = [
-        "| input | frames | path m | loops | ATE m: VO / SNAPS / refined | end drift %: VO / SNAPS / refined "
+        "| input | frames | path m | loops | ATE m: VO / SNAPS / iSAM2 / batch | end drift %: VO / SNAPS / iSAM2 / batch "
         "| flagged | frames/s |",
         "|---|---|---|---|---|---|---|---|",
         *rows,
         "",
-        f"Refined = iSAM2 (batch for the revisit and the rendering). {os.cpu_count()} CPU cores, {load}.",
+        "VO = the odometry alone (the revisit's: the drifted pose file), SNAPS = the real-time heuristic, iSAM2 = the "
+        "online refinement, batch = the offline one, in every row (`--refine both`; the demo prints VO, SNAPS and iSAM2 "
+        "as `make demo` runs them). A run with frame gaps (the revisit) has its path length and end drift over its parts "
+        '(docs/decisions.md, "Evaluation"). '
+        f"{os.cpu_count()} CPU cores, {load}.",
         *(["", *notes] if notes else []),
+        "",
+        *peer,
         "",
         "Commands:",
         "",
@@ -221,6 +241,62 @@ def main() -> int:
     return 0
 
 
+def _peer_table(args) -> list[str]:
+    """ORB-SLAM3 beside our pipeline on the KITTI 06 clip (bench_peers.py's runs), or why not."""
+    import numpy as np
+    from bench_peers import accuracy, gt_of, ours_subprocess, peer_missing, peer_subprocess, read_cpu_ms
+
+    title = "ORB-SLAM3 beside us, KITTI 06 clip (stereo)"
+    args.peer_python = args.peer_venv / "bin" / "python"
+    why = peer_missing(args) if (args.kitti06 / "image_1").is_dir() else f"no data at --kitti06 {args.kitti06}"
+    if why:
+        return [f"{title}: not measured here ({why}; the kit: ../shared/peers/README.md)."]
+    if args.reuse and not (args.work / "peers" / "table.json").is_file():
+        return [f"{title}: not measured (--reuse and no earlier runs in {args.work / 'peers'})."]
+    work = args.work / "peers"
+    if not args.reuse:
+        runs: dict[str, list[dict]] = {"ours": [], "orb": []}
+        for rep in range(args.peer_repeats):  # alternating, so both see the same load
+            print(f"running: ours and ORB-SLAM3 on KITTI 06, round {rep + 1} of {args.peer_repeats}", file=sys.stderr, flush=True)
+            runs["ours"].append(ours_subprocess(args.kitti06, work / f"ours_{rep}", None))
+            runs["orb"].append(peer_subprocess(args, args.kitti06, "kitti", work / f"orb_{rep}"))
+            LOADS.append(os.getloadavg()[0])
+        gt = gt_of(args.kitti06)
+        read_ms = read_cpu_ms(args.kitti06)
+        table = {}
+        for system, rs in runs.items():
+            acc = [accuracy(r["poses"], gt) for r in rs]
+            table[system] = {
+                "ate": float(np.median([a[0] for a in acc])),
+                "ate_range": [float(min(a[0] for a in acc)), float(max(a[0] for a in acc))],
+                "drift": float(np.median([a[1] for a in acc])),
+                "ms": float(np.median([np.median(r["wall_ms"]) for r in rs])),
+                "cpu": float(np.median([r["run_cpu_ms_per_frame"] for r in rs])) - (read_ms if system == "orb" else 0.0),
+                "lost": int(sum(r.get("lost", 0) for r in rs)),
+            }
+        (work / "table.json").write_text(json.dumps(table))
+    table = json.loads((work / "table.json").read_text())
+    names = {"ours": "snaps_graph: VO + SNAPS + iSAM2", "orb": "ORB-SLAM3 v1.0 stereo (final trajectory)"}
+    lines = [
+        f"{title}, {args.peer_repeats} alternating runs each (medians; ORB-SLAM3 is multi-threaded and varies run to run):",
+        "",
+        "| system | ATE m (range over runs) | end drift % | ms per frame | CPU ms per frame |",
+        "|---|---|---|---|---|",
+    ]
+    for system, t in table.items():
+        lo, hi = t["ate_range"]
+        lines.append(
+            f"| {names[system]} | {t['ate']:.3f} ({lo:.3f}-{hi:.3f}) | {t['drift']:.2f} | {t['ms']:.1f} | {t['cpu']:.1f} |"
+        )
+    lines += [
+        "",
+        "ms per frame: the median wall time of one frame's call (`process`, `track_stereo`); CPU ms per frame: the whole "
+        "loop's process CPU over the frames, every thread (ORB-SLAM3's less its image reads). "
+        "`python benchmarks/bench_peers.py --seqs kitti06` measures the same with more detail (docs/performance.md).",
+    ]
+    return lines
+
+
 def _revisit_note(run_dir: Path, seq: Path) -> str:
     """The revisit's figures: mean deviation over bench_revisit's window, and the loops."""
     from _revisit import WINDOW, frame_ids, window_deviation
@@ -228,12 +304,12 @@ def _revisit_note(run_dir: Path, seq: Path) -> str:
     from snaps_graph.trajectory_io import read_kitti_poses
 
     frames, gt = frame_ids(seq), read_kitti_poses(run_dir / "poses_gt.txt")
-    dev = {t: window_deviation(read_kitti_poses(run_dir / f"poses_{t}.txt"), gt, frames) for t in ("vo", "snaps", "batch")}
+    dev = {t: window_deviation(read_kitti_poses(run_dir / f"poses_{t}.txt"), gt, frames) for t in TRAJECTORIES}
     loops = [json.loads(line) for line in (run_dir / "loops.jsonl").read_text().splitlines() if line.strip()]
     shown = ", ".join(f"{lp['frame']} -> {lp['reference']}" for lp in loops) or "none"
     return (
-        f"Revisit: mean deviation over frames {WINDOW[0]}-{WINDOW[1]}, odometry / SNAPS / batch: "
-        f"{dev['vo']:.2f} / {dev['snaps']:.2f} / {dev['batch']:.2f} m; loops (frame -> reference): {shown}."
+        f"Revisit: mean deviation over frames {WINDOW[0]}-{WINDOW[1]}, odometry / SNAPS / iSAM2 / batch: "
+        f"{' / '.join(f'{dev[t]:.2f}' for t in TRAJECTORIES)} m; loops (frame -> reference): {shown}."
     )
 
 

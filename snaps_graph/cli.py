@@ -27,6 +27,7 @@ from typing import Optional  # noqa: E402
 
 import typer  # noqa: E402
 
+from . import cli_support as support  # noqa: E402  # help, folders, a run's frames
 from ._malloc import set_malloc_thresholds  # noqa: E402
 from .config import Config, FrontendMode, LoopMode, RefineMode  # noqa: E402
 from .config_schema import choices  # noqa: E402
@@ -50,7 +51,6 @@ from .errors import SnapsGraphError, interrupted  # noqa: E402
 from .io_utils import (  # noqa: E402
     PREFETCH_FRAMES,
     check_inputs_outside,
-    check_output_folder,
     check_recording_path,
     inside,
     output_folder,
@@ -80,7 +80,9 @@ def _print_version(value: bool) -> None:
 
 @app.callback()
 def _main_options(
-    version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True, help="Print the version and exit."),
+    version: bool = typer.Option(
+        False, "--version", "-V", callback=_print_version, is_eager=True, help="Print the version, exit."
+    ),
 ) -> None:
     """Stereo visual SLAM with SNAPS loop closure and a GTSAM pose graph."""
 
@@ -155,7 +157,7 @@ def synth(
     mesh_inside = None
     if not mesh_only:
         check_inputs_outside(out, [("trajectory", Path(trajectory) if trajectory != "loop" else None), ("times", times)])
-        check_output_folder(out, overwrite)
+        support.check_output(out, overwrite)
         if world_mesh is not None and inside(world_mesh, out):  # written with the sequence, not deleted by it
             mesh_inside = world_mesh.resolve().relative_to(out.resolve())
     if world_mesh is not None and mesh_inside is None:
@@ -222,6 +224,7 @@ def run(
     ),
     viewer: bool = typer.Option(False, "--viewer", help="Spawn the rerun viewer and stream the run to it (needs rerun-sdk)."),
     rrd: Optional[Path] = typer.Option(None, "--rrd", help="Record the run to a rerun .rrd file (needs rerun-sdk)."),
+    rrd_images: int = typer.Option(10, "--rrd-images", min=1, help="With --rrd: the camera image every N frames, JPEG."),
     odometry: Optional[Path] = typer.Option(
         None,
         "--odometry",
@@ -257,7 +260,7 @@ def run(
     cfg.resolved(loops=loops, refine=refine, build_map=map_)
     inputs = [("sequence", seq_dir), ("config", config), ("ground truth", gt), ("calibration", calib), ("odometry", odometry)]
     check_inputs_outside(out, inputs + [("world mesh", world_mesh)])
-    check_output_folder(out, overwrite)
+    support.check_output(out, overwrite)
     rrd_inside = check_recording_path(rrd, out) if rrd is not None else None
     if odometry_format is not None and odometry_format not in ODOMETRY_FORMATS:
         raise_user(f"--odometry-format must be one of {', '.join(ODOMETRY_FORMATS)}, not '{odometry_format}'")
@@ -280,7 +283,9 @@ def run(
         from .viz.rerun_logger import RerunLogger
 
         target = tmp / rrd_inside if rrd_inside is not None else rrd
-        loggers.append(RerunLogger(seq.camera, spawn=viewer, rrd=target, name=str(seq_dir), gt_poses=seq.gt_poses))
+        loggers.append(
+            RerunLogger(seq.camera, spawn=viewer, rrd=target, name=str(seq_dir), gt_poses=seq.gt_poses, image_every=rrd_images)
+        )
         return loggers[0]
 
     def close_recording(tmp: Path) -> None:
@@ -319,7 +324,7 @@ def run(
                 loggers[0].abort()  # no half-written recording
             raise
     if rrd is not None:
-        typer.echo(f"rerun recording in {rrd}")
+        typer.echo(f"rerun recording in {rrd}: {support.rrd_size_text(rrd, metrics['frames'])}")
     print_summary(metrics, out, bar.rate, partial=frames is not None)
     if mostly_flagged(metrics):
         warn_mostly_flagged(metrics)
@@ -382,7 +387,7 @@ def convert(
 ) -> None:
     """Write any readable source as a KITTI folder of rectified pairs."""
     check_inputs_outside(out, [("source", src), ("ground truth", gt), ("calibration", calib)])
-    check_output_folder(out, overwrite)
+    support.check_output(out, overwrite)
     from .datasets.convert import write_kitti_folder
     from .datasets.open import open_dataset
 
@@ -416,10 +421,10 @@ def eval_(
     from .evaluation.metrics import evaluate
     from .trajectory_io import read_poses
 
-    est_poses, gt_poses = read_poses(est), read_poses(gt)
-    if len(est_poses) != len(gt_poses):
-        raise_user(f"{est}: {len(est_poses)} poses, but {gt} has {len(gt_poses)} (one pose per frame in both)")
-    m = evaluate(est_poses, gt_poses)
+    est_poses = read_poses(est)
+    ids = support.run_frame_ids(est, len(est_poses))
+    gt_poses = support.run_ground_truth(est, len(est_poses), gt, read_poses(gt), ids)
+    m = evaluate(est_poses, gt_poses, ids)
     if as_json:
         from .evaluation.results_io import json_clean
 
@@ -437,8 +442,7 @@ def compare(
     ),
 ) -> None:
     """Heuristic (SNAPS) against optimised corrections: report.md, PNGs and metrics.json."""
-    if not run_dir.exists():  # a mistyped path: before the heavy imports
-        raise_user(f"{run_dir}: run folder not found")
+    support.check_run_folder(run_dir)
     from .evaluation.report import compare_run
 
     measure = None
@@ -465,8 +469,7 @@ def loops(
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object instead of text."),
 ) -> None:
     """Loop-closure evaluation: precision-recall over the Q threshold, revisits found, false loops."""
-    if not run_dir.exists():  # a mistyped path: before the heavy imports
-        raise_user(f"{run_dir}: run folder not found")
+    support.check_run_folder(run_dir)
     from .evaluation.loops import json_text, loops_run, summary_lines
 
     ev = loops_run(run_dir, gt, true_m=true_m, false_m=false_m, png=png)
@@ -520,7 +523,7 @@ def main() -> None:
         signal.signal(sig, on_sigint)
     set_malloc_thresholds()  # the process is ours: large frames stop costing page faults
     try:
-        rc = app(standalone_mode=False)
+        rc = support.click_command(app)(standalone_mode=False)
         sys.stdout.flush()
     except OSError as exc:
         if exc.filename is not None or exc.errno not in STDOUT_ERRNOS:
@@ -566,46 +569,15 @@ def drift(
     pitch_rw: Optional[float] = typer.Option(None, "--pitch-rw", help="Pitch random walk, deg per sqrt(m)."),
     roll_rw: Optional[float] = typer.Option(None, "--roll-rw", help="Roll random walk, deg per sqrt(m)."),
     trans_rw: Optional[float] = typer.Option(None, "--trans-rw", help="Translation random walk of a step, m per sqrt(m)."),
-    heading_rate: Optional[float] = typer.Option(
-        None, "--heading-rate", help="Constant heading rate, deg per 100 m (default 0)."
-    ),
-    roll_rate: Optional[float] = typer.Option(None, "--roll-rate", help="Constant roll rate, deg per 100 m (default 0)."),
+    heading_rate: Optional[float] = typer.Option(None, "--heading-rate", help="Constant heading rate, deg/100 m."),
+    roll_rate: Optional[float] = typer.Option(None, "--roll-rate", help="Constant roll rate, deg/100 m."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace OUT if it exists."),
 ) -> None:
-    """Perturb a ground-truth trajectory with an odometry's drift: the drift model the graph and
-    the loop search assume (heading, pitch and roll random walks, scale error, step noise, optional
-    constant rates); defaults from our stereo VO against real ground truth."""
-    import dataclasses
-
-    from .drift_model import DriftModel
-    from .evaluation.drift import drift_trajectory, end_drift_pct
-    from .locks import writer_lock
-    from .trajectory_io import read_kitti_poses, write_kitti_poses
-
-    flags = {
-        "scale-pct": ("scale_pct", scale_pct),
-        "heading-rw": ("heading_deg_per_sqrt_m", heading_rw),
-        "pitch-rw": ("pitch_deg_per_sqrt_m", pitch_rw),
-        "roll-rw": ("roll_deg_per_sqrt_m", roll_rw),
-        "trans-rw": ("trans_m_per_sqrt_m", trans_rw),
-        "heading-rate": ("heading_deg_per_100m", heading_rate),
-        "roll-rate": ("roll_deg_per_100m", roll_rate),
-    }
-    changes = {}
-    for flag, (name, value) in flags.items():
-        if value is not None and not (abs(value) < 1e3 and (value >= 0 or flag.endswith("rate"))):
-            raise_user(f"drift: --{flag} must be a number in [0, 1000), got {value}")
-        if value is not None:
-            changes[name] = value
-    with writer_lock(out):  # another drift into OUT is refused at once, never overwritten
-        if out.exists() and not overwrite:
-            raise_user(f"{out} exists (pass --overwrite to replace it)")
-        if out.exists() and out.resolve() == gt.resolve():
-            raise_user(f"{out} is the input ground truth")
-        poses = read_kitti_poses(gt)
-        drifted = drift_trajectory(poses, seed, dataclasses.replace(DriftModel(), **changes), pct)
-        write_kitti_poses(out, drifted)
-    typer.echo(f"wrote {out}: {len(drifted)} poses, end drift {end_drift_pct(drifted, poses):.3f} % of the distance")
+    """Perturb a ground truth with the drift model the graph and the search assume (heading, pitch,
+    roll walks, scale error, step noise, optional rates); defaults from our stereo VO on real data."""
+    rates = {"scale-pct": scale_pct, "heading-rw": heading_rw, "pitch-rw": pitch_rw, "roll-rw": roll_rw}
+    rates |= {"trans-rw": trans_rw, "heading-rate": heading_rate, "roll-rate": roll_rate}
+    typer.echo(support.write_drift(gt, out, seed, pct, rates, overwrite))
 
 
 @app.command("drift-fit")
@@ -618,35 +590,10 @@ def drift_fit(
 ) -> None:
     """Measure an odometry's drift model against ground truth and print it as the [odometry] section
     of a config: the graph, the loop search and the correction then assume the drift it really has."""
-    import math
-
-    from .drift_model import DriftModel
-    from .evaluation.drift import fit_drift_model
-    from .trajectory_io import read_poses
-
-    if segment_m is not None and not (0 < segment_m < 1e6):
-        raise_user(f"drift-fit: --segment-m must be a length in (0, 1e6) m, got {segment_m}")
-    E, G = read_poses(est), read_poses(gt)
-    if len(E) != len(G):
-        raise_user(f"{est}: {len(E)} poses, but {gt} has {len(G)}: the two must hold the same frames")
-    model, L = fit_drift_model(E, G, segment_m)
-    folded = DriftModel(
-        heading_deg_per_sqrt_m=math.degrees(math.sqrt(float(model.rotation_var_per_m()[1]))),
-        pitch_deg_per_sqrt_m=model.pitch_deg_per_sqrt_m,
-        roll_deg_per_sqrt_m=math.degrees(math.sqrt(float(model.rotation_var_per_m()[2]))),
-        scale_pct=model.scale_pct,
-        trans_m_per_sqrt_m=model.trans_m_per_sqrt_m,
-    )
-    typer.echo(
-        f"# {est} against {gt}: {len(E)} poses, stretches of {L:.0f} m; constant rates "
-        f"heading {model.heading_deg_per_100m:+.3f} and roll {model.roll_deg_per_100m:+.3f} deg/100 m, "
-        "folded into the walks below"
-    )
-    typer.echo("[odometry]")
-    for name in ("heading_deg_per_sqrt_m", "pitch_deg_per_sqrt_m", "roll_deg_per_sqrt_m", "scale_pct", "trans_m_per_sqrt_m"):
-        typer.echo(f"{name} = {max(getattr(folded, name), 1e-6):.6g}")
+    typer.echo(support.drift_fit_text(est, gt, segment_m))
 
 
+support.plain_metavars(app)
 signal.signal(signal.SIGINT, _SIGINT_BEFORE)  # the module is imported: main() takes over
 
 if __name__ == "__main__":

@@ -238,12 +238,26 @@ def stdout_failed(exc: OSError) -> None:
     sys.exit(EXIT_USER_ERROR)
 
 
+_REPLACING: list[Path] = []  # earlier results an --overwrite run would replace at its end
+
+
+def replacing(folder: Path, overwrite: bool) -> None:
+    """Note that ``folder`` holds earlier results this run replaces only when it completes, so a
+    Ctrl-C before then can say they were kept."""
+    if overwrite and folder.is_dir() and any(folder.iterdir()):
+        _REPLACING.append(folder)
+
+
 def exit_interrupted() -> None:
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):  # a second Ctrl-C or kill must not interrupt the exit
         signal.signal(sig, signal.SIG_IGN)
     done = committed_folders()
+    kept = [p for p in _REPLACING if p.resolve() not in {d.resolve() for d in done}]
+    also = f"; the earlier results in {', '.join(map(str, kept))} are kept as they were" if kept else ""
     if done:
-        print(f"interrupted after the results were written: {', '.join(map(str, done))} complete", file=sys.stderr)
+        print(f"interrupted after the results were written: {', '.join(map(str, done))} complete{also}", file=sys.stderr)
+    elif kept:
+        print(f"interrupted: no new results written{also}", file=sys.stderr)
     else:
         print("interrupted: no results written", file=sys.stderr)
     with contextlib.suppress(Exception):

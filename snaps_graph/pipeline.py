@@ -130,12 +130,15 @@ class SlamPipeline:
         # Optional observer (the rerun logger): on_frame(pipeline, frame, output) after each
         # frame, on_finish(pipeline, result) at the end. None: nothing is called.
         self.observer = None
+        self._finished = False  # finish() closed the front end's workers: no more frames
 
     # ---- streaming ----
     def check_frame(self, frame: StereoFrame) -> None:
         """SnapsGraphError if ``frame`` cannot be processed next; changes nothing."""
         if not isinstance(frame, StereoFrame):
             raise SnapsGraphError(f"process() takes a StereoFrame, not {type(frame).__name__}")
+        if self._finished:
+            raise SnapsGraphError("this pipeline is finished (finish() was called); start a new SlamPipeline for more frames")
         index = frame.index
         if isinstance(index, bool) or not isinstance(index, (int, np.integer)) or index < 0:
             raise SnapsGraphError(f"frame {index!r}: the frame number must be a non-negative integer")
@@ -332,6 +335,7 @@ class SlamPipeline:
     def finish(self) -> RunResult:
         if not self._frame_ids:
             raise SnapsGraphError("no frame was processed, nothing to finish")
+        self._finished = True
         self.vo.close()
         if self.loop_features is not None:
             self.loop_features.close()

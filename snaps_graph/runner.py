@@ -127,6 +127,9 @@ def _write_all(
             map_metrics = {"error": _one_line(f"{type(exc).__name__}: {exc}")}
         if map_metrics is not None:
             metrics["map"] = map_metrics
+    track = getattr(pipe.vo, "track", None)  # a pose-file front end (run --odometry): the report names it
+    if track is not None:
+        metrics["odometry_file"] = str(track.path)
     if topics:
         metrics["topics"] = topics  # the image topics that ran (a bag's, found by name or given)
     metrics["peak_rss_mb"] = peak_rss_mb()
@@ -151,7 +154,8 @@ def run_metrics(result: RunResult, gt_poses: np.ndarray | None, graph_failures: 
         "wall_s": result.wall_s,
     }
     if gt_poses is not None:
-        metrics["trajectories"] = {name: evaluate(p, gt_poses) for name, p in result.trajectories.items()}
+        ids = [r.frame for r in result.records]  # frames with gaps: figures over the parts that ran
+        metrics["trajectories"] = {name: evaluate(p, gt_poses, ids) for name, p in result.trajectories.items()}
     metrics["latency_ms"] = latency_summary(result.records)
     metrics["peak_rss_mb"] = peak_rss_mb()
     failures = result.graph_failures if graph_failures is None else graph_failures

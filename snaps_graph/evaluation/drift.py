@@ -174,4 +174,23 @@ def fit_drift_model(est: np.ndarray, gt: np.ndarray, segment_m: float | None = N
     return model, L
 
 
-__all__ = ["DriftModel", "drift_process", "drift_trajectory", "end_drift_pct", "fit_drift_model"]
+def odometry_section(model: DriftModel) -> str:
+    """A fitted model as the config's ``[odometry]`` section: constant rates folded into the walks
+    (as the graph folds them, over ``BIAS_REFERENCE_M``), since the section holds walks only."""
+    var = model.rotation_var_per_m()
+    walks = {
+        "heading_deg_per_sqrt_m": math.degrees(math.sqrt(float(var[1]))),
+        "pitch_deg_per_sqrt_m": model.pitch_deg_per_sqrt_m,
+        "roll_deg_per_sqrt_m": math.degrees(math.sqrt(float(var[2]))),
+        "scale_pct": model.scale_pct,
+        "trans_m_per_sqrt_m": model.trans_m_per_sqrt_m,
+    }
+    lines = [
+        f"# constant rates: heading {model.heading_deg_per_100m:+.3f}, roll {model.roll_deg_per_100m:+.3f} deg/100 m, "
+        "folded into the walks",
+        "[odometry]",
+    ]
+    return "\n".join(lines + [f"{k} = {max(v, 1e-6):.6g}" for k, v in walks.items()])
+
+
+__all__ = ["DriftModel", "drift_process", "drift_trajectory", "end_drift_pct", "fit_drift_model", "odometry_section"]

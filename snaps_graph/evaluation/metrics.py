@@ -54,11 +54,26 @@ def mean_deviation(est: np.ndarray, gt: np.ndarray) -> float:
     return float(position_errors(est, gt).mean())
 
 
-def path_length(poses: np.ndarray) -> float:
-    """Length of the polyline through the positions, metres."""
+def parts(frame_ids, n: int) -> list[np.ndarray]:
+    """Row indices of each run of consecutive frame numbers (one part without ``frame_ids``).
+
+    A run of frames 100-230 and 1540-1660 has two parts: nothing is known of the way between
+    them, so the figures that depend on the distance driven are taken over the parts that ran."""
+    if frame_ids is None:
+        return [np.arange(n)]
+    ids = np.asarray(frame_ids, dtype=np.int64).reshape(-1)
+    if len(ids) != n:
+        raise SnapsGraphError(f"{len(ids)} frame numbers for {n} poses")
+    cuts = np.flatnonzero(np.diff(ids) != 1) + 1
+    return np.split(np.arange(n), cuts)
+
+
+def path_length(poses: np.ndarray, frame_ids=None) -> float:
+    """Length of the polyline through the positions, metres; with ``frame_ids``, the sum over the
+    parts of consecutive frames (not the jumps across gaps between them)."""
     p = _check_poses(poses, "trajectory")[:, :3, 3]
     with np.errstate(over="ignore", invalid="ignore"):  # inf beyond ~1e154 m: evaluate() names why
-        return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
+        return float(sum(np.linalg.norm(np.diff(p[rows], axis=0), axis=1).sum() for rows in parts(frame_ids, len(p))))
 
 
 def ate_rmse(est: np.ndarray, gt: np.ndarray) -> float:
@@ -149,7 +164,37 @@ def kitti_relative_errors(
     return float(t_err.mean() * 100.0), float(np.degrees(r_err.mean()) * 100.0)
 
 
-def evaluate(est: np.ndarray, gt: np.ndarray) -> dict:
+def _relative_errors_over_parts(est: np.ndarray, gt: np.ndarray, rows_of: list[np.ndarray]) -> tuple[float, float]:
+    """KITTI t_rel / r_rel with segments inside each part only, averaged over all of them."""
+    if len(rows_of) == 1:
+        return kitti_relative_errors(est, gt)
+    t_sum = r_sum = 0.0
+    count = 0
+    for rows in rows_of:
+        dist = _cumulative_distance(gt[rows])
+        n_seg = sum(
+            int(np.sum(np.searchsorted(dist, dist[::KITTI_STEP_FRAMES] + L, side="right") < len(rows))) for L in KITTI_LENGTHS_M
+        )
+        if n_seg:
+            t, r = kitti_relative_errors(est[rows], gt[rows])
+            t_sum, r_sum, count = t_sum + t * n_seg, r_sum + r * n_seg, count + n_seg
+    return (t_sum / count, r_sum / count) if count else (math.nan, math.nan)
+
+
+def _end_drift(est: np.ndarray, gt: np.ndarray, rows_of: list[np.ndarray]) -> float:
+    """End error over path length, %; across gaps, each part's end error relative to its own
+    start (the error grown while it ran) summed over the parts, over their summed lengths."""
+    error = length = 0.0
+    for rows in rows_of:
+        a, b = rows[0], rows[-1]
+        t_gt = np.linalg.solve(gt[a], gt[b])[:3, 3]
+        t_est = np.linalg.solve(est[a], est[b])[:3, 3]
+        error += float(np.linalg.norm(t_est - t_gt))
+        length += float(np.linalg.norm(np.diff(gt[rows, :3, 3], axis=0), axis=1).sum())
+    return error / length * 100.0 if length > 0 else math.nan
+
+
+def evaluate(est: np.ndarray, gt: np.ndarray, frame_ids=None) -> dict:
     """All figures for one trajectory against ground truth, as a JSON-ready dict.
 
     Keys: mean_deviation, ate_rmse, t_rel, r_rel, frames, path_length_m (ground truth), end_error_m,
@@ -157,8 +202,13 @@ def evaluate(est: np.ndarray, gt: np.ndarray) -> dict:
     KITTI's world frame is the first camera's, y down, so this separates drift along the ground from
     drift in height. NaN where undefined (t_rel / r_rel under 100 m, end drift on a zero-length path,
     every figure for positions that overflow when squared), with ``notes``: figure -> why, one line.
+
+    ``frame_ids`` (the dataset's frame numbers of the rows) split a run with gaps into parts:
+    path length, t_rel / r_rel and end drift are then taken over the parts that ran (``parts``;
+    docs/decisions.md, "Evaluation"); the other figures do not depend on the distance driven.
     """
     est, gt = _check_pair(est, gt)
+    rows_of = parts(frame_ids, len(est))
     big = max(float(np.abs(est[:, :3, 3]).max()), float(np.abs(gt[:, :3, 3]).max()))
     if big > _SQUARE_LIMIT_M:  # every figure would overflow, or be computed from ones that did
         why = f"positions of up to {big:.3g} m overflow double precision when squared; no figure from them"
@@ -166,8 +216,8 @@ def evaluate(est: np.ndarray, gt: np.ndarray) -> dict:
         return {k: math.nan for k in keys} | {"frames": int(len(est)), "notes": dict.fromkeys(keys, why)}
     with np.errstate(over="ignore", invalid="ignore"):  # what is not finite is named in ``notes``
         errors = position_errors(est, gt)
-        t_rel, r_rel = kitti_relative_errors(est, gt)
-        length = path_length(gt)
+        t_rel, r_rel = _relative_errors_over_parts(est, gt, rows_of)
+        length = path_length(gt, frame_ids)
         end_error = float(errors[-1])
         d = est[:, :3, 3] - gt[:, :3, 3]
         try:
@@ -184,10 +234,12 @@ def evaluate(est: np.ndarray, gt: np.ndarray) -> dict:
             "frames": int(len(est)),
             "path_length_m": length,
             "end_error_m": end_error,
-            "end_drift_percent": end_error / length * 100.0 if 0 < length < math.inf else math.nan,
+            "end_drift_percent": (end_error / length * 100.0 if 0 < length < math.inf else math.nan)
+            if len(rows_of) == 1
+            else _end_drift(est, gt, rows_of),
         }
-    notes = {k: _why_not(k, length) for k, v in m.items() if not math.isfinite(v)}
-    return m | ({"notes": notes} if notes else {})
+    notes = {k: _why_not(k, length, len(rows_of)) for k, v in m.items() if not math.isfinite(v)}
+    return m | ({"parts": len(rows_of)} if len(rows_of) > 1 else {}) | ({"notes": notes} if notes else {})
 
 
 # Positions beyond this many metres overflow a double when squared and summed (1.8e308).
@@ -222,8 +274,10 @@ def notes_text(per_traj: dict[str, dict]) -> list[str]:
     ]
 
 
-def _why_not(key: str, length: float) -> str:
+def _why_not(key: str, length: float, n_parts: int = 1) -> str:
     """One line: why the figure ``key`` of :func:`evaluate` could not be computed."""
+    if key in ("t_rel", "r_rel") and n_parts > 1:
+        return f"no part of the run (frames left out split it in {n_parts}) is as long as KITTI's shortest segment ({KITTI_LENGTHS_M[0]:g} m)"
     if key in ("t_rel", "r_rel"):
         return f"the ground-truth path is {length:.1f} m, shorter than KITTI's shortest segment ({KITTI_LENGTHS_M[0]:g} m)"
     if key == "end_drift_percent":

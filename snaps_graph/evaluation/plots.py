@@ -81,17 +81,47 @@ def top_view_scale(ext_x: float, ext_z: float) -> str:
     return "equal"
 
 
+# Two estimates closer than this everywhere (of the path's extent, at least 1 mm) draw as one line.
+COINCIDE_FRACTION = 0.002
+
+
+def coinciding(trajs: Mapping[str, np.ndarray]) -> dict[str, tuple[str, float]]:
+    """Estimates that lie on an earlier one: name -> (that one's name, largest distance, m)."""
+    names = [n for n in trajs if n.lower() not in GT_NAMES]
+    pos = {n: np.asarray(trajs[n])[:, :3, 3] for n in names}
+    if not names:
+        return {}
+    allp = np.concatenate(list(pos.values()))
+    tol = max(COINCIDE_FRACTION * float(np.ptp(allp[:, [0, 2]], axis=0).max()), 1e-3)
+    out: dict[str, tuple[str, float]] = {}
+    for i, n in enumerate(names):
+        for m in names[:i]:
+            if m in out or len(pos[m]) != len(pos[n]):
+                continue
+            gap = float(np.linalg.norm(pos[n] - pos[m], axis=1).max())
+            if gap <= tol:
+                out[n] = (m, gap)
+                break
+    return out
+
+
+def _length(m: float) -> str:
+    return f"{m * 100:.1f} cm" if m >= 0.01 else f"{m * 1000:.1f} mm"
+
+
 def plot_trajectories(
     path_png: str | Path,
     trajs: Mapping[str, np.ndarray],
     loops: Sequence[tuple[int, int]] | None = None,
     title: str = "Trajectories",
+    frames: Sequence[int] | np.ndarray | None = None,
 ) -> Path:
     """Top view (x right against z forward, KITTI camera axes) beside height (-y) over distance.
 
     ``trajs`` maps a name to an (N, 4, 4) pose stack, ``"gt"`` (or ``"ground truth"``) the ground
     truth; ``loops`` are (frame, reference) *row* indices, drawn on ``"snaps"`` (else the first
-    estimate). Returns the path written.
+    estimate); ``frames``, the rows' frame numbers: lines break across a gap in them, and the
+    distance does not count the jump. Returns the path written.
     """
     if not trajs:
         raise SnapsGraphError(f"{path_png}: no trajectory to plot")
@@ -102,6 +132,18 @@ def plot_trajectories(
     gt_name = next((n for n in names if n.lower() in GT_NAMES), None)
     ref = np.asarray(trajs[gt_name if gt_name is not None else names[0]])[:, :3, 3]
     dist = _distance_along(ref)
+    gaps = np.zeros(len(ref), bool)  # row i starts a part after a gap in the frame numbers
+    if frames is not None and len(frames) == len(ref):
+        gaps[1:] = np.diff(np.asarray(frames, dtype=np.int64)) != 1
+        step = np.linalg.norm(np.diff(ref, axis=0), axis=1) * ~gaps[1:]
+        dist = np.concatenate([[0.0], np.cumsum(step)])
+
+    def broken(v: np.ndarray) -> np.ndarray:
+        """``v`` with NaN before each part after a gap: the line is not drawn across it."""
+        v = np.asarray(v, dtype=float)
+        return np.insert(v, np.flatnonzero(gaps), np.nan, axis=0) if len(v) == len(gaps) and gaps.any() else v
+
+    same_as = coinciding(trajs)
     for i, name in enumerate(names):
         # Earlier estimates are drawn wider, so VO stays visible where SNAPS left it unchanged.
         rank = estimates.index(name) if name in estimates else 0
@@ -111,12 +153,12 @@ def plot_trajectories(
             color=_colour(name, i),
             lw=1.6 if is_gt else 1.1 + 0.6 * (len(estimates) - 1 - rank),
             ls="--" if is_gt else "-",
-            label=name,
+            label=name if name not in same_as else f"{name} (on {same_as[name][0]}: within {_length(same_as[name][1])})",
             zorder=1 if is_gt else 2,
         )
-        ax.plot(p[:, 0], p[:, 2], **style)
+        ax.plot(broken(p[:, 0]), broken(p[:, 2]), **style)
         if len(p) == len(dist):
-            axh.plot(dist, -p[:, 1], **style)
+            axh.plot(broken(dist), broken(-p[:, 1]), **style)
     ax.plot([0.0], [0.0], "ko", ms=4, zorder=4)
     if loops and names:
         on = next((n for n in estimates if n.lower() == "snaps"), estimates[0] if estimates else names[0])
@@ -124,7 +166,9 @@ def plot_trajectories(
         pairs = np.asarray(loops, dtype=int).reshape(-1, 2)
         pairs = pairs[(pairs >= 0).all(axis=1) & (pairs < len(p)).all(axis=1)]
         for k, (a, b) in enumerate(pairs):
+            # frame (hollow) linked to its reference (dot); a revisit a metre aside is a short link
             ax.plot([p[a, 0], p[b, 0]], [p[a, 2], p[b, 2]], color="orange", lw=0.8, zorder=3)
+            ax.plot(p[b, 0], p[b, 2], ".", color="darkorange", ms=4, zorder=3, label="loop reference" if k == 0 else None)
             ax.plot(
                 p[a, 0],
                 p[a, 2],
@@ -136,7 +180,11 @@ def plot_trajectories(
                 label=f"loops ({len(pairs)})" if k == 0 else None,
             )
             if len(p) == len(dist):
-                axh.axvline(dist[a], color="orange", lw=0.6, zorder=0)
+                # over distance the two ends lie far apart: an arc from the reference to the frame
+                x = np.linspace(dist[b], dist[a], 24)
+                y0, y1 = -p[b, 1], -p[a, 1]
+                lift = 0.08 * max(np.ptp(-ref[:, 1]), MIN_HEIGHT_SPAN_M)
+                axh.plot(x, np.linspace(y0, y1, 24) + lift * np.sin(np.linspace(0, np.pi, 24)), color="orange", lw=0.6, zorder=0)
     allp = np.concatenate([np.asarray(t)[:, :3, 3] for t in trajs.values()])
     lo, hi = allp.min(axis=0), allp.max(axis=0)
     ext_x, ext_z = float(hi[0] - lo[0]), float(hi[2] - lo[2])
@@ -153,6 +201,10 @@ def plot_trajectories(
         note = f" - {'x' if ext_x < ext_z else 'z'} axis stretched (not to scale)"
     else:
         ax.set_aspect("equal", adjustable="datalim")
+    if same_as:
+        note += "\n" + "; ".join(f"{n} lies on {o}" for n, (o, _) in same_as.items())
+    if gaps.any():
+        note += f"\n{int(gaps.sum()) + 1} parts of the sequence: no line across the frames not run"
     ax.set_title("top view" + note, fontsize=10)
     ax.set_xlabel("x [m] (right)")
     ax.set_ylabel("z [m] (forward)")

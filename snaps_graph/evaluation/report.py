@@ -24,7 +24,7 @@ from ..errors import SnapsGraphError
 from ..io_utils import atomic_write_text, read_text
 from .latency import LATENCY_LABELS, latency_samples, summarise_samples
 from .loops import loops_run, summary_lines
-from .metrics import evaluate, notes_text, path_length, position_errors
+from .metrics import evaluate, notes_text, parts, path_length, position_errors
 from .results_io import (
     check_run_files,
     load_gt,
@@ -321,6 +321,18 @@ def map_section_lines(run_dir: str | Path, map_entry: dict | None) -> list[str]:
     return md
 
 
+def _odometry_file(run: Path) -> str | None:
+    """The pose file a ``run --odometry`` read (metrics.json's ``odometry_file``), else None."""
+    p = run / "metrics.json"
+    if not p.is_file():
+        return None
+    try:
+        value = read_metrics_json(p).get("odometry_file")
+    except SnapsGraphError:
+        return None  # a malformed metrics.json is reported where it is read in full
+    return value if isinstance(value, str) else None
+
+
 # ---------------------------------------------------------------------------------------------
 # Entry point
 # ---------------------------------------------------------------------------------------------
@@ -355,8 +367,8 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accu
     offset = _discount_offset(run)
     gamma0 = 1.0 - math.exp(-offset)  # eq. 6 at s' = 0
 
-    per_traj = {name: evaluate(p, gt) for name, p in trajs.items()} if gt is not None else None
-    paths = {name: {"frames": n, "path_length_m": path_length(p)} for name, p in trajs.items()}
+    per_traj = {name: evaluate(p, gt, frame_ids) for name, p in trajs.items()} if gt is not None else None
+    paths = {name: {"frames": n, "path_length_m": path_length(p, frame_ids)} for name, p in trajs.items()}
     samples = latency_samples(cols)
     latency = summarise_samples(samples)  # = latency_summary(cols), samples kept for the box plot
     corrections = _loop_corrections(loops, trajs, gt, gamma0)
@@ -368,6 +380,7 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accu
         ({"gt": gt} if gt is not None else {}) | trajs,
         loops=[(lp["row"], lp["reference_row"]) for lp in loops],
         title=f"{run.name}: trajectories",
+        frames=frame_ids,
     )
     figures.append("trajectories.png")
     if gt is not None:
@@ -387,13 +400,24 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accu
 
     # report.md
     md = [f"# Heuristic vs optimised: `{run.name}`", ""]
-    md.append(f"Run folder `{run}`; {n} frames (dataset frames {frame_ids[0]}..{frame_ids[-1]}); {len(loops)} loop(s) closed.")
+    runs = parts(frame_ids, n)
+    spans = ", ".join(f"{frame_ids[r[0]]}..{frame_ids[r[-1]]}" for r in runs)
+    md.append(f"Run folder `{run}`; {n} frames (dataset frames {spans}); {len(loops)} loop(s) closed.")
+    if len(runs) > 1:
+        md.append(
+            f"The frames run in {len(runs)} parts: path length, t_rel / r_rel and end drift are taken over the parts "
+            "(each part's own length and segments, each part's end error relative to its start), not across the gaps."
+        )
     md.append(
         f"Ground truth: `{gt_file}` (re-based to the first processed frame)."
         if gt is not None
         else "Ground truth: none (no poses_gt.txt and no --gt), so no error columns and no errors.png."
     )
-    md.append("Trajectories: " + "; ".join(f"**{k}** = {TRAJECTORY_LABELS[k]}" for k in trajs) + ".")
+    labels = dict(TRAJECTORY_LABELS)
+    odometry_file = _odometry_file(run)
+    if odometry_file is not None:  # run --odometry: the "vo" poses are the given file's, not ours
+        labels["vo"] = f"the odometry given as a pose file (`{Path(odometry_file).name}`)"
+    md.append("Trajectories: " + "; ".join(f"**{k}** = {labels[k]}" for k in trajs) + ".")
     if gone:
         md.append(f"Missing: {', '.join(f'`{name}`' for name in gone)}, written by the run and deleted since; left out here.")
     md += ["", "## Trajectories", ""]

@@ -196,6 +196,33 @@ def side_by_side_png(
     _save(fig, path, dpi)
 
 
+def _round_length(m: float) -> float:
+    """The largest of 1, 2, 5 x 10^k metres not above ``m`` (at least 0.1 m)."""
+    m = max(float(m), 0.1)
+    k = 10.0 ** np.floor(np.log10(m))
+    return float(max(f * k for f in (1.0, 2.0, 5.0) if f * k <= m + 1e-9))
+
+
+def _project(rays: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Pixel (u, v) of each 3D point in the pinhole image whose rays (H, W, 6) are ``rays``: the
+    camera's axes and focal length read off the rays themselves (no convention assumed)."""
+    h, w = rays.shape[:2]
+    eye = rays[0, 0, :3].astype(np.float64)
+    unit = lambda v: v / np.linalg.norm(v)  # noqa: E731
+    fwd = unit(rays[(h - 1) // 2, (w - 1) // 2, 3:].astype(np.float64) + rays[h // 2, w // 2, 3:])
+    right = unit(rays[h // 2, w - 1, 3:] - rays[h // 2, 0, 3:]).astype(np.float64)
+    down = unit(rays[h - 1, w // 2, 3:] - rays[0, w // 2, 3:]).astype(np.float64)
+    edge = rays[h // 2, w - 1, 3:].astype(np.float64)
+    f = ((w - 1) / 2.0) / (edge @ right / (edge @ fwd))
+    d = points - eye
+    z = np.maximum(d @ fwd, 1e-6)
+    return np.stack([(w - 1) / 2.0 + f * (d @ right) / z, (h - 1) / 2.0 + f * (d @ down) / z], axis=1)
+
+
+def _px(uv: np.ndarray) -> tuple[int, int]:
+    return int(round(float(uv[0]))), int(round(float(uv[1])))
+
+
 def perspective_png(
     path: str | Path,
     vertices: np.ndarray,
@@ -208,9 +235,10 @@ def perspective_png(
     fov_deg: float = 50.0,
     title: str = "",
 ) -> None:
-    """A perspective view of the mesh from above and behind its start (KITTI axes: y down,
-    z forward), ray-cast on the CPU; coloured by height above the local ground, shaded by the
-    surface normal."""
+    """A perspective view of the mesh from above, turned as the top view (map.png: x to the right,
+    z up the page, so seen from -z), ray-cast on the CPU; coloured by height above the local
+    ground, shaded by the surface normal; the x and z axes drawn on the ground at the mesh's near
+    left corner, as long as the scale they are labelled with (true at that corner's distance)."""
     import open3d as o3d
 
     path = Path(path)
@@ -229,17 +257,15 @@ def perspective_png(
     )
     centre = (lo + hi) / 2.0
     extent = float(np.linalg.norm((hi - lo)[[0, 2]]))
-    # look at the centre from the side the path starts on, raised by elevation_deg
-    start = _positions(trajectory)[0] if trajectory is not None and len(trajectory) else lo
-    horiz = np.array([start[0] - centre[0], 0.0, start[2] - centre[2]])
-    if np.linalg.norm(horiz) < 1e-6:
-        horiz = np.array([0.0, 0.0, -1.0])
-    horiz /= np.linalg.norm(horiz)
+    # look at the centre from -z, raised by elevation_deg: x runs to the right as in the top view
+    horiz = np.array([0.0, 0.0, -1.0])
     dist = 0.5 * extent / np.tan(np.deg2rad(fov_deg) / 2.0) * 1.1 + 5.0
     e = np.deg2rad(elevation_deg)
     eye = centre + dist * (np.cos(e) * horiz + np.sin(e) * np.array([0.0, -1.0, 0.0]))
+    # open3d's pinhole rays run the image's rows along `up` (first row nearest -up): KITTI's y,
+    # pointing down, gives an upright picture (with -y it came out turned by 180 degrees).
     rays = o3d.t.geometry.RaycastingScene.create_rays_pinhole(
-        fov_deg=fov_deg, center=centre.tolist(), eye=eye.tolist(), up=[0.0, -1.0, 0.0], width_px=width, height_px=height
+        fov_deg=fov_deg, center=centre.tolist(), eye=eye.tolist(), up=[0.0, 1.0, 0.0], width_px=width, height_px=height
     )
     ans = scene.cast_rays(rays)
     t = ans["t_hit"].numpy()
@@ -261,16 +287,32 @@ def perspective_png(
     import cv2
 
     bgr = np.ascontiguousarray((img[..., ::-1] * 255).astype(np.uint8))
-    if hit.any():  # framed on the mesh: the rays that missed it are only margin
+    # Axes on the ground at the near left corner, each a round length (about a fifth of the map).
+    step = _round_length(extent / 5.0)
+    ground_y = float(np.percentile(vertices[:, 1], 90))  # y down: the ground lies low in the mesh
+    origin = np.array([lo[0], ground_y, lo[2]])
+    ends = {"x": origin + [step, 0.0, 0.0], "z": origin + [0.0, 0.0, step]}
+    uv = _project(r, np.vstack([origin, *ends.values()]))
+    for (name, _), end in zip(ends.items(), uv[1:]):
+        cv2.arrowedLine(bgr, _px(uv[0]), _px(end), (0, 0, 0), 2, cv2.LINE_AA, tipLength=0.12)
+        cv2.putText(bgr, name, _px(end + 6), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
+    top, left = 0, 0
+    if hit.any():  # framed on the mesh and the axes: the rays that missed are only margin
         rows, cols = np.nonzero(hit.any(axis=1))[0], np.nonzero(hit.any(axis=0))[0]
         m = 10
-        bgr = bgr[max(rows[0] - m, 0) : rows[-1] + m + 1, max(cols[0] - m, 0) : cols[-1] + m + 1]
+        r0 = int(min(rows[0], uv[:, 1].min()) - m)
+        r1 = int(max(rows[-1], uv[:, 1].max()) + m + 1)
+        c0 = int(min(cols[0], uv[:, 0].min()) - m)
+        c1 = int(max(cols[-1], uv[:, 0].max()) + m + 1)
+        top, left = max(r0, 0), max(c0, 0)
+        bgr = bgr[top:r1, left:c1]
     w = max(bgr.shape[1], 560)
     if bgr.shape[1] < w:
         bgr = np.hstack([bgr, np.full((bgr.shape[0], w - bgr.shape[1], 3), 255, np.uint8)])
     bar = np.full((52, w, 3), 255, np.uint8)
     text = title or f"fused mesh, perspective: {n_triangles} triangles (CPU ray casting)"
-    cv2.putText(bar, text, (8, 19), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
+    text += f"; seen from -z, turned as the top view; arrows: {step:g} m along x and z"
+    cv2.putText(bar, text, (8, 19), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
     # colour legend: height above the local ground, 0 to the 98th percentile
     ramp = colormaps["viridis"](np.linspace(0.0, 1.0, 200))[:, :3][:, ::-1]
     bar[30:44, 60:260] = (ramp[None, :, :] * 255).astype(np.uint8)

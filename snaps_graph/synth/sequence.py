@@ -38,6 +38,7 @@ __all__ = [
 
 LOOP_STEP_M = 1.0  # built-in loop: metres per frame (KITTI drives ~1 m per frame at 10 Hz)
 LOOP_REDRIVE_FRAMES = 50  # built-in loop: the last frames re-drive the start
+LANE_CHANGE_FRAMES = 30  # built-in loop with a lane offset: the lane change before the re-drive
 FRAME_PERIOD_S = 0.1  # timestamps when none are given (KITTI's 10 Hz)
 PNG_COMPRESSION = 1  # fast; the images are noise-rich so higher levels gain little
 DEPTH_PNG_SCALE = 1000.0  # depth_0/*.png: uint16 millimetres
@@ -253,7 +254,7 @@ def _exposure_curve(n: int, seed: int, amount: float) -> np.ndarray:
 
 
 # ---------------------------------------------------------------- trajectories
-def builtin_loop_trajectory(n_frames: int = 300) -> np.ndarray:
+def builtin_loop_trajectory(n_frames: int = 300, lane_offset_m: float = 0.0) -> np.ndarray:
     """A closed, curvy loop at ``LOOP_STEP_M`` per frame whose last frames re-drive the start.
 
     The loop's length is ``n_frames - r`` metres with ``r = min(50, n_frames // 6)`` re-driven
@@ -261,9 +262,15 @@ def builtin_loop_trajectory(n_frames: int = 300) -> np.ndarray:
     heading (so for 300 frames, frames 250-299 revisit frames 0-49 at a frame distance of 250).
     The shape is a smooth closed curve with bends of different radii; the road climbs and
     falls by about 2 m (grade under 5 %) and the camera pitches with it. Frame 0 is the identity.
+
+    ``lane_offset_m`` moves the second pass into another lane: a lane change over the
+    ``LANE_CHANGE_FRAMES`` before the re-drive, then the re-driven frames stand that far to
+    the left (negative: right) of the first pass, heading along the road.
     """
     if not isinstance(n_frames, (int, np.integer)) or n_frames < 60:
         raise SnapsGraphError(f"loop: need at least 60 frames, got {n_frames}")
+    if not np.isfinite(lane_offset_m) or abs(lane_offset_m) > 10.0:
+        raise SnapsGraphError(f"loop: lane offset {lane_offset_m} m must be within +-10 m")
     redrive = min(LOOP_REDRIVE_FRAMES, n_frames // 6)
     perimeter = (n_frames - redrive) * LOOP_STEP_M
     # A closed curve r(theta) with a few harmonics, sampled finely, then scaled to the perimeter.
@@ -273,13 +280,31 @@ def builtin_loop_trajectory(n_frames: int = 300) -> np.ndarray:
     seg = np.hypot(np.diff(x), np.diff(z))
     x, z = x * perimeter / seg.sum(), z * perimeter / seg.sum()
     cum = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(z)))])
-    s = (np.arange(n_frames) * LOOP_STEP_M) % perimeter
-    px, pz = np.interp(s, cum, x), np.interp(s, cum, z)
-    # Tangent by a centred difference along the periodic arc length.
+    arc = np.arange(n_frames) * LOOP_STEP_M
+    s = arc % perimeter
+    # Lane offset per unit of driven arc: 0 on the first pass, a smooth step into the other lane.
+    change_end = (n_frames - redrive) * LOOP_STEP_M
+    change_len = LANE_CHANGE_FRAMES * LOOP_STEP_M
+
+    def lane(a: np.ndarray) -> np.ndarray:
+        u = np.clip((a - (change_end - change_len)) / change_len, 0.0, 1.0)
+        return lane_offset_m * u * u * (3.0 - 2.0 * u)
+
+    def place(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Position (x, z) at driven arc ``a``: the loop's centre line moved sideways by the lane."""
+        sa = a % perimeter
+        cx, cz = np.interp(sa, cum, x), np.interp(sa, cum, z)
+        dx = np.interp((sa + 0.25) % perimeter, cum, x) - np.interp((sa - 0.25) % perimeter, cum, x)
+        dz = np.interp((sa + 0.25) % perimeter, cum, z) - np.interp((sa - 0.25) % perimeter, cum, z)
+        norm = np.hypot(dx, dz)
+        d = lane(a)  # left of heading (dx, dz) in x-right / z-forward axes is (-dz, dx)
+        return cx - d * dz / norm, cz + d * dx / norm
+
+    px, pz = place(arc)
+    # Heading by a centred difference along the driven arc (the lane change turns it too).
     ds = 0.25
-    tx = np.interp((s + ds) % perimeter, cum, x) - np.interp((s - ds) % perimeter, cum, x)
-    tz = np.interp((s + ds) % perimeter, cum, z) - np.interp((s - ds) % perimeter, cum, z)
-    yaw = np.arctan2(tx, tz)
+    (xa, za), (xb, zb) = place(arc + ds), place(arc - ds)
+    yaw = np.arctan2(xa - xb, za - zb)
     # Height (up) and grade: a periodic profile so the loop closes in height too.
     w = 2 * np.pi * s / perimeter
     up = 1.2 * np.sin(w) + 0.6 * np.sin(2 * w + 0.7)

@@ -1,0 +1,166 @@
+"""What the command line needs besides its commands (cli.py): help that shows a value's shape only
+where one is typed, a folder that holds a run rather than being one, and the frame numbers a
+run's pose file stands for (``eval`` against a whole sequence's ground truth)."""
+
+from __future__ import annotations
+
+import inspect
+import typing
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Optional
+
+import typer
+
+from .console import replacing
+from .errors import SnapsGraphError
+from .io_utils import check_output_folder
+
+
+def plain_metavars(app: typer.Typer) -> None:
+    """No ``<bool>`` after a flag in the help, and ``--set`` shown as the SECTION.KEY=VALUE it
+    takes rather than typer's ``<list[str]>``: set on the declared options, once."""
+    callbacks = [cmd.callback for cmd in app.registered_commands]
+    if app.registered_callback is not None:
+        callbacks.append(app.registered_callback.callback)
+    for fn in callbacks:
+        assert fn is not None
+        hints = typing.get_type_hints(fn)
+        for name, param in inspect.signature(fn).parameters.items():
+            info = param.default
+            if not isinstance(info, typer.models.OptionInfo) or info.metavar is not None:
+                continue
+            if hints.get(name) in (bool, Optional[bool]):  # noqa: UP045  # the annotation as written
+                info.metavar = ""
+            elif "--set" in (info.param_decls or ()):
+                info.metavar = "SECTION.KEY=VALUE"
+
+
+def click_command(app: typer.Typer):
+    """The click command ``app()`` would run, its ``-h/--help`` flags shown without ``<bool>`` too
+    (click makes them itself, so they are reached through each command)."""
+    command = typer.main.get_command(app)
+    names = SimpleNamespace(help_option_names=(app.info.context_settings or {}).get("help_option_names", ["--help"]))
+    for cmd in [command, *getattr(command, "commands", {}).values()]:
+        help_option = cmd.get_help_option(names)
+        if help_option is not None:
+            help_option.metavar = ""
+    return command
+
+
+def check_output(out: Path, overwrite: bool) -> None:
+    """``check_output_folder``, and earlier results that ``overwrite`` replaces noted, so a Ctrl-C
+    before the new ones are complete says they were kept."""
+    check_output_folder(out, overwrite)
+    replacing(out, overwrite)
+
+
+def rrd_size_text(rrd: Path, frames: int) -> str:
+    """A recording's size in all and per frame, MB."""
+    size_mb = rrd.stat().st_size / 1e6 if rrd.is_file() else float("nan")
+    return f"{size_mb:.1f} MB, {size_mb / max(frames, 1):.3f} MB per frame"
+
+
+def check_run_folder(run_dir: Path) -> None:
+    """A mistyped path, or a folder that holds runs (``demo``'s OUT holds OUT/run): said before
+    the heavy imports, naming the run folders inside."""
+    if not run_dir.exists():
+        raise SnapsGraphError(f"{run_dir}: run folder not found")
+    if run_dir.is_dir() and not (run_dir / "poses_vo.txt").is_file():
+        inner = sorted(p.parent for p in run_dir.glob("*/poses_vo.txt"))
+        if inner:
+            raise SnapsGraphError(f"{run_dir}: not a run folder itself; the run is in {', '.join(map(str, inner))}")
+
+
+def run_frame_ids(est: Path, n: int):
+    """The dataset frame numbers of a run's pose file of ``n`` poses (its folder's frames.csv),
+    increasing, else None."""
+    frames_csv = est.parent / "frames.csv"
+    if not frames_csv.is_file():
+        return None
+    import numpy as np
+
+    from .evaluation.results_io import frame_ids, read_frames_csv
+
+    cols = read_frames_csv(frames_csv)
+    if len(next(iter(cols.values()), [])) != n:
+        return None  # not this file's rows
+    ids = frame_ids(cols, n, frames_csv)
+    return ids if len(ids) and np.all(np.diff(ids) > 0) else None
+
+
+def frame_spans(ids) -> str:
+    """``100-230, 1540-1660``: the runs of consecutive frame numbers."""
+    from .evaluation.metrics import parts
+
+    return ", ".join(f"{ids[r[0]]}-{ids[r[-1]]}" for r in parts(ids, len(ids)))
+
+
+def run_ground_truth(est: Path, n: int, gt: Path, gt_poses, ids):
+    """``gt_poses`` for the ``n`` poses of ``est``: as read when they are as many; a run of part of
+    a sequence against the sequence's whole ground truth (the official KITTI file) gets its
+    frames ``ids``, re-based to the first, as the run's own poses_gt.txt holds them (with a note)."""
+    if len(gt_poses) == n:
+        return gt_poses
+    if ids is None or gt.suffix.lower() == ".tum" or ids[-1] >= len(gt_poses):
+        raise SnapsGraphError(
+            f"{est}: {n} poses, but {gt} has {len(gt_poses)} (one pose per frame in both; "
+            "a run's own poses_gt.txt holds exactly its frames)"
+        )
+    import numpy as np
+
+    typer.echo(f"note: {gt}: the run's {len(ids)} frames ({frame_spans(ids)}) of its {len(gt_poses)}", err=True)
+    return np.linalg.solve(gt_poses[ids[0]], gt_poses[ids])
+
+
+# The drift model's fields by the drift command's flags; a rate may be negative, a walk not.
+DRIFT_FLAGS = {
+    "scale-pct": "scale_pct",
+    "heading-rw": "heading_deg_per_sqrt_m",
+    "pitch-rw": "pitch_deg_per_sqrt_m",
+    "roll-rw": "roll_deg_per_sqrt_m",
+    "trans-rw": "trans_m_per_sqrt_m",
+    "heading-rate": "heading_deg_per_100m",
+    "roll-rate": "roll_deg_per_100m",
+}
+
+
+def write_drift(gt: Path, out: Path, seed: int, pct: float | None, rates: dict, overwrite: bool) -> str:
+    """``snaps-graph drift``: the ground truth driven again with the drift model (the defaults with
+    the given ``rates`` by flag), written to ``out`` under its lock; returns the line to print."""
+    import dataclasses
+
+    from .drift_model import DriftModel
+    from .evaluation.drift import drift_trajectory, end_drift_pct
+    from .locks import writer_lock
+    from .trajectory_io import read_kitti_poses, write_kitti_poses
+
+    changes = {}
+    for flag, value in rates.items():
+        if value is not None and not (abs(value) < 1e3 and (value >= 0 or flag.endswith("rate"))):
+            raise SnapsGraphError(f"drift: --{flag} must be a number in [0, 1000), got {value}")
+        if value is not None:
+            changes[DRIFT_FLAGS[flag]] = value
+    with writer_lock(out):  # another drift into OUT is refused at once, never overwritten
+        if out.exists() and not overwrite:
+            raise SnapsGraphError(f"{out} exists (pass --overwrite to replace it)")
+        if out.exists() and out.resolve() == gt.resolve():
+            raise SnapsGraphError(f"{out} is the input ground truth")
+        poses = read_kitti_poses(gt)
+        drifted = drift_trajectory(poses, seed, dataclasses.replace(DriftModel(), **changes), pct)
+        write_kitti_poses(out, drifted)
+    return f"wrote {out}: {len(drifted)} poses, end drift {end_drift_pct(drifted, poses):.3f} % of the distance"
+
+
+def drift_fit_text(est: Path, gt: Path, segment_m: float | None) -> str:
+    """``snaps-graph drift-fit``: the drift model of ``est`` against ``gt`` as a config section."""
+    from .evaluation.drift import fit_drift_model, odometry_section
+    from .trajectory_io import read_poses
+
+    if segment_m is not None and not (0 < segment_m < 1e6):
+        raise SnapsGraphError(f"drift-fit: --segment-m must be a length in (0, 1e6) m, got {segment_m}")
+    E, G = read_poses(est), read_poses(gt)
+    if len(E) != len(G):
+        raise SnapsGraphError(f"{est}: {len(E)} poses, but {gt} has {len(G)}: the two must hold the same frames")
+    model, L = fit_drift_model(E, G, segment_m)
+    return f"# {est} against {gt}: {len(E)} poses, stretches of {L:.0f} m\n" + odometry_section(model)
