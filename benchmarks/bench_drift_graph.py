@@ -72,6 +72,8 @@ def run_one(spec: str, pct: float | None, seed: int, config: str | None, model: 
     loop_cov = np.diag([LOOP_NOISE_ROT_RAD**2] * 3 + [LOOP_NOISE_TRANS_M**2] * 3)
     steps: list[tuple[np.ndarray, np.ndarray | None]] = []
     loops: list[tuple[int, int, np.ndarray]] = []
+    at_loops: list[tuple[float, float]] = []  # (reference error, current frame's error) when a loop corrects
+    last = np.eye(4)
     for k in range(n):
         vo = front.process(StereoFrame(k, 0.1 * k, IMAGE, IMAGE))
 
@@ -87,7 +89,17 @@ def run_one(spec: str, pct: float | None, seed: int, config: str | None, model: 
             noise[:3, 3] = rng.normal(0, LOOP_NOISE_TRANS_M, 3)
             return T @ noise, 200
 
+        before = last @ vo.T_rel if k else np.eye(4)
         step = snaps.step(k, vo.T_rel, IMAGE, verify=verify)
+        last = step.pose
+        if step.loop is not None and step.loop.T_ref_cur is not None:
+            ref = step.loop.reference
+            at_loops.append(
+                (
+                    float(np.linalg.norm(snaps.poses[ref][:3, 3] - gt[ref][:3, 3])),
+                    float(np.linalg.norm(before[:3, 3] - gt[k][:3, 3])),
+                )
+            )
         graph.add_frame(k, step.pose, None if k == 0 else vo.T_rel, inliers=vo.inliers, ok=vo.ok, cov=vo.cov)
         steps.append((vo.T_rel, vo.cov))
         if step.loop is not None:
@@ -119,6 +131,7 @@ def run_one(spec: str, pct: float | None, seed: int, config: str | None, model: 
         "iterations": graph.stats.batch_iterations,
         "batch_s": batch_s,
         "failures": len(graph.failures),
+        "at_loops": at_loops,
     }
 
 
@@ -177,6 +190,36 @@ def main() -> None:
         print(f"  refined / odometry {what}: median {statistics.median(ratios):.2f}")
     al = [r["allowed"][0] / r["odo"][0] for r in looped]
     print(f"  allowed / odometry (graph with the true process): median {statistics.median(al):.2f}")
+    both = [r for r in looped if r["allowed"][0] <= r["heur"][0]]
+    print(
+        f"  allowed <= heuristic in {len(both)}/{len(looped)}; refined <= heuristic in "
+        f"{sum(r['batch'][0] <= r['heur'][0] for r in both)} of those"
+    )
+    print(
+        f"  refined above 1.05 x odometry while allowed is not: "
+        f"{sum(r['batch'][0] > 1.05 * r['odo'][0] and r['allowed'][0] <= 1.05 * r['odo'][0] for r in looped)}"
+    )
+    print(
+        "  heuristic above the odometry: at its loops, reference error vs current frame's error (mean m), "
+        "and the best the loops allow (allowed / odometry)"
+    )
+    why = {"reference": 0, "allowed": 0, "neither": 0}
+    for r in looped:
+        if r["heur"][0] > r["odo"][0] and r["at_loops"]:
+            ref_e = statistics.mean(a for a, _ in r["at_loops"])
+            cur_e = statistics.mean(b for _, b in r["at_loops"])
+            al_o = r["allowed"][0] / r["odo"][0]
+            reason = "reference" if ref_e > cur_e else "allowed" if al_o > 1.0 else "neither"
+            why[reason] += 1
+            print(
+                f"    {r['path']:10s} {str(r['pct']):>4s} seed {r['seed']}: heur/odo {r['heur'][0] / r['odo'][0]:.2f}, "
+                f"reference {ref_e:.2f} vs current {cur_e:.2f}, allowed/odo {al_o:.2f}"
+                f"{'  (neither)' if reason == 'neither' else ''}"
+            )
+    print(
+        f"  of those: reference farther from the truth {why['reference']}, the loops allow no better than the "
+        f"odometry {why['allowed']}, neither {why['neither']}"
+    )
     for p in dict.fromkeys(r["path"] for r in rows):
         sel = [r for r in looped if r["path"] == p]
         if sel:
