@@ -51,9 +51,7 @@ class NaiveVO:
         if self.prev is not None:
             puv, pdesc, pdepth = self.prev
             good = [
-                m[0]
-                for m in self.bf.knnMatch(pdesc, desc, k=2)
-                if len(m) == 2 and m[0].distance < RATIO_TEST * m[1].distance
+                m[0] for m in self.bf.knnMatch(pdesc, desc, k=2) if len(m) == 2 and m[0].distance < RATIO_TEST * m[1].distance
             ]
             t3 = time.perf_counter()
             a = np.array([m.queryIdx for m in good])

@@ -328,9 +328,7 @@ class Config:
         """The named preset (``PRESETS``): the defaults with its overrides, validated."""
         if name not in PRESETS:
             raise SnapsGraphError(f"unknown preset '{name}' (one of {', '.join(PRESETS)})")
-        cfg = cls().merged(PRESETS[name], f"preset {name}")
-        cfg.source = f"preset {name}" if name != "default" else "config"
-        return cfg
+        return cls().merged(PRESETS[name], f"preset {name}")
 
     @classmethod
     def compose(
@@ -341,8 +339,9 @@ class Config:
         ``--loops``, ``--refine`` and ``--map`` come last)."""
         cfg = cls.preset(preset)
         if path is not None:
-            cfg = cfg.merged(read_toml(Path(path), "config"), str(path))
-            cfg.source = str(path)
+            data = read_toml(Path(path), "config")
+            cfg.source = str(path)  # the file is what a later error names
+            cfg = cfg.merged(data, str(path))
         return cfg.with_overrides(overrides)
 
     # ---- TOML ----
