@@ -211,3 +211,13 @@ def test_run_set_beats_the_config_file_and_lands_in_the_results(tiny_seq, tmp_pa
     r = cli("run", tiny_seq, "-o", tmp_path / "o2", "--set", "map.keyframe_evry=2")
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "did you mean" in r.stderr and "--set" in r.stderr
     assert not (tmp_path / "o2").exists()
+
+
+def test_a_batch_plan_takes_a_preset_under_its_variants(tiny_seq):
+    from snaps_graph.batch.plan import plan_from_dict
+
+    plan = plan_from_dict({"sequences": [str(tiny_seq)], "preset": "paper", "variants": {"orb": {"frontend": {"mode": "orb"}}}})
+    cfg = plan.cells[0].cfg
+    assert (cfg.frontend.mode, cfg.frontend.disparity, cfg.frontend.local_ba) == ("orb", "bm_wls", False)
+    with pytest.raises(SnapsGraphError, match="preset: unknown preset 'fast'"):
+        plan_from_dict({"sequences": [str(tiny_seq)], "preset": "fast"})
