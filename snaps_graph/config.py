@@ -260,6 +260,7 @@ class OdometryConfig(Section):
 # Named presets: overrides of the defaults, checked as a config file is (``Config.preset``).
 # paper: the paper's front end (OpenCV SIFT with the doubled first octave, StereoBM + WLS depth,
 # PnP + LM, no local BA) and its loop closure rule.
+# (loop.policy comes with the loop closer's named policies; without it the preset is the front end.)
 _PAPER_LOOP = {"policy": "paper"} if "policy" in LoopConfig.__dataclass_fields__ else {}
 PRESETS: dict[str, dict[str, Any]] = {
     "default": {},
@@ -376,7 +377,7 @@ class Config:
         return dataclasses.asdict(self)
 
     def dumps(self, comments: bool = False) -> str:
-        """The configuration as TOML, a nested section as its own table (``[frontend.klt]``);
+        """The configuration as TOML, a nested section as its own table (``[section.part]``);
         ``comments`` adds each key's help and range as a comment."""
         return "\n".join(dumps_section(self, "", comments)) + "\n"
 
@@ -386,7 +387,7 @@ class Config:
 
 def parse_set(items: list[str] | tuple[str, ...], source: str = "--set") -> dict[str, Any]:
     """``section.key=value`` items, a nested section's key with its full path
-    (``frontend.klt.window_px=11``; the value in TOML: 3, 0.5, true, "yaw"; a bare word is a
+    (``section.part.key=1``; the value in TOML: 3, 0.5, true, "yaw"; a bare word is a
     string) as the nested dict a config file would give; a malformed item is a one-line error."""
     data: dict[str, Any] = {}
     for item in items:
