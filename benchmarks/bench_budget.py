@@ -1,4 +1,4 @@
-"""What each of the front end's cost settings buys in CPU and costs in accuracy, on the KITTI 06 clip.
+"""What each of the front end's cost choices buys in CPU and costs in accuracy, on the KITTI 06 clip.
 
 Each variant is the default configuration with one ``section.key=value`` changed (the CLI's
 ``--set``; several joined by ``;``, as the built-in list's last cost variant, all of them at once). Runs alternate: the default, then every variant, ``--rounds`` times, each in a fresh
@@ -15,7 +15,10 @@ half ORB-SLAM3's; it keeps the accuracy when ATE <= 0.045 m and end drift <= 0.8
 The second group, "perturbation", changes a setting that costs nothing: how far the clip's ATE
 moves under a change that buys no time is the yardstick for the first group's accuracy figures.
 
-    python benchmarks/bench_budget.py [--rounds 2] [--variants frontend.klt.features=1000,...]
+The tuning inside each part (KLT corners, BA iterations, window sizes) is constants in the code
+now; docs/performance.md has the table that chose them, measured when they were settings.
+
+    python benchmarks/bench_budget.py [--rounds 2] [--variants frontend.local_ba=false,...]
         [--peer-venv results/orb-venv] [--work results/budget]
 """
 
@@ -40,29 +43,18 @@ ROOT = peers.ROOT
 SEQ = "kitti06"
 MAX_ATE_M, MAX_DRIFT_PERCENT, MAX_RATIO = peers.MAX_ATE_M, peers.MAX_DRIFT_PERCENT, peers.MAX_RATIO
 
-# settings that remove work from every frame (or every keyframe / loop reference)
+# choices that remove work from every frame (or every keyframe)
 COST_VARIANTS = [
-    "frontend.klt.features=1000",
-    "frontend.klt.features=800",
-    "frontend.klt.window_px=9",
-    "frontend.klt.min_distance_px=12",
-    "frontend.klt.bias_window_px=0",
-    "frontend.stereo_guess_levels=3",
-    "frontend.stereo_guess_levels=2",
-    "frontend.stereo_ba.iterations=2",
-    "frontend.local_ba.iterations=3",
-    "frontend.local_ba.max_landmarks=200",
-    "frontend.local_ba.every=4",
-    "verification.reference_every=10",
-    # the cheaper settings above that cost least accuracy, all at once
-    "frontend.klt.features=1000;frontend.klt.min_distance_px=12;frontend.stereo_guess_levels=3;"
-    "frontend.local_ba.iterations=3;verification.reference_every=10",
+    "frontend.local_ba=false",
+    'frontend.motion="pnp"',
+    "frontend.threads=1",
+    # both at once
+    'frontend.local_ba=false;frontend.motion="pnp"',
 ]
 # settings moved by a hair: no time bought, only the clip's sensitivity measured
 PERTURBATION_VARIANTS = [
-    "frontend.klt.quality=0.0105",
-    "frontend.klt.border_px=17",
-    "frontend.pnp_reprojection_px=1.45",
+    "frontend.max_depth_m=79.0",
+    "frontend.min_depth_m=0.55",
 ]
 
 

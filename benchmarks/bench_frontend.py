@@ -34,31 +34,42 @@ from naive_vo import NaiveVO  # the paper's front end written plainly
 from snaps_graph.config import Config, FrontendConfig
 from snaps_graph.datasets.kitti import KittiSequence
 from snaps_graph.evaluation.metrics import ate_rmse, evaluate, path_length, step_error_axes_percent
-from snaps_graph.frontend import StereoOdometry
+from snaps_graph.frontend import StereoOdometry, depth, features, lba_schedule, local_ba
 
-# [frontend] values per mode, a nested section as a dict (as in a config file)
+# [frontend] values per mode (as in a config file)
 MODES = {
     "default": dict(),  # the default configuration
-    "klt_pnp": dict(mode="klt", motion="pnp", local_ba=dict(enabled=False)),  # klt + sparse stereo + PnP only
-    "klt_sba": dict(mode="klt", motion="stereo_ba", local_ba=dict(enabled=False)),
-    "klt_lba": dict(mode="klt", motion="stereo_ba", local_ba=dict(enabled=True, every=1)),  # every frame a keyframe
-    "klt_lba2": dict(mode="klt", motion="stereo_ba", local_ba=dict(enabled=True, every=2, window=8)),
-    "klt_lba3": dict(mode="klt", motion="stereo_ba", local_ba=dict(enabled=True, every=3, window=8)),
-    "klt_lba3w6": dict(mode="klt", motion="stereo_ba", local_ba=dict(enabled=True, every=3, window=6)),
-    "sift": dict(
-        mode="sift", disparity="bm_wls", sift_first_octave=-1, motion="pnp", local_ba=dict(enabled=False)
-    ),  # the paper's front end, faithfully
+    "klt_pnp": dict(mode="klt", motion="pnp", local_ba=False),  # klt + sparse stereo + PnP only
+    "klt_sba": dict(mode="klt", motion="stereo_ba", local_ba=False),
+    "klt_lba": dict(mode="klt", motion="stereo_ba", local_ba=True),  # every frame a keyframe (PATCHES)
+    "klt_lba2": dict(mode="klt", motion="stereo_ba", local_ba=True),
+    "klt_lba3": dict(mode="klt", motion="stereo_ba", local_ba=True),
+    "klt_lba3w6": dict(mode="klt", motion="stereo_ba", local_ba=True),
+    "sift": dict(mode="sift", disparity="bm_wls", sift_first_octave=-1, motion="pnp", local_ba=False),  # the paper's front end
     "sift_sba": dict(mode="sift", disparity="bm_wls", sift_first_octave=-1, motion="stereo_ba"),
     "sift_sparse": dict(mode="sift", disparity="sparse"),  # what mode = "sift" runs by default
     "sift_fo-1": dict(mode="sift", disparity="sparse", sift_first_octave=-1),
     "orb": dict(mode="orb"),
-    "no_offset": dict(offset=dict(estimate=False)),  # the default without the online disparity offset estimate
-    "no_weak": dict(klt=dict(weak_points=0)),  # the default without the weak-texture corner detection
-    "no_chain": dict(local_ba=dict(chain="off")),  # the default without the chain's heading factor in the local BA
-    "chain_yaw": dict(local_ba=dict(chain="yaw")),  # the chain's heading alone in the local BA (the default before yaw_roll)
-    "sgl1": dict(stereo_guess_levels=1),  # tracked points' stereo from the predicted disparity, 2 pyramid levels
-    "sgl2": dict(stereo_guess_levels=2),  # ... 3 pyramid levels
-    "no_bias_fix": dict(klt=dict(bias_window_px=0)),  # the default with the plain 11 px LK fit
+    "no_offset": dict(estimate_offset=False),  # the default without the online disparity offset estimate
+    "no_weak": dict(),  # the default without the weak-texture corner detection (PATCHES)
+    "no_chain": dict(),  # the default without the chain's heading factor in the local BA
+    "chain_yaw": dict(),  # the chain's heading alone in the local BA (the default before yaw_roll)
+    "sgl1": dict(),  # tracked points' stereo from the predicted disparity, 2 pyramid levels
+    "sgl2": dict(),  # ... 3 pyramid levels
+    "no_bias_fix": dict(),  # the default with the plain 11 px LK fit
+}
+# The front end's constants a mode changes: (module, name, value), restored after the mode's run.
+PATCHES = {
+    "klt_lba": [(lba_schedule, "LBA_EVERY", 1)],
+    "klt_lba2": [(lba_schedule, "LBA_EVERY", 2), (local_ba, "LBA_WINDOW", 8)],
+    "klt_lba3": [(local_ba, "LBA_WINDOW", 8)],
+    "klt_lba3w6": [],
+    "no_weak": [(features, "KLT", features.KltParams(weak_points=0))],
+    "no_chain": [(lba_schedule, "LBA_CHAIN", "off")],
+    "chain_yaw": [(lba_schedule, "LBA_CHAIN", "yaw")],
+    "sgl1": [(depth, "STEREO_GUESS_LEVELS", 1)],
+    "sgl2": [(depth, "STEREO_GUESS_LEVELS", 2)],
+    "no_bias_fix": [(features, "KLT", features.KltParams(bias_window_px=0))],
 }
 
 
@@ -89,8 +100,15 @@ def run(name, seq, frames, base=None):
         flagged = sum(not o[1] for o in out)
         timings = [o[2] for o in out]
     else:
-        with StereoOdometry(cam, frontend_config(name, base)) as vo:
-            res = [vo.process(f) for f in frames]
+        saved = [(mod, key, getattr(mod, key)) for mod, key, _ in PATCHES.get(name, [])]
+        for mod, key, value in PATCHES.get(name, []):
+            setattr(mod, key, value)
+        try:
+            with StereoOdometry(cam, frontend_config(name, base)) as vo:
+                res = [vo.process(f) for f in frames]
+        finally:
+            for mod, key, value in saved:
+                setattr(mod, key, value)
         poses = np.array([r.pose for r in res])
         flagged = sum(not r.ok for r in res)
         timings = [r.timings_ms for r in res]

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from snaps_graph.config import Config
+from snaps_graph.frontend import depth as depth_mod
 from snaps_graph.frontend.depth import dense_depth, map_depth
 from snaps_graph.synth import SyntheticSequence, load_trajectory
 
@@ -30,6 +31,17 @@ A, B, S = (int(x) for x in a.frames.split(":"))
 frames = [seq.render(i) for i in range(A, B, S)]
 
 base = Config()
+# The variants' keys: the map matcher's constants in frontend/depth.py (depth_scale is [map]'s).
+MAP_CONSTANTS = {
+    "depth_method": "MAP_DEPTH_METHOD",
+    "depth_block_size": "MAP_BLOCK_SIZE",
+    "depth_uniqueness": "MAP_UNIQUENESS",
+    "depth_lr_check_px": "MAP_LR_CHECK_PX",
+    "depth_min_confidence": "MAP_MIN_CONFIDENCE",
+    "depth_edge_ratio": "MAP_EDGE_RATIO",
+    "depth_speckle_px": "MAP_SPECKLE_PX",
+}
+DEFAULTS = {name: getattr(depth_mod, name) for name in MAP_CONSTANTS.values()}
 BM = dict(depth_method="bm", depth_block_size=7)
 SG = dict(depth_method="sgbm", depth_block_size=5)
 VARIANTS = {
@@ -54,8 +66,13 @@ bins = [(0, 10), (10, 20), (20, 30), (30, 40), (40, 80)]
 for name, over in VARIANTS.items():
     cfg = copy.deepcopy(base)
     cfg.map.max_range_m = 80.0
+    for name, v in DEFAULTS.items():
+        setattr(depth_mod, name, v)
     for k, v in (over or {}).items():
-        setattr(cfg.map, k, v)
+        if k == "depth_scale":
+            cfg.map.depth_scale = v
+        else:
+            setattr(depth_mod, MAP_CONSTANTS[k], v)
     errs, zt_all, z_all, kept, truth, sky, sky_r, ms = [], [], [], 0, 0, 0, 0, []
     for f in frames:
         t = time.perf_counter()

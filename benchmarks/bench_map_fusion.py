@@ -62,16 +62,19 @@ for src, depths in (("exact depth", exact), ("map_depth", est))[0 if a.exact els
     for name, over in SETTINGS.items():
         cfg = copy.deepcopy(base.map)
         for key, v in over.items():
+            if key != "tsdf_voxel_m" and key.startswith("tsdf_"):
+                continue  # the fusion's constants: set on the map below
             setattr(cfg, key, v)
         m = FusedMap(seq.camera, cfg)
+        for key, v in over.items():
+            if key != "tsdf_voxel_m" and key.startswith("tsdf_"):
+                setattr(m, key.removeprefix("tsdf_"), v)  # trunc_voxels, min_weight, ... (mapping/tsdf.py)
         for k in kfs:
             if m.should_add(k):
                 m.add_keyframe(k, depths[k], frames[k].left)
         s = m.fuse(gt)
         cam = seq.camera
-        acc = map_accuracy(
-            world, s.points, s.vertices, gt[kfs], cam.K, (cam.width, cam.height), cfg.accuracy_range_m, cfg.accuracy_tolerance_m
-        )
+        acc = map_accuracy(world, s.points, s.vertices, gt[kfs], cam.K, (cam.width, cam.height))
         p = acc["points"]
         print(
             f"{src:<12} {name:<20} fuse {1e3 * s.stats['fuse_s'] / len(m):5.1f} ms/kf (total {s.stats['fuse_s']:.1f} s), {s.stats['max_blocks']} blocks, "

@@ -132,12 +132,12 @@ def make_sequence(root: Path, frames: int = 8) -> Path:
 
 def run_race(seq: Path, root: Path, n: int) -> tuple[list[str], int]:
     """N ``run --overwrite`` into one existing results folder; each run tagged by a config value
-    it does not use (map.accuracy_range_m without --map), read back from OUT/config.toml."""
+    it does not use (map.max_range_m without --map), read back from OUT/config.toml."""
     out = root / "out"
     first = subprocess.run(cli("run", seq, "--out", out, "--no-map"), capture_output=True, text=True, env=_env())
     if first.returncode != 0:
         return [f"the first run failed: {first.stderr[-300:]}"], 0
-    cmds = [cli("run", seq, "--out", out, "--overwrite", "--no-map", "--set", f"map.accuracy_range_m={11 + i}") for i in range(n)]
+    cmds = [cli("run", seq, "--out", out, "--overwrite", "--no-map", "--set", f"map.max_range_m={11 + i}") for i in range(n)]
     r = race(cmds, root, f".{out.name}.tmp-")
     found = problems_of_commands(r) + whole_run(out) + [f"left beside OUT: {x}" for x in leftovers(out)]
     tag = _tag(out)
@@ -153,7 +153,7 @@ def _tag(out: Path) -> float | None:
     import tomllib
 
     try:
-        return tomllib.loads((out / "config.toml").read_text())["map"]["accuracy_range_m"]
+        return tomllib.loads((out / "config.toml").read_text())["map"]["max_range_m"]
     except (OSError, ValueError, KeyError):
         return None
 

@@ -9,8 +9,9 @@ import cv2
 import numpy as np
 
 from snaps_graph.config import FrontendConfig
-from snaps_graph.frontend.depth import WLS_LAMBDA, WLS_SIGMA
-from snaps_graph.frontend.motion import PNP_CONFIDENCE, PNP_ITERATIONS
+from snaps_graph.frontend.depth import BM_BLOCK_SIZE, WLS_LAMBDA, WLS_SIGMA
+from snaps_graph.frontend.features import RATIO_TEST, SIFT_FEATURES
+from snaps_graph.frontend.motion import PNP_CONFIDENCE, PNP_ITERATIONS, PNP_REPROJECTION_PX
 from snaps_graph.geometry import inv
 
 
@@ -19,12 +20,12 @@ class NaiveVO:
 
     def __init__(self, camera, cfg: FrontendConfig):
         self.cam, self.cfg = camera, cfg
-        self.bm = cv2.StereoBM.create(cfg.num_disparities, cfg.block_size)
+        self.bm = cv2.StereoBM.create(cfg.num_disparities, BM_BLOCK_SIZE)
         self.rbm = cv2.ximgproc.createRightMatcher(self.bm)
         self.wls = cv2.ximgproc.createDisparityWLSFilter(self.bm)
         self.wls.setLambda(WLS_LAMBDA)
         self.wls.setSigmaColor(WLS_SIGMA)
-        self.sift = cv2.SIFT.create(cfg.sift_features)
+        self.sift = cv2.SIFT.create(SIFT_FEATURES)
         self.bf = cv2.BFMatcher(cv2.NORM_L2)
         self.prev = None
         self.pose = np.eye(4)
@@ -50,9 +51,7 @@ class NaiveVO:
         if self.prev is not None:
             puv, pdesc, pdepth = self.prev
             good = [
-                m[0]
-                for m in self.bf.knnMatch(pdesc, desc, k=2)
-                if len(m) == 2 and m[0].distance < self.cfg.ratio_test * m[1].distance
+                m[0] for m in self.bf.knnMatch(pdesc, desc, k=2) if len(m) == 2 and m[0].distance < RATIO_TEST * m[1].distance
             ]
             t3 = time.perf_counter()
             a = np.array([m.queryIdx for m in good])
@@ -66,7 +65,7 @@ class NaiveVO:
                 self.cam.K,
                 None,
                 iterationsCount=PNP_ITERATIONS,
-                reprojectionError=self.cfg.pnp_reprojection_px,
+                reprojectionError=PNP_REPROJECTION_PX,
                 confidence=PNP_CONFIDENCE,
             )
             ok = bool(res[0])

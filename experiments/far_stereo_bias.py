@@ -49,7 +49,7 @@ def main() -> None:
     z_true, z_est, d_err = [], [], []
     for i in range(0, len(seq), args.every):
         f = seq.render(i)
-        uv = feat.detect_corners(f.left, cfg.klt.features, cfg.klt, avoid=np.zeros((0, 2), np.float32))
+        uv = feat.detect_corners(f.left, feat.KLT.features, feat.KLT, avoid=np.zeros((0, 2), np.float32))
         z = depth_mod.sample_depth(f.depth, uv)
         zs, d = depth_mod.sparse_depth(f.left, f.right, uv, cam, cfg)
         z_true.append(z)

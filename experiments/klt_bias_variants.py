@@ -14,7 +14,6 @@ import argparse
 import cv2
 import numpy as np
 
-from snaps_graph.config import Config
 from snaps_graph.frontend import depth as depth_mod
 from snaps_graph.frontend import features as feat
 from snaps_graph.synth import SyntheticSequence, load_trajectory
@@ -95,12 +94,12 @@ def main() -> None:
     poses, times = load_trajectory(args.trajectory, args.frames)
     every = args.every
     seq = SyntheticSequence(poses, width=1241, height=376, seed=0, times=times)
-    cam, cfg = seq.camera, Config().frontend
+    cam = seq.camera
     rng = np.random.default_rng(0)
     acc = {}
     for i in range(0, len(seq) - 1, every):
         f0 = seq.render(i)
-        uv = feat.detect_corners(f0.left, cfg.klt.features, cfg.klt, avoid=np.zeros((0, 2), np.float32))
+        uv = feat.detect_corners(f0.left, feat.KLT.features, feat.KLT, avoid=np.zeros((0, 2), np.float32))
         z = depth_mod.sample_depth(f0.depth, uv)
         uv, z = uv[z > 0], z[z > 0]
         P = np.c_[(uv[:, 0] - cam.cx) / cam.fx * z, (uv[:, 1] - cam.cy) / cam.fy * z, z, np.ones(len(z))]

@@ -7,7 +7,7 @@ handed-back pose to (a) the chain's pose and (b) the BA's pose, against the grou
 mean and RMS per axis (rotation in millidegrees about the camera's x = pitch, y = yaw, z = roll;
 translation in mm), and the RMS yaw and sideways (x) error by the ground-truth yaw of the step.
 
-    python experiments/lba_vs_chain.py results/demo/sequence [--frames A:B] [--set frontend.local_ba.max_landmarks=600 ...]
+    python experiments/lba_vs_chain.py results/demo/sequence [--frames A:B] [--set frontend.local_ba=false ...]
 """
 
 from __future__ import annotations

@@ -29,7 +29,7 @@ import numpy as np
 from snaps_graph.config import Config
 from snaps_graph.frontend import depth as depth_mod
 from snaps_graph.frontend import features as feat
-from snaps_graph.frontend.stereo_ba import stereo_two_view_ba
+from snaps_graph.frontend.stereo_ba import STEREO_BA, stereo_two_view_ba
 from snaps_graph.geometry import log_so3
 from snaps_graph.synth import SyntheticSequence, load_trajectory
 
@@ -54,13 +54,13 @@ def main() -> None:
     poses, times = load_trajectory(args.trajectory, args.frames)
     seq = SyntheticSequence(poses, width=1241, height=376, seed=0, times=times, noise_std=args.noise)
     cam, cfg = seq.camera, Config().frontend
-    huber, outlier = args.kernel if args.kernel else (cfg.stereo_ba.huber_px, cfg.stereo_ba.outlier_px)
-    ba_cfg = dataclasses.replace(cfg.stereo_ba, huber_px=huber, outlier_px=outlier)
+    huber, outlier = args.kernel if args.kernel else (STEREO_BA.huber_px, STEREO_BA.outlier_px)
+    ba_cfg = dataclasses.replace(STEREO_BA, huber_px=huber, outlier_px=outlier)
     fb = cam.fx * cam.baseline_m
     out: dict[str, list[np.ndarray]] = {}
     for i in range(1, len(seq) - 1, args.every):
         f0, f1 = seq.render(i), seq.render(i + 1)
-        uv = feat.detect_corners(f0.left, cfg.klt.features, cfg.klt)
+        uv = feat.detect_corners(f0.left, feat.KLT.features, feat.KLT)
         z = depth_mod.sample_depth(f0.depth, uv)
         dm0 = depth_mod.sparse_disparity(f0.left, f0.right, uv, cfg)
         keep = (z > 0) & (dm0 > 0)
@@ -70,7 +70,7 @@ def main() -> None:
         Q = P @ T[:3, :3].T + T[:3, 3]
         true = np.c_[cam.fx * Q[:, 0] / Q[:, 2] + cam.cx, cam.fy * Q[:, 1] / Q[:, 2] + cam.cy].astype(np.float32)
         de0, de1 = fb / z, fb / Q[:, 2]
-        klt, ok = feat.track_klt(f0.left, f1.left, uv, cfg.klt, true.copy())
+        klt, ok = feat.track_klt(f0.left, f1.left, uv, feat.KLT, true.copy())
         seen = np.abs(depth_mod.sample_depth(f1.depth, true) - Q[:, 2]) < 0.05 * Q[:, 2]  # not occluded
 
         def klt_in(sel: np.ndarray, true: np.ndarray = true, klt: np.ndarray = klt) -> np.ndarray:

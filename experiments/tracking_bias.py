@@ -10,7 +10,7 @@ Renders pairs of consecutive frames along a KITTI ground-truth path (default: KI
   size given, and for each frame gap given (``--gaps 1 3 5``: tracking from a keyframe g frames
   back; the per-frame bias is then the row bias / g).
 
-``--bias-windows 0 7`` repeats the tracking rows with ``frontend.klt.bias_window_px`` at each value (0 = the
+``--bias-windows 0 7`` repeats the tracking rows with ``KLT.bias_window_px`` (frontend/features.py) at each value (0 = the
 plain LK fit; the default 7 re-fits with a 7 px window and extrapolates the window bias away).
 
 With ``--run RUN`` it prints only the mean per-step rotation error (pitch, yaw, roll) and vertical
@@ -87,7 +87,7 @@ def main() -> None:
     ap.add_argument("--windows", type=int, nargs="*", default=[7, 11, 21])
     ap.add_argument("--gaps", type=int, nargs="*", default=[1], help="frames between the tracked pair")
     ap.add_argument(
-        "--bias-windows", type=int, nargs="*", default=None, help="frontend.klt.bias_window_px values (default: the config's)"
+        "--bias-windows", type=int, nargs="*", default=None, help="KLT bias_window_px values (default: the front end's)"
     )
     ap.add_argument("--run", type=Path, default=None)
     args = ap.parse_args()
@@ -98,12 +98,12 @@ def main() -> None:
     seq = SyntheticSequence(poses, width=1241, height=376, seed=0, times=times)
     cam, cfg = seq.camera, Config().frontend
     stereo_v, stereo_err = [], []
-    bias_windows = args.bias_windows if args.bias_windows is not None else [cfg.klt.bias_window_px]
+    bias_windows = args.bias_windows if args.bias_windows is not None else [feat.KLT.bias_window_px]
     keys = [(w, g, b) for w in args.windows for g in args.gaps for b in bias_windows]
     track: dict[tuple[int, int, int], list[np.ndarray]] = {k: [] for k in keys}
     for i in range(0, len(seq) - max(args.gaps), args.every):
         f0 = seq.render(i)
-        uv = feat.detect_corners(f0.left, cfg.klt.features, cfg.klt, avoid=np.zeros((0, 2), np.float32))
+        uv = feat.detect_corners(f0.left, feat.KLT.features, feat.KLT, avoid=np.zeros((0, 2), np.float32))
         z = depth_mod.sample_depth(f0.depth, uv)
         uv, z = uv[z > 0], z[z > 0]
         # stereo
@@ -120,8 +120,8 @@ def main() -> None:
             # The front end starts LK at the constant-velocity prediction; the exact one here.
             for w in args.windows:
                 for b in bias_windows:
-                    cfg.klt.window_px, cfg.klt.bias_window_px = w, b
-                    p1, okt = feat.track_klt(f0.left, f1.left, uv, cfg.klt, true if g > 1 else None)
+                    klt = feat.KltParams(window_px=w, bias_window_px=b)
+                    p1, okt = feat.track_klt(f0.left, f1.left, uv, klt, true if g > 1 else None)
                     track[(w, g, b)].append(np.c_[uv[okt, 1], p1[okt, 1] - true[okt, 1]])
     band_table("stereo: sparse LK disparity - exact disparity", np.concatenate(stereo_v), np.concatenate(stereo_err))
     for (w, g, b), parts in track.items():

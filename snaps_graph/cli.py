@@ -52,11 +52,8 @@ from .io_utils import (  # noqa: E402
     PREFETCH_FRAMES,
     check_inputs_outside,
     check_recording_path,
-    inside,
     output_folder,
 )
-from .paths import why_absent  # noqa: E402
-from .trajectory_io import ODOMETRY_FORMATS  # noqa: E402
 
 # Heavy modules (OpenCV, gtsam, open3d, matplotlib) are imported inside the commands that use
 # them, after the cheap checks, so `config`, `--help` and a bad option answer at once.
@@ -85,10 +82,6 @@ def _main_options(
     ),
 ) -> None:
     """Stereo visual SLAM with SNAPS loop closure and a GTSAM pose graph."""
-
-
-# The renderer holds about a hundred bytes per pixel: 16 Mpixel is about 2 GB.
-SYNTH_MAX_SIDE, SYNTH_MAX_PIXELS = 8192, 16 * 2**20
 
 
 @app.command()
@@ -137,34 +130,11 @@ def synth(
     ),
 ) -> None:
     """Render a synthetic stereo sequence along a trajectory, in KITTI layout."""
-    from .synth import SCENES, SyntheticSequence, WorldConfig, load_trajectory, render_to_folder
+    from .synth import SyntheticSequence, WorldConfig, load_trajectory, render_to_folder
 
-    if width < 32 or height < 32:
-        raise_user(f"--width/--height too small: {width}x{height}")
-    if width > SYNTH_MAX_SIDE or height > SYNTH_MAX_SIDE or width * height > SYNTH_MAX_PIXELS:
-        raise_user(
-            f"--width/--height too large: {width}x{height} (at most {SYNTH_MAX_SIDE} a side and "
-            f"{SYNTH_MAX_PIXELS // 2**20} Mpixel, what the renderer's per-pixel buffers fit in a few GB)"
-        )
-    if seed < 0:
-        raise_user(f"--seed must be >= 0, not {seed}")
-    if scene not in SCENES:
-        raise_user(f"--scene '{scene}' is not one of {', '.join(SCENES)}")
-    if world_mesh is not None and world_mesh.suffix.lower() not in (".ply", ".obj", ".off", ".stl"):
-        raise_user(f"{world_mesh}: --world-mesh must name a .ply (or .obj, .off, .stl) file")
-    if mesh_only and world_mesh is None:
-        raise_user("--mesh-only needs --world-mesh FILE.ply")
-    mesh_inside = None
-    if not mesh_only:
-        check_inputs_outside(out, [("trajectory", Path(trajectory) if trajectory != "loop" else None), ("times", times)])
-        support.check_output(out, overwrite)
-        if world_mesh is not None and inside(world_mesh, out):  # written with the sequence, not deleted by it
-            mesh_inside = world_mesh.resolve().relative_to(out.resolve())
-    if world_mesh is not None and mesh_inside is None:
-        if world_mesh.is_dir():
-            raise_user(f"{world_mesh}: --world-mesh names a folder")
-        if world_mesh.exists() and not overwrite:
-            raise_user(f"{world_mesh}: exists (use --overwrite to replace it)")
+    mesh_inside = support.check_synth_options(
+        out, trajectory, times, width, height, seed, scene, world_mesh, mesh_only, overwrite
+    )
     world = WorldConfig(scene=scene, aliasing=aliasing, traffic=traffic, lighting=lighting)
     poses, ts = load_trajectory(trajectory, frames, times=str(times) if times else None)
     seq = SyntheticSequence(
@@ -200,7 +170,10 @@ def run(
     ),
     out: Path = typer.Option(..., "--out", "-o", help="Results folder."),
     frames: Optional[str] = typer.Option(None, "--frames", help="Frame range A:B (A included, B excluded)."),
-    config: Optional[Path] = typer.Option(None, "--config", "-c", help="A TOML config (see `snaps-graph config`)."),
+    preset: str = typer.Option("default", "--preset", help="A named configuration: default | paper (then --config, --set)."),
+    config: Optional[Path] = typer.Option(
+        None, "--config", "-c", help="A TOML config over the preset (see `snaps-graph config`)."
+    ),
     set_: list[str] = typer.Option([], "--set", help="A config value, section.key=VALUE (in TOML), after --config; repeatable."),
     gt: Optional[Path] = typer.Option(None, "--gt", help="Ground-truth poses (default: SEQ/poses.txt or ROOT/poses/XX.txt)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty OUT folder (whole, at the end of the run)."),
@@ -241,56 +214,38 @@ def run(
     _check_choice("--loops", loops, LoopMode)
     _check_choice("--refine", refine, RefineMode)
     _check_choice("--mode", mode, FrontendMode)
-    cfg = (Config.load(config) if config else Config()).with_overrides(set_)
-    if not str(seq_dir).startswith("live:") and not seq_dir.exists():  # a mistyped path: at once
-        raise_user(f"{seq_dir}: {why_absent(seq_dir, 'sequence folder not found (nor a bag file)')}")
-    for given, what in ((gt, "ground-truth"), (calib, "calibration")):
-        if given is not None and not given.exists():
-            raise_user(f"{given}: {why_absent(given, f'{what} file not found')}")
-    if mode is not None:
-        cfg.frontend.mode = mode  # type: ignore[assignment]
-    if map_all:
-        cfg.map.per_trajectory = True
-    if world_mesh is not None:
-        if not world_mesh.is_file():
-            raise_user(f"{world_mesh}: world mesh not found")
-        cfg.map.world_mesh = str(world_mesh)
+    cfg = support.run_config(preset, config, set_, mode, map_all)
+    support.check_run_inputs(seq_dir, gt, calib, world_mesh)
     # Before anything is read: the configuration that will run, the output folder, and every
     # path the run reads or writes against it.
-    cfg.resolved(loops=loops, refine=refine, build_map=map_)
+    build_map = cfg.resolved(loops=loops, refine=refine, build_map=map_).map.enabled
     inputs = [("sequence", seq_dir), ("config", config), ("ground truth", gt), ("calibration", calib), ("odometry", odometry)]
     check_inputs_outside(out, inputs + [("world mesh", world_mesh)])
     support.check_output(out, overwrite)
     rrd_inside = check_recording_path(rrd, out) if rrd is not None else None
-    if odometry_format is not None and odometry_format not in ODOMETRY_FORMATS:
-        raise_user(f"--odometry-format must be one of {', '.join(ODOMETRY_FORMATS)}, not '{odometry_format}'")
-    if odometry is not None and not odometry.is_file():
-        raise_user(f"{odometry}: {why_absent(odometry, 'odometry file not found')}")
+    support.check_odometry(odometry, odometry_format)
     from .datasets.open import open_dataset  # the heavy imports (OpenCV, gtsam) after the checks
-    from .runner import mostly_flagged, run_sequence
+    from .runner import mostly_flagged
 
     seq = open_dataset(seq_dir, frames=frames, gt=gt, left_topic=left_topic, right_topic=right_topic, calib=calib)
     check_inputs_outside(out, [("ground truth", seq.gt_path)])
-    if not seq.stereo:
-        if odometry is None:
-            raise_user(f"{seq_dir}: no right images: the stereo VO needs them (give odometry from elsewhere: --odometry POSES)")
-        if cfg.resolved(loops=loops, refine=refine, build_map=map_).map.enabled:
-            raise_user(f"{seq_dir}: no right images: the map needs stereo depth (run without --map)")
+    support.check_stereo(seq, seq_dir, odometry is not None, build_map)
     print_input_notes(seq, frames, topics_given=left_topic is not None)
-    loggers: list = []
+    recording = support.Recording(seq, str(seq_dir), viewer, rrd, rrd_inside, rrd_images)
+    options: dict = dict(loops=loops, refine=refine, build_map=map_, overwrite=overwrite, prefetch_frames=prefetch)
+    options |= dict(odometry=odometry, odometry_format=odometry_format, world_mesh=world_mesh)
+    metrics, rate = _run_with_progress(seq, out, cfg, recording, options)
+    if rrd is not None:
+        typer.echo(f"rerun recording in {rrd}: {support.rrd_size_text(rrd, metrics['frames'])}")
+    print_summary(metrics, out, rate, partial=frames is not None)
+    if mostly_flagged(metrics):
+        warn_mostly_flagged(metrics)
+        raise typer.Exit(EXIT_MOSTLY_FLAGGED)
 
-    def make_observer(tmp: Path):
-        from .viz.rerun_logger import RerunLogger
 
-        target = tmp / rrd_inside if rrd_inside is not None else rrd
-        loggers.append(
-            RerunLogger(seq.camera, spawn=viewer, rrd=target, name=str(seq_dir), gt_poses=seq.gt_poses, image_every=rrd_images)
-        )
-        return loggers[0]
-
-    def close_recording(tmp: Path) -> None:
-        if loggers:
-            loggers[0].close()  # the recording whole before the results folder is renamed into place
+def _run_with_progress(seq, out: Path, cfg: Config, recording, options: dict) -> tuple[dict, float | None]:
+    """``run_sequence`` under a progress bar that counts the loops; (metrics, frames per second)."""
+    from .runner import run_sequence
 
     n_loops = 0
     with progress(len(seq) or None, "slam") as bar:
@@ -304,31 +259,13 @@ def run(
                 bar.phase("all frames done; refining, writing the map and files")
 
         try:
-            result, metrics = run_sequence(
-                seq,
-                out,
-                cfg,
-                loops=loops,
-                refine=refine,
-                build_map=map_,
-                overwrite=overwrite,
-                on_frame=on_frame,
-                observer=make_observer if (viewer or rrd is not None) else None,
-                prefetch_frames=prefetch,
-                before_commit=close_recording,
-                odometry=odometry,
-                odometry_format=odometry_format,
+            _, metrics = run_sequence(
+                seq, out, cfg, on_frame=on_frame, observer=recording.observer(), before_commit=recording.close, **options
             )
         except BaseException:
-            if loggers:
-                loggers[0].abort()  # no half-written recording
+            recording.abort()  # no half-written recording
             raise
-    if rrd is not None:
-        typer.echo(f"rerun recording in {rrd}: {support.rrd_size_text(rrd, metrics['frames'])}")
-    print_summary(metrics, out, bar.rate, partial=frames is not None)
-    if mostly_flagged(metrics):
-        warn_mostly_flagged(metrics)
-        raise typer.Exit(EXIT_MOSTLY_FLAGGED)
+    return metrics, bar.rate
 
 
 @app.command()
@@ -449,10 +386,8 @@ def compare(
     if world_mesh is not None:
         from .mapping.outputs import accuracy_from_files
 
-        def measure(run, trajs, entry, gt_poses, mc):
-            acc = accuracy_from_files(
-                run, world_mesh, trajs, entry, gt_poses, mc.accuracy_range_m, mc.accuracy_tolerance_m, mc.accuracy_samples
-            )
+        def measure(run, trajs, entry, gt_poses):
+            acc = accuracy_from_files(run, world_mesh, trajs, entry, gt_poses)
             return {"accuracy": acc, "world_mesh": str(world_mesh)}
 
     compare_run(run_dir, gt, map_accuracy=measure)
@@ -501,10 +436,11 @@ def demo(
 @app.command("config")
 def config_cmd(
     path: Optional[Path] = typer.Argument(None, help="A TOML config to check; default: print the defaults."),
+    preset: str = typer.Option("default", "--preset", help="Start from this named configuration: default | paper."),
 ) -> None:
-    """Print the default configuration (or a checked, completed copy of PATH) as TOML, every key
-    with its meaning, unit and range as a comment (the output loads back with -c)."""
-    cfg = Config.load(path) if path else Config()
+    """Print the default configuration (or a preset, or a checked, completed copy of PATH over it)
+    as TOML, every key with its meaning, unit and range as a comment (the output loads back with -c)."""
+    cfg = Config.compose(preset, path)
     typer.echo(cfg.dumps(comments=True), nl=False)
 
 

@@ -1,6 +1,7 @@
 """What the command line needs besides its commands (cli.py): help that shows a value's shape only
-where one is typed, a folder that holds a run rather than being one, and the frame numbers a
-run's pose file stands for (``eval`` against a whole sequence's ground truth)."""
+where one is typed, a folder that holds a run rather than being one, the frame numbers a run's
+pose file stands for (``eval`` against a whole sequence's ground truth), and the checks and parts
+of ``run`` and ``synth`` that are not the command itself."""
 
 from __future__ import annotations
 
@@ -8,13 +9,15 @@ import inspect
 import typing
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Optional
+from typing import Any, Optional
 
 import typer
 
 from .console import replacing
 from .errors import SnapsGraphError
-from .io_utils import check_output_folder
+from .io_utils import check_inputs_outside, check_output_folder, inside
+from .paths import why_absent
+from .trajectory_io import ODOMETRY_FORMATS
 
 
 def plain_metavars(app: typer.Typer) -> None:
@@ -164,3 +167,135 @@ def drift_fit_text(est: Path, gt: Path, segment_m: float | None) -> str:
         raise SnapsGraphError(f"{est}: {len(E)} poses, but {gt} has {len(G)}: the two must hold the same frames")
     model, L = fit_drift_model(E, G, segment_m)
     return f"# {est} against {gt}: {len(E)} poses, stretches of {L:.0f} m\n" + odometry_section(model)
+
+
+# ---- run: its configuration, its inputs, its recording
+def run_config(preset: str, config: Path | None, items: list[str], mode: str | None, map_all: bool):
+    """``run``'s configuration: the preset, the config file, the ``--set`` items, then ``--mode``
+    and ``--map-all`` (``--loops``, ``--refine`` and ``--map`` are applied by the run itself)."""
+    from .config import Config
+
+    cfg = Config.compose(preset, config, items)
+    if mode is not None:
+        cfg.frontend.mode = mode  # type: ignore[assignment]  # checked by the caller
+    if map_all:
+        cfg.map.per_trajectory = True
+    return cfg
+
+
+def check_run_inputs(seq_dir: Path, gt: Path | None, calib: Path | None, world_mesh: Path | None) -> None:
+    """A mistyped path among ``run``'s inputs: said at once, before anything is read."""
+    if not str(seq_dir).startswith("live:") and not seq_dir.exists():
+        raise SnapsGraphError(f"{seq_dir}: {why_absent(seq_dir, 'sequence folder not found (nor a bag file)')}")
+    for given, what in ((gt, "ground-truth"), (calib, "calibration")):
+        if given is not None and not given.exists():
+            raise SnapsGraphError(f"{given}: {why_absent(given, f'{what} file not found')}")
+    if world_mesh is not None and not world_mesh.is_file():
+        raise SnapsGraphError(f"{world_mesh}: world mesh not found")
+
+
+def check_odometry(odometry: Path | None, odometry_format: str | None) -> None:
+    if odometry_format is not None and odometry_format not in ODOMETRY_FORMATS:
+        raise SnapsGraphError(f"--odometry-format must be one of {', '.join(ODOMETRY_FORMATS)}, not '{odometry_format}'")
+    if odometry is not None and not odometry.is_file():
+        raise SnapsGraphError(f"{odometry}: {why_absent(odometry, 'odometry file not found')}")
+
+
+def check_stereo(seq, seq_dir: Path, has_odometry: bool, build_map: bool) -> None:
+    """A sequence without right images runs only on odometry from elsewhere and without a map."""
+    if seq.stereo:
+        return
+    if not has_odometry:
+        raise SnapsGraphError(
+            f"{seq_dir}: no right images: the stereo VO needs them (give odometry from elsewhere: --odometry POSES)"
+        )
+    if build_map:
+        raise SnapsGraphError(f"{seq_dir}: no right images: the map needs stereo depth (run without --map)")
+
+
+class Recording:
+    """A run's rerun logger (``--viewer``, ``--rrd``): made in the run's temporary folder, closed
+    before that is renamed into place, aborted when the run fails (no half-written recording)."""
+
+    def __init__(self, seq, name: str, viewer: bool, rrd: Path | None, rrd_inside: Path | None, image_every: int):
+        self.seq, self.name, self.viewer, self.rrd, self.rrd_inside, self.image_every = (
+            seq,
+            name,
+            viewer,
+            rrd,
+            rrd_inside,
+            image_every,
+        )
+        self.logger: Any = None  # a viz.rerun_logger.RerunLogger once made
+
+    def observer(self):
+        """What ``run_sequence`` takes as its observer: a function of the temporary folder, or None."""
+        return self.make if (self.viewer or self.rrd is not None) else None
+
+    def make(self, tmp: Path):
+        from .viz.rerun_logger import RerunLogger
+
+        target = tmp / self.rrd_inside if self.rrd_inside is not None else self.rrd
+        seq = self.seq
+        self.logger = RerunLogger(
+            seq.camera, spawn=self.viewer, rrd=target, name=self.name, gt_poses=seq.gt_poses, image_every=self.image_every
+        )
+        return self.logger
+
+    def close(self, tmp: Path) -> None:
+        if self.logger is not None:
+            self.logger.close()
+
+    def abort(self) -> None:
+        if self.logger is not None:
+            self.logger.abort()
+
+
+# ---- synth
+# The renderer holds about a hundred bytes per pixel: 16 Mpixel is about 2 GB.
+SYNTH_MAX_SIDE, SYNTH_MAX_PIXELS = 8192, 16 * 2**20
+
+
+def check_synth_options(
+    out: Path,
+    trajectory: str,
+    times: Path | None,
+    width: int,
+    height: int,
+    seed: int,
+    scene: str,
+    world_mesh: Path | None,
+    mesh_only: bool,
+    overwrite: bool,
+) -> Path | None:
+    """``synth``'s options and paths, checked before anything renders; returns the world mesh's
+    path inside OUT when it is written with the sequence (else None)."""
+    from .synth import SCENES
+
+    if width < 32 or height < 32:
+        raise SnapsGraphError(f"--width/--height too small: {width}x{height}")
+    if width > SYNTH_MAX_SIDE or height > SYNTH_MAX_SIDE or width * height > SYNTH_MAX_PIXELS:
+        raise SnapsGraphError(
+            f"--width/--height too large: {width}x{height} (at most {SYNTH_MAX_SIDE} a side and "
+            f"{SYNTH_MAX_PIXELS // 2**20} Mpixel, what the renderer's per-pixel buffers fit in a few GB)"
+        )
+    if seed < 0:
+        raise SnapsGraphError(f"--seed must be >= 0, not {seed}")
+    if scene not in SCENES:
+        raise SnapsGraphError(f"--scene '{scene}' is not one of {', '.join(SCENES)}")
+    if world_mesh is not None and world_mesh.suffix.lower() not in (".ply", ".obj", ".off", ".stl"):
+        raise SnapsGraphError(f"{world_mesh}: --world-mesh must name a .ply (or .obj, .off, .stl) file")
+    if mesh_only and world_mesh is None:
+        raise SnapsGraphError("--mesh-only needs --world-mesh FILE.ply")
+    mesh_inside = None
+    if not mesh_only:
+        check_inputs_outside(out, [("trajectory", Path(trajectory) if trajectory != "loop" else None), ("times", times)])
+        check_output(out, overwrite)
+        if world_mesh is not None and inside(world_mesh, out):  # written with the sequence, not deleted by it
+            mesh_inside = world_mesh.resolve().relative_to(out.resolve())
+    if world_mesh is not None and mesh_inside is None:
+        if world_mesh.is_dir():
+            raise SnapsGraphError(f"{world_mesh}: --world-mesh names a folder")
+        if world_mesh.exists() and not overwrite:
+            raise SnapsGraphError(f"{world_mesh}: exists (use --overwrite to replace it)")
+    return mesh_inside

@@ -1,9 +1,11 @@
 """Typed configuration, one section per stage, loadable from and dumped to TOML.
 
-Every setting a user may change lives here with its one-line help and range as field metadata
-(``snaps-graph config`` prints them; constants nobody needs to change stay in their modules); the
-SNAPS section keeps the paper's Table I names. A run dumps what it used to ``config.toml``, and
-``Config.load`` reads it back (an unknown key is a one-line error, so a typo never passes).
+A setting here is a choice a user makes for their data or purpose, with its one-line help and
+range as field metadata (``snaps-graph config`` prints them); tuning nobody needs to change is a
+named constant beside the code that reads it. Presets by name (``PRESETS``: ``default``,
+``paper``) compose with a config file and ``--set`` items in that order (``Config.compose``). A
+run dumps what it used to ``config.toml``, and ``Config.load`` reads it back (an unknown key is a
+one-line error, so a typo never passes; a key an older version had is a one-line note).
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from .config_retired import FIXED, MOVED, RENAMED_VALUES, RETIRED
+from .config_retired import OLD_KEYS, Moved
 from .config_schema import (
     Range,
     Section,
@@ -91,108 +93,30 @@ def _f(default: Any, help: str, range: Range | None = None) -> Any:
 
 
 @dataclass
-class KltConfig(Section):
-    """KLT corners and their tracking from the reference frame (``mode = "klt"``)."""
-
-    _name = "frontend.klt"
-
-    features: int = _f(1500, "KLT corners detected when re-detecting", _in(1, MAX_POINTS))
-    window_px: int = _f(11, "KLT window, px", _in(3, MAX_WINDOW_PX))
-    quality: float = _f(0.01, "goodFeaturesToTrack quality, relative to the best corner", FRACTION)
-    min_distance_px: int = _f(10, "minimum spacing between KLT corners, px", _in(1, 1000))
-    border_px: int = _f(16, "no KLT corner this close to the image border, px", _nn(1000))
-    bias_window_px: int = _f(7, "KLT window-bias removal: re-fit window, px (0 = off)", _nn(MAX_WINDOW_PX))
-    weak_points: int = _f(
-        300, "weak texture: fewer points with depth than this re-detect at a lower corner quality (0 = off)", _nn(MAX_POINTS)
-    )
-
-    def _cross_checks(self, source: str) -> None:
-        if self.bias_window_px and not 3 <= self.bias_window_px < self.window_px:
-            raise SnapsGraphError(
-                f"{source}: frontend.klt.bias_window_px must be 0 or in [3, window_px), got {self.bias_window_px}"
-            )
-
-
-@dataclass
-class StereoBAConfig(Section):
-    """The two-view stereo bundle adjustment after PnP RANSAC (``motion = "stereo_ba"``)."""
-
-    _name = "frontend.stereo_ba"
-
-    huber_px: float = _f(0.3, "Huber width on a stereo-BA / local-BA residual, px", _pos(100))
-    outlier_px: float = _f(0.6, "after the stereo BA's first round, points beyond this are dropped, px", _pos(100))
-    keep_px: float = _f(2.0, "a small image keeps tracks within this of the stereo-BA pose too, px", _pos(100))
-    iterations: int = _f(3, "stereo-BA Gauss-Newton iterations per round (two rounds)", _in(1, MAX_ITERATIONS))
-
-
-@dataclass
-class LocalBAConfig(Section):
-    """The sliding-window stereo BA over the last keyframes (klt)."""
-
-    _name = "frontend.local_ba"
-
-    enabled: bool = _f(True, "klt: sliding-window stereo BA over the last keyframes")
-    window: int = _f(6, "keyframes in the local-BA window", _in(2, 100))
-    iterations: int = _f(5, "local-BA iterations per solve", _in(1, MAX_ITERATIONS))
-    max_landmarks: int = _f(300, "landmarks in the local-BA window (longest tracks first)", _in(10, MAX_POINTS))
-    every: int = _f(3, "a reference becomes a keyframe this many frames after the last", _in(1, MAX_FRAMES))
-    keyframe_m: float = _f(2.5, "...or once driven this far from the last keyframe (0 = never), m", _nn(1000))
-    chain: Literal["off", "yaw", "yaw_roll", "rotation", "full"] = _f(
-        "yaw_roll", "which part of the VO chain's step between keyframes constrains the local-BA window"
-    )
-
-
-@dataclass
-class OffsetConfig(Section):
-    """The rig's disparity offset, configured and estimated online by the local BA."""
-
-    _name = "frontend.offset"
-
-    px: float = _f(0.0, "rig disparity offset (measured - true) at the centre column, px", Range(-10, 10))
-    estimate: bool = _f(True, "klt + local BA: estimate the disparity offset online")
-    prior_px: float = _f(0.5, "prior sigma of the offset in each local-BA solve, px", _pos(10))
-    max_px: float = _f(2.0, "the estimate is clamped to +- this, px", Range(0, 10))
-    min_solves: int = _f(3, "solves before an estimate may be applied", _in(1, MAX_FRAMES))
-    min_px: float = _f(0.05, "an estimate is applied when it differs by at least this, px", _nn(10))
-    max_sd_px: float = _f(0.05, "...and its standard error is at most this, px", _pos(10))
-    min_z: float = _f(4.0, "...and it differs by at least this many standard errors", _nn(1e4))
-    memory_solves: int = _f(20, "once applied, older solves fade with weight 1 - 1/this (0 = never)", _nn(MAX_FRAMES))
-
-
-@dataclass
 class FrontendConfig(Section):
-    """Stereo visual odometry (SPEC "Front end"): the general settings, then one table per part."""
+    """Stereo visual odometry (SPEC "Front end"): what runs and what the camera sees; the tuning
+    of each part is a constant beside its code (the KLT in ``frontend/features.py``, the stereo
+    BA in ``stereo_ba.py``, the local BA in ``local_ba.py``, the offset rule in ``offset.py``)."""
 
     _name = "frontend"
 
     mode: FrontendMode = _f("klt", "features: sift (the paper's, slower), orb or klt (fast)")
     disparity: DisparityMethod = _f("sparse", "depth: bm_wls (the paper's StereoBM + WLS), sgbm, or sparse (at keypoints only)")
-    num_disparities: int = _f(128, "BM/SGBM disparity search range, px", Range(16, 1024, multiple=16))
-    block_size: int = _f(15, "StereoBM block size, px", Range(5, 255, odd=True))
-    min_depth_m: float = _f(0.5, "nearer depth is invalid, m", _pos(1000))
-    max_depth_m: float = _f(80.0, "farther depth is invalid (eq. 1 is noisy far away), m", _pos(1e4))
-    sift_features: int = _f(2000, "SIFT keypoints per image", _in(1, MAX_POINTS))
-    sift_first_octave: Literal[-1, 0] = _f(
-        0, "SIFT scale space: -1 = image doubled first (OpenCV, the paper), 0 = own resolution (3x faster)"
-    )
-    orb_features: int = _f(2000, "ORB keypoints per image", _in(1, MAX_POINTS))
-    ratio_test: float = _f(0.75, "Lowe's ratio for descriptor matching", FRACTION)
-    pnp_reprojection_px: float = _f(1.5, "PnP RANSAC inlier threshold, px", _pos(100))
-    min_inliers: int = _f(20, "fewer PnP inliers flag the frame", _in(6, MAX_POINTS))
-    max_step_m: float = _f(4.0, "a larger step between frames is implausible (flagged), m", _pos(1000))
-    max_step_deg: float = _f(20.0, "a larger turn between frames is implausible (flagged), deg", ANGLE)
-    threads: int = _f(2, "worker threads (OpenCV releases the GIL)", Range(1, 256))
-    stereo_guess_levels: int = _f(4, "sparse stereo LK pyramid levels for points with a predicted disparity", _nn(MAX_LEVELS))
-    frame_features: int = _f(
-        500, "keypoints with depth kept per frame in the VO result (the viewer's points)", _in(1, MAX_POINTS)
-    )
     motion: Literal["pnp", "stereo_ba"] = _f(
         "stereo_ba", "after PnP RANSAC: stereo_ba = two-view stereo bundle adjustment, pnp = PnP + LM (the paper's)"
     )
-    klt: KltConfig = field(default_factory=KltConfig)
-    stereo_ba: StereoBAConfig = field(default_factory=StereoBAConfig)
-    local_ba: LocalBAConfig = field(default_factory=LocalBAConfig)
-    offset: OffsetConfig = field(default_factory=OffsetConfig)
+    local_ba: bool = _f(True, "klt: sliding-window stereo BA over the last keyframes")
+    sift_first_octave: Literal[-1, 0] = _f(
+        0, "SIFT scale space: -1 = image doubled first (OpenCV, the paper), 0 = own resolution (3x faster)"
+    )
+    num_disparities: int = _f(
+        128, "BM/SGBM disparity search range (wider for a long baseline or near scenes), px", Range(16, 1024, multiple=16)
+    )
+    min_depth_m: float = _f(0.5, "nearer depth is invalid, m", _pos(1000))
+    max_depth_m: float = _f(80.0, "farther depth is invalid (eq. 1 is noisy far away), m", _pos(1e4))
+    offset_px: float = _f(0.0, "the rig's disparity offset (measured - true) at the centre column, px", Range(-10, 10))
+    estimate_offset: bool = _f(True, "klt + local BA: estimate the disparity offset online")
+    threads: int = _f(2, "worker threads (OpenCV releases the GIL)", Range(1, 256))
 
     def _cross_checks(self, source: str) -> None:
         if not self.min_depth_m < self.max_depth_m:
@@ -275,62 +199,36 @@ class LoopConfig(Section):
 
 @dataclass
 class GraphConfig(Section):
-    """GTSAM factor graph (SPEC "Factor graph")."""
+    """GTSAM factor graph (SPEC "Factor graph"); the rest of its noise: ``backend/noise.py``."""
 
     _name = "graph"
 
     refine: RefineMode = _f("none", "none, isam2, batch, or both (iSAM2 online + batch at the end)")
+    robust_kernel: Literal["huber", "cauchy", "none"] = _f("cauchy", "robust kernel on loop factors")
     odom_sigma_rot_rad: float = _f(0.005, "VO step rotation sigma at 200 inliers (scaled by sqrt(200 / inliers)), rad", SIGMA_ROT)
     odom_sigma_trans_m: float = _f(
         0.05, "VO step translation sigma at 200 inliers (scaled by sqrt(200 / inliers)), m", SIGMA_TRANS
     )
     loop_sigma_rot_rad: float = _f(0.01, "verified loop rotation sigma at Q = 1, rad", SIGMA_ROT)
     loop_sigma_trans_m: float = _f(0.1, "verified loop translation sigma at Q = 1, m", SIGMA_TRANS)
-    unverified_sigma_trans_m: float = _f(2.0, "unverified loop translation sigma (same-place assumption), m", SIGMA_TRANS)
-    loop_q_floor: float = _f(0.0, "Q at which a loop's sigmas would be infinite", Range(0, 1, hi_open=True))
-    robust_kernel: Literal["huber", "cauchy", "none"] = _f("cauchy", "robust kernel on loop factors")
-    odom_cov_scale: float = _f(1.0, "a stereo-BA step covariance is multiplied by this squared", _pos(MAX_SCALE))
-    loop_cov_scale: float = _f(4.0, "a verified loop's PnP covariance multiplier", _pos(MAX_SCALE))
-    loop_sigma_floor_rot_rad: float = _f(0.002, "rotation sigma added in quadrature to a verified loop's, rad", _nn(math.pi))
-    loop_sigma_floor_trans_m: float = _f(0.02, "translation sigma added in quadrature to a verified loop's, m", _nn(1e4))
 
 
 @dataclass
 class MapConfig(Section):
-    """Point-cloud map (SPEC "Map")."""
+    """Fused surface map (SPEC "Map"); its stereo matcher's and fusion's tuning: constants in
+    ``frontend/depth.py`` and ``mapping/tsdf.py``."""
 
     _name = "map"
 
     enabled: bool = _f(False, "build the TSDF map")
-    keyframe_every: int = _f(5, "one map keyframe every this many frames", _in(1, MAX_FRAMES))
-    max_range_m: float = _f(15.0, "map depth beyond this is dropped, m", _pos(1000))
     trajectory: Literal["vo", "snaps", "isam2", "batch", "best"] = _f(
         "best", "trajectory the map is built on (best = the most refined)"
     )
     per_trajectory: bool = _f(False, "also write map_<trajectory>.ply for every trajectory")
-    depth_method: Literal["sgbm", "bm"] = _f("sgbm", "map stereo matcher: StereoSGBM or StereoBM")
-    depth_scale: float = _f(0.5, "map stereo runs on images resized by this", Range(0.1, 1))
-    depth_block_size: int = _f(5, "map matcher block size at the working size, px", Range(1, 255, odd=True))
-    depth_uniqueness: int = _f(15, "best match must beat the second by this, percent", Range(0, 100))
-    depth_lr_check_px: float = _f(1.0, "left-right consistency limit (0 = off), px", _nn(100))
-    depth_min_confidence: float = _f(0.0, "WLS confidence (0-255) below this is invalid (0 = no WLS)", Range(0, 255))
-    depth_edge_ratio: float = _f(0.1, "invalid where the 3x3 disparity spread exceeds this x d", _nn(100))
-    depth_speckle_px: int = _f(50, "disparity regions smaller than this are dropped, working px", _nn(10**6))
-    tsdf_voxel_m: float = _f(0.15, "TSDF voxel edge, m", _pos(10))
-    tsdf_trunc_voxels: float = _f(6.0, "TSDF truncation distance, voxels", _in(1, 100))
-    tsdf_max_blocks: int = _f(40000, "a fused chunk is extracted at this many blocks (6 KB each)", _in(1000, 10**7))
-    tsdf_min_weight: float = _f(1.0, "surface kept where at least this many keyframes saw it", _nn(10**6))
-    tsdf_min_component: int = _f(0, "mesh pieces of fewer triangles are dropped (0 = keep all)", _nn(10**8))
-    world_mesh: str = _f("", "the true world as a triangle mesh, for map accuracy (empty = none)")
-    accuracy_range_m: float = _f(20.0, "completeness counts true surface within this of the path, m", _pos(1e4))
-    accuracy_tolerance_m: float = _f(0.2, "...and within this of the map, m", _pos(100))
-    accuracy_samples: int = _f(200_000, "true-surface samples for completeness", _in(1000, 10**8))
-
-    def _cross_checks(self, source: str) -> None:
-        if self.depth_method == "bm" and self.depth_block_size < 5:
-            raise SnapsGraphError(
-                f"{source}: map.depth_block_size must be >= 5 for depth_method 'bm', got {self.depth_block_size}"
-            )
+    keyframe_every: int = _f(5, "one map keyframe every this many frames", _in(1, MAX_FRAMES))
+    max_range_m: float = _f(15.0, "map depth beyond this is dropped, m", _pos(1000))
+    depth_scale: float = _f(0.5, "map stereo runs on images resized by this (1 = full detail, slower)", Range(0.1, 1))
+    tsdf_voxel_m: float = _f(0.15, "TSDF voxel edge (finer = more detail, more memory), m", _pos(10))
 
 
 @dataclass
@@ -357,6 +255,20 @@ class OdometryConfig(Section):
             scale_pct=self.scale_pct,
             trans_m_per_sqrt_m=self.trans_m_per_sqrt_m,
         )
+
+
+# Named presets: overrides of the defaults, checked as a config file is (``Config.preset``).
+# paper: the paper's front end (OpenCV SIFT with the doubled first octave, StereoBM + WLS depth,
+# PnP + LM, no local BA) and its loop closure rule.
+# (loop.policy comes with the loop closer's named policies; without it the preset is the front end.)
+_PAPER_LOOP = {"policy": "paper"} if "policy" in LoopConfig.__dataclass_fields__ else {}
+PRESETS: dict[str, dict[str, Any]] = {
+    "default": {},
+    "paper": {
+        "frontend": {"mode": "sift", "sift_first_octave": -1, "disparity": "bm_wls", "motion": "pnp", "local_ba": False},
+        "loop": _PAPER_LOOP,
+    },
+}
 
 
 @dataclass
@@ -410,12 +322,28 @@ class Config:
         if build_map is not None:
             out.map.enabled = bool(build_map)
         out.validate()
-        mesh = out.map.world_mesh
-        if out.map.enabled and mesh and not Path(mesh).is_file():  # else the map stage fails after every frame
-            what = "is a folder, not a world mesh" if Path(mesh).is_dir() else "world mesh not found"
-            where = f" in {out.source}" if out.source and out.source != "config" else ""
-            raise SnapsGraphError(f"{mesh}: {what} (map.world_mesh{where})")
         return out
+
+    @classmethod
+    def preset(cls, name: str) -> "Config":
+        """The named preset (``PRESETS``): the defaults with its overrides, validated."""
+        if name not in PRESETS:
+            raise SnapsGraphError(f"unknown preset '{name}' (one of {', '.join(PRESETS)})")
+        return cls().merged(PRESETS[name], f"preset {name}")
+
+    @classmethod
+    def compose(
+        cls, preset: str = "default", path: str | Path | None = None, overrides: list[str] | tuple[str, ...] = ()
+    ) -> "Config":
+        """A preset, then a config file over it, then ``section.key=value`` items over both: the
+        order ``run --preset P --config F --set K=V`` applies them in (the run's ``--mode``,
+        ``--loops``, ``--refine`` and ``--map`` come last)."""
+        cfg = cls.preset(preset)
+        if path is not None:
+            data = read_toml(Path(path), "config")
+            cfg.source = str(path)  # the file is what a later error names
+            cfg = cfg.merged(data, str(path))
+        return cfg.with_overrides(overrides)
 
     # ---- TOML ----
     @classmethod
@@ -442,14 +370,14 @@ class Config:
         return out
 
     def _apply(self, data: dict[str, Any], source: str) -> None:
-        _apply_table(self, _moved(data, source), source, "")
+        _apply_table(self, _old_keys(data, source), source, "")
         self.validate()
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
 
     def dumps(self, comments: bool = False) -> str:
-        """The configuration as TOML, a nested section as its own table (``[frontend.klt]``);
+        """The configuration as TOML, a nested section as its own table (``[section.part]``);
         ``comments`` adds each key's help and range as a comment."""
         return "\n".join(dumps_section(self, "", comments)) + "\n"
 
@@ -459,7 +387,7 @@ class Config:
 
 def parse_set(items: list[str] | tuple[str, ...], source: str = "--set") -> dict[str, Any]:
     """``section.key=value`` items, a nested section's key with its full path
-    (``frontend.klt.window_px=11``; the value in TOML: 3, 0.5, true, "yaw"; a bare word is a
+    (``section.part.key=1``; the value in TOML: 3, 0.5, true, "yaw"; a bare word is a
     string) as the nested dict a config file would give; a malformed item is a one-line error."""
     data: dict[str, Any] = {}
     for item in items:
@@ -493,25 +421,32 @@ def _table_at(root: dict[str, Any], parts: list[str]) -> tuple[dict[str, Any] | 
     return table, ""
 
 
-def _moved(data: dict[str, Any], source: str) -> dict[str, Any]:
-    """``data`` with each key an older version wrote flat (``frontend.klt_window_px``) at its place
-    now (``frontend.klt.window_px``), a one-line note for each; both places given is an error."""
-    out: dict[str, Any] = {}
-    moves: list[tuple[str, Any]] = []
+def _old_keys(data: dict[str, Any], source: str) -> dict[str, Any]:
+    """``data`` without the keys an older version had (``OLD_KEYS``), a one-line note for each: a
+    key that moved has its value applied at its place now (both places given is an error), one
+    that became a constant is ignored, and a table left empty by them goes too."""
+    moves: list[tuple[str, str, Any]] = []
 
-    def walk(src: dict[str, Any], dst: dict[str, Any], prefix: str) -> None:
+    def walk(src: dict[str, Any], prefix: str) -> dict[str, Any]:
+        dst: dict[str, Any] = {}
         for key, value in src.items():
             path = prefix + key
-            if path in MOVED and not isinstance(value, dict):  # an old key held a value, never a table
-                moves.append((path, value))
+            old = OLD_KEYS.get(path)
+            if old is not None and not isinstance(value, dict):  # an old key held a value, never a table
+                if isinstance(old, Moved):
+                    moves.append((path, old.to, value))
+                else:
+                    print(f"note: {source}: {path} = {_shown(value)} is no longer a setting ({old}); ignored", file=sys.stderr)
             elif isinstance(value, dict):
-                walk(value, dst.setdefault(key, {}), path + ".")
+                sub = walk(value, path + ".")
+                if sub or not any(k.startswith(path + ".") for k in OLD_KEYS) or _is_section_path(path):
+                    dst[key] = sub
             else:
                 dst[key] = value
+        return dst
 
-    walk(data, out, "")
-    for old, value in moves:
-        new = MOVED[old]
+    out = walk(data, "")
+    for old, new, value in moves:
         print(f"note: {source}: {old} moved to {new}", file=sys.stderr)
         *parents, name = new.split(".")
         table, bad = _table_at(out, parents)
@@ -523,14 +458,29 @@ def _moved(data: dict[str, Any], source: str) -> dict[str, Any]:
     return out
 
 
+def _is_section_path(path: str) -> bool:
+    """``path`` ("frontend") names a section of the configuration now."""
+    obj: Any = Config
+    for part in path.split("."):
+        fields = {f.name: f for f in dataclasses.fields(obj)} if dataclasses.is_dataclass(obj) else {}
+        if part not in fields:
+            return False
+        obj = hints_of(obj if isinstance(obj, type) else type(obj))[part]
+    return isinstance(obj, type) and dataclasses.is_dataclass(obj)
+
+
+def _shown(value: Any) -> str:
+    try:
+        return toml_value(value)
+    except TypeError:
+        return repr(value)
+
+
 def _apply_table(obj: Any, data: dict[str, Any], source: str, prefix: str) -> None:
     """Set ``obj``'s fields from ``data``, a nested section from its own table, in turn."""
     names = {f.name for f in dataclasses.fields(obj)}
     for key, value in data.items():
         path = prefix + key
-        if path in RETIRED or path in FIXED:  # an older version wrote it
-            print(f"note: {source}: {_retired_note(path, value)}; ignored", file=sys.stderr)
-            continue
         if key not in names:
             raise SnapsGraphError(f"{source}: unknown key '{path}'{did_you_mean(key, obj, prefix)}")
         current = getattr(obj, key)
@@ -544,23 +494,7 @@ def _apply_table(obj: Any, data: dict[str, Any], source: str, prefix: str) -> No
             hint = f" (did you mean [{prefix}{close[0]}]?)" if close else ""
             raise SnapsGraphError(f"{source}: [{path}] is not a section{hint}")
         else:
-            renamed = RENAMED_VALUES.get((path, value)) if isinstance(value, str) else None
-            if renamed is not None:
-                print(
-                    f"note: {source}: {path} = {toml_value(value)} is {toml_value(renamed[0])} now ({renamed[1]})",
-                    file=sys.stderr,
-                )
-                value = renamed[0]
             setattr(obj, key, coerce(current, value, f"{source}: {path}"))
-
-
-def _retired_note(key: str, value: Any) -> str:
-    if key in FIXED:
-        fixed = FIXED[key]
-        if value == fixed and type(value) is type(fixed):
-            return f"{key} is no longer a setting (fixed at {toml_value(fixed)})"
-        return f"{key} is no longer a setting: it is fixed at {toml_value(fixed)} now, this file's {toml_value(value)} is ignored"
-    return f"{key} is no longer used ({RETIRED[key]})"
 
 
 # The range of every numeric field, "section.field" -> Range, from the fields' metadata.

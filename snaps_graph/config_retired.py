@@ -1,170 +1,100 @@
-"""Config keys of older versions, read back from an old config.toml: keys that are gone with
-their option and settings that are constants in the code now (read with a note, ignored), and
-keys that moved to a section of their own (read with a note, applied at their new place)."""
+"""Keys the previous version's config had, read back from its config.toml with a one-line note:
+a key that moved is applied at its place now; a setting that became a constant (or an
+evaluation option) is ignored, the note naming where it lives. Keys of earlier development
+states are not kept: such a file is an error naming the key."""
 
 from __future__ import annotations
 
-from typing import Any
+import importlib
+from dataclasses import dataclass
 
-# Keys older versions had (and wrote into every run's config.toml): read back with a note.
-_RETIRED_GROUPS = {
-    "the map is a TSDF fusion now, not a union of point clouds": (
-        "map.pixel_step",
-        "map.voxel_size_m",
-        "map.keyframe_voxel_size_m",
-        "map.build_chunk_points",
-        "map.build_tile_m",
-    ),
-    "KLT tracks from the last frame": (
-        "frontend.klt_reference",
-        "frontend.kf_max_gap",
-        "frontend.kf_min_ratio",
-        "frontend.klt_anchor_gap",
-        "frontend.klt_anchor_max_px",
-    ),
-    "the road prewarp is gone; the KLT window bias is removed per track": (
-        "frontend.klt_road_prewarp",
-        "frontend.klt_road_max_depth_m",
-        "frontend.klt_road_tol_m",
-        "frontend.klt_road_min_points",
-        "frontend.klt_road_max_tilt_deg",
-    ),
-    "the local BA runs inline, numpy solver, longest tracks first": (
-        "frontend.lba_async",
-        "frontend.lba_solver",
-        "frontend.lba_select",
-    ),
-    "far points are not used": ("frontend.sba_far_points", "frontend.far_min_disparity_px"),
-    "an LK call spreads over OpenCV's own threads, never split in two": ("frontend.lk_split_min",),
-    "KLT always retries a failed frame on ORB matches": ("frontend.klt_retry",),
-    "the disparity offset is modelled as a turned right camera": ("frontend.disparity_offset_model",),
-    "loops verify with their own features against the nearest stored reference, PnP pose": (
-        "frontend.loop_verify_features",
-        "frontend.loop_verify_neighbours",
-        "frontend.loop_pose_refine",
-    ),
-    "the batch solve is Levenberg-Marquardt without a gravity prior": (
-        "graph.batch_solver",
-        "graph.gnc_inlier_probability",
-        "graph.gravity_prior",
-        "graph.gravity_sigma_deg",
-        "graph.gravity_rounds",
-    ),
-    "iSAM2 factorises by QR": ("graph.isam2_factorization",),
-    "a step with a stereo-BA covariance uses it, others their inlier count": ("graph.odom_noise",),
-    "a verified loop with a covariance uses it, others their Q": ("graph.loop_sigma_source",),
-    "the top-down PNG is coloured by height at a fixed resolution": ("map.topdown_colour_by", "map.topdown_dpi"),
-    "the drift model's random walks per sqrt(m) replace one translation and one heading rate "
-    "(snaps-graph drift-fit measures them)": ("odometry.trans_drift_pct", "odometry.rot_drift_deg_per_100m"),
-    "every odometry step's noise holds the [odometry] drift model's error for its distance": (
-        "graph.odom_cov_floor_rot_rad",
-        "graph.odom_cov_floor_trans_m",
-    ),
-    "a verified turn's gain takes the heading's prior from the [odometry] drift model": ("loop.heading_drift_deg",),
-}
-RETIRED = {key: why for why, keys in _RETIRED_GROUPS.items() for key in keys}
-RETIRED |= {
-    "loop.correction_model": 'a verified heading turn always bends eq. 6\'s window ("shift" measured worse)',
-    "loop.heading_prior": 'the heading prior is the drift since the reference ("tracked" measured no better)',
-    "loop.ramp": "eq. 6's ramp follows the distance driven (by frame count measured worse)",
-    "loop.pause_closer_ratio": "loop.pause_graph_loops gives the graph the verified loops inside the pause (closer ones only measured worse)",
-}
 
-# Settings that are constants in the code now (the module's name in upper case): an older
-# config.toml that holds one is read with a note. tests/test_config.py checks the values agree.
-FIXED: dict[str, Any] = {
-    "frontend.wls_lambda": 8000.0,
-    "frontend.wls_sigma": 1.5,
-    "frontend.sgbm_block_size": 5,
-    "frontend.stereo_window_px": 11,
-    "frontend.stereo_levels": 4,
-    "frontend.stereo_max_dy_px": 1.0,
-    "frontend.stereo_lr_check_px": 0.5,
-    "frontend.klt_min_tracks": 600,
-    "frontend.klt_retry_features": 4000,
-    "frontend.klt_levels": 3,
-    "frontend.klt_bias_max_px": 0.5,
-    "frontend.min_frame_std": 3.0,
-    "frontend.min_sharpness_ratio": 0.35,
-    "frontend.pnp_iterations": 200,
-    "frontend.pnp_confidence": 0.999,
-    "frontend.sba_keep_below": 100,
-    "frontend.lba_chain_scale": 1.0,
-    "frontend.loop_orb_levels": 8,
-    "frontend.loop_orb_scale": 1.2,
-    "frontend.loop_orb_fast_threshold": 20,
-    "frontend.loop_orb_upright": True,
-    "frontend.loop_ratio_test": 0.8,
-    "frontend.loop_depth_min_ratio": 0.5,
-    "frontend.loop_min_sigma_px": 0.5,
-    "frontend.verify_max_translation_m": 30.0,
-    "frontend.verify_max_rotation_deg": 90.0,
-    "graph.prior_sigma_rot_rad": 1e-4,
-    "graph.prior_sigma_trans_m": 1e-3,
-    "graph.odom_min_inliers": 20,
-    "graph.unverified_sigma_rot_rad": 0.5,
-    "graph.robust_param": 3.0,
-    "graph.isam2_relinearize_threshold": 0.01,
-    "graph.isam2_relinearize_skip": 1,
-    "graph.isam2_loop_iterations": 0,
-    "graph.isam2_final_iterations": 10,
-    "frontend.ransac_seed": 0,
-    "frontend.loop_orb_features": 1000,
-    "frontend.loop_query_features": 1500,
-    "frontend.min_stereo_points": 40,
-    "frontend.klt_weak_quality": 0.001,
-    "graph.batch_max_iterations": 100,
-    "graph.odom_sigma_scale_min": 0.5,
-    "graph.odom_sigma_scale_max": 4.0,
-    "graph.odom_ref_inliers": 200,
-    "graph.flagged_sigma_scale": 100.0,
-    "graph.loop_sigma_scale_max": 10.0,
-    "map.depth_texture_threshold": 10,
-    "map.depth_speckle_range_px": 1.0,
+@dataclass(frozen=True)
+class Moved:
+    to: str  # the key's place now: the old value is applied there
+
+
+def _constants(module: str, names: dict[str, str]) -> dict[str, str]:
+    """old key -> "NAME in snaps_graph/MODULE.py" for settings that are constants there now."""
+    return {key: f"{name} in snaps_graph/{module.replace('.', '/')}.py" for key, name in names.items()}
+
+
+# key -> its place now (Moved) or a note saying where it went.
+OLD_KEYS: dict[str, str | Moved] = {
+    "frontend.local_ba.enabled": Moved("frontend.local_ba"),
+    "frontend.offset.px": Moved("frontend.offset_px"),
+    "frontend.offset.estimate": Moved("frontend.estimate_offset"),
+    "map.world_mesh": "an evaluation option: run --world-mesh, compare --world-mesh",
+    **_constants(
+        "frontend.features",
+        {"frontend.sift_features": "SIFT_FEATURES", "frontend.orb_features": "ORB_FEATURES", "frontend.ratio_test": "RATIO_TEST"}
+        | {f"frontend.klt.{k}": f"KLT.{k}" for k in ("features", "window_px", "quality", "min_distance_px", "border_px")}
+        | {f"frontend.klt.{k}": f"KLT.{k}" for k in ("bias_window_px", "weak_points")},
+    ),
+    **_constants(
+        "frontend.motion",
+        {
+            "frontend.pnp_reprojection_px": "PNP_REPROJECTION_PX",
+            "frontend.min_inliers": "MIN_INLIERS",
+            "frontend.max_step_m": "MAX_STEP_M",
+            "frontend.max_step_deg": "MAX_STEP_DEG",
+        },
+    ),
+    **_constants("frontend.keyframe", {"frontend.frame_features": "FRAME_FEATURES"}),
+    **_constants(
+        "frontend.stereo_ba",
+        {f"frontend.stereo_ba.{k}": f"STEREO_BA.{k}" for k in ("huber_px", "outlier_px", "keep_px", "iterations")},
+    ),
+    **_constants(
+        "frontend.local_ba",
+        {"frontend.local_ba.window": "LBA_WINDOW", "frontend.local_ba.iterations": "LBA_ITERATIONS"}
+        | {"frontend.local_ba.max_landmarks": "LBA_MAX_LANDMARKS"},
+    ),
+    **_constants(
+        "frontend.lba_schedule",
+        {
+            "frontend.local_ba.every": "LBA_EVERY",
+            "frontend.local_ba.keyframe_m": "LBA_KEYFRAME_M",
+            "frontend.local_ba.chain": "LBA_CHAIN",
+        },
+    ),
+    **_constants(
+        "frontend.offset",
+        {f"frontend.offset.{k}": f"OFFSET_RULE.{k}" for k in ("prior_px", "max_px", "min_solves", "min_px", "max_sd_px", "min_z")}
+        | {"frontend.offset.memory_solves": "OFFSET_RULE.memory_solves"},
+    ),
+    **_constants(
+        "frontend.depth",
+        {"frontend.block_size": "BM_BLOCK_SIZE", "frontend.stereo_guess_levels": "STEREO_GUESS_LEVELS"}
+        | {
+            "map.depth_method": "MAP_DEPTH_METHOD",
+            "map.depth_block_size": "MAP_BLOCK_SIZE",
+            "map.depth_uniqueness": "MAP_UNIQUENESS",
+        }
+        | {"map.depth_lr_check_px": "MAP_LR_CHECK_PX", "map.depth_min_confidence": "MAP_MIN_CONFIDENCE"}
+        | {"map.depth_edge_ratio": "MAP_EDGE_RATIO", "map.depth_speckle_px": "MAP_SPECKLE_PX"},
+    ),
+    **_constants(
+        "mapping.tsdf",
+        {f"map.tsdf_{k}": f"TSDF_{k.upper()}" for k in ("trunc_voxels", "max_blocks", "min_weight", "min_component")},
+    ),
+    **_constants(
+        "mapping.accuracy",
+        {"map.accuracy_range_m": "RANGE_M", "map.accuracy_tolerance_m": "TOLERANCE_M", "map.accuracy_samples": "MIN_SAMPLES"},
+    ),
+    **_constants(
+        "backend.noise",
+        {f"graph.{k}": k.upper() for k in ("unverified_sigma_trans_m", "loop_q_floor", "odom_cov_scale", "loop_cov_scale")}
+        | {f"graph.{k}": k.upper() for k in ("loop_sigma_floor_rot_rad", "loop_sigma_floor_trans_m")},
+    ),
 }
 
-# Keys older versions wrote flat in [frontend], at their place now: read back, the value applied
-# there, with a note.
-MOVED: dict[str, str] = {
-    "frontend.klt_features": "frontend.klt.features",
-    "frontend.klt_window_px": "frontend.klt.window_px",
-    "frontend.klt_quality": "frontend.klt.quality",
-    "frontend.klt_min_distance_px": "frontend.klt.min_distance_px",
-    "frontend.klt_border_px": "frontend.klt.border_px",
-    "frontend.klt_bias_window_px": "frontend.klt.bias_window_px",
-    "frontend.klt_weak_points": "frontend.klt.weak_points",
-    "frontend.sba_huber_px": "frontend.stereo_ba.huber_px",
-    "frontend.sba_outlier_px": "frontend.stereo_ba.outlier_px",
-    "frontend.sba_keep_px": "frontend.stereo_ba.keep_px",
-    "frontend.sba_iterations": "frontend.stereo_ba.iterations",
-    "frontend.local_ba": "frontend.local_ba.enabled",
-    "frontend.lba_window": "frontend.local_ba.window",
-    "frontend.lba_iterations": "frontend.local_ba.iterations",
-    "frontend.lba_max_landmarks": "frontend.local_ba.max_landmarks",
-    "frontend.lba_every": "frontend.local_ba.every",
-    "frontend.lba_keyframe_m": "frontend.local_ba.keyframe_m",
-    "frontend.lba_chain": "frontend.local_ba.chain",
-    "frontend.disparity_offset_px": "frontend.offset.px",
-    "frontend.estimate_disparity_offset": "frontend.offset.estimate",
-    "frontend.disparity_offset_prior_px": "frontend.offset.prior_px",
-    "frontend.disparity_offset_max_px": "frontend.offset.max_px",
-    "frontend.disparity_offset_min_solves": "frontend.offset.min_solves",
-    "frontend.disparity_offset_min_px": "frontend.offset.min_px",
-    "frontend.disparity_offset_max_sd_px": "frontend.offset.max_sd_px",
-    "frontend.disparity_offset_min_z": "frontend.offset.min_z",
-    "frontend.disparity_offset_memory_solves": "frontend.offset.memory_solves",
-    "frontend.loop_features": "frontend.frame_features",
-    "frontend.loop_detector": "verification.detector",
-    "frontend.loop_reference_every": "verification.reference_every",
-    "frontend.loop_depth_check_px": "verification.depth_check_px",
-    "frontend.loop_max_distance_m": "verification.max_distance_m",
-    "frontend.loop_subpixel_px": "verification.subpixel_px",
-}
-
-# Values older versions wrote that mean another value now: read with a note, applied as the new one.
-RENAMED_VALUES: dict[tuple[str, Any], tuple[Any, str]] = {
-    ("loop.discount_shape", "linear"): (
-        "drift",
-        "the ramp follows the [odometry] drift model; a translation walk gives the linear ramp",
-    ),
-}
+# The [loop] and [verification] rows live in their own module while it exists: folded in here.
+try:
+    _loop_rows = importlib.import_module(f"{__package__}._moved_loop_keys")
+except ImportError:
+    pass
+else:
+    for _rows in vars(_loop_rows).values():
+        if isinstance(_rows, dict) and _rows and all(isinstance(k, str) and "." in k for k in _rows):
+            OLD_KEYS |= {k: v if isinstance(v, (str, Moved)) else str(v) for k, v in _rows.items()}

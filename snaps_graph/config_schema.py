@@ -53,7 +53,7 @@ class Range:
 class Section:
     """Validation shared by the config sections: every field is checked against its type (a
     ``Literal`` is an enumeration) and its range (the field's metadata), a nested section in turn,
-    at construction and on demand. ``_name`` is the section's dotted name ("frontend.klt")."""
+    at construction and on demand. ``_name`` is the section's dotted name ("frontend")."""
 
     _name = "config"
 
@@ -80,7 +80,7 @@ def is_section(obj: Any) -> bool:
 
 
 def settings(obj: Any, prefix: str = "") -> Iterator[tuple[str, dataclasses.Field, Any]]:
-    """Every setting under ``obj`` as ("frontend.klt.window_px", its field, its type), nested
+    """Every setting under ``obj`` as ("frontend.mode", its field, its type), nested
     sections walked in place; the sections themselves are not settings."""
     hints = hints_of(type(obj))
     for f in dataclasses.fields(obj):
@@ -174,7 +174,7 @@ def describe(f: dataclasses.Field, hint: Any) -> str:
 
 def did_you_mean(name: str, obj: Any, prefix: str = "") -> str:
     """ " (did you mean 'loop.min_similarity'?)" for a misspelled key, else "". A key of a nested
-    section counts too, so a prefix left off ("frontend.window_px") finds "frontend.klt.window_px"."""
+    section counts too, so a prefix left off ("section.key") finds "section.part.key"."""
     names = {f.name: f.name for f in dataclasses.fields(obj)}
     for key, _, _ in settings(obj):
         names.setdefault(key.rpartition(".")[2], key)

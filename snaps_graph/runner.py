@@ -52,15 +52,20 @@ def run_sequence(
     before_commit: Callable[[Path], None] | None = None,
     odometry=None,
     odometry_format: str | None = None,
+    world_mesh: str | Path | None = None,
 ) -> tuple[RunResult, dict]:
     """Run a whole dataset (any reader of ``datasets.open.open_dataset``) and write the results folder;
     the configuration and the folder are checked before the first frame. ``observer``: a
     ``SlamPipeline.observer`` (the rerun logger) or a function of the temporary folder that makes
     one; ``prefetch_frames``: frames read ahead on a thread (0: none); ``before_commit``: called with
     the whole temporary folder before it is renamed; ``odometry``: a pose file (KITTI or TUM,
-    ``odometry_format`` or detected; a pose for every frame) or a front end, instead of the stereo VO.
+    ``odometry_format`` or detected; a pose for every frame) or a front end, instead of the stereo VO;
+    ``world_mesh``: the true world (PLY), the map's accuracy measured against it.
     """
-    (cfg or Config()).resolved(loops=loops, refine=refine, build_map=build_map)
+    if (cfg or Config()).resolved(loops=loops, refine=refine, build_map=build_map).map.enabled and world_mesh:
+        if not Path(world_mesh).is_file():  # else the map stage fails after every frame
+            what = "is a folder, not a world mesh" if Path(world_mesh).is_dir() else "world mesh not found"
+            raise SnapsGraphError(f"{world_mesh}: {what}")
     frontend = odometry
     if isinstance(odometry, (str, Path)):  # read before the folder opens: a bad file leaves nothing
         t0_ns = dataset.t0_ns
@@ -85,7 +90,8 @@ def run_sequence(
         result = pipe.finish()
         t0_ns = dataset.t0_ns  # .tum keeps the sequence's own clock (evo matches stamps)
         topics = {k: v for k, v in (("left_topic", dataset.left_topic), ("right_topic", dataset.right_topic)) if v}  # a bag's
-        metrics = _write_all(tmp, pipe, result, dataset.gt_poses, 0.0 if t0_ns is None else t0_ns * 1e-9, topics)
+        t0_s = 0.0 if t0_ns is None else t0_ns * 1e-9
+        metrics = _write_all(tmp, pipe, result, dataset.gt_poses, t0_s, topics, world_mesh)
         if before_commit is not None:
             before_commit(tmp)
     return result, metrics
@@ -100,7 +106,13 @@ def write_results(
 
 
 def _write_all(
-    out: Path, pipe: SlamPipeline, result: RunResult, gt_poses: np.ndarray | None, t0_s: float = 0.0, topics: dict | None = None
+    out: Path,
+    pipe: SlamPipeline,
+    result: RunResult,
+    gt_poses: np.ndarray | None,
+    t0_s: float = 0.0,
+    topics: dict | None = None,
+    world_mesh: str | Path | None = None,
 ) -> dict:
     stamps = result.timestamps + t0_s
     write_trajectories(out, result.trajectories, stamps)
@@ -120,7 +132,7 @@ def _write_all(
     metrics = run_metrics(result, gt_poses, failures)
     if pipe.map is not None:
         try:
-            map_metrics = write_map_outputs(out, pipe.map, result.trajectories, gt_poses, pipe.cfg.map)
+            map_metrics = write_map_outputs(out, pipe.map, result.trajectories, gt_poses, pipe.cfg.map, world_mesh)
         except Exception as exc:  # the map is built from the trajectories: never lose them for it
             if interrupted():  # Ctrl-C cut an import or a call: the user stopped, the map did not fail
                 raise

@@ -192,10 +192,10 @@ def test_a_metric_that_cannot_be_computed_is_a_note_not_a_bare_null(tmp_path):
 
 
 def test_a_world_mesh_that_does_not_exist_is_refused_before_the_run(seq, tmp_path):
-    cfg = tmp_path / "c.toml"
-    cfg.write_text('[map]\nworld_mesh = "nowhere.ply"\n')
     out = tmp_path / "run"
-    one_error(cli("run", seq, "--out", out, "--map", "-c", cfg), "nowhere.ply", "map.world_mesh", cfg)
+    one_error(
+        cli("run", seq, "--out", out, "--map", "--world-mesh", tmp_path / "nowhere.ply"), "nowhere.ply", "world mesh not found"
+    )
     assert not out.exists()
 
 

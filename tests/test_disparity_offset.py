@@ -8,11 +8,12 @@ import numpy as np
 import pytest
 
 from snaps_graph.camera import StereoCamera
-from snaps_graph.config import FrontendConfig, LocalBAConfig, OffsetConfig, StereoBAConfig
-from snaps_graph.errors import SnapsGraphError
+from snaps_graph.config import FrontendConfig
+from snaps_graph.frontend import lba_schedule
+from snaps_graph.frontend import offset as offset_mod
 from snaps_graph.frontend.depth import offset_gain, true_disparity
 from snaps_graph.frontend.local_ba import LocalBundleAdjuster
-from snaps_graph.frontend.offset import DisparityOffsetEstimator
+from snaps_graph.frontend.offset import DisparityOffsetEstimator, OffsetRule
 
 CAM = StereoCamera(fx=718.0, fy=718.0, cx=607.0, cy=185.0, baseline_m=0.54, width=1241, height=376)
 
@@ -23,12 +24,8 @@ def _window_offsets(offset_px: float, seed: int = 3, estimate: bool = True, join
     0.3 px in disparity); returns the BA's stats and the refined poses."""
     rng = np.random.default_rng(seed)
     X = np.c_[rng.uniform(-20, 20, 1500), rng.uniform(-3, 2, 1500), rng.uniform(4, 60, 1500)]
-    lba = LocalBundleAdjuster(
-        CAM,
-        FrontendConfig(
-            local_ba=LocalBAConfig(iterations=8), stereo_ba=StereoBAConfig(huber_px=1.0), offset=OffsetConfig(estimate=estimate)
-        ),
-    )
+    lba = LocalBundleAdjuster(CAM, FrontendConfig(estimate_offset=estimate))
+    lba.iterations, lba.huber_px = 8, 1.0
     lba.offset_joint = joint
     poses, gts = [], []
     for k in range(12):
@@ -102,10 +99,11 @@ def test_true_disparity_keeps_invalid_disparities_invalid():
     assert true_disparity(d, 0.0) is d  # no offset: the very same array (bit-identical runs)
 
 
-@pytest.mark.parametrize("bad", [dict(px=20.0), dict(prior_px=0.0), dict(min_solves=0)])
-def test_bad_offset_settings_are_one_line_errors(bad):
-    with pytest.raises(SnapsGraphError, match=f"frontend.offset.{next(iter(bad))}"):
-        OffsetConfig(**bad)
+def test_a_bad_offset_is_a_one_line_error():
+    from snaps_graph.errors import SnapsGraphError
+
+    with pytest.raises(SnapsGraphError, match="frontend.offset_px"):
+        FrontendConfig(offset_px=20.0)
 
 
 def _rendering(rect_px: float, n: int = 36):
@@ -115,12 +113,16 @@ def _rendering(rect_px: float, n: int = 36):
     return seq, [seq[i] for i in range(len(seq))]
 
 
-def _vo(seq, frames, **extra):
+def _vo(seq, frames, estimate: bool):
+    """The front end with a local BA on every frame, estimating the offset (after 5 solves) or not."""
     from snaps_graph.evaluation.metrics import ate_rmse
     from snaps_graph.frontend import StereoOdometry
 
-    with StereoOdometry(seq.camera, dataclasses.replace(FrontendConfig(), **extra)) as vo:
-        res = [vo.process(f) for f in frames]
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(lba_schedule, "LBA_EVERY", 1)
+        mp.setattr(offset_mod, "OFFSET_RULE", OffsetRule(min_solves=5))
+        with StereoOdometry(seq.camera, FrontendConfig(estimate_offset=estimate)) as vo:
+            res = [vo.process(f) for f in frames]
     P = np.array([r.pose for r in res])
     gt = seq.gt_poses
     assert all(r.ok for r in res) and np.all(np.isfinite(P))
@@ -131,25 +133,20 @@ def _vo(seq, frames, **extra):
     return res[-1].disparity_offset_px, float(bias), ate_rmse(P, gt)
 
 
-EVERY_FRAME = dict(local_ba=LocalBAConfig(every=1))
-ONLINE = dict(offset=OffsetConfig(estimate=True, min_solves=5), **EVERY_FRAME)
-NO_ESTIMATE = dict(offset=OffsetConfig(estimate=False), **EVERY_FRAME)
-
-
 @pytest.mark.slow
 def test_vo_estimates_and_removes_a_rendered_disparity_offset():
     """A rendering whose disparities read 0.5 px small (620x188): the front end estimates the
     offset to within 0.1 px, and the step-length bias shrinks to less than half; on the same
     world without an offset the estimate stays within 0.1 px of 0 and the ATE is not worse."""
     seq, frames = _rendering(0.5)
-    off0, bias0, ate0 = _vo(seq, frames, **NO_ESTIMATE)
-    off1, bias1, ate1 = _vo(seq, frames, **ONLINE)
+    off0, bias0, ate0 = _vo(seq, frames, estimate=False)
+    off1, bias1, ate1 = _vo(seq, frames, estimate=True)
     assert off0 == 0.0 and abs(off1 - (-0.5)) < 0.1, off1
     assert bias0 > 0.02 and abs(bias1) < 0.5 * bias0, (bias0, bias1)
     assert ate1 < ate0
     seq, frames = _rendering(0.0)
-    _, bias0, ate0 = _vo(seq, frames, **NO_ESTIMATE)
-    off1, bias1, ate1 = _vo(seq, frames, **ONLINE)
+    _, bias0, ate0 = _vo(seq, frames, estimate=False)
+    off1, bias1, ate1 = _vo(seq, frames, estimate=True)
     assert abs(off1) < 0.1, off1
     assert ate1 <= 1.1 * ate0 + 0.005, (ate0, ate1)
 
@@ -158,7 +155,7 @@ def test_an_unobservable_offset_is_never_applied():
     """Solves that carry almost no information about the offset (a MAV hovering, a car standing:
     no depth change along the tracks) leave the configured offset in place, however far their
     mean lies; informative solves are then applied."""
-    est = DisparityOffsetEstimator(OffsetConfig())
+    est = DisparityOffsetEstimator(0.0)
     assert not est.add([(25.0, 1e-4)] * 30)  # sd 100 px each, mean far beyond the clamp
     assert est.offset == 0.0
     assert est.add([(-0.3, 400.0)] * 10)  # sd 0.05 px each
@@ -166,40 +163,40 @@ def test_an_unobservable_offset_is_never_applied():
 
 
 def test_an_offset_within_three_standard_errors_of_the_configured_one_waits():
-    """An early estimate past offset.min_px but within offset.min_z standard
+    """An early estimate past OffsetRule.min_px but within OffsetRule.min_z standard
     errors (an offset-free rig's first solves) is not applied; the same offset, once measured
     well enough to be significant, is."""
-    est = DisparityOffsetEstimator(OffsetConfig())
+    est = DisparityOffsetEstimator(0.0)
     assert not est.add([(0.06, 100.0)] * 5)  # mean 0.06 px, sd 0.045 px: 1.3 sd
     assert est.offset == 0.0
     assert est.add([(0.06, 10000.0)] * 3)  # sd 0.006 px: 10 sd
     assert est.offset == pytest.approx(0.06, abs=0.001)
-    est = DisparityOffsetEstimator(OffsetConfig(min_z=0.0))
+    est = DisparityOffsetEstimator(0.0, OffsetRule(min_z=0.0))
     assert est.add([(0.06, 100.0)] * 5)  # without the test: applied at once
     assert est.offset == pytest.approx(0.06, abs=0.001)
 
 
 def test_the_offset_estimate_is_an_information_weighted_clamped_mean():
     """Hand-computed: (0.2 * 100 + 0.5 * 300) / 400 = 0.425 px; non-finite or zero-information
-    solves are skipped; a mean beyond offset.max_px is clamped to it; a configured
+    solves are skipped; a mean beyond OffsetRule.max_px is clamped to it; a configured
     offset is where the significance test starts."""
-    cfg = OffsetConfig(min_solves=2, max_sd_px=1.0, min_z=0.0)
-    est = DisparityOffsetEstimator(cfg)
+    cfg = OffsetRule(min_solves=2, max_sd_px=1.0, min_z=0.0)
+    est = DisparityOffsetEstimator(0.0, cfg)
     assert est.add([(0.2, 100.0), (float("nan"), 5.0), (0.5, 0.0), (0.5, 300.0)])
     assert est.offset == pytest.approx(0.425, abs=1e-12)
-    est = DisparityOffsetEstimator(dataclasses.replace(cfg, max_px=1.0))
+    est = DisparityOffsetEstimator(0.0, dataclasses.replace(cfg, max_px=1.0))
     assert est.add([(3.0, 10.0)] * 2) and est.offset == 1.0
-    est = DisparityOffsetEstimator(dataclasses.replace(cfg, px=0.4, min_px=0.1))
+    est = DisparityOffsetEstimator(0.4, dataclasses.replace(cfg, min_px=0.1))
     assert not est.add([(0.45, 100.0)] * 2) and est.offset == 0.4  # 0.05 px from the configured one
     assert not est.applied
 
 
 @pytest.mark.parametrize("memory", [0, 20])
 def test_an_applied_offset_follows_newer_solves_with_a_memory(memory):
-    """Once applied, the running estimate forgets older solves with offset.memory_solves
+    """Once applied, the running estimate forgets older solves with OffsetRule.memory_solves
     (they were measured with a worse offset applied): 100 later solves at -0.6 px move it to
     -0.6 within 0.01 px; without a memory the 30 earlier solves at -0.3 px still hold it back."""
-    est = DisparityOffsetEstimator(OffsetConfig(memory_solves=memory))
+    est = DisparityOffsetEstimator(0.0, OffsetRule(memory_solves=memory))
     assert est.add([(-0.3, 400.0)] * 30)
     assert est.offset == pytest.approx(-0.3, abs=1e-6)
     est.add([(-0.6, 400.0)] * 100)

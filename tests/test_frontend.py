@@ -81,7 +81,7 @@ def test_dense_depth_range_limits_mark_invalid():
 def test_sparse_depth_subpixel_disparity():
     # A plane at 8 m seen by the stereo pair: disparity 31.25 px (not a whole pixel).
     f = _plane_frame(0, [0.0, 0.0, 0.0])
-    uv = feat.detect_corners(f.left, 300, FrontendConfig().klt)
+    uv = feat.detect_corners(f.left, 300, feat.KLT)
     z, disp = sparse_depth(f.left, f.right, uv, CAM, FrontendConfig())
     ok = z > 0
     assert ok.mean() > 0.8
@@ -228,17 +228,18 @@ def test_first_frame_is_identity_even_when_black(kitti06_dir):
 
 
 def test_an_old_config_with_retired_keys_loads_with_a_note(tmp_path, capsys):
-    """A config.toml an older version wrote (with options since deleted) still loads: each
-    retired key is a note on stderr, not an error, and the rest is read."""
-    from snaps_graph.config import RETIRED, Config
+    """A config.toml the previous version wrote (with settings since made constants) still loads:
+    each such key is a note on stderr, not an error, and the rest is read."""
+    from snaps_graph.config import Config
+    from snaps_graph.config_retired import OLD_KEYS
 
     old = tmp_path / "config.toml"
     old.write_text(
-        "[frontend]\nklt_road_prewarp = false\nlba_async = false\nklt_features = 1200\n"
-        '[graph]\ngravity_prior = false\nodom_noise = "ba"\n[map]\ntopdown_dpi = 150\n'
+        "[frontend]\nmin_inliers = 20\n[frontend.klt]\nfeatures = 1200\n[frontend.offset]\npx = 0.25\n"
+        "[graph]\nloop_cov_scale = 4.0\n[map]\ntsdf_min_weight = 1.0\n"
     )
     cfg = Config.load(old)
-    assert cfg.frontend.klt.features == 1200  # moved to [frontend.klt], with a note
+    assert cfg.frontend.offset_px == 0.25  # moved to frontend.offset_px, with a note
     err = capsys.readouterr().err
-    for key in ("frontend.klt_road_prewarp", "frontend.lba_async", "graph.gravity_prior", "graph.odom_noise", "map.topdown_dpi"):
-        assert key in RETIRED and f"note: {old}: {key} is no longer used" in err
+    for key in ("frontend.min_inliers", "frontend.klt.features", "graph.loop_cov_scale", "map.tsdf_min_weight"):
+        assert key in OLD_KEYS and f"note: {old}: {key} = " in err, err

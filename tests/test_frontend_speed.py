@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from snaps_graph.camera import StereoCamera
-from snaps_graph.config import KltConfig, StereoBAConfig
-from snaps_graph.frontend.stereo_ba import stereo_two_view_ba
+from snaps_graph.frontend.features import KltParams
+from snaps_graph.frontend.stereo_ba import StereoBAParams, stereo_two_view_ba
 from snaps_graph.geometry import exp_so3
 
 CAM = StereoCamera(fx=718.0, fy=718.0, cx=607.0, cy=185.0, baseline_m=0.54, width=1241, height=376)
@@ -47,7 +47,7 @@ def test_stereo_ba_covariance_is_the_inverse_schur_complement_of_numeric_jacobia
         cur[:, :2],
         cur[:, 0] - cur[:, 2],
         CAM,
-        StereoBAConfig(huber_px=1.0, outlier_px=2.0, iterations=6),
+        StereoBAParams(huber_px=1.0, outlier_px=2.0, iterations=6),
     )
     assert r.ok and r.inliers.all()
     np.testing.assert_allclose(r.T_cur_ref, T, atol=1e-9)
@@ -112,7 +112,7 @@ def test_detect_corners_on_the_cropped_image_finds_the_same_corners(border, radi
 
     rng = np.random.default_rng(border + radius)
     img = cv2.GaussianBlur(rng.integers(0, 256, (188, 620), dtype=np.uint8), (0, 0), 2.0)
-    cfg = KltConfig(border_px=border, min_distance_px=radius, quality=quality)
+    cfg = KltParams(border_px=border, min_distance_px=radius, quality=quality)
     for avoid in (None, np.c_[rng.uniform(0, 620, 300), rng.uniform(0, 188, 300)].astype(np.float32)):
         if avoid is None:
             mask = np.zeros(img.shape, np.uint8)

@@ -5,14 +5,12 @@ import dataclasses
 import numpy as np
 import pytest
 
-from snaps_graph.config import Config, KltConfig
-from snaps_graph.errors import SnapsGraphError
 from snaps_graph.frontend import depth as depth_mod
 from snaps_graph.frontend import features as feat
 from snaps_graph.synth import SyntheticSequence, builtin_loop_trajectory
 
 
-def _road_row_errors(cfgs: list[KltConfig], pairs: int = 20) -> list[np.ndarray]:
+def _road_row_errors(cfgs: list[feat.KltParams], pairs: int = 20) -> list[np.ndarray]:
     """KLT row - exact row, per config, of corners on the road 35-95 rows below the horizon,
     tracked over one frame along the built-in loop (about 0.8 m per frame, like KITTI at 10 Hz;
     KITTI's image size, so the flow is KITTI's)."""
@@ -37,7 +35,7 @@ def _road_row_errors(cfgs: list[KltConfig], pairs: int = 20) -> list[np.ndarray]
 
 @pytest.mark.slow
 def test_window_bias_is_removed_on_the_road():
-    cfg = KltConfig()
+    cfg = feat.KLT
     plain, fixed = _road_row_errors([dataclasses.replace(cfg, bias_window_px=0), cfg])
     assert len(plain) > 800 and abs(len(fixed) - len(plain)) < 5
     # The road's flow curves within the 11 px window: the plain LK fit lands low (measured +0.039 px).
@@ -47,10 +45,3 @@ def test_window_bias_is_removed_on_the_road():
     # ... without buying it with much noise (measured +16 % spread).
     spread = lambda e: np.percentile(np.abs(e - np.median(e)), 75)  # noqa: E731
     assert spread(fixed) < 1.3 * spread(plain)
-
-
-def test_bias_window_must_be_smaller_than_the_window():
-    c = Config()
-    c.frontend.klt.bias_window_px = c.frontend.klt.window_px
-    with pytest.raises(SnapsGraphError, match="frontend.klt.bias_window_px"):
-        c.validate("x.toml")

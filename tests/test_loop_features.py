@@ -5,10 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from snaps_graph.backend import noise
 from snaps_graph.backend.pose_graph import PoseGraph, loop_covariance
 from snaps_graph.config import Config, FrontendConfig, GraphConfig, VerificationConfig
 from snaps_graph.datasets.kitti import KittiSequence
 from snaps_graph.frontend.keyframe import MIN_STEREO_POINTS
+from snaps_graph.frontend.motion import MIN_INLIERS
 from snaps_graph.geometry import inv, rotation_angle_deg
 from snaps_graph.pipeline import SlamPipeline
 from snaps_graph.types import FrameFeatures
@@ -30,7 +32,7 @@ def test_verify_features_recovers_relative_pose(kitti_pair, detector):
     ref = bank.reference(0)
     assert ref is not None and len(ref.uv) >= MIN_STEREO_POINTS
     m = verify_features(ref, bank.query(3, f3), f3, seq.camera, cfg, vcfg)
-    assert m is not None and m.inliers >= cfg.min_inliers
+    assert m is not None and m.inliers >= MIN_INLIERS
     G = inv(seq.gt_poses[0]) @ seq.gt_poses[3]  # 3.6 m forward
     # Real KITTI 06 (exposure, blur): ORB 0.17 m off, SIFT 0.06 m; the tracker's own verifier 0.15 m.
     assert np.linalg.norm(m.T_ref_cur[:3, 3] - G[:3, 3]) < 0.25
@@ -100,8 +102,8 @@ def test_loop_factor_uses_the_verification_covariance():
     C = np.diag([1e-6] * 3 + [1e-4] * 3)
     eff = loop_covariance(cfg, C)
     assert eff is not None
-    floor = np.array([cfg.loop_sigma_floor_rot_rad] * 3 + [cfg.loop_sigma_floor_trans_m] * 3)
-    assert np.allclose(np.diag(eff), cfg.loop_cov_scale * np.diag(C) + floor**2)
+    floor = np.array([noise.LOOP_SIGMA_FLOOR_ROT_RAD] * 3 + [noise.LOOP_SIGMA_FLOOR_TRANS_M] * 3)
+    assert np.allclose(np.diag(eff), noise.LOOP_COV_SCALE * np.diag(C) + floor**2)
     assert loop_covariance(cfg, np.full((6, 6), np.nan)) is None
     assert loop_covariance(cfg, -np.eye(6)) is None
     g = PoseGraph(cfg, mode="batch")

@@ -81,21 +81,18 @@ def test_map_depth_leaves_a_depth_edge_empty():
     assert np.mean(off > 0.05) < 0.01  # no blended depths
 
 
-def test_map_depth_options_and_errors():
+def test_map_depth_options_and_errors(monkeypatch):
+    from snaps_graph.frontend import depth as depth_mod
+
     big = _texture(320, 656)
     left, right = big[:, :640].copy(), big[:, 16:].copy()
-    z = map_depth(left, right, CAM, FrontendConfig(), MapConfig(depth_method="sgbm", depth_block_size=5, max_range_m=40.0))
+    z = map_depth(left, right, CAM, FrontendConfig(), MapConfig(max_range_m=40.0))
     assert np.median(z[z > 0]) == pytest.approx(15.625, rel=0.02)
-    z1 = map_depth(left, right, CAM, FrontendConfig(), MapConfig(depth_scale=1.0, depth_block_size=11, max_range_m=40.0))
+    monkeypatch.setattr(depth_mod, "MAP_BLOCK_SIZE", 11)
+    z1 = map_depth(left, right, CAM, FrontendConfig(), MapConfig(depth_scale=1.0, max_range_m=40.0))
     assert z1.shape == (320, 640)
-    for bad, msg in (
-        (dict(depth_method="wls"), "depth_method"),
-        (dict(depth_scale=2.0), "depth_scale"),
-        (dict(depth_block_size=4), "depth_block_size"),
-        (dict(depth_method="bm", depth_block_size=3), "depth_block_size"),
-    ):
-        with pytest.raises(SnapsGraphError, match=msg):
-            MapConfig(**bad)
+    with pytest.raises(SnapsGraphError, match="depth_scale"):
+        MapConfig(depth_scale=2.0)
     c = map_camera(CAM, 0.5, 640, 320)
     assert (c.width, c.height, c.cx, c.fx) == (320, 160, 159.5, 250.0)
 
@@ -103,8 +100,11 @@ def test_map_depth_options_and_errors():
 # ---------------------------------------------------------------- fusion
 
 
-def _wall_map(depth_m=10.0, n=3, cfg=None) -> FusedMap:
-    m = FusedMap(CAM, cfg or MapConfig(tsdf_voxel_m=0.1, tsdf_trunc_voxels=4.0))
+def _wall_map(depth_m=10.0, n=3, min_weight: float | None = None) -> FusedMap:
+    m = FusedMap(CAM, MapConfig(tsdf_voxel_m=0.1))
+    m.trunc_voxels = 4.0
+    if min_weight is not None:
+        m.min_weight = min_weight
     for k in range(n):
         m.add_keyframe(k * 5, np.full((160, 320), depth_m, np.float32), np.full((320, 640), 90, np.uint8))
     return m
@@ -133,15 +133,14 @@ def test_stored_depth_is_compressed_and_exact_to_a_millimetre():
 
 
 def test_min_weight_drops_surfaces_seen_once():
-    cfg = MapConfig(tsdf_voxel_m=0.1, tsdf_trunc_voxels=4.0, tsdf_min_weight=2.0)
     poses = np.repeat(np.eye(4)[None], 11, axis=0)
-    assert len(_wall_map(10.0, 1, cfg).fuse(poses).triangles) == 0
-    assert len(_wall_map(10.0, 2, cfg).fuse(poses).triangles) > 1000
+    assert len(_wall_map(10.0, 1, 2.0).fuse(poses).triangles) == 0
+    assert len(_wall_map(10.0, 2, 2.0).fuse(poses).triangles) > 1000
 
 
 def test_chunked_fusion_bounds_the_grid():
-    cfg = MapConfig(tsdf_voxel_m=0.1, tsdf_trunc_voxels=4.0, tsdf_max_blocks=1000, max_range_m=20.0)
-    m = FusedMap(CAM, cfg)
+    m = FusedMap(CAM, MapConfig(tsdf_voxel_m=0.1, max_range_m=20.0))
+    m.trunc_voxels, m.max_blocks = 4.0, 1000
     poses = np.array([_pose((40.0 * k, 0.0, 0.0)) for k in range(4)])
     for k in range(4):
         m.add_keyframe(k, np.full((160, 320), 15.0, np.float32))
@@ -224,8 +223,11 @@ def test_accuracy_of_exact_offset_and_partial_maps(tmp_path):
 # ---------------------------------------------------------------- outputs + report
 
 
-def test_write_map_outputs_and_compare_report(tmp_path):
+def test_write_map_outputs_and_compare_report(tmp_path, monkeypatch):
+    import functools
+
     from snaps_graph.evaluation.report import map_section_lines
+    from snaps_graph.mapping import accuracy
     from snaps_graph.mapping.outputs import accuracy_from_files, write_map_outputs
 
     world = _write_world(tmp_path / "w.ply")
@@ -235,8 +237,10 @@ def test_write_map_outputs_and_compare_report(tmp_path):
     yn = (v - (cam.cy + 0.5) * 0.5 + 0.5) / (cam.fy * 0.5)
     ground = np.where(yn > 0.01, 1.65 / np.maximum(yn, 1e-6), 0).astype(np.float32)
     ground[ground > 20] = 0
-    cfg = MapConfig(tsdf_voxel_m=0.1, tsdf_trunc_voxels=4.0, world_mesh=str(world), per_trajectory=True, accuracy_samples=20_000)
+    cfg = MapConfig(tsdf_voxel_m=0.1, per_trajectory=True)
     m = FusedMap(cam, cfg)
+    m.trunc_voxels = 4.0
+    monkeypatch.setattr(accuracy, "map_accuracy", functools.partial(accuracy.map_accuracy, min_samples=20_000))
     n = 21
     gt = np.array([_pose((0.0, 0.0, 0.5 * k)) for k in range(n)])
     for k in range(0, n, 5):
@@ -245,7 +249,7 @@ def test_write_map_outputs_and_compare_report(tmp_path):
     vo[:, 1, 3] -= 0.3  # a VO drawn 0.3 m too high
     out = tmp_path / "run"
     out.mkdir()
-    entry = write_map_outputs(out, m, {"vo": vo, "batch": gt}, gt, cfg)
+    entry = write_map_outputs(out, m, {"vo": vo, "batch": gt}, gt, cfg, world_mesh=world)
     assert entry is not None
     for f in ("map.ply", "map_mesh.ply", "map.png", "map_mesh.png", "map_compare.png", "map_vo.ply", "map_mesh_vo.ply"):
         assert (out / f).is_file(), f
@@ -265,11 +269,11 @@ def test_write_map_outputs_and_compare_report(tmp_path):
 
 def test_config_round_trip_of_map_fields(tmp_path):
     cfg = Config()
-    cfg.map.world_mesh = "/x/world.ply"
-    cfg.map.depth_method = "sgbm"
+    cfg.map.trajectory = "vo"
+    cfg.map.depth_scale = 1.0
     cfg.dump(tmp_path / "c.toml")
     back = Config.load(tmp_path / "c.toml")
-    assert back.map.world_mesh == "/x/world.ply" and back.map.depth_method == "sgbm"
+    assert back.map.trajectory == "vo" and back.map.depth_scale == 1.0
 
 
 def test_pictures_colour_height_above_the_local_ground():

@@ -9,7 +9,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from snaps_graph.backend import PoseGraph, loop_sigma_scale, loop_sigmas, odometry_covariance, odometry_sigmas
+from snaps_graph.backend import PoseGraph, loop_sigma_scale, loop_sigmas, noise, odometry_covariance, odometry_sigmas
 from snaps_graph.backend.noise import LOOP_SIGMA_SCALE_MAX, ODOM_FLOOR_ROT_RAD, ODOM_FLOOR_TRANS_M, odometry_step_covariance
 from snaps_graph.config import GraphConfig
 from snaps_graph.drift_model import DriftModel
@@ -103,7 +103,7 @@ def test_square_loop_batch_and_isam2_close_the_loop():
     assert gb.stats.n_factors == n + 2  # prior + n odometry + 1 loop
 
 
-def test_loop_noise_tightens_with_q():
+def test_loop_noise_tightens_with_q(monkeypatch):
     cfg = GraphConfig()
     qs = np.linspace(0.05, 1.0, 96)
     scales = np.array([loop_sigma_scale(cfg, q) for q in qs])
@@ -115,8 +115,9 @@ def test_loop_noise_tightens_with_q():
     s = loop_sigmas(cfg, 0.5, verified=True)
     assert np.allclose(s, [0.02, 0.02, 0.02, 0.2, 0.2, 0.2])
     assert loop_sigma_scale(cfg, 0.75) == pytest.approx(4 / 3)
-    floored = GraphConfig(loop_q_floor=0.7)  # a floor just under the paper's threshold
-    assert loop_sigma_scale(floored, 0.75) == pytest.approx(6.0) and loop_sigma_scale(floored, 0.6) == 10.0
+    monkeypatch.setattr(noise, "LOOP_Q_FLOOR", 0.7)  # a floor just under the paper's threshold
+    assert loop_sigma_scale(cfg, 0.75) == pytest.approx(6.0) and loop_sigma_scale(cfg, 0.6) == 10.0
+    monkeypatch.undo()
     u = loop_sigmas(cfg, 1.0, verified=False)
     assert np.allclose(u, [0.5, 0.5, 0.5, 2.0, 2.0, 2.0])
 
@@ -132,9 +133,10 @@ def test_odometry_sigmas_follow_inliers_and_flag():
     assert np.allclose(odometry_sigmas(cfg, 200, False), 100 * base)  # flagged
 
 
-def test_odometry_covariance_scaled_and_checked():
+def test_odometry_covariance_scaled_and_checked(monkeypatch):
     C = np.diag([1e-8] * 3 + [1e-6] * 3)
-    cfg = GraphConfig(odom_cov_scale=2.0)
+    cfg = GraphConfig()
+    monkeypatch.setattr(noise, "ODOM_COV_SCALE", 2.0)
     scaled = odometry_covariance(cfg, C)
     assert scaled is not None and np.allclose(scaled, 4 * C)
     assert odometry_covariance(cfg, None) is None
@@ -213,7 +215,7 @@ def test_loop_to_missing_key_is_rejected_with_reason():
     assert np.all(np.isfinite(g.estimates()))
 
 
-def test_unverified_loop_assumes_same_place(tmp_path):
+def test_unverified_loop_assumes_same_place(tmp_path, monkeypatch):
     """Same-place factor: zero translation and the relative rotation of the current estimates,
     with the loose unverified sigmas."""
     gt, rel, init = square(yaw_bias=0.01, rot_noise=0.005)  # 2.6 m gap, 0.4 rad heading drift
@@ -231,7 +233,8 @@ def test_unverified_loop_assumes_same_place(tmp_path):
     # With a tight translation sigma the factor pulls frame n onto frame 0 (the zero translation)
     # while the heading mostly keeps its drift (0.39 rad; measured 0.28 rad after, as the chain
     # bends to close the gap): a factor claiming the identity rotation would take it to ~0.
-    cfg = GraphConfig(robust_kernel="none", unverified_sigma_trans_m=0.01)
+    cfg = GraphConfig(robust_kernel="none")
+    monkeypatch.setattr(noise, "UNVERIFIED_SIGMA_TRANS_M", 0.01)
     g = PoseGraph(cfg, mode="batch")
     feed(g, rel, init, [(0, n, 1.0, None)])
     out = g.optimize_batch()

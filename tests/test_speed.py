@@ -43,7 +43,7 @@ def fast_drive():
 
 
 @pytest.mark.parametrize("gaps", [True, False], ids=["index-gaps", "renumbered"])
-def test_fast_drive_tracks_every_frame(fast_drive, gaps):
+def test_fast_drive_tracks_every_frame(fast_drive, gaps, monkeypatch):
     """Fed every 6th frame, with its original indices (gaps of 6) or renumbered 0, 1, 2, ...,
     the front end tracks every frame, finite, ending within 2 % of the path. (Before the
     prediction was scaled to the gap and the ORB retry added, 8 of these 16 frames were
@@ -54,7 +54,12 @@ def test_fast_drive_tracks_every_frame(fast_drive, gaps):
 
     seq, frames = fast_drive
     step = 6 if gaps else 1
-    cfg = FrontendConfig() if gaps else FrontendConfig(max_step_m=8.0, max_step_deg=30.0)
+    cfg = FrontendConfig()
+    if not gaps:
+        from snaps_graph.frontend import motion
+
+        monkeypatch.setattr(motion, "MAX_STEP_M", 8.0)
+        monkeypatch.setattr(motion, "MAX_STEP_DEG", 30.0)
     with StereoOdometry(seq.camera, cfg) as vo:
         res = [vo.process(StereoFrame(step * i, f.timestamp, f.left, f.right)) for i, f in enumerate(frames)]
     poses = np.array([r.pose for r in res])

@@ -12,6 +12,7 @@ from conftest import SHARED_DATA
 from snaps_graph.camera import kitti00_camera
 from snaps_graph.config import Config
 from snaps_graph.datasets.kitti import KittiSequence
+from snaps_graph.frontend.motion import MIN_INLIERS
 from snaps_graph.geometry import inv, rotation_angle_deg
 from snaps_graph.types import FrameFeatures, StereoFrame
 from snaps_graph.verification.features import LOOP_QUERY_FEATURES, verify_features
@@ -180,6 +181,6 @@ def test_revisit_entry_verifies_with_the_local_map():
     own = bank._ref[idx[135]]
     assert verify_features(own, cur, None, seq.camera, cfg, vcfg, unique=True) is None
     m = verify_features(bank.reference(idx[135]), cur, None, seq.camera, cfg, vcfg, unique=True)
-    assert m is not None and m.inliers >= cfg.min_inliers
+    assert m is not None and m.inliers >= MIN_INLIERS
     T = np.linalg.solve(seq._gt_all[idx[135]], seq._gt_all[idx[1577]])
     assert abs(np.linalg.norm(m.T_ref_cur[:3, 3]) - np.linalg.norm(T[:3, 3])) < 0.5

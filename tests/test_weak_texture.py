@@ -1,17 +1,15 @@
 """KLT re-detection in weak texture (open-road drift): a second corner detection at
-``KLT_WEAK_QUALITY`` when too few points have stereo depth (``frontend.klt.weak_points``)."""
+``KLT_WEAK_QUALITY`` when too few points have stereo depth (``KLT.weak_points``)."""
 
 from __future__ import annotations
-
-import dataclasses
 
 import numpy as np
 import pytest
 
-from snaps_graph.config import FrontendConfig, KltConfig
+from snaps_graph.config import FrontendConfig
 from snaps_graph.datasets.kitti import KittiSequence
-from snaps_graph.errors import SnapsGraphError
 from snaps_graph.frontend import StereoOdometry
+from snaps_graph.frontend import features as feat
 
 
 @pytest.fixture(scope="module")
@@ -25,16 +23,20 @@ def open_turn(kitti_gt_dir):
     return seq, list(seq)
 
 
-def _run(seq, frames, **over):
-    with StereoOdometry(seq.camera, dataclasses.replace(FrontendConfig(), **over)) as vo:
-        return [vo.process(f) for f in frames]
+def _run(seq, frames, weak_points: int | None = None):
+    with pytest.MonkeyPatch.context() as mp:
+        if weak_points is not None:
+            mp.setattr(feat, "KLT", feat.KltParams(weak_points=weak_points))
+        with StereoOdometry(seq.camera, FrontendConfig()) as vo:
+            return [vo.process(f) for f in frames]
 
 
-def test_weak_texture_pass_adds_corners_with_depth(open_turn):
+def test_weak_texture_pass_adds_corners_with_depth(open_turn, monkeypatch):
     seq, frames = open_turn
     counts = {}
     for weak in (0, 300):
-        with StereoOdometry(seq.camera, FrontendConfig(klt=KltConfig(weak_points=weak))) as vo:
+        monkeypatch.setattr(feat, "KLT", feat.KltParams(weak_points=weak))
+        with StereoOdometry(seq.camera, FrontendConfig()) as vo:
             none = np.zeros((0, 2), np.float32)
             assert vo._klt is not None
             _, z2, _ = vo._klt._detect_new(frames[10], none, np.zeros(0, np.float32), {})
@@ -59,18 +61,12 @@ def test_textured_real_frames_never_take_the_second_pass(kitti06_dir):
     seq = KittiSequence(kitti06_dir, frames="0:4")
     frames = list(seq)
     a = _run(seq, frames)
-    b = _run(seq, frames, klt=KltConfig(weak_points=0))
+    b = _run(seq, frames, weak_points=0)
     for x, y in zip(a, b):
         assert np.array_equal(x.pose, y.pose)
 
 
-@pytest.mark.parametrize("bad", [dict(weak_points=-1), dict(weak_points=1.5)])
-def test_bad_weak_texture_settings_are_one_line_errors(bad):
-    with pytest.raises(SnapsGraphError, match=f"frontend.klt.{next(iter(bad))}"):
-        KltConfig(**bad)
-
-
-def test_no_second_pass_where_stereo_fails(open_turn):
+def test_no_second_pass_where_stereo_fails(open_turn, monkeypatch):
     """More corners cannot help where stereo fails on them (here a right image of noise; on EuRoC
     V1_01 new corners fail stereo 149 times in 150): the pass runs only when the new corners
     without depth are mostly out of range, beyond max_depth_m."""
@@ -82,7 +78,8 @@ def test_no_second_pass_where_stereo_fails(open_turn):
     broken = StereoFrame(f.index, f.timestamp, f.left, noise)
     out = {}
     for weak in (0, 300):
-        with StereoOdometry(seq.camera, FrontendConfig(klt=KltConfig(weak_points=weak))) as vo:
+        monkeypatch.setattr(feat, "KLT", feat.KltParams(weak_points=weak))
+        with StereoOdometry(seq.camera, FrontendConfig()) as vo:
             assert vo._klt is not None
             out[weak] = vo._klt._detect_new(broken, np.zeros((0, 2), np.float32), np.zeros(0, np.float32), {})[0]
     assert np.array_equal(out[0], out[300])

@@ -26,6 +26,14 @@ LOOP_SIGMA_SCALE_MAX = 10.0  # clip of a loop's Q scale (1 - q0) / (Q - q0)
 # Added to every step's diagonal: a step that did not move still gets a determinate factor.
 ODOM_FLOOR_ROT_RAD = 1e-4
 ODOM_FLOOR_TRANS_M = 1e-3
+UNVERIFIED_SIGMA_TRANS_M = 2.0  # an unverified loop assumes the same place: loose, metres apart still match
+LOOP_Q_FLOOR = 0.0  # Q at which a loop's sigmas would be infinite: 0 suits the exact UIQI (docs/decisions.md)
+ODOM_COV_SCALE = 1.0  # a stereo-BA step's covariance is used as the BA reports it
+# A verified loop's PnP covariance takes its points as exact: scaled, and floored in quadrature so
+# no loop is surer than about 0.1 deg and 2 cm (docs/decisions.md, loop factor noise).
+LOOP_COV_SCALE = 4.0
+LOOP_SIGMA_FLOOR_ROT_RAD = 0.002
+LOOP_SIGMA_FLOOR_TRANS_M = 0.02
 
 
 def odometry_sigmas(cfg: GraphConfig, inliers: int, ok: bool) -> np.ndarray:
@@ -44,7 +52,7 @@ def odometry_sigmas(cfg: GraphConfig, inliers: int, ok: bool) -> np.ndarray:
 
 
 def odometry_covariance(cfg: GraphConfig, cov: np.ndarray | None) -> np.ndarray | None:
-    """The step's own measurement covariance, ``odom_cov_scale^2 * cov``; None (use
+    """The step's own measurement covariance, ``ODOM_COV_SCALE^2 * cov``; None (use
     :func:`odometry_sigmas`) when ``cov`` is missing, not a finite symmetric 6x6 or not positive
     semi-definite."""
     if cov is None:
@@ -55,7 +63,7 @@ def odometry_covariance(cfg: GraphConfig, cov: np.ndarray | None) -> np.ndarray 
     C = 0.5 * (C + C.T)
     if np.linalg.eigvalsh(C).min() < -1e-12 * max(float(np.abs(C).max()), 1e-300):
         return None
-    return cfg.odom_cov_scale**2 * C
+    return ODOM_COV_SCALE**2 * C
 
 
 def odometry_step_covariance(
@@ -83,8 +91,8 @@ def odometry_step_covariance(
 
 def loop_sigma_scale(cfg: GraphConfig, q: float) -> float:
     """UIQI-to-noise mapping: ``clip((1 - q0) / (Q - q0), 1, LOOP_SIGMA_SCALE_MAX)``, q0 =
-    ``loop_q_floor``. 1 at Q = 1, growing as Q falls toward q0 (information ~ (Q - q0)^2)."""
-    q0 = cfg.loop_q_floor
+    ``LOOP_Q_FLOOR``. 1 at Q = 1, growing as Q falls toward q0 (information ~ (Q - q0)^2)."""
+    q0 = LOOP_Q_FLOOR
     margin = min(float(q), 1.0) - q0
     if margin <= 0.0:
         return float(LOOP_SIGMA_SCALE_MAX)
@@ -96,19 +104,19 @@ def loop_sigmas(cfg: GraphConfig, q: float, verified: bool) -> np.ndarray:
     if verified:
         base = [cfg.loop_sigma_rot_rad] * 3 + [cfg.loop_sigma_trans_m] * 3
     else:
-        base = [UNVERIFIED_SIGMA_ROT_RAD] * 3 + [cfg.unverified_sigma_trans_m] * 3
+        base = [UNVERIFIED_SIGMA_ROT_RAD] * 3 + [UNVERIFIED_SIGMA_TRANS_M] * 3
     return loop_sigma_scale(cfg, q) * np.array(base)
 
 
 def loop_covariance(cfg: GraphConfig, covariance: np.ndarray) -> np.ndarray | None:
-    """A verified loop's factor covariance: ``loop_cov_scale`` x the verification's 6x6
-    covariance (rot rad, trans m) plus the ``loop_sigma_floor_*`` squared on the diagonal; None
+    """A verified loop's factor covariance: ``LOOP_COV_SCALE`` x the verification's 6x6
+    covariance (rot rad, trans m) plus the ``LOOP_SIGMA_FLOOR_*`` squared on the diagonal; None
     when the input is not a finite symmetric positive-definite 6x6."""
     C = np.asarray(covariance, dtype=float)
     if C.shape != (6, 6) or not np.all(np.isfinite(C)):
         return None
-    floor = np.array([cfg.loop_sigma_floor_rot_rad] * 3 + [cfg.loop_sigma_floor_trans_m] * 3)
-    C = cfg.loop_cov_scale * 0.5 * (C + C.T) + np.diag(floor**2)
+    floor = np.array([LOOP_SIGMA_FLOOR_ROT_RAD] * 3 + [LOOP_SIGMA_FLOOR_TRANS_M] * 3)
+    C = LOOP_COV_SCALE * 0.5 * (C + C.T) + np.diag(floor**2)
     try:
         np.linalg.cholesky(C)
     except np.linalg.LinAlgError:

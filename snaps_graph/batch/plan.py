@@ -32,7 +32,7 @@ RUN_OPTIONS: dict[str, tuple[str | None, Any]] = {
     "mode": ("frontend.mode", FrontendMode),
     "map_all": ("map.per_trajectory", bool),
 }
-TOP_ONLY = ("sequences", "variants", "config", "cpus_per_task")
+TOP_ONLY = ("sequences", "variants", "preset", "config", "cpus_per_task")
 CONFIG_SECTIONS = ("frontend", "verification", "loop", "graph", "map")
 READER_KEYS = ("left_topic", "right_topic", "calib")  # a sequence table's reader options, as `run` takes them
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._+=,-]*$")
@@ -92,14 +92,15 @@ def plan_from_dict(
     if isinstance(cpus, bool) or not isinstance(cpus, (int, float)) or not (0 < cpus <= 1024) or not math.isfinite(cpus):
         raise SnapsGraphError(f"{source}: cpus_per_task must be a number in (0, 1024], got {cpus!r}")
 
-    base_cfg = Config()
-    if "config" in data:
-        if not isinstance(data["config"], str):
-            raise SnapsGraphError(f"{source}: config must be a path (string), got {data['config']!r}")
-        try:
-            base_cfg = Config.load(_resolve(base, data["config"]))
-        except SnapsGraphError as exc:
-            raise SnapsGraphError(f"{source}: config: {exc}") from None
+    config = data.get("config")
+    if config is not None and not isinstance(config, str):
+        raise SnapsGraphError(f"{source}: config must be a path (string), got {config!r}")
+    if not isinstance(data.get("preset", ""), str):
+        raise SnapsGraphError(f"{source}: preset must be a name (string), got {data['preset']!r}")
+    try:  # the named preset, the config file over it
+        base_cfg = Config.compose(data.get("preset", "default"), _resolve(base, config) if config is not None else None)
+    except SnapsGraphError as exc:
+        raise SnapsGraphError(f"{source}: {'config' if config is not None else 'preset'}: {exc}") from None
     top = _run_options(data, source, "")
 
     variants = data.get("variants", {})
@@ -192,7 +193,7 @@ def _variant_config(
 ) -> tuple[Config, str | None]:
     """The checked configuration of one variant and its frame range.
 
-    Precedence, lowest first: the plan's ``config`` file, the plan's run options, the variant's
+    Precedence, lowest first: the plan's ``preset``, its ``config`` file, the plan's run options, the variant's
     config sections, the variant's run options (as on the command line, an option beats the
     config file)."""
     for key in body:

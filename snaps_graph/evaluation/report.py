@@ -340,7 +340,7 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accu
     """Compare a run's trajectories (VO, SNAPS heuristic, iSAM2 / batch), write the report and return
     the updated metrics.json content. ``gt_path`` overrides ``RUN_DIR/poses_gt.txt`` (KITTI, or TUM
     by a ``.tum`` extension; one pose per row or the whole sequence); without ground truth there are
-    no error columns and no errors.png. ``map_accuracy(run, trajectories, map_entry, gt, map_config)``
+    no error columns and no errors.png. ``map_accuracy(run, trajectories, map_entry, gt)``
     measures the folder's maps against a true world (the command line passes one built on
     ``mapping.outputs.accuracy_from_files``: evaluation does not import the map). A missing or
     malformed input raises SnapsGraphError naming the file.
@@ -481,12 +481,9 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accu
     metrics = read_metrics_json(metrics_path)
     map_entry = metrics.get("map") if isinstance(metrics.get("map"), dict) else None
     if map_accuracy is not None:
-        from ..config import Config, MapConfig
-
-        mc = Config.load(run / "config.toml").map if (run / "config.toml").is_file() else MapConfig()
         if not map_entry:
             raise SnapsGraphError(f"{metrics_path}: no map in this run (run it with --map) to measure against a world mesh")
-        measured = map_accuracy(run, trajs, map_entry, gt, mc)
+        measured = map_accuracy(run, trajs, map_entry, gt)
         map_entry["accuracy"] = dict(map_entry.get("accuracy") or {}) | measured["accuracy"]  # keeps the run's others
         map_entry["world_mesh"] = measured["world_mesh"]
         metrics["map"] = map_entry

@@ -20,9 +20,19 @@ WLS_LAMBDA = 8000.0  # WLS filter smoothness
 WLS_SIGMA = 1.5  # WLS filter colour sensitivity
 DEPTH_TEXTURE_THRESHOLD = 10  # map StereoBM: minimum local texture (prefiltered sum)
 DEPTH_SPECKLE_RANGE_PX = 1.0  # map speckle filter: neighbours within this disparity form one region
+BM_BLOCK_SIZE = 15  # front-end StereoBM block size, pixels: the paper's
+STEREO_GUESS_LEVELS = 4  # sparse stereo LK levels for a point with a predicted disparity
+# The map's matcher (docs/decisions.md, "Map"): a pixel is kept only where all the evidence agrees.
+MAP_DEPTH_METHOD = "sgbm"  # SGBM, not the paper's BM: BM keeps about 6x fewer valid pixels on KITTI 06
+MAP_BLOCK_SIZE = 5  # matcher block at the working size, px (odd; BM needs >= 5)
+MAP_UNIQUENESS = 15  # the best match must beat the second by this, percent
+MAP_LR_CHECK_PX = 1.0  # left-right consistency limit, px (0 = off)
+MAP_MIN_CONFIDENCE = 0.0  # WLS confidence (0-255) below this is invalid; 0 = no WLS pass (it fills across edges)
+MAP_EDGE_RATIO = 0.1  # invalid where the 3x3 disparity spread exceeds this x d: a blend of two depths
+MAP_SPECKLE_PX = 50  # disparity regions smaller than this are dropped, working px
 
 DENSE_METHODS = ("bm_wls", "sgbm")  # the dense values of FrontendConfig.disparity
-MAP_DEPTH_METHODS = ("bm", "sgbm")  # MapConfig.depth_method
+MAP_DEPTH_METHODS = ("bm", "sgbm")  # MAP_DEPTH_METHOD
 
 
 def check_stereo_pair(left: np.ndarray, right: np.ndarray) -> None:
@@ -115,7 +125,7 @@ def dense_disparity(left: np.ndarray, right: np.ndarray, cfg: FrontendConfig, me
     cfg.validate()
     method = method or (cfg.disparity if cfg.disparity in DENSE_METHODS else "bm_wls")
     if method == "bm_wls":
-        bm = cv2.StereoBM.create(cfg.num_disparities, cfg.block_size)
+        bm = cv2.StereoBM.create(cfg.num_disparities, BM_BLOCK_SIZE)
         right_matcher = cv2.ximgproc.createRightMatcher(bm)
         wls = cv2.ximgproc.createDisparityWLSFilter(bm)
         wls.setLambda(WLS_LAMBDA)
@@ -178,15 +188,15 @@ def map_depth(
 
     - the matcher found it (StereoBM's texture threshold and uniqueness ratio; SGBM's uniqueness),
     - left-right consistency: the right image's own disparity map (``createRightMatcher``) at the
-      matched pixel agrees within ``depth_lr_check_px`` (SGBM: also its built-in
+      matched pixel agrees within ``MAP_LR_CHECK_PX`` (SGBM: also its built-in
       ``disp12MaxDiff``, which alone does the check when no confidence map is wanted),
     - optionally the WLS filter's confidence map (``getConfidenceMap``) is at least
-      ``depth_min_confidence`` (the filtered disparity itself is never used: WLS fills across
+      ``MAP_MIN_CONFIDENCE`` (the filtered disparity itself is never used: WLS fills across
       depth edges and into the sky),
-    - it is not on a depth edge: the 3x3 spread of disparity is at most ``depth_edge_ratio`` x d
+    - it is not on a depth edge: the 3x3 spread of disparity is at most ``MAP_EDGE_RATIO`` x d
       (pixels straddling an edge get a blend of both depths),
     - it is not in a speckle: a connected region of similar disparity of at least
-      ``depth_speckle_px`` pixels (``cv2.filterSpeckles``),
+      ``MAP_SPECKLE_PX`` pixels (``cv2.filterSpeckles``),
     - eq. 1, on the disparity corrected for the front end's offset ``offset_px`` (full-size
       pixels, ``true_disparity``), puts it within [``cfg.min_depth_m``, ``mcfg.max_range_m``].
     """
@@ -198,14 +208,14 @@ def map_depth(
         right = cv2.resize(right, (cam.width, cam.height), interpolation=cv2.INTER_AREA)
     # frontend.num_disparities at full size, scaled; at most the image width
     ndisp = max(16, min(16 * int(np.ceil(cfg.num_disparities * mcfg.depth_scale / 16)), 16 * (cam.width // 16)))
-    b = mcfg.depth_block_size
-    if mcfg.depth_method == "bm":
+    b = MAP_BLOCK_SIZE
+    if MAP_DEPTH_METHOD == "bm":
         matcher = cv2.StereoBM.create(ndisp, b)
         matcher.setTextureThreshold(int(DEPTH_TEXTURE_THRESHOLD))
-        matcher.setUniquenessRatio(int(mcfg.depth_uniqueness))
+        matcher.setUniquenessRatio(int(MAP_UNIQUENESS))
     else:
         # SGBM's own left-right check (disp12MaxDiff) reuses its cost volume: no second match
-        lr = int(max(1, round(mcfg.depth_lr_check_px))) if mcfg.depth_lr_check_px > 0 else -1
+        lr = int(max(1, round(MAP_LR_CHECK_PX))) if MAP_LR_CHECK_PX > 0 else -1
         matcher = cv2.StereoSGBM.create(
             minDisparity=0,
             numDisparities=ndisp,
@@ -213,34 +223,34 @@ def map_depth(
             P1=8 * b * b,
             P2=32 * b * b,
             disp12MaxDiff=lr,
-            uniquenessRatio=int(mcfg.depth_uniqueness),
+            uniquenessRatio=int(MAP_UNIQUENESS),
             mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
         )
     disp_l = matcher.compute(left, right)  # int16, x16; < 0 = no match
     d = disp_l.astype(np.float32) / 16.0
     valid = d > 0
-    if (mcfg.depth_lr_check_px > 0 and mcfg.depth_method == "bm") or mcfg.depth_min_confidence > 0:
+    if (MAP_LR_CHECK_PX > 0 and MAP_DEPTH_METHOD == "bm") or MAP_MIN_CONFIDENCE > 0:
         disp_r = cv2.ximgproc.createRightMatcher(matcher).compute(right, left)  # <= 0, -16 ndisp = none
-        if mcfg.depth_lr_check_px > 0:
+        if MAP_LR_CHECK_PX > 0:
             vv, uu = np.nonzero(valid)
             ur = np.rint(uu - d[vv, uu]).astype(np.intp)
             inside = ur >= 0
             dr = np.full(len(uu), -np.inf, np.float32)
             dr[inside] = disp_r[vv[inside], ur[inside]].astype(np.float32) / 16.0
-            bad = ~(np.abs(d[vv, uu] + dr) <= mcfg.depth_lr_check_px)
+            bad = ~(np.abs(d[vv, uu] + dr) <= MAP_LR_CHECK_PX)
             valid[vv[bad], uu[bad]] = False
-        if mcfg.depth_min_confidence > 0:
+        if MAP_MIN_CONFIDENCE > 0:
             wls = cv2.ximgproc.createDisparityWLSFilter(matcher)
             wls.filter(disp_l, left, disparity_map_right=disp_r)
-            valid &= wls.getConfidenceMap() >= mcfg.depth_min_confidence
-    if mcfg.depth_edge_ratio > 0:
+            valid &= wls.getConfidenceMap() >= MAP_MIN_CONFIDENCE
+    if MAP_EDGE_RATIO > 0:
         kernel = np.ones((3, 3), np.uint8)
         hi = cv2.dilate(np.where(valid, d, 0.0).astype(np.float32), kernel)
         lo = cv2.erode(np.where(valid, d, np.float32(1e6)).astype(np.float32), kernel)
-        valid &= (hi - lo) <= mcfg.depth_edge_ratio * d
-    if mcfg.depth_speckle_px > 0:
+        valid &= (hi - lo) <= MAP_EDGE_RATIO * d
+    if MAP_SPECKLE_PX > 0:
         d16 = np.where(valid, disp_l, np.int16(-16)).astype(np.int16)
-        cv2.filterSpeckles(d16, -16, int(mcfg.depth_speckle_px), int(round(16 * DEPTH_SPECKLE_RANGE_PX)))
+        cv2.filterSpeckles(d16, -16, int(MAP_SPECKLE_PX), int(round(16 * DEPTH_SPECKLE_RANGE_PX)))
         valid &= d16 > 0
     if offset_px != 0.0:  # the offset at the working size, each pixel's gain at its right column
         vv, uu = np.nonzero(valid)
@@ -276,7 +286,7 @@ def sparse_disparity(
     Each point is tracked into the right image with pyramidal LK (window ``STEREO_WINDOW_PX``,
     ``STEREO_LEVELS`` pyramid levels), starting from ``u - guess_px`` when a disparity guess is
     given (the previous frame's disparity of a tracked point: it changes little between frames,
-    so LK starts next to the answer), then with ``stereo_guess_levels`` pyramid levels. A match
+    so LK starts next to the answer), then with ``STEREO_GUESS_LEVELS`` pyramid levels. A match
     is kept when LK converged, it stays within ``STEREO_MAX_DY_PX`` of the same row (rectified
     pair), the disparity is positive, and, if ``STEREO_LR_CHECK_PX`` > 0, tracking the right
     point back lands within that many pixels of the left point.
@@ -300,7 +310,7 @@ def sparse_disparity(
         uv.reshape(-1, 1, 2),
         None if init is None else init.reshape(-1, 1, 2),
         winSize=win,
-        maxLevel=STEREO_LEVELS if init is None else min(STEREO_LEVELS, cfg.stereo_guess_levels),
+        maxLevel=STEREO_LEVELS if init is None else min(STEREO_LEVELS, STEREO_GUESS_LEVELS),
         criteria=crit,
         flags=flags,
     )

@@ -26,7 +26,7 @@ class DescriptorMatcher:
     def _detect(self, img: np.ndarray):
         if self.cfg.mode == "sift":
             return feat.detect_sift(img, self.cfg)
-        return feat.detect_orb(img, self.cfg)
+        return feat.detect_orb(img)
 
     def estimate(
         self, frame: StereoFrame, ref: Keyframe | None, first: bool, sharp: float, timings: dict[str, float]
@@ -61,7 +61,7 @@ class DescriptorMatcher:
         n_matches = 0
         if not first and ref is not None and ref.desc is not None and len(ref.desc):
             t1 = time.perf_counter()
-            ia, ib = feat.match_descriptors(ref.desc, desc, cfg.ratio_test)
+            ia, ib = feat.match_descriptors(ref.desc, desc, feat.RATIO_TEST)
             timings["match"] = (time.perf_counter() - t1) * 1000.0
             n_matches = len(ia)
             t2 = time.perf_counter()

@@ -4,13 +4,35 @@ is bit-reproducible (docs/frontend.md)."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
-from ..config import FrontendConfig, KltConfig
+from ..config import FrontendConfig
 
 KLT_LEVELS = 3  # KLT pyramid levels
+SIFT_FEATURES = 2000  # SIFT keypoints per image: a few hundred PnP inliers at KITTI's resolution
+ORB_FEATURES = 2000  # ORB keypoints per image, the same count
+RATIO_TEST = 0.75  # Lowe's ratio for descriptor matching (his 0.8, a little stricter)
 KLT_BIAS_MAX_PX = 0.5  # a window-bias re-fit that moves a track farther than this keeps the plain position
+
+
+@dataclass(frozen=True)
+class KltParams:
+    """KLT corners and their tracking (docs/frontend.md), tuned on KITTI and the street renderings;
+    a test or a benchmark passes its own to the functions below."""
+
+    features: int = 1500  # corners when re-detecting: PnP and the local BA keep a few hundred tracks
+    window_px: int = 11  # LK window: large enough to lock on at KITTI's resolution
+    quality: float = 0.01  # goodFeaturesToTrack quality, relative to the best corner
+    min_distance_px: int = 10  # spacing between corners: spread over the image, not clustered on one facade
+    border_px: int = 16  # no corner this close to the border: the next frame would push it out
+    bias_window_px: int = 7  # the window-bias re-fit's window (0 = off): removes the road's flow-curvature bias
+    weak_points: int = 300  # fewer points with depth than this re-detect at KLT_WEAK_QUALITY (weak texture)
+
+
+KLT = KltParams()
 
 
 def _kp_arrays(kps, desc) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -28,7 +50,7 @@ def _kp_arrays(kps, desc) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def detect_sift(img: np.ndarray, cfg: FrontendConfig) -> tuple[np.ndarray, np.ndarray]:
-    """SIFT (paper §II-C) on ``img``: (uv float32 (N,2), descriptors float32 (N,128)), N <= sift_features.
+    """SIFT (paper §II-C) on ``img``: (uv float32 (N,2), descriptors float32 (N,128)), N <= SIFT_FEATURES.
 
     ``sift_first_octave``: -1 is OpenCV's SIFT as the paper ran it (the image is doubled first,
     so the finest octave has 4x the pixels and costs most of the time); 0 starts at the image's
@@ -36,7 +58,7 @@ def detect_sift(img: np.ndarray, cfg: FrontendConfig) -> tuple[np.ndarray, np.nd
     switch for it, so octave 0 is run as OpenCV's SIFT on the half-size image (whose doubled
     octave is the full-resolution one) with keypoints scaled back by 2.
     """
-    sift = cv2.SIFT.create(cfg.sift_features)
+    sift = cv2.SIFT.create(SIFT_FEATURES)
     if cfg.sift_first_octave == 0:
         half = cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2), interpolation=cv2.INTER_AREA)
         kps, desc = sift.detectAndCompute(half, None)
@@ -50,9 +72,9 @@ def detect_sift(img: np.ndarray, cfg: FrontendConfig) -> tuple[np.ndarray, np.nd
     return uv, np.ascontiguousarray(desc, np.float32)
 
 
-def detect_orb(img: np.ndarray, cfg: FrontendConfig) -> tuple[np.ndarray, np.ndarray]:
-    """ORB on ``img``: (uv float32 (N,2), descriptors uint8 (N,32)), N <= orb_features."""
-    orb = cv2.ORB.create(cfg.orb_features)
+def detect_orb(img: np.ndarray, n: int = ORB_FEATURES) -> tuple[np.ndarray, np.ndarray]:
+    """ORB on ``img``: (uv float32 (N,2), descriptors uint8 (N,32)), N <= ``n``."""
+    orb = cv2.ORB.create(n)
     kps, desc = orb.detectAndCompute(img, None)
     uv, _, desc = _kp_arrays(kps, desc)
     if desc is None:
@@ -99,7 +121,7 @@ def match_descriptors(desc_a: np.ndarray, desc_b: np.ndarray, ratio: float) -> t
     return rows[keep].astype(np.int64), j1[keep].astype(np.int64)
 
 
-def detect_corners(img: np.ndarray, n: int, cfg: KltConfig, avoid: np.ndarray | None = None) -> np.ndarray:
+def detect_corners(img: np.ndarray, n: int, cfg: KltParams, avoid: np.ndarray | None = None) -> np.ndarray:
     """Up to ``n`` Shi-Tomasi corners (float32 (N,2)), at least ``min_distance_px`` apart,
     none within ``border_px`` of the border, none within ``min_distance_px`` of the
     points ``avoid`` (the tracks that survived, so new corners fill the gaps).
@@ -154,7 +176,7 @@ def track_klt(
     prev_img: np.ndarray,
     cur_img: np.ndarray,
     uv: np.ndarray,
-    cfg: KltConfig,
+    cfg: KltParams,
     guess: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Track points from ``prev_img`` into ``cur_img`` with pyramidal LK.
@@ -194,7 +216,7 @@ def window_moment(w: int) -> float:
 
 
 def _window_extrapolated(
-    prev_img: np.ndarray, cur_img: np.ndarray, uv: np.ndarray, p1: np.ndarray, ok: np.ndarray, cfg: KltConfig
+    prev_img: np.ndarray, cur_img: np.ndarray, uv: np.ndarray, p1: np.ndarray, ok: np.ndarray, cfg: KltParams
 ) -> np.ndarray:
     """LK positions with the window bias removed (``bias_window_px``).
 

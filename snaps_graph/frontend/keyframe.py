@@ -19,6 +19,7 @@ from .depth import correct_disparity
 from .motion import Flag, check_motion
 
 MIN_STEREO_POINTS = 40  # a frame with fewer keypoints with depth cannot be a reference
+FRAME_FEATURES = 500  # keypoints with depth kept per frame in the VO result: the viewer's points, a light record
 
 
 @dataclass
@@ -81,7 +82,7 @@ def make_keyframe(
 ) -> Keyframe:
     """Keep keypoints with valid depth; back-project them (eq. 2); pick the frame's features.
 
-    Detected keypoints come strongest first, so the first ``frame_features`` are kept; tracked
+    Detected keypoints come strongest first, so the first ``FRAME_FEATURES`` are kept; tracked
     corners have no such order, so an evenly spread subset is kept (without descriptors: loops
     verify with their own features, ``verification/features.py``)."""
     valid = z > 0
@@ -92,10 +93,10 @@ def make_keyframe(
     t0 = time.perf_counter()
     m = len(uv)
     if desc is not None:
-        pick = np.arange(min(m, cfg.frame_features))
+        pick = np.arange(min(m, FRAME_FEATURES))
         fdesc = desc[pick]
     else:
-        pick = np.arange(m) if m <= cfg.frame_features else np.linspace(0, m - 1, cfg.frame_features).astype(np.int64)
+        pick = np.arange(m) if m <= FRAME_FEATURES else np.linspace(0, m - 1, FRAME_FEATURES).astype(np.int64)
         fdesc = np.zeros((len(pick), 32), np.uint8)
     features = FrameFeatures(np.ascontiguousarray(uv[pick]), np.ascontiguousarray(pts3d[pick]), np.ascontiguousarray(fdesc))
     timings["features"] = timings.get("features", 0.0) + (time.perf_counter() - t0) * 1000.0

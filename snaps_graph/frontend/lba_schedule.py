@@ -15,11 +15,16 @@ from .local_ba import LocalBundleAdjuster
 from .offset import DisparityOffsetEstimator
 
 LBA_CHAIN_SCALE = 1.0  # multiplier of the chain step's covariance in the local-BA window
+LBA_EVERY = 3  # a reference becomes a keyframe this many frames after the last
+LBA_KEYFRAME_M = 2.5  # ...or once driven this far from it (0 = never): a fast drive keeps a normal one's spacing, m
+# The chain's step between keyframes constrains the window's yaw and roll (not its pitch, which
+# carries the tracking bias the window removes): docs/decisions.md.
+LBA_CHAIN = "yaw_roll"
 
 
 def chain_information(cov: np.ndarray, axes: str) -> np.ndarray:
     """Information (6x6, [rotation, translation]) of the chain's step between keyframes for
-    ``local_ba.chain``: "yaw" = the marginal of the rotation about the camera's y axis only, "yaw_roll"
+    ``axes``: "yaw" = the marginal of the rotation about the camera's y axis only, "yaw_roll"
     = the marginal of the rotation about its y and z axes, "rotation" = the marginal of the
     rotation, "full" = all six."""
     info = np.zeros((6, 6))
@@ -37,9 +42,10 @@ def chain_information(cov: np.ndarray, axes: str) -> np.ndarray:
 class LocalBAScheduler:
     def __init__(self, camera: StereoCamera, cfg: FrontendConfig):
         self.cfg = cfg
+        self.every, self.keyframe_m, self.chain = LBA_EVERY, LBA_KEYFRAME_M, LBA_CHAIN
         self.lba = LocalBundleAdjuster(camera, cfg)
         self.lba.offset_joint = False  # held until the running estimate is applied
-        self.offset = DisparityOffsetEstimator(cfg.offset)
+        self.offset = DisparityOffsetEstimator(cfg.offset_px)
         self._last = -(10**9)  # frame index of the last keyframe
         self._last_pos = np.zeros(3)  # and its position
         self._chain_cov: np.ndarray | None = None  # the chain's covariance since that keyframe (T_cur_kf)
@@ -68,14 +74,14 @@ class LocalBAScheduler:
         n_off = len(self.lba.stats.offsets)
         chained = pose
         chain = None
-        if self._chain_cov is not None and self._prev_pose is not None and self.cfg.local_ba.chain != "off":
+        if self._chain_cov is not None and self._prev_pose is not None and self.chain != "off":
             N = np.linalg.solve(pose, self._prev_pose)  # T_cur_prevkf along the chain
-            chain = (N, chain_information(self._chain_cov * LBA_CHAIN_SCALE, self.cfg.local_ba.chain))
+            chain = (N, chain_information(self._chain_cov * LBA_CHAIN_SCALE, self.chain))
         self._chain_cov = np.zeros((6, 6))
         pose = self.lba.add_keyframe(index, pose, kf.ids, kf.uv, kf.disp, chain)
         timings["lba"] = (time.perf_counter() - t0) * 1000.0
         self._prev_pose = pose.copy()
-        if self.cfg.offset.estimate and self.offset.add(self.lba.stats.offsets[n_off:]):
+        if self.cfg.estimate_offset and self.offset.add(self.lba.stats.offsets[n_off:]):
             self.lba.offset_px = self.offset.offset
             self.lba.offset_joint = True
         c = inv(chained) @ pose
@@ -88,8 +94,8 @@ class LocalBAScheduler:
         self._chain_cov, self._prev_pose = None, None
 
     def due(self, index: int, pose: np.ndarray) -> bool:
-        """A keyframe is due ``local_ba.every`` frames after the last one, or ``local_ba.keyframe_m`` after it."""
-        if index - self._last >= self.cfg.local_ba.every:
+        """A keyframe is due ``every`` frames after the last one, or ``keyframe_m`` metres from it."""
+        if index - self._last >= self.every:
             return True
-        m = self.cfg.local_ba.keyframe_m
+        m = self.keyframe_m
         return m > 0 and float(np.linalg.norm(pose[:3, 3] - self._last_pos)) >= m

@@ -14,7 +14,14 @@ from ..camera import StereoCamera
 from ..config import FrontendConfig
 from ..geometry import adjoint, exp_so3, log_so3, rotation_angle_deg
 from .depth import offset_gain
-from .stereo_ba import _inv3
+from .offset import OFFSET_RULE
+from .stereo_ba import STEREO_BA, _inv3
+
+# The window (docs/decisions.md): six keyframes three frames apart, about 2 s at 10 Hz; the
+# longest tracks first, as they constrain the most keyframes.
+LBA_WINDOW = 6  # keyframes in the window
+LBA_ITERATIONS = 5  # Gauss-Newton iterations per solve
+LBA_MAX_LANDMARKS = 300  # landmarks in the window, longest tracks first
 
 
 @dataclass
@@ -68,16 +75,16 @@ class LocalBundleAdjuster:
 
     def __init__(self, camera: StereoCamera, cfg: FrontendConfig):
         """The window, kernel, iterations, landmark cap and offset estimate of ``cfg``
-        (``local_ba``, ``stereo_ba.huber_px``, ``offset``)."""
+        (``LBA_*``, ``STEREO_BA.huber_px``, the offset and its prior)."""
         self.camera = camera
-        self.window = cfg.local_ba.window
-        self.iterations = cfg.local_ba.iterations
-        self.max_landmarks = cfg.local_ba.max_landmarks
-        self.huber_px = cfg.stereo_ba.huber_px
+        self.window = LBA_WINDOW
+        self.iterations = LBA_ITERATIONS
+        self.max_landmarks = LBA_MAX_LANDMARKS
+        self.huber_px = STEREO_BA.huber_px
         self.kfs: deque[_KF] = deque(maxlen=self.window)
-        self.offset_px = float(cfg.offset.px)  # disparity offset applied (and the prior's mean)
-        self.estimate_offset = cfg.offset.estimate
-        self.offset_prior_px = cfg.offset.prior_px
+        self.offset_px = float(cfg.offset_px)  # disparity offset applied (and the prior's mean)
+        self.estimate_offset = cfg.estimate_offset
+        self.offset_prior_px = OFFSET_RULE.prior_px
         self.offset_joint = True  # False: hold the offset in the pose solve, only estimate it
         self.stats = LocalBAStats()
 

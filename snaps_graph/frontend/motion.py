@@ -13,12 +13,16 @@ import numpy as np
 from ..camera import StereoCamera
 from ..config import FrontendConfig
 from ..geometry import inv, rotation_angle_deg
-from .stereo_ba import stereo_two_view_ba
+from .stereo_ba import STEREO_BA, stereo_two_view_ba
 
 PNP_ITERATIONS = 200  # PnP RANSAC iterations
 PNP_CONFIDENCE = 0.999  # PnP RANSAC confidence
 SBA_KEEP_BELOW = 100  # below this many stereo-BA inliers, tracks near its pose are kept too (a small image)
 RANSAC_SEED = 0  # cv2.setRNGSeed before every RANSAC: the same input gives the same output
+PNP_REPROJECTION_PX = 1.5  # PnP RANSAC inlier threshold, px: a few times the matching noise
+MIN_INLIERS = 20  # fewer PnP inliers flag the frame: below this a pose is not well determined
+MAX_STEP_M = 4.0  # a larger step between frames is implausible (flagged): 40 m/s at 10 Hz, m
+MAX_STEP_DEG = 20.0  # a larger turn between frames is implausible (flagged), deg
 
 
 class Flag(Exception):
@@ -48,7 +52,7 @@ def pnp_ransac(
     because OpenCV's RNG is per thread.
     """
     n = len(pts3d)
-    if n < max(6, cfg.min_inliers):
+    if n < max(6, MIN_INLIERS):
         return None
     obj = np.ascontiguousarray(pts3d, np.float64).reshape(-1, 3)
     img = np.ascontiguousarray(uv, np.float64).reshape(-1, 2)
@@ -60,7 +64,7 @@ def pnp_ransac(
         K,
         None,
         iterationsCount=PNP_ITERATIONS,
-        reprojectionError=cfg.pnp_reprojection_px,
+        reprojectionError=PNP_REPROJECTION_PX,
         confidence=PNP_CONFIDENCE,
         flags=cv2.SOLVEPNP_ITERATIVE,
     )
@@ -78,7 +82,7 @@ def pnp_ransac(
         u = K[0, 0] * proj[:, 0] / z + K[0, 2]
         v = K[1, 1] * proj[:, 1] / z + K[1, 2]
     err = np.hypot(u - img[:, 0], v - img[:, 1])
-    inliers = np.flatnonzero((z > 0) & (err <= cfg.pnp_reprojection_px))
+    inliers = np.flatnonzero((z > 0) & (err <= PNP_REPROJECTION_PX))
     return T, inliers
 
 
@@ -93,15 +97,15 @@ def project(T_cur_ref: np.ndarray, pts3d: np.ndarray, camera: StereoCamera) -> t
 
 def check_motion(T_cur_ref: np.ndarray, inliers: int, gap: int, cfg: FrontendConfig) -> np.ndarray:
     """T_ref_cur, or Flag for too few inliers, a non-finite pose or more motion than
-    ``max_step_m`` / ``max_step_deg`` per frame over ``gap`` frames."""
-    if inliers < cfg.min_inliers:
-        raise Flag(f"too few PnP inliers ({inliers} < {cfg.min_inliers})")
+    ``MAX_STEP_M`` / ``MAX_STEP_DEG`` per frame over ``gap`` frames."""
+    if inliers < MIN_INLIERS:
+        raise Flag(f"too few PnP inliers ({inliers} < {MIN_INLIERS})")
     if not np.all(np.isfinite(T_cur_ref)):
         raise Flag("non-finite PnP pose")
     T_ref_cur = inv(T_cur_ref)
     step = float(np.linalg.norm(T_ref_cur[:3, 3]))
     angle = rotation_angle_deg(T_ref_cur[:3, :3])
-    if step > cfg.max_step_m * gap or angle > cfg.max_step_deg * gap:
+    if step > MAX_STEP_M * gap or angle > MAX_STEP_DEG * gap:
         raise Flag(f"implausible motion ({step:.2f} m, {angle:.1f} deg over {gap} frame(s))")
     return T_ref_cur
 
@@ -120,7 +124,7 @@ def refine_motion(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Stereo BA on PnP's inliers ``inl`` (``motion = "stereo_ba"``): (T_cur_ref, inlier indices,
     the pose covariance or None). ``true(uv, d)`` corrects disparities for the offset. The BA's
-    own outliers are dropped from ``inl``; a small image's tracks within ``stereo_ba.keep_px`` are kept
+    own outliers are dropped from ``inl``; a small image's tracks within ``STEREO_BA.keep_px`` are kept
     (below ``SBA_KEEP_BELOW`` inliers). A degenerate BA leaves PnP's answer (``timings['sba_fallback']``)."""
     if cfg.motion != "stereo_ba" or len(inl) == 0:
         return T_cur_ref, inl, None
@@ -132,7 +136,7 @@ def refine_motion(
         cur_uv[inl],
         true(cur_uv[inl], cur_disp[inl]),
         camera,
-        cfg.stereo_ba,
+        STEREO_BA,
     )
     timings["sba"] = (time.perf_counter() - t0) * 1000.0
     if not r.ok:

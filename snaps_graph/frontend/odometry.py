@@ -39,7 +39,7 @@ class StereoOdometry:
         self._workers = Workers(self.cfg.threads)
         klt = self.cfg.mode == "klt"
         # the local BA needs persistent tracks (landmark ids): klt only
-        self._lba = LocalBAScheduler(camera, self.cfg) if self.cfg.local_ba.enabled and klt else None
+        self._lba = LocalBAScheduler(camera, self.cfg) if self.cfg.local_ba and klt else None
         stereo = Stereo(camera, self.cfg, lambda: self.disparity_offset_px)
         self._klt = KltTracker(camera, self.cfg, stereo, self._workers) if klt else None
         self._matcher = DescriptorMatcher(camera, self.cfg, stereo, self._workers)
@@ -55,7 +55,7 @@ class StereoOdometry:
     @property
     def disparity_offset_px(self) -> float:
         """The disparity offset applied now (configured, or the running estimate)."""
-        return self._lba.offset.offset if self._lba is not None else float(self.cfg.offset.px)
+        return self._lba.offset.offset if self._lba is not None else float(self.cfg.offset_px)
 
     def close(self) -> None:
         self._workers.close()

@@ -9,8 +9,21 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..camera import StereoCamera
-from ..config import StereoBAConfig
 from ..geometry import exp_so3
+
+
+@dataclass(frozen=True)
+class StereoBAParams:
+    """The two-view stereo BA's kernel, outlier cut and iterations (docs/frontend.md)."""
+
+    # A tight kernel and gate, px: the tails of the KLT tracks' errors carry the per-step pitch bias.
+    huber_px: float = 0.3  # Huber width on a residual (the local BA's too)
+    outlier_px: float = 0.6  # after the first round, points beyond this in either view are dropped
+    keep_px: float = 2.0  # a small image keeps tracks within this of the BA's pose too (motion.SBA_KEEP_BELOW)
+    iterations: int = 3  # Gauss-Newton iterations per round (two rounds): converged from PnP's seed
+
+
+STEREO_BA = StereoBAParams()
 
 
 @dataclass
@@ -50,7 +63,7 @@ def stereo_two_view_ba(
     cur_uv: np.ndarray,
     cur_disp: np.ndarray | None,
     camera: StereoCamera,
-    cfg: StereoBAConfig,
+    cfg: StereoBAParams = STEREO_BA,
     *,
     sigma_px: float = 0.5,
     min_points: int = 8,

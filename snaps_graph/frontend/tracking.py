@@ -17,7 +17,7 @@ from . import depth as depth_mod
 from . import features as feat
 from .depth import offset_gain
 from .keyframe import MIN_STEREO_POINTS, Keyframe, Stereo, conclude, make_keyframe, reject
-from .motion import Flag, pnp_ransac, project, refine_motion
+from .motion import MIN_INLIERS, Flag, pnp_ransac, project, refine_motion
 from .threads import Workers
 
 KLT_MIN_TRACKS = 600  # re-detect corners when fewer tracks with depth than this survive
@@ -63,11 +63,11 @@ class KltTracker:
         if pred is not None:
             guess, zp = project(pred, ref.pts3d, cam)
             guess = np.where((zp > 0)[:, None], guess, ref.uv)
-            if cfg.stereo_guess_levels < depth_mod.STEREO_LEVELS:  # predict the disparity too
+            if depth_mod.STEREO_GUESS_LEVELS < depth_mod.STEREO_LEVELS:  # predict the disparity too
                 dp = cam.fx * cam.baseline_m / np.maximum(zp, 1e-6)
                 gain = offset_gain(guess[:, 0], dp, cam)
                 dguess = np.where(zp > 0, dp + self.stereo.offset() * gain, ref.disp)
-        uv_cur, ok = feat.track_klt(ref.left, frame.left, ref.uv, cfg.klt, guess)
+        uv_cur, ok = feat.track_klt(ref.left, frame.left, ref.uv, feat.KLT, guess)
         idx = np.flatnonzero(ok)
         timings["match"] = (time.perf_counter() - t0) * 1000.0
         stereo = self.workers.submit(self._stereo_tracked, frame, uv_cur[idx], dguess[idx], timings)
@@ -88,7 +88,7 @@ class KltTracker:
             n_inl = len(inl)
             keep = np.zeros(len(idx), bool)
             keep[inl] = True  # drop PnP outliers: mostly bad tracks
-        if n_inl < cfg.min_inliers and ref.right is not None:
+        if n_inl < MIN_INLIERS and ref.right is not None:
             retry = self._orb_retry(ref, frame, (ref.pts3d[idx], ref.uv[idx], ref.disp[idx], uv_cur[idx], d), timings)
             if retry is not None and len(retry[1]) > n_inl:
                 T_cur_ref, n_inl, cov = retry[0], len(retry[1]), retry[2]
@@ -121,7 +121,6 @@ class KltTracker:
         """If fewer tracked points ``uv`` than ``KLT_MIN_TRACKS`` have depth ``z``: new corners
         away from them, with their stereo (new uv, depth, disparity); once more at
         ``KLT_WEAK_QUALITY`` in weak texture under a far field."""
-        cfg = self.cfg
         n_valid = int(np.count_nonzero(z > 0))
         new_uv = np.zeros((0, 2), np.float32)
         z2, d2 = np.zeros(0, np.float32), np.zeros(0, np.float32)
@@ -130,8 +129,8 @@ class KltTracker:
         def add_corners(quality: float) -> None:
             nonlocal new_uv, z2, d2
             t = time.perf_counter()
-            n = cfg.klt.features - n_valid - int(np.count_nonzero(z2 > 0))
-            qcfg = cfg.klt if quality == cfg.klt.quality else dataclasses.replace(cfg.klt, quality=quality)
+            n = feat.KLT.features - n_valid - int(np.count_nonzero(z2 > 0))
+            qcfg = feat.KLT if quality == feat.KLT.quality else dataclasses.replace(feat.KLT, quality=quality)
             extra = feat.detect_corners(frame.left, n, qcfg, avoid=np.concatenate([uv[z > 0], new_uv]))
             t_det = time.perf_counter()
             if len(extra):
@@ -141,12 +140,12 @@ class KltTracker:
             ms["depth"] += (time.perf_counter() - t_det) * 1000.0
 
         if n_valid < KLT_MIN_TRACKS:
-            add_corners(cfg.klt.quality)
+            add_corners(feat.KLT.quality)
             # Only where the far field took the ranking: most new corners lie beyond max_depth_m
             # (a valid disparity); where stereo failed on them, more corners would not help.
             far = int(np.count_nonzero((d2 > 0) & (z2 <= 0)))
-            weak = n_valid + int(np.count_nonzero(z2 > 0)) < cfg.klt.weak_points and 2 * far > len(new_uv)
-            if weak and KLT_WEAK_QUALITY < cfg.klt.quality:
+            weak = n_valid + int(np.count_nonzero(z2 > 0)) < feat.KLT.weak_points and 2 * far > len(new_uv)
+            if weak and KLT_WEAK_QUALITY < feat.KLT.quality:
                 add_corners(KLT_WEAK_QUALITY)
         timings["depth"] = timings.get("depth", 0.0) + ms["depth"]
         timings["features"] = ms["features"]
@@ -162,16 +161,15 @@ class KltTracker:
         cfg, cam = self.cfg, self.camera
         assert ref.right is not None
         t0 = time.perf_counter()
-        ocfg = dataclasses.replace(cfg, orb_features=KLT_RETRY_FEATURES)
-        uv_r, desc_r = feat.detect_orb(ref.left, ocfg)
+        uv_r, desc_r = feat.detect_orb(ref.left, KLT_RETRY_FEATURES)
         z_r, d_r = self.stereo.depth(ref.left, ref.right, uv_r)
         has_depth = np.flatnonzero(z_r > 0)
-        uv_c, desc_c = feat.detect_orb(frame.left, ocfg)
-        ia, ib = feat.match_descriptors(desc_r[has_depth], desc_c, cfg.ratio_test)
+        uv_c, desc_c = feat.detect_orb(frame.left, KLT_RETRY_FEATURES)
+        ia, ib = feat.match_descriptors(desc_r[has_depth], desc_c, feat.RATIO_TEST)
         ia = has_depth[ia]
         k_pts, k_ruv, k_rd, k_cuv, k_cd = klt
         res = None
-        if len(ia) + len(k_pts) >= max(6, cfg.min_inliers):
+        if len(ia) + len(k_pts) >= max(6, MIN_INLIERS):
             pts = np.concatenate([k_pts, cam.backproject(uv_r[ia, 0], uv_r[ia, 1], z_r[ia])]).astype(np.float64)
             cur_uv = np.concatenate([k_cuv, uv_c[ib]]).astype(np.float32)
             res = pnp_ransac(pts, cur_uv, cam, cfg)

@@ -14,6 +14,8 @@ import numpy as np
 from ..errors import SnapsGraphError
 
 MIN_SAMPLES = 200_000  # surface samples within range wanted (a share: +-0.1 % at 70 %)
+RANGE_M = 20.0  # completeness counts true surface within this of the path: what a 15 m map range can see, m
+TOLERANCE_M = 0.2  # ...and within this of the map: about the TSDF voxel and the stereo depth error at 10 m, m
 
 
 class WorldSurface:
@@ -123,8 +125,8 @@ def map_accuracy(
     views: np.ndarray,
     K: np.ndarray,
     size: tuple[int, int],
-    range_m: float,
-    tolerance_m: float,
+    range_m: float = RANGE_M,
+    tolerance_m: float = TOLERANCE_M,
     min_samples: int = MIN_SAMPLES,
     alignment: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> dict:

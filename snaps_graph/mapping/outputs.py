@@ -15,6 +15,7 @@ from ..config import MapConfig
 from ..errors import SnapsGraphError
 from ..geometry import umeyama_alignment
 from ..io_utils import atomic_output
+from .accuracy import MIN_SAMPLES, RANGE_M, TOLERANCE_M
 
 _PICTURE_POINTS = 200_000
 BEST_ORDER = ("batch", "isam2", "snaps", "vo")  # map.trajectory = "best": the most refined available
@@ -57,11 +58,16 @@ def write_points_ply(path: Path, points: np.ndarray, grey: np.ndarray | None = N
 
 
 def write_map_outputs(
-    out_dir: str | Path, fused_map, trajectories: dict[str, np.ndarray], gt: np.ndarray | None, cfg: MapConfig
+    out_dir: str | Path,
+    fused_map,
+    trajectories: dict[str, np.ndarray],
+    gt: np.ndarray | None,
+    cfg: MapConfig,
+    world_mesh: str | Path | None = None,
 ) -> dict | None:
     """Fuse ``fused_map`` (a ``FusedMap``) under the trajectory ``cfg.trajectory`` names and
     write the map files into ``out_dir``; fuse again under the other trajectories when
-    ``cfg.per_trajectory`` or ``cfg.world_mesh`` asks. Returns metrics.json's ``map`` entry
+    ``cfg.per_trajectory`` or a ``world_mesh`` (the true world, for the accuracy) asks. Returns metrics.json's ``map`` entry
     (None when the map has no keyframe, and nothing is written). The runner calls this once."""
     if len(fused_map) == 0:
         return None
@@ -71,10 +77,10 @@ def write_map_outputs(
     t0 = time.perf_counter()
     out = Path(out_dir)
     world = None
-    if cfg.world_mesh:
+    if world_mesh:
         from .accuracy import WorldSurface
 
-        world = WorldSurface(cfg.world_mesh)
+        world = WorldSurface(world_mesh)
     cam = fused_map.camera
     entry: dict = {
         "trajectory": chosen,
@@ -94,7 +100,7 @@ def write_map_outputs(
         if len(surf.vertices) == 0:
             if name == chosen:  # flagged, not fatal: the rest of the run's results stand
                 entry["empty"] = (
-                    f"the fused map is empty (no surface seen by {cfg.tsdf_min_weight:g} "
+                    f"the fused map is empty (no surface seen by {fused_map.min_weight:g} "
                     "keyframe(s) with valid depth); no map files written"
                 )
                 return entry
@@ -140,9 +146,6 @@ def write_map_outputs(
                 ref[fused_map.keyframes],
                 cam.K,
                 (cam.width, cam.height),
-                cfg.accuracy_range_m,
-                cfg.accuracy_tolerance_m,
-                min_samples=cfg.accuracy_samples,
                 alignment=align,
             )
             entry.setdefault("accuracy", {})[name] = acc
@@ -165,9 +168,9 @@ def accuracy_from_files(
     trajectories: dict[str, np.ndarray],
     map_entry: dict,
     gt: np.ndarray | None,
-    range_m: float,
-    tolerance_m: float,
-    min_samples: int = 200_000,
+    range_m: float = RANGE_M,
+    tolerance_m: float = TOLERANCE_M,
+    min_samples: int = MIN_SAMPLES,
 ) -> dict:
     """Accuracy of every map in a results folder (map.ply / map_mesh.ply of the chosen
     trajectory, map_<name>.ply / map_mesh_<name>.ply of the others) against ``world_mesh``;

@@ -2,7 +2,7 @@
 
 A keyframe keeps its map depth (uint16 mm) and grey image PNG-encoded in memory, so a fusion
 under another trajectory never recomputes stereo; fusion is open3d's ``VoxelBlockGrid`` on the
-CPU, in chunks of at most ``tsdf_max_blocks`` (docs/decisions.md, "Map"). open3d is imported
+CPU, in chunks of at most ``TSDF_MAX_BLOCKS`` (docs/decisions.md, "Map"). open3d is imported
 inside the methods, so ``import snaps_graph`` stays light.
 """
 
@@ -19,6 +19,10 @@ from ..config import MapConfig
 from ..errors import SnapsGraphError
 
 _MM = 1000.0  # stored depth: uint16 millimetres
+TSDF_TRUNC_VOXELS = 6.0  # truncation distance, voxels: spans the stereo depth error within the map's range
+TSDF_MAX_BLOCKS = 40000  # a chunk is extracted at this many blocks (6 KB each): bounds memory to about 0.25 GB
+TSDF_MIN_WEIGHT = 1.0  # surface kept where at least this many keyframes saw it: the map depth is filtered already
+TSDF_MIN_COMPONENT = 0  # mesh pieces of fewer triangles are dropped; 0 keeps all, as every result here does
 
 
 @dataclass
@@ -48,6 +52,8 @@ class FusedMap:
         cfg = cfg if cfg is not None else MapConfig()  # validated on construction
         self.camera = camera
         self.cfg = cfg
+        self.trunc_voxels, self.max_blocks = TSDF_TRUNC_VOXELS, TSDF_MAX_BLOCKS
+        self.min_weight, self.min_component = TSDF_MIN_WEIGHT, TSDF_MIN_COMPONENT
         # k -> (depth PNG bytes (uint16 mm), grey PNG bytes or None, (width, height))
         self._kf: dict[int, tuple[bytes, bytes | None, tuple[int, int]]] = {}
 
@@ -118,7 +124,7 @@ class FusedMap:
     # ---- fusion ----
     def fuse(self, poses: np.ndarray) -> FusedSurface:
         """Integrate every keyframe's depth under ``poses`` ((N, 4, 4) T_world_cam indexed by
-        stream position) and extract the surface seen by at least ``tsdf_min_weight`` keyframes."""
+        stream position) and extract the surface seen by at least ``min_weight`` keyframes."""
         import open3d as o3d
         import open3d.core as o3c
 
@@ -138,7 +144,7 @@ class FusedMap:
                 attr_channels=((1), (1), (3)),
                 voxel_size=cfg.tsdf_voxel_m,
                 block_resolution=8,
-                block_count=min(20000, cfg.tsdf_max_blocks),  # grows by rehashing; allocating all at once costs seconds
+                block_count=min(20000, self.max_blocks),  # grows by rehashing; allocating all at once costs seconds
                 device=dev,
             )
 
@@ -158,14 +164,14 @@ class FusedMap:
             K = o3c.Tensor(self._intrinsics(w, h), o3c.float64)
             ext = o3c.Tensor(np.linalg.inv(poses[k]), o3c.float64)  # world -> camera
             blocks = vbg.compute_unique_block_coordinates(
-                depth, K, ext, depth_scale=_MM, depth_max=cfg.max_range_m, trunc_voxel_multiplier=cfg.tsdf_trunc_voxels
+                depth, K, ext, depth_scale=_MM, depth_max=cfg.max_range_m, trunc_voxel_multiplier=self.trunc_voxels
             )
-            if n_in_grid and vbg.hashmap().size() + len(blocks) > cfg.tsdf_max_blocks:
+            if n_in_grid and vbg.hashmap().size() + len(blocks) > self.max_blocks:
                 n_blocks_max = max(n_blocks_max, vbg.hashmap().size())
                 parts.append(self._extract(vbg))
                 vbg = new_grid()
                 blocks = vbg.compute_unique_block_coordinates(
-                    depth, K, ext, depth_scale=_MM, depth_max=cfg.max_range_m, trunc_voxel_multiplier=cfg.tsdf_trunc_voxels
+                    depth, K, ext, depth_scale=_MM, depth_max=cfg.max_range_m, trunc_voxel_multiplier=self.trunc_voxels
                 )
                 n_in_grid = 0
             vbg.integrate(
@@ -176,7 +182,7 @@ class FusedMap:
                 ext,
                 depth_scale=_MM,
                 depth_max=cfg.max_range_m,
-                trunc_voxel_multiplier=cfg.tsdf_trunc_voxels,
+                trunc_voxel_multiplier=self.trunc_voxels,
             )
             n_in_grid += 1
         n_blocks_max = max(n_blocks_max, vbg.hashmap().size())
@@ -197,7 +203,7 @@ class FusedMap:
     def _extract(self, vbg) -> tuple:
         if vbg.hashmap().size() == 0:  # nothing integrated (open3d refuses an empty grid)
             return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), np.zeros(0, np.uint8)
-        w = max(float(self.cfg.tsdf_min_weight) - 0.5, 0.0)  # open3d keeps weight > threshold
+        w = max(float(self.min_weight) - 0.5, 0.0)  # open3d keeps weight > threshold
         mesh = vbg.extract_triangle_mesh(weight_threshold=w)
         if "positions" in mesh.vertex and len(mesh.vertex.positions):
             v = mesh.vertex.positions.numpy().astype(np.float32)
@@ -208,8 +214,8 @@ class FusedMap:
                 vg = np.full(len(v), 128, np.uint8)
         else:
             v, t, vg = np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), np.zeros(0, np.uint8)
-        if self.cfg.tsdf_min_component > 0 and len(t):
-            v, t, vg = _drop_small_components(v, t, vg, self.cfg.tsdf_min_component)
+        if self.min_component > 0 and len(t):
+            v, t, vg = _drop_small_components(v, t, vg, self.min_component)
         return v, t, vg
 
     def _intrinsics(self, w: int, h: int) -> np.ndarray:

@@ -20,7 +20,7 @@ from ..config import FrontendConfig, VerificationConfig
 from ..frontend.depth import correct_disparity, sparse_disparity
 from ..frontend.features import match_descriptors
 from ..frontend.keyframe import MIN_STEREO_POINTS
-from ..frontend.motion import pnp_ransac, pose_from_rvec
+from ..frontend.motion import MIN_INLIERS, pnp_ransac, pose_from_rvec
 from ..geometry import inv, rotation_angle_deg
 from ..types import FrameFeatures, StereoFrame
 
@@ -164,10 +164,10 @@ def ratio_matches(
     ref: FrameFeatures | None, cur: FrameFeatures | None, cfg: FrontendConfig, ratio: float, unique: bool = False
 ) -> tuple[FrameFeatures, FrameFeatures, tuple[np.ndarray, np.ndarray]] | None:
     """``(ref, cur, (ref indices, cur indices))`` of ratio-test matches, or None when either side
-    is missing, the descriptor kinds differ, or fewer than ``min_inliers`` matches survive.
+    is missing, the descriptor kinds differ, or fewer than ``MIN_INLIERS`` matches survive.
     ``unique``: a keypoint of ``cur`` keeps only its first match (a reference merged from several
     frames holds one point several times, which must not count as several inliers)."""
-    if ref is None or cur is None or len(ref.desc) < cfg.min_inliers or len(cur.desc) < 2:
+    if ref is None or cur is None or len(ref.desc) < MIN_INLIERS or len(cur.desc) < 2:
         return None
     if ref.desc.dtype != cur.desc.dtype or ref.desc.shape[1] != cur.desc.shape[1]:
         return None
@@ -175,7 +175,7 @@ def ratio_matches(
     if unique:
         first = np.sort(np.unique(ib, return_index=True)[1])
         ia, ib = ia[first], ib[first]
-    if len(ia) < cfg.min_inliers:
+    if len(ia) < MIN_INLIERS:
         return None
     return ref, cur, (ia, ib)
 
@@ -190,7 +190,7 @@ def match_and_pnp(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """Ratio-test matches of ``ref``'s descriptors to ``cur``'s, then PnP RANSAC of ``ref``'s 3D
     points on ``cur``'s pixels: (T_cur_ref, ref indices, cur indices, inlier positions among the
-    matches), or None when the descriptor kinds differ or fewer than ``min_inliers`` survive."""
+    matches), or None when the descriptor kinds differ or fewer than ``MIN_INLIERS`` survive."""
     m = ratio_matches(ref, cur, cfg, ratio, unique)
     if m is None:
         return None
@@ -199,7 +199,7 @@ def match_and_pnp(
     if res is None:
         return None
     T_cur_ref, inliers = res
-    if len(inliers) < cfg.min_inliers or not np.all(np.isfinite(T_cur_ref)):
+    if len(inliers) < MIN_INLIERS or not np.all(np.isfinite(T_cur_ref)):
         return None
     return T_cur_ref, ia, ib, inliers
 
@@ -229,7 +229,7 @@ def verify_features(
 
     Ratio-test matches, PnP RANSAC (``pnp_ransac``), then, with ``cur_frame`` and
     ``vcfg.depth_check_px`` > 0, the inliers' stereo disparity in the current frame must agree
-    with their predicted one within that many pixels; at least ``min_inliers`` must pass both
+    with their predicted one within that many pixels; at least ``MIN_INLIERS`` must pass both
     and at least ``LOOP_DEPTH_MIN_RATIO`` of the inliers that have a current disparity. The pose
     must be :func:`plausible`. None if anything fails. ``unique`` as in :func:`ratio_matches`.
     """
@@ -245,7 +245,7 @@ def verify_features(
         d_meas = correct_disparity(d_raw, uv[:, 0], offset_px, camera)
         has = d_meas > 0
         agree = has & (np.abs(d_meas - d_pred) <= vcfg.depth_check_px)
-        if int(agree.sum()) < cfg.min_inliers or agree.sum() < LOOP_DEPTH_MIN_RATIO * max(int(has.sum()), 1):
+        if int(agree.sum()) < MIN_INLIERS or agree.sum() < LOOP_DEPTH_MIN_RATIO * max(int(has.sum()), 1):
             return None
         pts, uv = pts[agree], uv[agree]
         # Re-estimate on the points that passed both tests (LM from the RANSAC pose).

@@ -16,7 +16,7 @@ import numpy as np
 from ..camera import StereoCamera
 from ..config import FrontendConfig, VerificationConfig
 from ..frontend.keyframe import MIN_STEREO_POINTS
-from ..frontend.motion import RANSAC_SEED
+from ..frontend.motion import PNP_REPROJECTION_PX, RANSAC_SEED
 from ..geometry import inv
 from ..types import FrameFeatures, StereoFrame
 from .features import LOOP_QUERY_FEATURES, LOOP_RATIO_TEST, LoopFeatureBank, detect_loop_keypoints, ratio_matches
@@ -57,7 +57,7 @@ def partner_pose(
     odometry's step does, and triangulation is as exact as they are. None when the fit fails or
     its direction is more than ``MAX_DIRECTION_DEG`` from the odometry's."""
     cv2.setRNGSeed(RANSAC_SEED)
-    E, mask = cv2.findEssentialMat(x_par, x_ref, camera.K, cv2.USAC_ACCURATE, RANSAC_PROB, cfg.pnp_reprojection_px)
+    E, mask = cv2.findEssentialMat(x_par, x_ref, camera.K, cv2.USAC_ACCURATE, RANSAC_PROB, PNP_REPROJECTION_PX)
     if E is None or E.shape != (3, 3) or mask is None:
         return None
     # points1 = partner, points2 = reference: X_ref = R X_partner + t
@@ -79,7 +79,7 @@ def triangulate(
     """``ref``'s keypoints that match ``partner``'s, with 3D points in ``ref``'s camera frame
     triangulated from the two views (``partner`` at :func:`partner_pose`, the odometry's
     ``T_odo`` giving the length): inliers of the fit, in front of both cameras within
-    [min_depth_m, max_depth_m], reprojecting within ``pnp_reprojection_px`` in both, rays at
+    [min_depth_m, max_depth_m], reprojecting within ``PNP_REPROJECTION_PX`` in both, rays at
     least ``MIN_PARALLAX_DEG`` apart. None when fewer than ``MIN_STEREO_POINTS`` remain."""
     m = ratio_matches(ref, partner, cfg, LOOP_RATIO_TEST)
     if m is None:
@@ -107,7 +107,7 @@ def triangulate(
         z = np.maximum(P[:, 2], 1e-9)
         return np.hypot(camera.fx * P[:, 0] / z + camera.cx - x[:, 0], camera.fy * P[:, 1] / z + camera.cy - x[:, 1])
 
-    ok &= (reproj(X, x1) <= cfg.pnp_reprojection_px) & (reproj(Xp, x2) <= cfg.pnp_reprojection_px)
+    ok &= (reproj(X, x1) <= PNP_REPROJECTION_PX) & (reproj(Xp, x2) <= PNP_REPROJECTION_PX)
     ray2 = X - T_ref_partner[:3, 3]
     cos = np.einsum("ij,ij->i", X, ray2) / np.maximum(np.linalg.norm(X, axis=1) * np.linalg.norm(ray2, axis=1), 1e-12)
     ok &= cos <= np.cos(np.radians(MIN_PARALLAX_DEG))
