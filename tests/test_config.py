@@ -73,6 +73,7 @@ def test_config_keys_are_at_most_120_and_each_has_help():
 # where each setting that became a constant lives now
 _HOMES = (
     "snaps_graph.frontend.depth",
+    "snaps_graph.mapping.depth",
     "snaps_graph.frontend.tracking",
     "snaps_graph.frontend.odometry",
     "snaps_graph.frontend.features",

@@ -11,7 +11,7 @@ import pytest
 from snaps_graph.camera import StereoCamera
 from snaps_graph.config import Config, FrontendConfig, MapConfig
 from snaps_graph.errors import SnapsGraphError
-from snaps_graph.frontend.depth import map_camera, map_depth
+from snaps_graph.mapping.depth import map_camera, map_depth
 from snaps_graph.mapping.tsdf import FusedMap
 
 CAM = StereoCamera(fx=500.0, fy=500.0, cx=319.5, cy=159.5, baseline_m=0.5, width=640, height=320)
