@@ -66,7 +66,7 @@ def write_map_outputs(
     if len(fused_map) == 0:
         return None
     chosen = map_trajectory_name(cfg.trajectory, list(trajectories))
-    from .render import perspective_png, side_by_side_png, topdown_png
+    from .render import side_by_side_png
 
     t0 = time.perf_counter()
     out = Path(out_dir)
@@ -108,44 +108,14 @@ def write_map_outputs(
         entry["t_files_s"] += time.perf_counter() - tf
         if name == chosen:
             tp = time.perf_counter()
-            trajs = ({"gt": gt} if gt is not None else {}) | dict(trajectories)
-            topdown_png(
-                out / "map.png",
-                surf.points,
-                trajs,
-                grey=surf.point_grey,
-                title=f"fused map ({chosen}), top-down: {len(surf.points)} surface points, voxel {cfg.tsdf_voxel_m:g} m",
-            )
-            perspective_png(
-                out / "map_mesh.png",
-                surf.vertices,
-                surf.triangles,
-                trajectories[chosen],
-                title=f"fused mesh ({chosen}): {len(surf.triangles)} triangles, voxel {cfg.tsdf_voxel_m:g} m",
-            )
+            _map_pictures(out, surf, chosen, trajectories, gt, cfg)
             entry["t_pictures_s"] = time.perf_counter() - tp  # map.png and map_mesh.png
         entry["surfaces"][name] = {k: v for k, v in surf.stats.items()}
         stride = max(1, len(surf.points) // _PICTURE_POINTS)
         err = None
         if world is not None:
-            from .accuracy import map_accuracy
-
             ta = time.perf_counter()
-            ref = gt if gt is not None else trajectories[name]  # the surface to map: seen from the true path
-            align = trajectory_alignment(trajectories[name], gt) if name != "gt" else None
-            acc = map_accuracy(
-                world,
-                surf.points,
-                surf.vertices,
-                ref[fused_map.keyframes],
-                cam.K,
-                (cam.width, cam.height),
-                cfg.accuracy_range_m,
-                cfg.accuracy_tolerance_m,
-                min_samples=cfg.accuracy_samples,
-                alignment=align,
-            )
-            entry.setdefault("accuracy", {})[name] = acc
+            entry.setdefault("accuracy", {})[name] = _surface_accuracy(world, surf, name, fused_map, trajectories, gt, cfg)
             err = world.distance(surf.points[::stride])
             t_acc += time.perf_counter() - ta
         pictures[name] = (surf.points[::stride].copy(), err)
@@ -157,6 +127,52 @@ def write_map_outputs(
     entry["t_accuracy_s"] = t_acc  # measuring against the world mesh (not map work)
     entry["t_output_s"] = time.perf_counter() - t0 - t_acc  # fusion, files and pictures
     return entry
+
+
+def _map_pictures(
+    out: Path, surf, chosen: str, trajectories: dict[str, np.ndarray], gt: np.ndarray | None, cfg: MapConfig
+) -> None:
+    """map.png (top-down points under every trajectory) and map_mesh.png (the mesh in perspective)."""
+    from .render import perspective_png, topdown_png
+
+    trajs = ({"gt": gt} if gt is not None else {}) | dict(trajectories)
+    topdown_png(
+        out / "map.png",
+        surf.points,
+        trajs,
+        grey=surf.point_grey,
+        title=f"fused map ({chosen}), top-down: {len(surf.points)} surface points, voxel {cfg.tsdf_voxel_m:g} m",
+    )
+    perspective_png(
+        out / "map_mesh.png",
+        surf.vertices,
+        surf.triangles,
+        trajectories[chosen],
+        title=f"fused mesh ({chosen}): {len(surf.triangles)} triangles, voxel {cfg.tsdf_voxel_m:g} m",
+    )
+
+
+def _surface_accuracy(
+    world, surf, name: str, fused_map, trajectories: dict[str, np.ndarray], gt: np.ndarray | None, cfg: MapConfig
+) -> dict:
+    """The accuracy of the map fused under trajectory ``name`` against the world mesh."""
+    from .accuracy import map_accuracy
+
+    cam = fused_map.camera
+    ref = gt if gt is not None else trajectories[name]  # the surface to map: seen from the true path
+    align = trajectory_alignment(trajectories[name], gt) if name != "gt" else None
+    return map_accuracy(
+        world,
+        surf.points,
+        surf.vertices,
+        ref[fused_map.keyframes],
+        cam.K,
+        (cam.width, cam.height),
+        cfg.accuracy_range_m,
+        cfg.accuracy_tolerance_m,
+        min_samples=cfg.accuracy_samples,
+        alignment=align,
+    )
 
 
 def accuracy_from_files(
