@@ -84,7 +84,7 @@ def run_sequence(
                     on_frame(out)
         result = pipe.finish()
         t0_ns = dataset.t0_ns  # .tum keeps the sequence's own clock (evo matches stamps)
-        topics = {k: v for k, v in (("left_topic", dataset.left_topic), ("right_topic", dataset.right_topic)) if v}  # a bag's
+        topics = dict(dataset.source_info)  # a bag's image topics
         metrics = _write_all(tmp, pipe, result, dataset.gt_poses, 0.0 if t0_ns is None else t0_ns * 1e-9, topics)
         if before_commit is not None:
             before_commit(tmp)

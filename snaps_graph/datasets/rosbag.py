@@ -151,6 +151,7 @@ class RosbagSequence(FrameSelection):
         left_topic, right_topic = self._choose_topics(image_topics, left_topic, right_topic)
         self.left_topic: str = left_topic
         self.right_topic: str | None = right_topic
+        self.source_info = {"left_topic": left_topic} | ({"right_topic": right_topic} if right_topic else {})
         self.stereo = right_topic is not None
         topics = [left_topic] if right_topic is None else [left_topic, right_topic]
         self._conn = {t: [c for c in conns if c.topic == t] for t in topics}

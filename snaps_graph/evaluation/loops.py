@@ -81,7 +81,7 @@ def pr_curve(q: np.ndarray, labels: np.ndarray, eligible: np.ndarray | None = No
     }
 
 
-def revisit_mask(gt: np.ndarray, radius_m: float, frame_distance: int, max_yaw_deg: float) -> np.ndarray:
+def _revisit_mask(gt: np.ndarray, radius_m: float, frame_distance: int, max_yaw_deg: float) -> np.ndarray:
     """Rows of ``gt`` (N, 4, 4) within radius_m and max_yaw_deg of a row >= frame_distance earlier."""
     p = gt[:, :3, 3]
     yaw = np.asarray(yaw_deg(gt[:, :3, :3]), float)
@@ -159,7 +159,7 @@ def evaluate_loops(
     plain = pr_curve(q, labels)
     verified = pr_curve(q, labels, passed)
 
-    revisit = revisit_mask(gt, s.true_m, s.frame_distance, s.max_yaw_deg)
+    revisit = _revisit_mask(gt, s.true_m, s.frame_distance, s.max_yaw_deg)
     true_rows = set(rc[labels == 1, 0].tolist())
     compared_rows = set(rc[:, 0].tolist())
     searched = [k for k in np.flatnonzero(revisit).tolist() if k in true_rows]
@@ -212,7 +212,7 @@ def evaluate_loops(
     }
 
 
-def plot_loops(
+def _plot_loops(
     path: str | Path, ev: dict, records: list[CandidateRecord], labels: np.ndarray, min_similarity: float | None, title: str
 ) -> None:
     """Two panels: precision-recall (Q alone, Q + verification) and Q of true / false pairs."""
@@ -329,7 +329,7 @@ def loops_run(
         p = gt[:, :3, 3]
         d = np.array([np.linalg.norm(p[row[r.frame]] - p[row[r.reference]]) for r in records])
         out = Path(png) if png else run / "loops_pr.png"
-        plot_loops(out, ev, records, label_pairs(d, true_m, false_m), min_sim, f"{run.name}: loop closure")
+        _plot_loops(out, ev, records, label_pairs(d, true_m, false_m), min_sim, f"{run.name}: loop closure")
         ev["plot"] = str(out)
     return ev
 
@@ -392,7 +392,7 @@ __all__ = [
     "label_pairs",
     "loops_run",
     "pr_curve",
-    "revisit_mask",
+    "_revisit_mask",
     "segments",
     "summary_lines",
 ]

@@ -20,7 +20,7 @@ _PICTURE_POINTS = 200_000
 BEST_ORDER = ("batch", "isam2", "snaps", "vo")  # map.trajectory = "best": the most refined available
 
 
-def map_trajectory_name(want: str, available: list[str] | tuple[str, ...]) -> str:
+def _map_trajectory_name(want: str, available: list[str] | tuple[str, ...]) -> str:
     """The trajectory ``map.trajectory`` names among those a run computed."""
     if want == "best":
         for name in BEST_ORDER:
@@ -31,7 +31,7 @@ def map_trajectory_name(want: str, available: list[str] | tuple[str, ...]) -> st
     return want
 
 
-def write_mesh_ply(path: Path, vertices: np.ndarray, triangles: np.ndarray, grey: np.ndarray | None = None) -> None:
+def _write_mesh_ply(path: Path, vertices: np.ndarray, triangles: np.ndarray, grey: np.ndarray | None = None) -> None:
     import open3d as o3d
 
     m = o3d.geometry.TriangleMesh()
@@ -44,7 +44,7 @@ def write_mesh_ply(path: Path, vertices: np.ndarray, triangles: np.ndarray, grey
             raise SnapsGraphError(f"{path}: open3d could not write the mesh")
 
 
-def write_points_ply(path: Path, points: np.ndarray, grey: np.ndarray | None = None) -> None:
+def _write_points_ply(path: Path, points: np.ndarray, grey: np.ndarray | None = None) -> None:
     import open3d as o3d
 
     p = o3d.geometry.PointCloud()
@@ -65,7 +65,7 @@ def write_map_outputs(
     (None when the map has no keyframe, and nothing is written). The runner calls this once."""
     if len(fused_map) == 0:
         return None
-    chosen = map_trajectory_name(cfg.trajectory, list(trajectories))
+    chosen = _map_trajectory_name(cfg.trajectory, list(trajectories))
     from .render import side_by_side_png
 
     t0 = time.perf_counter()
@@ -102,8 +102,8 @@ def write_map_outputs(
         tf = time.perf_counter()
         suffixes = ([""] if name == chosen else []) + ([f"_{name}"] if cfg.per_trajectory and name != "gt" else [])
         for suffix in suffixes:
-            write_mesh_ply(out / f"map_mesh{suffix}.ply", surf.vertices, surf.triangles, surf.vertex_grey)
-            write_points_ply(out / f"map{suffix}.ply", surf.points, surf.point_grey)
+            _write_mesh_ply(out / f"map_mesh{suffix}.ply", surf.vertices, surf.triangles, surf.vertex_grey)
+            _write_points_ply(out / f"map{suffix}.ply", surf.points, surf.point_grey)
         entry.setdefault("t_files_s", 0.0)
         entry["t_files_s"] += time.perf_counter() - tf
         if name == chosen:
