@@ -11,11 +11,12 @@ light (no OpenCV, gtsam or open3d until a run needs them)::
 from __future__ import annotations
 
 from importlib import import_module as _import_module
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 __version__ = "0.1.0"
 
-# name -> the module that defines it
+# name -> the module that defines it (imported by name here, not at the top: the root imports no
+# module of its own, so no import circle runs through it)
 _EXPORTS = {
     "Config": "config",
     "StereoCamera": "camera",
@@ -44,15 +45,6 @@ __all__ = [
     "run_sequence",
     "write_results",
 ]
-
-if TYPE_CHECKING:
-    from .camera import StereoCamera
-    from .config import Config
-    from .datasets.open import open_dataset
-    from .errors import SnapsGraphError
-    from .pipeline import FrameOutput, RunResult, SlamPipeline
-    from .runner import run_sequence, write_results
-    from .types import StereoFrame, StereoSource
 
 
 def __getattr__(name: str) -> Any:

@@ -1,10 +1,11 @@
 """Small SO(3)/SE(3) helpers on numpy matrices (poses are 4x4 T_world_cam, KITTI camera axes):
 the package's one module of rotation maths.
 
-Quaternions and slerp go through ``scipy.spatial.transform`` (imported on first use: it costs
-seconds to import on a busy machine). The exponential and logarithm the estimators compose poses
-with stay the closed-form Rodrigues formulas below: scipy's (through quaternions) agree to 1e-15
-but not to the last bit, and the poses a run writes are kept bit-identical (docs/decisions.md).
+Quaternion to matrix, slerp, rotation vectors and angles go through ``scipy.spatial.transform``
+(imported on first use: it costs seconds to import on a busy machine). Where scipy would change
+the bits of the poses a run writes, the closed forms stay (docs/decisions.md, "Dependencies"):
+the Rodrigues exponential and logarithm the estimators compose poses with (scipy's agree to
+1e-15, not to the last bit) and the matrix-to-quaternion of the TUM writer.
 """
 
 from __future__ import annotations
@@ -81,10 +82,40 @@ def log_so3(R: np.ndarray) -> np.ndarray:
 
 
 def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
-    """(qx, qy, qz, qw) of a rotation matrix (3x3) or a stack (N, 3, 3), qw >= 0."""
-    from scipy.spatial.transform import Rotation
+    """(qx, qy, qz, qw) of a rotation matrix, qw >= 0 (Shepperd's method).
 
-    return Rotation.from_matrix(np.asarray(R, float)).as_quat(canonical=True)
+    Not scipy's: for a matrix that is not quite a rotation (a pose file's 7 digits, a chain of
+    them) the two read different entries and part by up to 1e-5, which would change the TUM
+    files a run writes; for a true rotation they agree to 2e-16."""
+    R = np.asarray(R, float)
+    tr = np.trace(R)
+    if tr > 0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        w = 0.25 * s
+        x = (R[2, 1] - R[1, 2]) / s
+        y = (R[0, 2] - R[2, 0]) / s
+        z = (R[1, 0] - R[0, 1]) / s
+    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
+        w = (R[2, 1] - R[1, 2]) / s
+        x = 0.25 * s
+        y = (R[0, 1] + R[1, 0]) / s
+        z = (R[0, 2] + R[2, 0]) / s
+    elif R[1, 1] > R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
+        w = (R[0, 2] - R[2, 0]) / s
+        x = (R[0, 1] + R[1, 0]) / s
+        y = 0.25 * s
+        z = (R[1, 2] + R[2, 1]) / s
+    else:
+        s = 2.0 * np.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
+        w = (R[1, 0] - R[0, 1]) / s
+        x = (R[0, 2] + R[2, 0]) / s
+        y = (R[1, 2] + R[2, 1]) / s
+        z = 0.25 * s
+    q = np.array([x, y, z, w])
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
 
 
 def quaternion_to_rotation(q: np.ndarray | list[float]) -> np.ndarray:

@@ -68,8 +68,8 @@ def tum_text(poses: np.ndarray, times: np.ndarray | None = None) -> str:
     if times is None:
         times = np.arange(len(poses), dtype=float) * 0.1
     rows = []
-    quats = rotation_to_quaternion(poses[:, :3, :3]) if len(poses) else np.zeros((0, 4))
-    for t, T, q in zip(times, poses, quats):
+    for t, T in zip(times, poses):
+        q = rotation_to_quaternion(T[:3, :3])
         p = T[:3, 3]
         rows.append(f"{t:.6f} {p[0]:.9f} {p[1]:.9f} {p[2]:.9f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}")
     return "\n".join(rows) + "\n"
