@@ -3,8 +3,10 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -37,3 +39,14 @@ def test_a_stereo_source_has_no_reader_specifics():
     members = set(StereoSource.__dict__)
     assert not {"left_topic", "right_topic"} & members and "source_info" in members
     assert dict(SequenceBase().source_info) == {}
+
+
+def test_the_readme_example_runs_as_written(tiny_seq, tmp_path, monkeypatch):
+    """The README's Python block, on the tiny sequence in place of make demo's."""
+    text = (Path(__file__).parents[1] / "README.md").read_text()
+    block = re.search(r"```python\n(.*?)```", text, re.S)
+    assert block, "README.md: no Python example"
+    code = block.group(1).replace('"results/demo/sequence"', repr(str(tiny_seq)))
+    monkeypatch.chdir(tmp_path)
+    exec(compile(code, "README.md", "exec"), {})
+    assert (tmp_path / "results" / "api_run" / "poses_isam2.txt").is_file()
