@@ -1,5 +1,5 @@
 """Map depth against the exact depth of the synthetic street world (KITTI 00 path, seed 0):
-per variant of frontend.depth.map_depth, the share of true surface pixels kept (coverage), the
+per variant of mapping.depth.map_depth, the share of true surface pixels kept (coverage), the
 depth error by range bin (median, p90), the share of gross errors (|error| > 1 m, or depth where
 the truth is sky) and the time per keyframe. This is what MapConfig's depth defaults and
 max_range_m were chosen from. Usage: python benchmarks/bench_map_depth.py [--frames 0:1000:100]"""
@@ -12,8 +12,9 @@ from pathlib import Path
 import numpy as np
 
 from snaps_graph.config import Config
-from snaps_graph.frontend import depth as depth_mod
-from snaps_graph.frontend.depth import dense_depth, map_depth
+from snaps_graph.frontend.depth import dense_depth
+from snaps_graph.mapping import depth as depth_mod
+from snaps_graph.mapping.depth import map_depth
 from snaps_graph.synth import SyntheticSequence, load_trajectory
 
 ap = argparse.ArgumentParser()

@@ -13,8 +13,8 @@ import cv2
 import numpy as np
 
 from snaps_graph.config import Config
-from snaps_graph.frontend.depth import map_depth
 from snaps_graph.mapping.accuracy import WorldSurface, map_accuracy
+from snaps_graph.mapping.depth import map_depth
 from snaps_graph.mapping.tsdf import FusedMap
 from snaps_graph.synth import SyntheticSequence, load_trajectory
 

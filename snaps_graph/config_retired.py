@@ -65,8 +65,11 @@ OLD_KEYS: dict[str, str | Moved] = {
     ),
     **_constants(
         "frontend.depth",
-        {"frontend.block_size": "BM_BLOCK_SIZE", "frontend.stereo_guess_levels": "STEREO_GUESS_LEVELS"}
-        | {
+        {"frontend.block_size": "BM_BLOCK_SIZE", "frontend.stereo_guess_levels": "STEREO_GUESS_LEVELS"},
+    ),
+    **_constants(
+        "mapping.depth",
+        {
             "map.depth_method": "MAP_DEPTH_METHOD",
             "map.depth_block_size": "MAP_BLOCK_SIZE",
             "map.depth_uniqueness": "MAP_UNIQUENESS",

@@ -195,9 +195,10 @@ def print_input_notes(seq: StereoSource, frames: str | None, topics_given: bool 
     n = len(seq)
     if rng is not None and rng[1] is not None and rng[1] - rng[0] > n:
         typer.echo(f"note: --frames {frames}: the sequence has {rng[0] + n} frames; running {rng[0]}:{rng[0] + n}", err=True)
-    if seq.left_topic and not topics_given:
-        right = f", right {seq.right_topic}" if seq.right_topic else ""
-        typer.echo(f"topics: left {seq.left_topic}{right} (found by name; --left-topic / --right-topic choose others)")
+    info = seq.source_info
+    if info.get("left_topic") and not topics_given:
+        right = f", right {info['right_topic']}" if info.get("right_topic") else ""
+        typer.echo(f"topics: left {info['left_topic']}{right} (found by name; --left-topic / --right-topic choose others)")
 
 
 def warn_mostly_flagged(metrics: dict) -> None:

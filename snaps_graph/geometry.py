@@ -1,5 +1,12 @@
-"""Small SO(3)/SE(3) helpers on numpy matrices (poses are 4x4 T_world_cam, KITTI camera axes).
-The package's one exp/log of rotations (the loop closer's vectorised one excepted)."""
+"""Small SO(3)/SE(3) helpers on numpy matrices (poses are 4x4 T_world_cam, KITTI camera axes):
+the package's one module of rotation maths.
+
+Quaternion to matrix, slerp, rotation vectors and angles go through ``scipy.spatial.transform``
+(imported on first use: it costs seconds to import on a busy machine). Where scipy would change
+the bits of the poses a run writes, the closed forms stay (docs/decisions.md, "Dependencies"):
+the Rodrigues exponential and logarithm the estimators compose poses with (scipy's agree to
+1e-15, not to the last bit) and the matrix-to-quaternion of the TUM writer.
+"""
 
 from __future__ import annotations
 
@@ -72,6 +79,81 @@ def log_so3(R: np.ndarray) -> np.ndarray:
     th = float(np.arccos(c))
     v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
     return v * (0.5 if th < 1e-8 else th / (2.0 * np.sin(th)))
+
+
+def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
+    """(qx, qy, qz, qw) of a rotation matrix, qw >= 0 (Shepperd's method).
+
+    Not scipy's: for a matrix that is not quite a rotation (a pose file's 7 digits, a chain of
+    them) the two read different entries and part by up to 1e-5, which would change the TUM
+    files a run writes; for a true rotation they agree to 2e-16."""
+    R = np.asarray(R, float)
+    tr = np.trace(R)
+    if tr > 0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        w = 0.25 * s
+        x = (R[2, 1] - R[1, 2]) / s
+        y = (R[0, 2] - R[2, 0]) / s
+        z = (R[1, 0] - R[0, 1]) / s
+    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
+        w = (R[2, 1] - R[1, 2]) / s
+        x = 0.25 * s
+        y = (R[0, 1] + R[1, 0]) / s
+        z = (R[0, 2] + R[2, 0]) / s
+    elif R[1, 1] > R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
+        w = (R[0, 2] - R[2, 0]) / s
+        x = (R[0, 1] + R[1, 0]) / s
+        y = 0.25 * s
+        z = (R[1, 2] + R[2, 1]) / s
+    else:
+        s = 2.0 * np.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
+        w = (R[1, 0] - R[0, 1]) / s
+        x = (R[0, 2] + R[2, 0]) / s
+        y = (R[1, 2] + R[2, 1]) / s
+        z = 0.25 * s
+    q = np.array([x, y, z, w])
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
+def quaternion_to_rotation(q: np.ndarray | list[float]) -> np.ndarray:
+    """Rotation matrix of (qx, qy, qz, qw) (normalised first), or a stack of them."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_quat(np.asarray(q, float)).as_matrix()
+
+
+def slerp(q0: np.ndarray, q1: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """Rotations (N, 3, 3) the fractions ``a`` (N,) of the way from ``q0`` to ``q1`` (N, 4)
+    (qx, qy, qz, qw) along the shorter arc: R0 Exp(a Log(R0^T R1))."""
+    from scipy.spatial.transform import Rotation
+
+    r0 = Rotation.from_quat(np.asarray(q0, float))
+    arc = (r0.inv() * Rotation.from_quat(np.asarray(q1, float))).as_rotvec()
+    return (r0 * Rotation.from_rotvec(np.asarray(a, float)[:, None] * arc)).as_matrix()
+
+
+def rotvecs_to_matrices(rotvecs: np.ndarray) -> np.ndarray:
+    """Rotation matrices (N, 3, 3) of rotation vectors (N, 3) (axis times angle, radians)."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(np.asarray(rotvecs, float)).as_matrix()
+
+
+def matrices_to_rotvecs(R: np.ndarray) -> np.ndarray:
+    """Rotation vectors (N, 3) of rotation matrices (N, 3, 3); angles in [0, pi]."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(np.asarray(R, float)).as_rotvec()
+
+
+def rotation_angles(R: np.ndarray) -> np.ndarray:
+    """Angles (radians, [0, pi]) of a stack of rotation matrices (N, 3, 3), accurate near 0 and pi."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(np.asarray(R, float)).magnitude()
 
 
 def adjoint(T: np.ndarray) -> np.ndarray:

@@ -19,11 +19,12 @@ from .backend.pose_graph import PoseGraph
 from .camera import StereoCamera
 from .config import Config
 from .errors import SnapsGraphError
-from .frontend.depth import ORDER_MAX_FRAMES, check_stereo_pair, map_depth, stereo_order
+from .frontend.depth import ORDER_MAX_FRAMES, check_stereo_pair, stereo_order
 from .frontend.external import PoseFileOdometry, time_origin
 from .frontend.odometry import StereoOdometry
 from .loop.snaps import SnapsLoopCloser
 from .loop.uiqi import make_thumbnail
+from .mapping.depth import map_depth
 from .mapping.tsdf import FusedMap
 from .trajectory_io import PoseFile
 from .types import FrameRecord, FrontEnd, LoopEvent, StereoFrame, VOResult

@@ -89,7 +89,7 @@ def run_sequence(
                     on_frame(out)
         result = pipe.finish()
         t0_ns = dataset.t0_ns  # .tum keeps the sequence's own clock (evo matches stamps)
-        topics = {k: v for k, v in (("left_topic", dataset.left_topic), ("right_topic", dataset.right_topic)) if v}  # a bag's
+        topics = dict(dataset.source_info)  # a bag's image topics
         t0_s = 0.0 if t0_ns is None else t0_ns * 1e-9
         metrics = _write_all(tmp, pipe, result, dataset.gt_poses, t0_s, topics, world_mesh)
         if before_commit is not None:

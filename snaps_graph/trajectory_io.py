@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import SnapsGraphError
+from .geometry import quaternion_to_rotation, rotation_to_quaternion
 from .io_utils import atomic_write_text, read_text
 
 ROTATION_TOLERANCE = 1e-2  # max |R R^T - I| of a KITTI pose line's rotation
@@ -60,50 +61,6 @@ def write_kitti_poses(path: str | Path, poses: np.ndarray) -> None:
     if not np.all(np.isfinite(poses)):
         raise ValueError("refusing to write non-finite poses")
     atomic_write_text(path, kitti_text(poses))
-
-
-def rotation_to_quaternion(R: np.ndarray) -> np.ndarray:
-    """(qx, qy, qz, qw) of a rotation matrix, qw >= 0 (Shepperd's method)."""
-    R = np.asarray(R, float)
-    tr = np.trace(R)
-    if tr > 0:
-        s = 2.0 * np.sqrt(tr + 1.0)
-        w = 0.25 * s
-        x = (R[2, 1] - R[1, 2]) / s
-        y = (R[0, 2] - R[2, 0]) / s
-        z = (R[1, 0] - R[0, 1]) / s
-    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
-        w = (R[2, 1] - R[1, 2]) / s
-        x = 0.25 * s
-        y = (R[0, 1] + R[1, 0]) / s
-        z = (R[0, 2] + R[2, 0]) / s
-    elif R[1, 1] > R[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
-        w = (R[0, 2] - R[2, 0]) / s
-        x = (R[0, 1] + R[1, 0]) / s
-        y = 0.25 * s
-        z = (R[1, 2] + R[2, 1]) / s
-    else:
-        s = 2.0 * np.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
-        w = (R[1, 0] - R[0, 1]) / s
-        x = (R[0, 2] + R[2, 0]) / s
-        y = (R[1, 2] + R[2, 1]) / s
-        z = 0.25 * s
-    q = np.array([x, y, z, w])
-    q /= np.linalg.norm(q)
-    return -q if q[3] < 0 else q
-
-
-def quaternion_to_rotation(q: np.ndarray | list[float]) -> np.ndarray:
-    x, y, z, w = np.asarray(q, float) / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
 
 
 def tum_text(poses: np.ndarray, times: np.ndarray | None = None) -> str:

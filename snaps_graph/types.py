@@ -7,9 +7,10 @@ source); no stage imports another stage's internals, only these.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import MappingProxyType
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
@@ -68,10 +69,7 @@ class StereoSource(Protocol):
     def notes(self) -> Sequence[str]: ...
 
     @property
-    def left_topic(self) -> str | None: ...
-
-    @property
-    def right_topic(self) -> str | None: ...
+    def source_info(self) -> Mapping[str, str]: ...
 
     def frame_source(self, number: int) -> str | None: ...
 
@@ -85,8 +83,9 @@ class SequenceBase:
     stereo: bool = True  # False: left images only (the VO needs odometry from elsewhere)
     t0_ns: int | None = None  # absolute time of timestamp 0 (pose files with absolute stamps)
     notes: Sequence[str] = ()  # what the reader dropped or assumed, one line each
-    left_topic: str | None = None  # a bag's image topics (None for folders)
-    right_topic: str | None = None
+    # What names the input beyond its path, for metrics.json (a bag's image topics); the
+    # readers' own details stay on their classes.
+    source_info: Mapping[str, str] = MappingProxyType({})
 
     def frame_source(self, number: int) -> str | None:
         """The file frame ``number`` was read from (for error messages); None when unknown."""

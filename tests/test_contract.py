@@ -504,7 +504,7 @@ ALLOWED = {
     "verification": BASE | {"verification", "frontend"},
     "loop": BASE | {"loop"},
     "backend": BASE | {"backend"},
-    "mapping": BASE | {"mapping"},
+    "mapping": BASE | {"mapping", "frontend"},
     "evaluation": BASE | {"evaluation", "backend"},
     "pipeline": BASE | {"frontend", "verification", "loop", "backend", "mapping"},
     "runner": BASE | {"pipeline", "evaluation", "mapping"},

@@ -11,7 +11,7 @@ import pytest
 from snaps_graph.camera import StereoCamera
 from snaps_graph.config import Config, FrontendConfig, MapConfig
 from snaps_graph.errors import SnapsGraphError
-from snaps_graph.frontend.depth import map_camera, map_depth
+from snaps_graph.mapping.depth import map_camera, map_depth
 from snaps_graph.mapping.tsdf import FusedMap
 
 CAM = StereoCamera(fx=500.0, fy=500.0, cx=319.5, cy=159.5, baseline_m=0.5, width=640, height=320)
@@ -82,7 +82,7 @@ def test_map_depth_leaves_a_depth_edge_empty():
 
 
 def test_map_depth_options_and_errors(monkeypatch):
-    from snaps_graph.frontend import depth as depth_mod
+    from snaps_graph.mapping import depth as depth_mod
 
     big = _texture(320, 656)
     left, right = big[:, :640].copy(), big[:, 16:].copy()

@@ -79,7 +79,7 @@ def read_sensor_yaml(path: Path) -> dict:
     return {"K": K, "D": numbers("distortion_coefficients", 4), "T_BS": T, "size": (int(w), int(h))}
 
 
-def read_image_list(csv_path: Path) -> tuple[np.ndarray, list[Path], int]:
+def _read_image_list(csv_path: Path) -> tuple[np.ndarray, list[Path], int]:
     """(stamps ns, image paths, number listed but missing) from a EuRoC ``data.csv``."""
     text = read_text(csv_path, "image list")
     stamps, files, missing = [], [], 0
@@ -110,7 +110,7 @@ def read_image_list(csv_path: Path) -> tuple[np.ndarray, list[Path], int]:
     return ts, files, missing
 
 
-def read_euroc_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _read_euroc_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(t ns, positions (N,3), quaternions wxyz (N,4)) of the body from a EuRoC state csv."""
     rows = []
     for lineno, line in enumerate(read_text(path, "ground-truth").splitlines(), 1):
@@ -134,7 +134,7 @@ def read_euroc_groundtruth(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return t[order], v[order, :3], v[order, 3:7]
 
 
-def stereo_rectifier(mav0: Path) -> tuple[StereoRectifier, np.ndarray]:
+def _stereo_rectifier(mav0: Path) -> tuple[StereoRectifier, np.ndarray]:
     """The rectifier of a EuRoC rig from cam0/ and cam1/ sensor.yaml, and cam0's T_BS."""
     c0 = read_sensor_yaml(mav0 / "cam0" / "sensor.yaml")
     c1 = read_sensor_yaml(mav0 / "cam1" / "sensor.yaml")
@@ -155,7 +155,7 @@ def load_calibration(calib: str | Path):
     mav0 = find_mav0(p) if p.is_dir() else None
     if mav0 is None:
         raise SnapsGraphError(f"{p}: not a calib.txt nor a folder with cam0/sensor.yaml and cam1/sensor.yaml")
-    return None, stereo_rectifier(mav0)[0]
+    return None, _stereo_rectifier(mav0)[0]
 
 
 class MonoUndistorter:
@@ -193,15 +193,15 @@ class EurocSequence(FrameSelection):
         self.stereo = (mav0 / "cam1").is_dir()
         self.rectifier: StereoRectifier | MonoUndistorter
         if self.stereo:
-            self.rectifier, self.T_BS0 = stereo_rectifier(mav0)
+            self.rectifier, self.T_BS0 = _stereo_rectifier(mav0)
         else:
             c0 = read_sensor_yaml(mav0 / "cam0" / "sensor.yaml")
             self.rectifier = MonoUndistorter(c0["K"], c0["D"], c0["size"], str(mav0 / "cam0" / "sensor.yaml"))
             self.T_BS0 = c0["T_BS"]
         self.camera = self.rectifier.camera
 
-        t0, f0, miss0 = read_image_list(mav0 / "cam0" / "data.csv")
-        t1, f1, miss1 = read_image_list(mav0 / "cam1" / "data.csv") if self.stereo else (t0, f0, 0)
+        t0, f0, miss0 = _read_image_list(mav0 / "cam0" / "data.csv")
+        t1, f1, miss1 = _read_image_list(mav0 / "cam1" / "data.csv") if self.stereo else (t0, f0, 0)
         for cam, miss in (("cam0", miss0), ("cam1", miss1)):
             if miss:
                 self.notes.append(f"{mav0 / cam / 'data.csv'}: {miss} listed images are missing from {cam}/data/ (skipped)")
@@ -217,7 +217,7 @@ class EurocSequence(FrameSelection):
         gt_all = None
         gt_path = Path(gt) if gt is not None else mav0 / "state_groundtruth_estimate0" / "data.csv"
         if gt is not None or gt_path.is_file():
-            tg, pg, qg = read_euroc_groundtruth(gt_path)
+            tg, pg, qg = _read_euroc_groundtruth(gt_path)
             inside = (stamps >= tg[0]) & (stamps <= tg[-1])
             if not inside.any():
                 raise SnapsGraphError(f"{gt_path}: its time span does not overlap the images'")

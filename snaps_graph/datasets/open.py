@@ -18,7 +18,7 @@ from ..io_utils import parse_frame_range
 from ..types import StereoSource
 
 
-def dataset_kind(path: str | Path) -> str:
+def _dataset_kind(path: str | Path) -> str:
     """'kitti' | 'euroc' | 'bag' | 'live' for what ``path`` holds; a one-line error otherwise."""
     from .euroc import find_mav0
     from .rosbag import is_bag
@@ -71,7 +71,7 @@ def open_dataset(
     for a KITTI folder, a EuRoC sequence, a ROS 1/2 bag or a live device (``live:DEV[,DEV]``).
     ``calib`` (live sources; bags without CameraInfo): a calib.txt of rectified cameras or a folder
     with cam0/ and cam1/ sensor.yaml."""
-    kind = dataset_kind(path)
+    kind = _dataset_kind(path)
     if kind != "bag" and (left_topic or right_topic):
         raise SnapsGraphError(f"{path}: --left-topic/--right-topic apply to ROS bags only")
     if kind in ("kitti", "euroc") and calib is not None:

@@ -12,6 +12,7 @@ import numpy as np
 
 from ..camera import StereoCamera
 from ..errors import SnapsGraphError
+from ..geometry import slerp
 
 
 class StereoRectifier:
@@ -177,18 +178,9 @@ def interpolate_poses(t_src: np.ndarray, p: np.ndarray, q_wxyz: np.ndarray, t_qu
         dt = t_src[i + 1] - t_src[i]
         a = np.clip(np.where(dt > 0, (t_query - t_src[i]) / np.where(dt > 0, dt, 1), 0.0), 0.0, 1.0)
         q0, q1, p0, p1 = q[i], q[i + 1], p[i], p[i + 1]
-    dot = np.sum(q0 * q1, axis=1)
-    q1 = np.where(dot[:, None] < 0, -q1, q1)
-    dot = np.abs(dot)
-    theta = np.arccos(np.clip(dot, -1.0, 1.0))
-    s = np.sin(theta)
-    small = s < 1e-9
-    w0 = np.where(small, 1 - a, np.sin((1 - a) * theta) / np.where(small, 1, s))
-    w1 = np.where(small, a, np.sin(a * theta) / np.where(small, 1, s))
-    qi = w0[:, None] * q0 + w1[:, None] * q1
     T = np.tile(np.eye(4), (len(t_query), 1, 1))
-    from ..trajectory_io import quaternion_to_rotation  # (x, y, z, w) order
-
-    T[:, :3, :3] = [quaternion_to_rotation(qq[[1, 2, 3, 0]]) for qq in qi]
+    if not len(t_query):
+        return T
+    T[:, :3, :3] = slerp(q0[:, [1, 2, 3, 0]], q1[:, [1, 2, 3, 0]], a)  # (x, y, z, w) order
     T[:, :3, 3] = (1 - a)[:, None] * p0 + a[:, None] * p1
     return T

@@ -149,14 +149,28 @@ class RosbagSequence(FrameSelection):
         image_topics = sorted({c.topic for c in conns if c.msgtype in IMAGE_TYPES})
         info_topics = sorted({c.topic for c in conns if c.msgtype == INFO_TYPE})
         left_topic, right_topic = self._choose_topics(image_topics, left_topic, right_topic)
-        self.left_topic, self.right_topic = left_topic, right_topic
+        self.left_topic: str = left_topic
+        self.right_topic: str | None = right_topic
+        self.source_info = {"left_topic": left_topic} | ({"right_topic": right_topic} if right_topic else {})
         self.stereo = right_topic is not None
         topics = [left_topic] if right_topic is None else [left_topic, right_topic]
         self._conn = {t: [c for c in conns if c.topic == t] for t in topics}
         self._msgtype = {t: self._conn[t][0].msgtype for t in topics}
 
+        infos = self._camera_infos(topics, info_topics) if calib is None else {}
+        self._pair_messages(topics)
+        self._calibrate(calib, infos)
+        n_all = len(self._pair_stamps)
+        self._gt_all = None if gt is None else self._read_gt(Path(gt), n_all)
+        rng = parse_frame_range(frames, n_all)
+        self.start, self.stop = (0, n_all) if rng is None else (rng[0], rng[1] if rng[1] is not None else n_all)
+        self[0]  # decode one pair now: an unsupported encoding or a size mismatch stops before the run
+
+    # ---- set-up helpers ----
+    def _camera_infos(self, topics: list[str], info_topics: list[str]) -> dict:
+        """The first CameraInfo message beside each image topic."""
         infos = {}
-        for t in topics if calib is None else ():
+        for t in topics:
             it = _camera_info_topic(t, info_topics)
             if it is None:
                 raise SnapsGraphError(
@@ -164,8 +178,12 @@ class RosbagSequence(FrameSelection):
                     "(a calib.txt, or a folder with cam0/ and cam1/ sensor.yaml)"
                 )
             infos[t] = self._first_message(it)
+        return infos
 
-        # One pass over the image messages: header stamps and bag times, no pixels kept.
+    def _pair_messages(self, topics: list[str]) -> None:
+        """One pass over the image messages: header stamps and bag times, no pixels kept; the
+        left and right messages paired by stamp."""
+        left_topic, right_topic = self.left_topic, self.right_topic
         stamps: dict[str, list[int]] = {t: [] for t in topics}
         bag_t: dict[str, list[int]] = {t: [] for t in topics}
         for conn, t_bag, raw in self._reader.messages(connections=[c for t in topics for c in self._conn[t]]):
@@ -190,6 +208,9 @@ class RosbagSequence(FrameSelection):
         self._times_all = (self._pair_stamps[:, 0] - self._pair_stamps[0, 0]) * 1e-9
         self.t0_ns = int(self._pair_stamps[0, 0])  # the absolute time of timestamp 0 (pose files with absolute stamps)
 
+    def _calibrate(self, calib: str | Path | None, infos: dict) -> None:
+        """The camera and rectifier: from the CameraInfo messages, or from ``calib``."""
+        left_topic, right_topic = self.left_topic, self.right_topic
         if calib is None and right_topic is None:
             self.rectifier, self.camera = self._mono_camera(infos[left_topic])
         elif calib is None:
@@ -205,23 +226,16 @@ class RosbagSequence(FrameSelection):
                 h, w = decode_image(first, self._msgtype[left_topic], f"{self.path}: {left_topic}").shape
                 self.camera = self.camera.with_size(w, h)
 
-        n_all = len(self._pair_stamps)
-        self._gt_all = None
-        if gt is not None:
-            from ..trajectory_io import read_kitti_poses
+    def _read_gt(self, gp: Path, n_all: int) -> np.ndarray:
+        from ..trajectory_io import read_kitti_poses
 
-            gp = Path(gt)
-            if not gp.is_file():
-                raise SnapsGraphError(f"{gp}: ground-truth file not found")
-            g = read_kitti_poses(gp)
-            if len(g) != n_all:
-                raise SnapsGraphError(f"{gp}: {len(g)} poses for {n_all} stereo pairs in the bag")
-            self._gt_all = g
-        rng = parse_frame_range(frames, n_all)
-        self.start, self.stop = (0, n_all) if rng is None else (rng[0], rng[1] if rng[1] is not None else n_all)
-        self[0]  # decode one pair now: an unsupported encoding or a size mismatch stops before the run
+        if not gp.is_file():
+            raise SnapsGraphError(f"{gp}: ground-truth file not found")
+        g = read_kitti_poses(gp)
+        if len(g) != n_all:
+            raise SnapsGraphError(f"{gp}: {len(g)} poses for {n_all} stereo pairs in the bag")
+        return g
 
-    # ---- set-up helpers ----
     def _choose_topics(self, image_topics, left, right) -> tuple[str, str | None]:
         if not image_topics:
             raise SnapsGraphError(f"{self.path}: no sensor_msgs/Image or CompressedImage topics")

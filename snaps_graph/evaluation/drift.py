@@ -11,10 +11,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from ..drift_model import DriftModel
 from ..errors import SnapsGraphError
+from ..geometry import matrices_to_rotvecs, rotvecs_to_matrices
 
 
 def _steps(gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -58,7 +58,7 @@ def _apply(gt: np.ndarray, model: DriftModel, draws, R_rel, t_rel, ds) -> np.nda
     rotvec[:, 1] = model.heading_deg_per_sqrt_m * rad * root * xi_h + model.heading_deg_per_100m * rad * ds / 100.0
     rotvec[:, 0] = model.pitch_deg_per_sqrt_m * rad * root * xi_p
     rotvec[:, 2] = model.roll_deg_per_sqrt_m * rad * root * xi_r + model.roll_deg_per_100m * rad * ds / 100.0
-    err = Rotation.from_rotvec(rotvec).as_matrix()
+    err = rotvecs_to_matrices(rotvec)
     t_noisy = t_rel + model.trans_m_per_sqrt_m * root[:, None] * xi_t
     return _compose(gt[0], R_rel, t_noisy, err, 1.0 + sign * model.scale_pct / 100.0)
 
@@ -154,7 +154,7 @@ def fit_drift_model(est: np.ndarray, gt: np.ndarray, segment_m: float | None = N
     rel_g = np.linalg.solve(gt[starts], gt[ends])
     rel_e = np.linalg.solve(est[starts], est[ends])
     err_R = np.einsum("kji,kjl->kil", rel_g[:, :3, :3], rel_e[:, :3, :3])
-    rv = Rotation.from_matrix(err_R).as_rotvec() * 180.0 / math.pi  # [pitch, heading, roll], deg
+    rv = matrices_to_rotvecs(err_R) * 180.0 / math.pi  # [pitch, heading, roll], deg
     rate = rv.mean(axis=0) / lengths.mean()
     walk = np.sqrt(np.maximum(np.mean((rv - np.outer(lengths, rate)) ** 2, axis=0) / lengths.mean(), 0.0))
     s_e = np.concatenate([[0.0], np.cumsum(np.linalg.norm(t_e, axis=1))])

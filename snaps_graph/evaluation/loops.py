@@ -81,7 +81,7 @@ def pr_curve(q: np.ndarray, labels: np.ndarray, eligible: np.ndarray | None = No
     }
 
 
-def revisit_mask(gt: np.ndarray, radius_m: float, frame_distance: int, max_yaw_deg: float) -> np.ndarray:
+def _revisit_mask(gt: np.ndarray, radius_m: float, frame_distance: int, max_yaw_deg: float) -> np.ndarray:
     """Rows of ``gt`` (N, 4, 4) within radius_m and max_yaw_deg of a row >= frame_distance earlier."""
     p = gt[:, :3, 3]
     yaw = np.asarray(yaw_deg(gt[:, :3, :3]), float)
@@ -105,6 +105,36 @@ def segments(mask: np.ndarray, gap: int) -> list[tuple[int, int]]:
     return [(a, b) for a, b in segs]
 
 
+def _rows_of(row: dict[int, int], pairs) -> np.ndarray:
+    """(frame, reference) dataset indices as (K, 2) run rows."""
+    try:
+        return np.array([[row[a], row[b]] for a, b in pairs], int).reshape(-1, 2)
+    except KeyError as exc:
+        raise SnapsGraphError(f"frame {exc.args[0]} of a loop or candidate is not a frame of this run") from None
+
+
+def _at_threshold(q: np.ndarray, labels: np.ndarray, passed: np.ndarray, min_similarity: float) -> dict:
+    """Precision and recall of the pairs at the run's Q threshold, without and with verification."""
+    at_threshold = {}
+    for key, el in (("", np.ones(len(q), bool)), ("_verified", passed)):
+        pred = el & (q >= min_similarity)
+        tp, fp = int((pred & (labels == 1)).sum()), int((pred & (labels == 0)).sum())
+        n_true = int((labels == 1).sum())
+        at_threshold[f"precision_at_min_similarity{key}"] = tp / (tp + fp) if tp + fp else None
+        at_threshold[f"recall_at_min_similarity{key}"] = tp / n_true if n_true else None
+    return at_threshold
+
+
+def _settings_dict(s: LoopEvalSettings) -> dict:
+    return {
+        "true_m": s.true_m,
+        "false_m": s.false_m,
+        "frame_distance": s.frame_distance,
+        "max_yaw_deg": s.max_yaw_deg,
+        "segment_gap": s.segment_gap,
+    }
+
+
 def evaluate_loops(
     records: list[CandidateRecord],
     loops: list[tuple[int, int]],
@@ -120,14 +150,7 @@ def evaluate_loops(
     s = settings
     row = {int(f): i for i, f in enumerate(np.asarray(frame_ids).tolist())}
     p = np.asarray(gt, float)[:, :3, 3]
-
-    def rows_of(pairs):
-        try:
-            return np.array([[row[a], row[b]] for a, b in pairs], int).reshape(-1, 2)
-        except KeyError as exc:
-            raise SnapsGraphError(f"frame {exc.args[0]} of a loop or candidate is not a frame of this run") from None
-
-    rc = rows_of([(r.frame, r.reference) for r in records])
+    rc = _rows_of(row, [(r.frame, r.reference) for r in records])
     d_gt = np.linalg.norm(p[rc[:, 0]] - p[rc[:, 1]], axis=1) if len(rc) else np.zeros(0)
     labels = label_pairs(d_gt, s.true_m, s.false_m)
     q = np.array([r.q for r in records], float)
@@ -136,12 +159,12 @@ def evaluate_loops(
     plain = pr_curve(q, labels)
     verified = pr_curve(q, labels, passed)
 
-    revisit = revisit_mask(gt, s.true_m, s.frame_distance, s.max_yaw_deg)
+    revisit = _revisit_mask(gt, s.true_m, s.frame_distance, s.max_yaw_deg)
     true_rows = set(rc[labels == 1, 0].tolist())
     compared_rows = set(rc[:, 0].tolist())
     searched = [k for k in np.flatnonzero(revisit).tolist() if k in true_rows]
 
-    lr = rows_of(loops)
+    lr = _rows_of(row, loops)
     d_loop = np.linalg.norm(p[lr[:, 0]] - p[lr[:, 1]], axis=1) if len(lr) else np.zeros(0)
     loop_labels = label_pairs(d_loop, s.true_m, s.false_m)
     true_loop_rows = lr[loop_labels == 1, 0].tolist()
@@ -154,22 +177,9 @@ def evaluate_loops(
         for (a, b), d, lab in zip(loops, d_loop, loop_labels)
         if lab == 0
     ]
-    at_threshold = {}
-    if min_similarity is not None:
-        for key, el in (("", np.ones(len(q), bool)), ("_verified", passed)):
-            pred = el & (q >= min_similarity)
-            tp, fp = int((pred & (labels == 1)).sum()), int((pred & (labels == 0)).sum())
-            n_true = int((labels == 1).sum())
-            at_threshold[f"precision_at_min_similarity{key}"] = tp / (tp + fp) if tp + fp else None
-            at_threshold[f"recall_at_min_similarity{key}"] = tp / n_true if n_true else None
+    at_threshold = _at_threshold(q, labels, passed, min_similarity) if min_similarity is not None else {}
     return at_threshold | {
-        "settings": {
-            "true_m": s.true_m,
-            "false_m": s.false_m,
-            "frame_distance": s.frame_distance,
-            "max_yaw_deg": s.max_yaw_deg,
-            "segment_gap": s.segment_gap,
-        },
+        "settings": _settings_dict(s),
         "pairs": len(records),
         "true_pairs": int((labels == 1).sum()),
         "false_pairs": int((labels == 0).sum()),
@@ -202,7 +212,7 @@ def evaluate_loops(
     }
 
 
-def plot_loops(
+def _plot_loops(
     path: str | Path, ev: dict, records: list[CandidateRecord], labels: np.ndarray, min_similarity: float | None, title: str
 ) -> None:
     """Two panels: precision-recall (Q alone, Q + verification) and Q of true / false pairs."""
@@ -319,7 +329,7 @@ def loops_run(
         p = gt[:, :3, 3]
         d = np.array([np.linalg.norm(p[row[r.frame]] - p[row[r.reference]]) for r in records])
         out = Path(png) if png else run / "loops_pr.png"
-        plot_loops(out, ev, records, label_pairs(d, true_m, false_m), min_sim, f"{run.name}: loop closure")
+        _plot_loops(out, ev, records, label_pairs(d, true_m, false_m), min_sim, f"{run.name}: loop closure")
         ev["plot"] = str(out)
     return ev
 
@@ -382,7 +392,7 @@ __all__ = [
     "label_pairs",
     "loops_run",
     "pr_curve",
-    "revisit_mask",
+    "_revisit_mask",
     "segments",
     "summary_lines",
 ]

@@ -13,7 +13,7 @@ import math
 import numpy as np
 
 from ..errors import SnapsGraphError
-from ..geometry import umeyama_alignment
+from ..geometry import rotation_angles, umeyama_alignment
 
 # The KITTI odometry benchmark's segment lengths, metres (devkit evaluate_odometry.cpp).
 KITTI_LENGTHS_M: tuple[float, ...] = (100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0)
@@ -117,14 +117,6 @@ def step_error_axes_percent(est: np.ndarray, gt: np.ndarray) -> np.ndarray:
     return 100.0 * err.sum(0) / max(path_length(gt), 1e-9)
 
 
-def _rotation_angles(R: np.ndarray) -> np.ndarray:
-    """Rotation angles (radians) of a stack of 3x3 matrices, accurate near 0 and near pi."""
-    skew = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
-    sin_angle = 0.5 * np.linalg.norm(skew, axis=1)
-    cos_angle = 0.5 * (np.trace(R, axis1=1, axis2=2) - 1.0)
-    return np.arctan2(sin_angle, cos_angle)
-
-
 def kitti_relative_errors(
     est: np.ndarray,
     gt: np.ndarray,
@@ -160,7 +152,7 @@ def kitti_relative_errors(
     R_err = np.einsum("kji,kjl->kil", R_est, R_gt)
     t_err_vec = np.einsum("kji,kj->ki", R_est, t_gt - t_est)
     t_err = np.linalg.norm(t_err_vec, axis=1) / L
-    r_err = _rotation_angles(R_err) / L
+    r_err = rotation_angles(R_err) / L
     return float(t_err.mean() * 100.0), float(np.degrees(r_err.mean()) * 100.0)
 
 

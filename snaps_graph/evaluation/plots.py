@@ -138,11 +138,6 @@ def plot_trajectories(
         step = np.linalg.norm(np.diff(ref, axis=0), axis=1) * ~gaps[1:]
         dist = np.concatenate([[0.0], np.cumsum(step)])
 
-    def broken(v: np.ndarray) -> np.ndarray:
-        """``v`` with NaN before each part after a gap: the line is not drawn across it."""
-        v = np.asarray(v, dtype=float)
-        return np.insert(v, np.flatnonzero(gaps), np.nan, axis=0) if len(v) == len(gaps) and gaps.any() else v
-
     same_as = coinciding(trajs)
     for i, name in enumerate(names):
         # Earlier estimates are drawn wider, so VO stays visible where SNAPS left it unchanged.
@@ -156,51 +151,13 @@ def plot_trajectories(
             label=name if name not in same_as else f"{name} (on {same_as[name][0]}: within {_length(same_as[name][1])})",
             zorder=1 if is_gt else 2,
         )
-        ax.plot(broken(p[:, 0]), broken(p[:, 2]), **style)
+        ax.plot(_broken(p[:, 0], gaps), _broken(p[:, 2], gaps), **style)
         if len(p) == len(dist):
-            axh.plot(broken(dist), broken(-p[:, 1]), **style)
+            axh.plot(_broken(dist, gaps), _broken(-p[:, 1], gaps), **style)
     ax.plot([0.0], [0.0], "ko", ms=4, zorder=4)
     if loops and names:
-        on = next((n for n in estimates if n.lower() == "snaps"), estimates[0] if estimates else names[0])
-        p = np.asarray(trajs[on])[:, :3, 3]
-        pairs = np.asarray(loops, dtype=int).reshape(-1, 2)
-        pairs = pairs[(pairs >= 0).all(axis=1) & (pairs < len(p)).all(axis=1)]
-        for k, (a, b) in enumerate(pairs):
-            # frame (hollow) linked to its reference (dot); a revisit a metre aside is a short link
-            ax.plot([p[a, 0], p[b, 0]], [p[a, 2], p[b, 2]], color="orange", lw=0.8, zorder=3)
-            ax.plot(p[b, 0], p[b, 2], ".", color="darkorange", ms=4, zorder=3, label="loop reference" if k == 0 else None)
-            ax.plot(
-                p[a, 0],
-                p[a, 2],
-                "o",
-                color="orange",
-                ms=5,
-                mfc="none",
-                zorder=3,
-                label=f"loops ({len(pairs)})" if k == 0 else None,
-            )
-            if len(p) == len(dist):
-                # over distance the two ends lie far apart: an arc from the reference to the frame
-                x = np.linspace(dist[b], dist[a], 24)
-                y0, y1 = -p[b, 1], -p[a, 1]
-                lift = 0.08 * max(np.ptp(-ref[:, 1]), MIN_HEIGHT_SPAN_M)
-                axh.plot(x, np.linspace(y0, y1, 24) + lift * np.sin(np.linspace(0, np.pi, 24)), color="orange", lw=0.6, zorder=0)
-    allp = np.concatenate([np.asarray(t)[:, :3, 3] for t in trajs.values()])
-    lo, hi = allp.min(axis=0), allp.max(axis=0)
-    ext_x, ext_z = float(hi[0] - lo[0]), float(hi[2] - lo[2])
-    note = ""
-    scale = top_view_scale(ext_x, ext_z)
-    if scale == "stationary":
-        cx, cz = (lo[0] + hi[0]) / 2, (lo[2] + hi[2]) / 2
-        half = STATIONARY_EXTENT_M / 2
-        ax.set_xlim(cx - half, cx + half)
-        ax.set_ylim(cz - half, cz + half)
-        ax.set_aspect("equal", adjustable="box")
-        note = f" - near-stationary: the path spans {max(ext_x, ext_z) * 100:.1f} cm"
-    elif scale == "stretched":
-        note = f" - {'x' if ext_x < ext_z else 'z'} axis stretched (not to scale)"
-    else:
-        ax.set_aspect("equal", adjustable="datalim")
+        _draw_loops(ax, axh, trajs, loops, estimates, names, dist, ref)
+    note = _top_view_extent(ax, trajs)
     if same_as:
         note += "\n" + "; ".join(f"{n} lies on {o}" for n, (o, _) in same_as.items())
     if gaps.any():
@@ -220,6 +177,61 @@ def plot_trajectories(
     axh.grid(True, lw=0.3)
     fig.suptitle(title)
     return _save(fig, path_png)
+
+
+def _broken(v: np.ndarray, gaps: np.ndarray) -> np.ndarray:
+    """``v`` with NaN before each part after a gap: the line is not drawn across it."""
+    v = np.asarray(v, dtype=float)
+    return np.insert(v, np.flatnonzero(gaps), np.nan, axis=0) if len(v) == len(gaps) and gaps.any() else v
+
+
+def _draw_loops(ax, axh, trajs, loops, estimates: list[str], names: list[str], dist: np.ndarray, ref: np.ndarray) -> None:
+    """The loops on ``"snaps"`` (else the first estimate): a link in the top view, an arc over distance."""
+    on = next((n for n in estimates if n.lower() == "snaps"), estimates[0] if estimates else names[0])
+    p = np.asarray(trajs[on])[:, :3, 3]
+    pairs = np.asarray(loops, dtype=int).reshape(-1, 2)
+    pairs = pairs[(pairs >= 0).all(axis=1) & (pairs < len(p)).all(axis=1)]
+    for k, (a, b) in enumerate(pairs):
+        # frame (hollow) linked to its reference (dot); a revisit a metre aside is a short link
+        ax.plot([p[a, 0], p[b, 0]], [p[a, 2], p[b, 2]], color="orange", lw=0.8, zorder=3)
+        ax.plot(p[b, 0], p[b, 2], ".", color="darkorange", ms=4, zorder=3, label="loop reference" if k == 0 else None)
+        ax.plot(
+            p[a, 0],
+            p[a, 2],
+            "o",
+            color="orange",
+            ms=5,
+            mfc="none",
+            zorder=3,
+            label=f"loops ({len(pairs)})" if k == 0 else None,
+        )
+        if len(p) == len(dist):
+            # over distance the two ends lie far apart: an arc from the reference to the frame
+            x = np.linspace(dist[b], dist[a], 24)
+            y0, y1 = -p[b, 1], -p[a, 1]
+            lift = 0.08 * max(np.ptp(-ref[:, 1]), MIN_HEIGHT_SPAN_M)
+            axh.plot(x, np.linspace(y0, y1, 24) + lift * np.sin(np.linspace(0, np.pi, 24)), color="orange", lw=0.6, zorder=0)
+
+
+def _top_view_extent(ax, trajs) -> str:
+    """Limits and aspect of the top view from the paths' extent; a note for its title."""
+    allp = np.concatenate([np.asarray(t)[:, :3, 3] for t in trajs.values()])
+    lo, hi = allp.min(axis=0), allp.max(axis=0)
+    ext_x, ext_z = float(hi[0] - lo[0]), float(hi[2] - lo[2])
+    note = ""
+    scale = top_view_scale(ext_x, ext_z)
+    if scale == "stationary":
+        cx, cz = (lo[0] + hi[0]) / 2, (lo[2] + hi[2]) / 2
+        half = STATIONARY_EXTENT_M / 2
+        ax.set_xlim(cx - half, cx + half)
+        ax.set_ylim(cz - half, cz + half)
+        ax.set_aspect("equal", adjustable="box")
+        note = f" - near-stationary: the path spans {max(ext_x, ext_z) * 100:.1f} cm"
+    elif scale == "stretched":
+        note = f" - {'x' if ext_x < ext_z else 'z'} axis stretched (not to scale)"
+    else:
+        ax.set_aspect("equal", adjustable="datalim")
+    return note
 
 
 def plot_errors(

@@ -14,6 +14,7 @@ import math
 import sys
 import tomllib
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -336,18 +337,21 @@ def _odometry_file(run: Path) -> str | None:
 # ---------------------------------------------------------------------------------------------
 # Entry point
 # ---------------------------------------------------------------------------------------------
-def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accuracy: Callable[..., dict] | None = None) -> dict:
-    """Compare a run's trajectories (VO, SNAPS heuristic, iSAM2 / batch), write the report and return
-    the updated metrics.json content. ``gt_path`` overrides ``RUN_DIR/poses_gt.txt`` (KITTI, or TUM
-    by a ``.tum`` extension; one pose per row or the whole sequence); without ground truth there are
-    no error columns and no errors.png. ``map_accuracy(run, trajectories, map_entry, gt)``
-    measures the folder's maps against a true world (the command line passes one built on
-    ``mapping.outputs.accuracy_from_files``: evaluation does not import the map). A missing or
-    malformed input raises SnapsGraphError naming the file.
-    """
-    from .plots import plot_errors, plot_latency_box, plot_segments, plot_trajectories
+@dataclass
+class _Run:
+    """What compare reads of a run folder."""
 
-    run = Path(run_dir)
+    path: Path
+    gone: list[str]  # files the run wrote that are missing now
+    trajs: dict[str, np.ndarray]
+    cols: dict
+    frame_ids: np.ndarray
+    gt: np.ndarray | None
+    gt_file: Any
+    loops: list[dict]
+
+
+def _read_run(run: Path, gt_path: str | Path | None) -> _Run:
     if not run.is_dir():
         raise SnapsGraphError(f"{run}: run folder not found")
     gone = check_run_files(run, ("poses_vo.txt", "frames.csv"), COMPARED_FILES)
@@ -364,21 +368,21 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accu
     row_of_frame = {int(f): i for i, f in enumerate(frame_ids)}
     gt, gt_file = load_gt(run, gt_path, frame_ids)
     loops = read_loops(run / "loops.jsonl", row_of_frame)
-    offset = _discount_offset(run)
-    gamma0 = 1.0 - math.exp(-offset)  # eq. 6 at s' = 0
+    return _Run(run, gone, trajs, cols, frame_ids, gt, gt_file, loops)
 
-    per_traj = {name: evaluate(p, gt, frame_ids) for name, p in trajs.items()} if gt is not None else None
-    paths = {name: {"frames": n, "path_length_m": path_length(p, frame_ids)} for name, p in trajs.items()}
-    samples = latency_samples(cols)
-    latency = summarise_samples(samples)  # = latency_summary(cols), samples kept for the box plot
-    corrections = _loop_corrections(loops, trajs, gt, gamma0)
 
-    # Figures
+def _figures(r: _Run, samples: dict) -> tuple[list[str], list[dict] | None]:
+    """Write the trajectory, error, segment and latency figures; their names and, with ground
+    truth, the segment errors."""
+    from .plots import plot_errors, plot_latency_box, plot_segments, plot_trajectories
+
+    run, trajs, gt, frame_ids = r.path, r.trajs, r.gt, r.frame_ids
     figures = []
+    segments = None
     plot_trajectories(
         run / "trajectories.png",
         ({"gt": gt} if gt is not None else {}) | trajs,
-        loops=[(lp["row"], lp["reference_row"]) for lp in loops],
+        loops=[(lp["row"], lp["reference_row"]) for lp in r.loops],
         title=f"{run.name}: trajectories",
         frames=frame_ids,
     )
@@ -397,19 +401,24 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accu
     if samples:
         plot_latency_box(run / "latency.png", {LATENCY_LABELS[k]: v for k, v in samples.items()}, title=f"{run.name}: latency")
         figures.append("latency.png")
+    return figures, segments
 
-    # report.md
+
+def _intro_lines(r: _Run) -> list[str]:
+    """The report's title and what was compared: frames, parts, ground truth, trajectories."""
+    run, frame_ids, gt, trajs = r.path, r.frame_ids, r.gt, r.trajs
+    n = len(trajs["vo"])
     md = [f"# Heuristic vs optimised: `{run.name}`", ""]
     runs = parts(frame_ids, n)
-    spans = ", ".join(f"{frame_ids[r[0]]}..{frame_ids[r[-1]]}" for r in runs)
-    md.append(f"Run folder `{run}`; {n} frames (dataset frames {spans}); {len(loops)} loop(s) closed.")
+    spans = ", ".join(f"{frame_ids[p[0]]}..{frame_ids[p[-1]]}" for p in runs)
+    md.append(f"Run folder `{run}`; {n} frames (dataset frames {spans}); {len(r.loops)} loop(s) closed.")
     if len(runs) > 1:
         md.append(
             f"The frames run in {len(runs)} parts: path length, t_rel / r_rel and end drift are taken over the parts "
             "(each part's own length and segments, each part's end error relative to its start), not across the gaps."
         )
     md.append(
-        f"Ground truth: `{gt_file}` (re-based to the first processed frame)."
+        f"Ground truth: `{r.gt_file}` (re-based to the first processed frame)."
         if gt is not None
         else "Ground truth: none (no poses_gt.txt and no --gt), so no error columns and no errors.png."
     )
@@ -418,8 +427,98 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accu
     if odometry_file is not None:  # run --odometry: the "vo" poses are the given file's, not ours
         labels["vo"] = f"the odometry given as a pose file (`{Path(odometry_file).name}`)"
     md.append("Trajectories: " + "; ".join(f"**{k}** = {labels[k]}" for k in trajs) + ".")
-    if gone:
-        md.append(f"Missing: {', '.join(f'`{name}`' for name in gone)}, written by the run and deleted since; left out here.")
+    if r.gone:
+        md.append(f"Missing: {', '.join(f'`{name}`' for name in r.gone)}, written by the run and deleted since; left out here.")
+    return md
+
+
+def _corrections_section(r: _Run, corrections: list[dict], offset: float, gamma0: float) -> list[str]:
+    md = ["## Loops: heuristic vs optimised corrections", ""]
+    if corrections:
+        md += [
+            f"SNAPS step = |w gamma_0 delta|, the move eq. 6 applies to the loop frame itself (w = the "
+            f"loop's weight: Q, or 1 for a verified loop; gamma_0 = 1 - exp(-{offset:g}) = {gamma0:.4f}; "
+            "delta = the eq. 6 target - p_frame). "
+            "Heuristic = |p_snaps - p_vo|: how far the loop frame's position moved between the VO chain "
+            "and the SNAPS trajectory (equal to the step for the first loop; later loops also carry the "
+            "earlier corrections). Optimised = |p_refined - p_vo| at the same frame for each refined "
+            "trajectory. Frame numbers are dataset indices. Q = correlation x luminance x contrast (eq. 4-5)."
+            + (" Error columns: each trajectory's position error at the loop frame." if r.gt is not None else ""),
+            "",
+        ]
+        md += _loop_lines(corrections, r.trajs, r.gt is not None)
+    else:
+        md.append("No loop closed in this run" + ("" if (r.path / "loops.jsonl").is_file() else " (no loops.jsonl)") + ".")
+    return md
+
+
+def _loop_evaluation_section(run: Path, gt_path: str | Path | None, figures: list[str]) -> tuple[list[str], dict]:
+    """The loop closure against ground truth (candidates.csv); appends its figure to ``figures``."""
+    loop_eval = loops_run(run, gt_path, name_missing=False)
+    md = ["", "## Loop closure against ground truth", ""]
+    md += [f"- {line}" for line in summary_lines(loop_eval)]
+    md += [
+        "",
+        "Pairs: true within the first distance, false beyond the second, ignored in between; "
+        "precision-recall over the Q threshold for Q alone and for Q + geometric verification "
+        "(`snaps-graph loops RUN_DIR --json` prints the curve).",
+        "",
+    ]
+    if "plot" in loop_eval:  # no compared pair: no picture, so no link
+        figures.append(Path(loop_eval["plot"]).name)
+        md += [f"![loop precision-recall]({figures[-1]})", ""]
+    return md, loop_eval
+
+
+def _latency_section(samples: dict, latency: dict) -> list[str]:
+    md = ["", "## Latency", ""]
+    if samples:
+        md += _latency_lines(latency)
+        fps = latency.get("frames_per_s")
+        md += ["", f"Throughput: {fps:.2f} frames/s (from the total per frame)." if fps else "", "", "![latency](latency.png)"]
+    else:
+        md.append("frames.csv has no timing columns.")
+    md.append("")
+    return md
+
+
+def _measured_map(r: _Run, metrics: dict, metrics_path: Path, map_accuracy: Callable[..., dict] | None) -> dict | None:
+    """The metrics' map entry, with its accuracy against a world mesh when ``map_accuracy`` is given."""
+    run, trajs, gt = r.path, r.trajs, r.gt
+    map_entry = metrics.get("map") if isinstance(metrics.get("map"), dict) else None
+    if map_accuracy is not None:
+        if not map_entry:
+            raise SnapsGraphError(f"{metrics_path}: no map in this run (run it with --map) to measure against a world mesh")
+        measured = map_accuracy(run, trajs, map_entry, gt)
+        map_entry["accuracy"] = dict(map_entry.get("accuracy") or {}) | measured["accuracy"]  # keeps the run's others
+        map_entry["world_mesh"] = measured["world_mesh"]
+        metrics["map"] = map_entry
+    return map_entry
+
+
+def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accuracy: Callable[..., dict] | None = None) -> dict:
+    """Compare a run's trajectories (VO, SNAPS heuristic, iSAM2 / batch), write the report and return
+    the updated metrics.json content. ``gt_path`` overrides ``RUN_DIR/poses_gt.txt`` (KITTI, or TUM
+    by a ``.tum`` extension; one pose per row or the whole sequence); without ground truth there are
+    no error columns and no errors.png. ``map_accuracy(run, trajectories, map_entry, gt, map_config)``
+    measures the folder's maps against a true world (the command line passes one built on
+    ``mapping.outputs.accuracy_from_files``: evaluation does not import the map). A missing or
+    malformed input raises SnapsGraphError naming the file.
+    """
+    run = Path(run_dir)
+    r = _read_run(run, gt_path)
+    trajs, gt, frame_ids = r.trajs, r.gt, r.frame_ids
+    offset = _discount_offset(run)
+    gamma0 = 1.0 - math.exp(-offset)  # eq. 6 at s' = 0
+
+    per_traj = {name: evaluate(p, gt, frame_ids) for name, p in trajs.items()} if gt is not None else None
+    paths = {name: {"frames": len(trajs["vo"]), "path_length_m": path_length(p, frame_ids)} for name, p in trajs.items()}
+    samples = latency_samples(r.cols)
+    latency = summarise_samples(samples)  # = latency_summary(cols), samples kept for the box plot
+    corrections = _loop_corrections(r.loops, trajs, gt, gamma0)
+    figures, segments = _figures(r, samples)
+
+    md = _intro_lines(r)
     md += ["", "## Trajectories", ""]
     md += _trajectory_lines(trajs, per_traj, paths)
     md.append("")
@@ -435,58 +534,18 @@ def compare_run(run_dir: str | Path, gt_path: str | Path | None = None, map_accu
     md += ["", "![trajectories](trajectories.png)", ""]
     if gt is not None:
         md += ["![position error](errors.png)", ""]
-        md += _segment_lines(segments, trajs)
-    md += ["## Loops: heuristic vs optimised corrections", ""]
-    if corrections:
-        md += [
-            f"SNAPS step = |w gamma_0 delta|, the move eq. 6 applies to the loop frame itself (w = the "
-            f"loop's weight: Q, or 1 for a verified loop; gamma_0 = 1 - exp(-{offset:g}) = {gamma0:.4f}; "
-            "delta = the eq. 6 target - p_frame). "
-            "Heuristic = |p_snaps - p_vo|: how far the loop frame's position moved between the VO chain "
-            "and the SNAPS trajectory (equal to the step for the first loop; later loops also carry the "
-            "earlier corrections). Optimised = |p_refined - p_vo| at the same frame for each refined "
-            "trajectory. Frame numbers are dataset indices. Q = correlation x luminance x contrast (eq. 4-5)."
-            + (" Error columns: each trajectory's position error at the loop frame." if gt is not None else ""),
-            "",
-        ]
-        md += _loop_lines(corrections, trajs, gt is not None)
-    else:
-        md.append("No loop closed in this run" + ("" if (run / "loops.jsonl").is_file() else " (no loops.jsonl)") + ".")
+        md += _segment_lines(segments or [], trajs)
+    md += _corrections_section(r, corrections, offset, gamma0)
     loop_eval = None
     if gt is not None and (run / "candidates.csv").is_file():
-        loop_eval = loops_run(run, gt_path, name_missing=False)
-        md += ["", "## Loop closure against ground truth", ""]
-        md += [f"- {line}" for line in summary_lines(loop_eval)]
-        md += [
-            "",
-            "Pairs: true within the first distance, false beyond the second, ignored in between; "
-            "precision-recall over the Q threshold for Q alone and for Q + geometric verification "
-            "(`snaps-graph loops RUN_DIR --json` prints the curve).",
-            "",
-        ]
-        if "plot" in loop_eval:  # no compared pair: no picture, so no link
-            figures.append(Path(loop_eval["plot"]).name)
-            md += [f"![loop precision-recall]({figures[-1]})", ""]
-    md += ["", "## Latency", ""]
-    if samples:
-        md += _latency_lines(latency)
-        fps = latency.get("frames_per_s")
-        md += ["", f"Throughput: {fps:.2f} frames/s (from the total per frame)." if fps else "", "", "![latency](latency.png)"]
-    else:
-        md.append("frames.csv has no timing columns.")
-    md.append("")
+        lines, loop_eval = _loop_evaluation_section(run, gt_path, figures)
+        md += lines
+    md += _latency_section(samples, latency)
 
     # metrics.json: keep what is there, (re)write our keys
     metrics_path = run / "metrics.json"
     metrics = read_metrics_json(metrics_path)
-    map_entry = metrics.get("map") if isinstance(metrics.get("map"), dict) else None
-    if map_accuracy is not None:
-        if not map_entry:
-            raise SnapsGraphError(f"{metrics_path}: no map in this run (run it with --map) to measure against a world mesh")
-        measured = map_accuracy(run, trajs, map_entry, gt)
-        map_entry["accuracy"] = dict(map_entry.get("accuracy") or {}) | measured["accuracy"]  # keeps the run's others
-        map_entry["world_mesh"] = measured["world_mesh"]
-        metrics["map"] = map_entry
+    map_entry = _measured_map(r, metrics, metrics_path, map_accuracy)
     if map_entry:
         md += map_section_lines(run, map_entry)
     atomic_write_text(run / "report.md", "\n".join(md))

@@ -157,119 +157,34 @@ class LocalBundleAdjuster:
     def _solve_numpy(self, kfs: list[_KF], shared: np.ndarray) -> list[np.ndarray] | None:
         """Vectorised Gauss-Newton: per-landmark 3x3 blocks eliminated by a Schur complement, the
         reduced (6W x 6W) camera system solved densely (oldest pose fixed)."""
-        cam = self.camera
-        fx, fy, cx, cy, B = cam.fx, cam.fy, cam.cx, cam.cy, cam.baseline_m
-        W, Lm = len(kfs), len(shared)
-        # Observations: keyframe index, landmark index, (u, v, u_r).
-        oj_l, ol_l, z_l = [], [], []
-        for j, k in enumerate(kfs):
-            m = np.isin(k.ids, shared)
-            oj_l.append(np.full(m.sum(), j))
-            ol_l.append(np.searchsorted(shared, k.ids[m]))
-            z_l.append(np.c_[k.uvd[m, 0], k.uvd[m, 1], k.uvd[m, 0] - k.uvd[m, 2]])
-        oj, ol, z = np.concatenate(oj_l), np.concatenate(ol_l), np.concatenate(z_l)
-        # Camera-from-world transforms; landmarks from their first observation in the window.
-        Rcw = np.array([k.pose[:3, :3].T for k in kfs])
-        tcw = np.array([-k.pose[:3, :3].T @ k.pose[:3, 3] for k in kfs])
-        fo = np.full(Lm, -1)
-        fo[ol[::-1]] = np.arange(len(ol))[::-1]  # the first observation of each landmark
+        win = _Window.of(kfs, shared, self.camera)
+        W = len(kfs)
         off0 = self.offset_px
         est = self.estimate_offset
         off = off0
-        gain = offset_gain(z[:, 0], z[:, 0] - z[:, 2], cam) * np.ones(len(z))  # at each u_r
-        zz = fx * B / np.maximum(z[fo, 0] - z[fo, 2] - off0 * gain[fo], 1e-3)
-        pc = np.c_[(z[fo, 0] - cx) / fx * zz, (z[fo, 1] - cy) / fy * zz, zz]
-        jf = oj[fo]
-        X = np.einsum("nji,nj->ni", Rcw[jf], pc - tcw[jf])  # world = R^T (pc - t)
+        Rcw, tcw, X = win.initial_state(kfs, off0)
         info = 1.0 / self.sigma_px**2
-        active = np.ones(len(oj), bool)
-
-        def project(Rcw, tcw, X, off):
-            pc = np.einsum("nij,nj->ni", Rcw[oj], X[ol]) + tcw[oj]
-            zc = np.where(pc[:, 2] > 1e-3, pc[:, 2], 1e-3)
-            pred = np.c_[fx * pc[:, 0] / zc + cx, fy * pc[:, 1] / zc + cy, fx * (pc[:, 0] - B) / zc + cx - off * gain]
-            return pc, zc, pred - z, pc[:, 2] > 1e-3
-
+        active = np.ones(len(win.oj), bool)
         prior_info = 1.0 / self.offset_prior_px**2
         held: tuple[float, float] | None = None
         S_full = None
         for it in range(self.iterations):
-            pc, zc, r, front = project(Rcw, tcw, X, off)
+            pc, zc, r, front = win.project(Rcw, tcw, X, off)
             err = np.linalg.norm(r, axis=1)
             if it == self.iterations - 1 or it == 2:
                 active &= front & (err <= 4.0 * self.huber_px)
             w = info * np.where(err <= self.huber_px, 1.0, self.huber_px / np.maximum(err, 1e-12)) * (active & front)
-            iz = 1.0 / zc
-            P = np.zeros((len(oj), 3, 3))
-            P[:, 0, 0] = fx * iz
-            P[:, 0, 2] = -fx * pc[:, 0] * iz**2
-            P[:, 1, 1] = fy * iz
-            P[:, 1, 2] = -fy * pc[:, 1] * iz**2
-            P[:, 2, 0] = fx * iz
-            P[:, 2, 2] = -fx * (pc[:, 0] - B) * iz**2
-            sk = np.zeros((len(oj), 3, 3))
-            sk[:, 0, 1], sk[:, 0, 2], sk[:, 1, 2] = pc[:, 2], -pc[:, 1], pc[:, 0]
-            sk[:, 1, 0], sk[:, 2, 0], sk[:, 2, 1] = -pc[:, 2], pc[:, 1], -pc[:, 0]  # -[pc]x
-            Jc = np.concatenate([P @ sk, P], axis=2)  # (O,3,6)
-            Jl = P @ Rcw[oj]  # (O,3,3)
-            JcT = Jc.transpose(0, 2, 1)
-            wc = w[:, None, None]
-            Hcl_o = wc * (JcT @ Jl)
-            Hll_o = wc * (Jl.transpose(0, 2, 1) @ Jl)
-            bc_o = -(w[:, None] * (JcT @ r[:, :, None])[:, :, 0])
-            bl_o = -(w[:, None] * (Jl.transpose(0, 2, 1) @ r[:, :, None])[:, :, 0])
-            Hll = np.zeros((Lm, 3, 3))
-            np.add.at(Hll, ol, Hll_o)
-            Hll[:, [0, 1, 2], [0, 1, 2]] += 1e-6
-            bl = np.zeros((Lm, 3))
-            np.add.at(bl, ol, bl_o)
-            A = Jc * np.sqrt(w)[:, None, None]
-            Hcc = np.array([A[oj == j].reshape(-1, 6).T @ A[oj == j].reshape(-1, 6) for j in range(W)])
-            bc = np.zeros((W, 6))
-            np.add.at(bc, oj, bc_o)
-            Hcl = np.zeros((Lm, W, 6, 3))
-            Hcl[ol, oj] = Hcl_o  # one observation per (landmark, keyframe)
-            Hll_inv = _inv3(Hll)
-            F = Hcl @ Hll_inv[:, None]  # (L,W,6,3)
-            Fm = F.transpose(1, 2, 0, 3).reshape(6 * W, -1)
-            Hm = Hcl.transpose(1, 2, 0, 3).reshape(6 * W, -1)
-            # Block by block: one (6W x 3L) GEMM would be multi-threaded by OpenBLAS, which
-            # is far slower than these 6-row products on a busy 2-core machine.
-            S = np.empty((6 * W, 6 * W))
-            for a in range(W):
-                for b in range(a, W):
-                    blk = -(Fm[6 * a : 6 * a + 6] @ Hm[6 * b : 6 * b + 6].T)
-                    if a == b:
-                        blk += Hcc[a]
-                    S[6 * a : 6 * a + 6, 6 * b : 6 * b + 6] = blk
-                    S[6 * b : 6 * b + 6, 6 * a : 6 * a + 6] = blk.T
-            g = bc.reshape(-1) - np.einsum("wil,l->wi", Fm.reshape(W, 6, -1), bl.reshape(-1)).reshape(-1)
-            for j in range(1, W):  # the chain's steps between consecutive keyframes
-                chain = kfs[j].chain
-                if chain is not None:
-                    _add_chain_factor(S, g, j, Rcw, tcw, chain[0], chain[1])
-            S = S[6:, 6:] + 1e-6 * np.eye(6 * (W - 1))  # the oldest pose is the gauge
-            g = g[6:]
+            lin = win.linearise(Rcw, pc, zc, r, w)
+            S, g = lin.reduced_system(win, kfs, Rcw, tcw)
             if est:  # the offset: one more column, d(u_r residual)/d(offset) = -gain
-                wr = w * (active & front)
-                Hdl = np.zeros((Lm, 3))
-                np.add.at(Hdl, ol, -(wr * gain)[:, None] * Jl[:, 2, :])
-                Hdc = np.zeros((W, 6))
-                np.add.at(Hdc, oj, -(wr * gain)[:, None] * Jc[:, 2, :])
-                FdHll = (Hll_inv @ Hdl[:, :, None])[:, :, 0]  # (L,3) Hll^-1 Hld
-                s_dc = Hdc - np.einsum("lwij,lj->wi", Hcl, FdHll)
-                s_dd = (wr * gain**2).sum() - np.einsum("li,li->", Hdl, FdHll) + prior_info
-                g_d = (wr * gain * r[:, 2]).sum() - prior_info * (off - off0) - np.einsum("li,li->", FdHll, bl)
-                n = 6 * (W - 1)
+                oc = lin.offset_column(win, w * (active & front), r, off - off0, prior_info)
                 if self.offset_joint:
-                    S2 = np.empty((n + 1, n + 1))
-                    S2[:n, :n], S2[:n, n], S2[n, :n], S2[n, n] = S, s_dc[1:].reshape(-1), s_dc[1:].reshape(-1), s_dd
-                    S, g = S2, np.r_[g, g_d]
+                    S, g = oc.bordered(S, g)
             try:
                 if est and not self.offset_joint:  # poses with the offset held; the offset's own step
-                    x = np.linalg.solve(S, np.c_[g, s_dc[1:].reshape(-1)])
-                    red = s_dd - prior_info - float(s_dc[1:].reshape(-1) @ x[:, 1])
-                    step = (g_d - float(s_dc[1:].reshape(-1) @ x[:, 0])) / red if red > 1e-6 else np.nan
+                    x = np.linalg.solve(S, np.c_[g, oc.s_dc[1:].reshape(-1)])
+                    red = oc.s_dd - prior_info - float(oc.s_dc[1:].reshape(-1) @ x[:, 1])
+                    step = (oc.g_d - float(oc.s_dc[1:].reshape(-1) @ x[:, 0])) / red if red > 1e-6 else np.nan
                     held = (off + step, red)
                     sol = np.r_[x[:, 0], 0.0]
                 else:
@@ -280,10 +195,10 @@ class LocalBundleAdjuster:
             S_full = S
             dxi, dd = (sol[:-1], float(sol[-1])) if est else (sol, 0.0)
             dx = np.r_[np.zeros(6), dxi].reshape(W, 6)
-            rhs = bl - np.einsum("lwij,wi->lj", Hcl, dx)
+            rhs = lin.bl - np.einsum("lwij,wi->lj", lin.Hcl, dx)
             if est:
-                rhs = rhs - Hdl * dd
-            dX = (Hll_inv @ rhs[:, :, None])[:, :, 0]
+                rhs = rhs - oc.Hdl * dd
+            dX = (lin.Hll_inv @ rhs[:, :, None])[:, :, 0]
             off = off + dd
             for j in range(1, W):
                 dR = exp_so3(dx[j, :3])
@@ -294,6 +209,11 @@ class LocalBundleAdjuster:
                 return None
             if np.abs(dx).max() < 1e-7 and abs(dd) < 1e-6:
                 break
+        self._record_offset(est, held, S_full, off, off0, prior_info)
+        return _poses(Rcw, tcw)
+
+    def _record_offset(self, est: bool, held, S_full, off: float, off0: float, prior_info: float) -> None:
+        """Append this window's offset estimate (value, information from the data alone) to the stats."""
         if est and not self.offset_joint:
             if held is not None and np.all(np.isfinite(held)):
                 self.stats.offsets.append(held)
@@ -308,11 +228,168 @@ class LocalBundleAdjuster:
             data = post - prior_info
             if data > 1e-6 and np.isfinite(data):
                 self.stats.offsets.append((off0 + (off - off0) * post / data, data))
-        poses = []
-        for j in range(W):
-            U, _, Vt = np.linalg.svd(Rcw[j])
-            R = U @ Vt
-            T = np.eye(4)
-            T[:3, :3], T[:3, 3] = R.T, -R.T @ tcw[j]
-            poses.append(T)
-        return poses
+
+
+def _poses(Rcw: np.ndarray, tcw: np.ndarray) -> list[np.ndarray]:
+    """T_world_cam of each camera-from-world (R re-orthonormalised)."""
+    poses = []
+    for j in range(len(Rcw)):
+        U, _, Vt = np.linalg.svd(Rcw[j])
+        R = U @ Vt
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R.T, -R.T @ tcw[j]
+        poses.append(T)
+    return poses
+
+
+@dataclass
+class _Window:
+    """The window's observations: keyframe index ``oj``, landmark index ``ol`` and (u, v, u_r)
+    ``z`` per observation, with the disparity offset's gain at each u_r."""
+
+    cam: StereoCamera
+    W: int
+    Lm: int
+    oj: np.ndarray
+    ol: np.ndarray
+    z: np.ndarray
+    gain: np.ndarray
+
+    @classmethod
+    def of(cls, kfs: list[_KF], shared: np.ndarray, cam: StereoCamera) -> _Window:
+        oj_l, ol_l, z_l = [], [], []
+        for j, k in enumerate(kfs):
+            m = np.isin(k.ids, shared)
+            oj_l.append(np.full(m.sum(), j))
+            ol_l.append(np.searchsorted(shared, k.ids[m]))
+            z_l.append(np.c_[k.uvd[m, 0], k.uvd[m, 1], k.uvd[m, 0] - k.uvd[m, 2]])
+        oj, ol, z = np.concatenate(oj_l), np.concatenate(ol_l), np.concatenate(z_l)
+        gain = offset_gain(z[:, 0], z[:, 0] - z[:, 2], cam) * np.ones(len(z))  # at each u_r
+        return cls(cam, len(kfs), len(shared), oj, ol, z, gain)
+
+    def initial_state(self, kfs: list[_KF], off0: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Camera-from-world transforms; landmarks (world) from their first observation in the window."""
+        cam, z, oj, ol, gain = self.cam, self.z, self.oj, self.ol, self.gain
+        fx, fy, cx, cy, B = cam.fx, cam.fy, cam.cx, cam.cy, cam.baseline_m
+        Rcw = np.array([k.pose[:3, :3].T for k in kfs])
+        tcw = np.array([-k.pose[:3, :3].T @ k.pose[:3, 3] for k in kfs])
+        fo = np.full(self.Lm, -1)
+        fo[ol[::-1]] = np.arange(len(ol))[::-1]  # the first observation of each landmark
+        zz = fx * B / np.maximum(z[fo, 0] - z[fo, 2] - off0 * gain[fo], 1e-3)
+        pc = np.c_[(z[fo, 0] - cx) / fx * zz, (z[fo, 1] - cy) / fy * zz, zz]
+        jf = oj[fo]
+        X = np.einsum("nji,nj->ni", Rcw[jf], pc - tcw[jf])  # world = R^T (pc - t)
+        return Rcw, tcw, X
+
+    def project(self, Rcw, tcw, X, off):
+        """Camera points, their clamped depth, residuals (O, 3) and whether they lie in front."""
+        cam, oj, ol = self.cam, self.oj, self.ol
+        fx, fy, cx, cy, B = cam.fx, cam.fy, cam.cx, cam.cy, cam.baseline_m
+        pc = np.einsum("nij,nj->ni", Rcw[oj], X[ol]) + tcw[oj]
+        zc = np.where(pc[:, 2] > 1e-3, pc[:, 2], 1e-3)
+        pred = np.c_[fx * pc[:, 0] / zc + cx, fy * pc[:, 1] / zc + cy, fx * (pc[:, 0] - B) / zc + cx - off * self.gain]
+        return pc, zc, pred - self.z, pc[:, 2] > 1e-3
+
+    def linearise(self, Rcw, pc, zc, r, w) -> _Linear:
+        """The weighted normal equations' blocks at the current estimate."""
+        cam, oj, ol, W, Lm = self.cam, self.oj, self.ol, self.W, self.Lm
+        fx, fy, B = cam.fx, cam.fy, cam.baseline_m
+        iz = 1.0 / zc
+        P = np.zeros((len(oj), 3, 3))
+        P[:, 0, 0] = fx * iz
+        P[:, 0, 2] = -fx * pc[:, 0] * iz**2
+        P[:, 1, 1] = fy * iz
+        P[:, 1, 2] = -fy * pc[:, 1] * iz**2
+        P[:, 2, 0] = fx * iz
+        P[:, 2, 2] = -fx * (pc[:, 0] - B) * iz**2
+        sk = np.zeros((len(oj), 3, 3))
+        sk[:, 0, 1], sk[:, 0, 2], sk[:, 1, 2] = pc[:, 2], -pc[:, 1], pc[:, 0]
+        sk[:, 1, 0], sk[:, 2, 0], sk[:, 2, 1] = -pc[:, 2], pc[:, 1], -pc[:, 0]  # -[pc]x
+        Jc = np.concatenate([P @ sk, P], axis=2)  # (O,3,6)
+        Jl = P @ Rcw[oj]  # (O,3,3)
+        JcT = Jc.transpose(0, 2, 1)
+        wc = w[:, None, None]
+        Hcl_o = wc * (JcT @ Jl)
+        Hll_o = wc * (Jl.transpose(0, 2, 1) @ Jl)
+        bc_o = -(w[:, None] * (JcT @ r[:, :, None])[:, :, 0])
+        bl_o = -(w[:, None] * (Jl.transpose(0, 2, 1) @ r[:, :, None])[:, :, 0])
+        Hll = np.zeros((Lm, 3, 3))
+        np.add.at(Hll, ol, Hll_o)
+        Hll[:, [0, 1, 2], [0, 1, 2]] += 1e-6
+        bl = np.zeros((Lm, 3))
+        np.add.at(bl, ol, bl_o)
+        A = Jc * np.sqrt(w)[:, None, None]
+        Hcc = np.array([A[oj == j].reshape(-1, 6).T @ A[oj == j].reshape(-1, 6) for j in range(W)])
+        bc = np.zeros((W, 6))
+        np.add.at(bc, oj, bc_o)
+        Hcl = np.zeros((Lm, W, 6, 3))
+        Hcl[ol, oj] = Hcl_o  # one observation per (landmark, keyframe)
+        return _Linear(Jc, Jl, Hcc, bc, Hcl, _inv3(Hll), bl)
+
+
+@dataclass
+class _Linear:
+    """One Gauss-Newton linearisation: Jacobians per observation (cameras Jc, landmarks Jl) and
+    the normal equations' blocks (cameras Hcc, bc; landmarks Hll^-1, bl; cross terms Hcl)."""
+
+    Jc: np.ndarray
+    Jl: np.ndarray
+    Hcc: np.ndarray
+    bc: np.ndarray
+    Hcl: np.ndarray
+    Hll_inv: np.ndarray
+    bl: np.ndarray
+
+    def reduced_system(self, win: _Window, kfs: list[_KF], Rcw, tcw) -> tuple[np.ndarray, np.ndarray]:
+        """The cameras' system (S, g) after the landmarks' Schur complement, with the chain
+        factors, the oldest pose removed as the gauge."""
+        W = win.W
+        F = self.Hcl @ self.Hll_inv[:, None]  # (L,W,6,3)
+        Fm = F.transpose(1, 2, 0, 3).reshape(6 * W, -1)
+        Hm = self.Hcl.transpose(1, 2, 0, 3).reshape(6 * W, -1)
+        # Block by block: one (6W x 3L) GEMM would be multi-threaded by OpenBLAS, which
+        # is far slower than these 6-row products on a busy 2-core machine.
+        S = np.empty((6 * W, 6 * W))
+        for a in range(W):
+            for b in range(a, W):
+                blk = -(Fm[6 * a : 6 * a + 6] @ Hm[6 * b : 6 * b + 6].T)
+                if a == b:
+                    blk += self.Hcc[a]
+                S[6 * a : 6 * a + 6, 6 * b : 6 * b + 6] = blk
+                S[6 * b : 6 * b + 6, 6 * a : 6 * a + 6] = blk.T
+        g = self.bc.reshape(-1) - np.einsum("wil,l->wi", Fm.reshape(W, 6, -1), self.bl.reshape(-1)).reshape(-1)
+        for j in range(1, W):  # the chain's steps between consecutive keyframes
+            chain = kfs[j].chain
+            if chain is not None:
+                _add_chain_factor(S, g, j, Rcw, tcw, chain[0], chain[1])
+        S = S[6:, 6:] + 1e-6 * np.eye(6 * (W - 1))  # the oldest pose is the gauge
+        return S, g[6:]
+
+    def offset_column(self, win: _Window, wr, r, off_shift: float, prior_info: float) -> _OffsetColumn:
+        """The disparity offset's column of the reduced system (landmarks eliminated), with its
+        prior about the applied offset (``off_shift`` = estimate - prior mean)."""
+        ol, oj, gain = win.ol, win.oj, win.gain
+        Hdl = np.zeros((win.Lm, 3))
+        np.add.at(Hdl, ol, -(wr * gain)[:, None] * self.Jl[:, 2, :])
+        Hdc = np.zeros((win.W, 6))
+        np.add.at(Hdc, oj, -(wr * gain)[:, None] * self.Jc[:, 2, :])
+        FdHll = (self.Hll_inv @ Hdl[:, :, None])[:, :, 0]  # (L,3) Hll^-1 Hld
+        s_dc = Hdc - np.einsum("lwij,lj->wi", self.Hcl, FdHll)
+        s_dd = (wr * gain**2).sum() - np.einsum("li,li->", Hdl, FdHll) + prior_info
+        g_d = (wr * gain * r[:, 2]).sum() - prior_info * off_shift - np.einsum("li,li->", FdHll, self.bl)
+        return _OffsetColumn(Hdl, s_dc, s_dd, g_d)
+
+
+@dataclass
+class _OffsetColumn:
+    Hdl: np.ndarray  # (L,3) offset-landmark blocks
+    s_dc: np.ndarray  # (W,6) offset-camera column after the landmarks' elimination
+    s_dd: float
+    g_d: float
+
+    def bordered(self, S: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(S, g) with the offset as one more unknown."""
+        n = len(S)
+        S2 = np.empty((n + 1, n + 1))
+        S2[:n, :n], S2[:n, n], S2[n, :n], S2[n, n] = S, self.s_dc[1:].reshape(-1), self.s_dc[1:].reshape(-1), self.s_dd
+        return S2, np.r_[g, self.g_d]

@@ -21,7 +21,7 @@ _PICTURE_POINTS = 200_000
 BEST_ORDER = ("batch", "isam2", "snaps", "vo")  # map.trajectory = "best": the most refined available
 
 
-def map_trajectory_name(want: str, available: list[str] | tuple[str, ...]) -> str:
+def _map_trajectory_name(want: str, available: list[str] | tuple[str, ...]) -> str:
     """The trajectory ``map.trajectory`` names among those a run computed."""
     if want == "best":
         for name in BEST_ORDER:
@@ -32,7 +32,7 @@ def map_trajectory_name(want: str, available: list[str] | tuple[str, ...]) -> st
     return want
 
 
-def write_mesh_ply(path: Path, vertices: np.ndarray, triangles: np.ndarray, grey: np.ndarray | None = None) -> None:
+def _write_mesh_ply(path: Path, vertices: np.ndarray, triangles: np.ndarray, grey: np.ndarray | None = None) -> None:
     import open3d as o3d
 
     m = o3d.geometry.TriangleMesh()
@@ -45,7 +45,7 @@ def write_mesh_ply(path: Path, vertices: np.ndarray, triangles: np.ndarray, grey
             raise SnapsGraphError(f"{path}: open3d could not write the mesh")
 
 
-def write_points_ply(path: Path, points: np.ndarray, grey: np.ndarray | None = None) -> None:
+def _write_points_ply(path: Path, points: np.ndarray, grey: np.ndarray | None = None) -> None:
     import open3d as o3d
 
     p = o3d.geometry.PointCloud()
@@ -71,8 +71,8 @@ def write_map_outputs(
     (None when the map has no keyframe, and nothing is written). The runner calls this once."""
     if len(fused_map) == 0:
         return None
-    chosen = map_trajectory_name(cfg.trajectory, list(trajectories))
-    from .render import perspective_png, side_by_side_png, topdown_png
+    chosen = _map_trajectory_name(cfg.trajectory, list(trajectories))
+    from .render import side_by_side_png
 
     t0 = time.perf_counter()
     out = Path(out_dir)
@@ -108,47 +108,20 @@ def write_map_outputs(
         tf = time.perf_counter()
         suffixes = ([""] if name == chosen else []) + ([f"_{name}"] if cfg.per_trajectory and name != "gt" else [])
         for suffix in suffixes:
-            write_mesh_ply(out / f"map_mesh{suffix}.ply", surf.vertices, surf.triangles, surf.vertex_grey)
-            write_points_ply(out / f"map{suffix}.ply", surf.points, surf.point_grey)
+            _write_mesh_ply(out / f"map_mesh{suffix}.ply", surf.vertices, surf.triangles, surf.vertex_grey)
+            _write_points_ply(out / f"map{suffix}.ply", surf.points, surf.point_grey)
         entry.setdefault("t_files_s", 0.0)
         entry["t_files_s"] += time.perf_counter() - tf
         if name == chosen:
             tp = time.perf_counter()
-            trajs = ({"gt": gt} if gt is not None else {}) | dict(trajectories)
-            topdown_png(
-                out / "map.png",
-                surf.points,
-                trajs,
-                grey=surf.point_grey,
-                title=f"fused map ({chosen}), top-down: {len(surf.points)} surface points, voxel {cfg.tsdf_voxel_m:g} m",
-            )
-            perspective_png(
-                out / "map_mesh.png",
-                surf.vertices,
-                surf.triangles,
-                trajectories[chosen],
-                title=f"fused mesh ({chosen}): {len(surf.triangles)} triangles, voxel {cfg.tsdf_voxel_m:g} m",
-            )
+            _map_pictures(out, surf, chosen, trajectories, gt, cfg)
             entry["t_pictures_s"] = time.perf_counter() - tp  # map.png and map_mesh.png
         entry["surfaces"][name] = {k: v for k, v in surf.stats.items()}
         stride = max(1, len(surf.points) // _PICTURE_POINTS)
         err = None
         if world is not None:
-            from .accuracy import map_accuracy
-
             ta = time.perf_counter()
-            ref = gt if gt is not None else trajectories[name]  # the surface to map: seen from the true path
-            align = trajectory_alignment(trajectories[name], gt) if name != "gt" else None
-            acc = map_accuracy(
-                world,
-                surf.points,
-                surf.vertices,
-                ref[fused_map.keyframes],
-                cam.K,
-                (cam.width, cam.height),
-                alignment=align,
-            )
-            entry.setdefault("accuracy", {})[name] = acc
+            entry.setdefault("accuracy", {})[name] = _surface_accuracy(world, surf, name, fused_map, trajectories, gt)
             err = world.distance(surf.points[::stride])
             t_acc += time.perf_counter() - ta
         pictures[name] = (surf.points[::stride].copy(), err)
@@ -160,6 +133,47 @@ def write_map_outputs(
     entry["t_accuracy_s"] = t_acc  # measuring against the world mesh (not map work)
     entry["t_output_s"] = time.perf_counter() - t0 - t_acc  # fusion, files and pictures
     return entry
+
+
+def _map_pictures(
+    out: Path, surf, chosen: str, trajectories: dict[str, np.ndarray], gt: np.ndarray | None, cfg: MapConfig
+) -> None:
+    """map.png (top-down points under every trajectory) and map_mesh.png (the mesh in perspective)."""
+    from .render import perspective_png, topdown_png
+
+    trajs = ({"gt": gt} if gt is not None else {}) | dict(trajectories)
+    topdown_png(
+        out / "map.png",
+        surf.points,
+        trajs,
+        grey=surf.point_grey,
+        title=f"fused map ({chosen}), top-down: {len(surf.points)} surface points, voxel {cfg.tsdf_voxel_m:g} m",
+    )
+    perspective_png(
+        out / "map_mesh.png",
+        surf.vertices,
+        surf.triangles,
+        trajectories[chosen],
+        title=f"fused mesh ({chosen}): {len(surf.triangles)} triangles, voxel {cfg.tsdf_voxel_m:g} m",
+    )
+
+
+def _surface_accuracy(world, surf, name: str, fused_map, trajectories: dict[str, np.ndarray], gt: np.ndarray | None) -> dict:
+    """The accuracy of the map fused under trajectory ``name`` against the world mesh."""
+    from .accuracy import map_accuracy
+
+    cam = fused_map.camera
+    ref = gt if gt is not None else trajectories[name]  # the surface to map: seen from the true path
+    align = trajectory_alignment(trajectories[name], gt) if name != "gt" else None
+    return map_accuracy(
+        world,
+        surf.points,
+        surf.vertices,
+        ref[fused_map.keyframes],
+        cam.K,
+        (cam.width, cam.height),
+        alignment=align,
+    )
 
 
 def accuracy_from_files(

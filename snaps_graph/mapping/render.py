@@ -239,7 +239,7 @@ def perspective_png(
     z up the page, so seen from -z), ray-cast on the CPU; coloured by height above the local
     ground, shaded by the surface normal; the x and z axes drawn on the ground at the mesh's near
     left corner, as long as the scale they are labelled with (true at that corner's distance)."""
-    import open3d as o3d
+    import cv2
 
     path = Path(path)
     if len(triangles) == 0:
@@ -251,12 +251,31 @@ def perspective_png(
     cell = float(np.linalg.norm((hi - lo)[[0, 2]])) / width
     if cell > 0.2:
         vertices, triangles = _cluster_vertices(vertices, triangles, cell)
+    centre = (lo + hi) / 2.0
+    extent = float(np.linalg.norm((hi - lo)[[0, 2]]))
+    r, hit, n, p = _cast_rays(vertices, triangles, centre, extent, width, height, elevation_deg, fov_deg)
+    bgr, hhi = _shaded_heights(vertices, hit, n, p)
+    bgr, step = _axes_and_frame(bgr, r, hit, vertices, lo, extent)
+    w = max(bgr.shape[1], 560)
+    if bgr.shape[1] < w:
+        bgr = np.hstack([bgr, np.full((bgr.shape[0], w - bgr.shape[1], 3), 255, np.uint8)])
+    text = title or f"fused mesh, perspective: {n_triangles} triangles (CPU ray casting)"
+    text += f"; seen from -z, turned as the top view; arrows: {step:g} m along x and z"
+    ok, buf = cv2.imencode(".png", np.vstack([_legend_bar(w, text, hhi), bgr]))
+    if not ok:  # pragma: no cover
+        raise SnapsGraphError(f"{path}: could not encode the picture")
+    with atomic_output(path, suffix=".png") as tmp:
+        Path(tmp).write_bytes(buf.tobytes())
+
+
+def _cast_rays(vertices, triangles, centre, extent: float, width: int, height: int, elevation_deg: float, fov_deg: float):
+    """Rays of the view (H, W, 6), which hit the mesh, the hit normals and points."""
+    import open3d as o3d
+
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(
         o3d.core.Tensor(np.ascontiguousarray(vertices, np.float32)), o3d.core.Tensor(np.ascontiguousarray(triangles, np.uint32))
     )
-    centre = (lo + hi) / 2.0
-    extent = float(np.linalg.norm((hi - lo)[[0, 2]]))
     # look at the centre from -z, raised by elevation_deg: x runs to the right as in the top view
     horiz = np.array([0.0, 0.0, -1.0])
     dist = 0.5 * extent / np.tan(np.deg2rad(fov_deg) / 2.0) * 1.1 + 5.0
@@ -273,21 +292,31 @@ def perspective_png(
     hit = np.isfinite(t)
     r = rays.numpy()
     p = r[..., :3] + r[..., 3:] * np.where(hit, t, 0.0)[..., None]
+    return r, hit, n, p
+
+
+def _shaded_heights(vertices, hit, n, p) -> tuple[np.ndarray, float]:
+    """The BGR picture: height above the local ground in viridis, shaded by the normal; white
+    where no ray hit. Also the height at the colour scale's top (98th percentile)."""
+    from matplotlib import colormaps
+
     hgt = np.zeros(hit.shape)
     if hit.any():
         hgt[hit] = _local_height(vertices.astype(np.float64), p[hit].astype(np.float64))
     hlo, hhi = (0.0, max(float(np.percentile(hgt[hit], 98)), 1e-3)) if hit.any() else (0.0, 1.0)
-    from matplotlib import colormaps
-
     rgb = colormaps["viridis"](np.clip((hgt - hlo) / max(hhi - hlo, 1e-3), 0, 1))[..., :3]
     light = np.array([0.3, -1.0, -0.4])
     light /= np.linalg.norm(light)
     shade = 0.35 + 0.65 * np.abs(n @ light)
     img = np.where(hit[..., None], rgb * shade[..., None], 1.0)
+    return np.ascontiguousarray((img[..., ::-1] * 255).astype(np.uint8)), hhi
+
+
+def _axes_and_frame(bgr, r, hit, vertices, lo, extent: float) -> tuple[np.ndarray, float]:
+    """Axes on the ground at the near left corner, each a round length (about a fifth of the
+    map), then the picture cropped to the mesh and the axes. Returns it and the axes' length."""
     import cv2
 
-    bgr = np.ascontiguousarray((img[..., ::-1] * 255).astype(np.uint8))
-    # Axes on the ground at the near left corner, each a round length (about a fifth of the map).
     step = _round_length(extent / 5.0)
     ground_y = float(np.percentile(vertices[:, 1], 90))  # y down: the ground lies low in the mesh
     origin = np.array([lo[0], ground_y, lo[2]])
@@ -306,20 +335,18 @@ def perspective_png(
         c1 = int(max(cols[-1], uv[:, 0].max()) + m + 1)
         top, left = max(r0, 0), max(c0, 0)
         bgr = bgr[top:r1, left:c1]
-    w = max(bgr.shape[1], 560)
-    if bgr.shape[1] < w:
-        bgr = np.hstack([bgr, np.full((bgr.shape[0], w - bgr.shape[1], 3), 255, np.uint8)])
+    return bgr, step
+
+
+def _legend_bar(w: int, text: str, hhi: float) -> np.ndarray:
+    """The title line and the colour legend: height above the local ground, 0 to ``hhi``."""
+    import cv2
+    from matplotlib import colormaps
+
     bar = np.full((52, w, 3), 255, np.uint8)
-    text = title or f"fused mesh, perspective: {n_triangles} triangles (CPU ray casting)"
-    text += f"; seen from -z, turned as the top view; arrows: {step:g} m along x and z"
     cv2.putText(bar, text, (8, 19), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
-    # colour legend: height above the local ground, 0 to the 98th percentile
     ramp = colormaps["viridis"](np.linspace(0.0, 1.0, 200))[:, :3][:, ::-1]
     bar[30:44, 60:260] = (ramp[None, :, :] * 255).astype(np.uint8)
     cv2.putText(bar, "0 m", (28, 42), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
     cv2.putText(bar, f"{hhi:.1f} m above the local ground", (266, 42), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-    ok, buf = cv2.imencode(".png", np.vstack([bar, bgr]))
-    if not ok:  # pragma: no cover
-        raise SnapsGraphError(f"{path}: could not encode the picture")
-    with atomic_output(path, suffix=".png") as tmp:
-        Path(tmp).write_bytes(buf.tobytes())
+    return bar
