@@ -108,15 +108,8 @@ def test_an_old_config_with_a_fixed_setting_loads_with_a_note(tmp_path, capsys):
 PAPER = {
     "frontend": {"mode": "sift", "sift_first_octave": -1, "disparity": "bm_wls", "motion": "pnp", "local_ba.enabled": False},
     "loop": dict(
-        search="radius",
-        discount_window="fixed",
-        discount_shape="paper",
+        policy="paper",
         discount_length=100,
-        correction_axes="xyz",
-        correction_rotation="none",
-        use_verified_offset=False,
-        correction_weight="q",
-        require_verification=False,
         min_similarity=0.75,
         window=8,
         radius_m=10.0,
@@ -139,14 +132,14 @@ def test_the_paper_preset_runs_with_the_papers_choices(tiny_seq, tmp_path):
 
 
 def test_set_overrides_are_parsed_as_toml_and_checked():
-    cfg = Config().with_overrides(["loop.attempts=3", 'loop.search="radius"', "loop.correction_axes=xyz", "map.enabled=true"])
-    assert (cfg.loop.attempts, cfg.loop.search, cfg.loop.correction_axes, cfg.map.enabled) == (3, "radius", "xyz", True)
-    assert Config().loop.attempts != 3  # a copy: the defaults are untouched
+    cfg = Config().with_overrides(["loop.inter_frame_pause=3", 'loop.policy="paper"', "map.enabled=true"])
+    assert (cfg.loop.inter_frame_pause, cfg.loop.policy, cfg.map.enabled) == (3, "paper", True)
+    assert Config().loop.inter_frame_pause != 3  # a copy: the defaults are untouched
     for bad, why in (
-        ("loop.attempts", "expected section.key=value"),
-        ("attempts=3", "expected section.key=value"),
-        ("loop.atempts=3", "did you mean"),
-        ("loop.attempts=-1", "loop.attempts"),
+        ("loop.inter_frame_pause", "expected section.key=value"),
+        ("inter_frame_pause=3", "expected section.key=value"),
+        ("loop.inter_frame_paus=3", "did you mean"),
+        ("loop.inter_frame_pause=-1", "loop.inter_frame_pause"),
     ):
         with pytest.raises(SnapsGraphError, match=why):
             Config().with_overrides([bad])
@@ -154,13 +147,13 @@ def test_set_overrides_are_parsed_as_toml_and_checked():
 
 def test_run_set_beats_the_config_file_and_lands_in_the_results(tiny_seq, tmp_path):
     file = tmp_path / "c.toml"
-    file.write_text("[loop]\nattempts = 7\nmin_similarity = 0.2\n")
+    file.write_text("[loop]\ninter_frame_pause = 7\nmin_similarity = 0.2\n")
     out = tmp_path / "out"
-    r = cli("run", tiny_seq, "-o", out, "-c", file, "--set", "loop.attempts=2", "--frames", "0:3")
+    r = cli("run", tiny_seq, "-o", out, "-c", file, "--set", "loop.inter_frame_pause=2", "--frames", "0:3")
     assert r.returncode == 0, r.stderr
     ran = Config.load(out / "config.toml")
-    assert ran.loop.attempts == 2 and ran.loop.min_similarity == 0.2
-    r = cli("run", tiny_seq, "-o", tmp_path / "o2", "--set", "loop.atempts=2")
+    assert ran.loop.inter_frame_pause == 2 and ran.loop.min_similarity == 0.2
+    r = cli("run", tiny_seq, "-o", tmp_path / "o2", "--set", "loop.inter_frame_paus=2")
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "did you mean" in r.stderr and "--set" in r.stderr
     assert not (tmp_path / "o2").exists()
 
@@ -212,7 +205,7 @@ def test_an_old_flat_config_is_applied_at_the_new_places_with_a_note(tmp_path, c
     fe, v = cfg.frontend, cfg.verification
     assert (fe.klt.window_px, fe.klt.bias_window_px, fe.local_ba.enabled, fe.local_ba.every) == (13, 5, False, 2)
     assert (fe.stereo_ba.huber_px, fe.offset.px, fe.offset.estimate, fe.frame_features) == (0.4, 0.3, False, 400)
-    assert (v.detector, v.max_distance_m, cfg.loop.attempts) == ("sift", 6.0, 4)
+    assert v.detector == "sift"
     assert f"note: {path}: frontend.klt_window_px moved to frontend.klt.window_px\n" in err
     assert f"note: {path}: frontend.local_ba moved to frontend.local_ba.enabled\n" in err
     assert f"note: {path}: frontend.loop_detector moved to verification.detector\n" in err
@@ -284,6 +277,6 @@ def test_an_old_drift_model_and_ramp_load_with_notes(tmp_path, capsys):
     )
     cfg = Config.load(p)
     err = capsys.readouterr().err
-    assert cfg.loop.discount_shape == "drift" and cfg.odometry == Config().odometry
+    assert cfg.loop == Config().loop and cfg.odometry == Config().odometry
     for key in ("loop.discount_shape", "loop.heading_drift_deg", "graph.odom_cov_floor_rot_rad", "odometry.trans_drift_pct"):
         assert key in err

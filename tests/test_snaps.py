@@ -19,7 +19,7 @@ from snaps_graph.config import LoopConfig, OdometryConfig
 from snaps_graph.errors import SnapsGraphError
 from snaps_graph.geometry import inv, wrap_deg, yaw_deg
 from snaps_graph.loop import SnapsLoopCloser
-from snaps_graph.loop.policy import DRIFT, LoopPolicy
+from snaps_graph.loop.policy import DRIFT, PAPER, LoopPolicy
 from snaps_graph.loop.search import _NEIGHBOUR_OFFSETS
 
 SHAPE = (16, 20)
@@ -441,9 +441,7 @@ def _height_error_case(axes: str, rotation: str = "none"):
     images = [tex(k) for k in range(7)]
     images[6] = tex(2) // 2  # Q = 0.64 against frame 2 only
     T_meas = inv(true[2]) @ true[6]
-    closer = make(
-        cfg(discount_length=3, correction_weight="verified", correction_axes=axes, correction_rotation=rotation)
-    )
+    closer = make(cfg(discount_length=3, correction_weight="verified", correction_axes=axes, correction_rotation=rotation))
     for k in range(7):
         T_rel = np.eye(4) if k == 0 else inv(est[k - 1]) @ est[k]
         step = step_v(closer, k, T_rel, images[k], lambda ref: (T_meas, 50))
@@ -792,3 +790,68 @@ def test_correction_spares_the_frames_a_heading_walk_did_not_drift():
     assert moved[0] == 0.0 and moved[20] == pytest.approx(1.0 - math.exp(-3.0))
     assert np.all(moved[1:10] < 0.6 * (1.0 - math.exp(-3.0)) * x[1:10])  # well under the linear ramp
     assert moved[2] == pytest.approx((1.0 - math.exp(-3.0)) * (3 * x[2] ** 2 - x[2] ** 3) / 2, rel=0.05)
+
+
+# ---------------------------------------------------------------- the two rules
+def test_paper_policy_is_every_paper_flag_and_drift_the_former_defaults():
+    """``loop.policy`` names the rule: "paper" is the value each former flag's doc called the
+    paper's, "drift" the former defaults."""
+    paper = dict(
+        search="radius",
+        discount_window="fixed",
+        discount_shape="paper",
+        correction_weight="q",
+        correction_axes="xyz",
+        correction_rotation="none",
+        use_verified_offset=False,
+        require_verification=False,
+        pause_graph_loops=False,
+    )
+    drift = dict(
+        search="drift",
+        discount_window="span",
+        discount_shape="drift",
+        correction_weight="verified",
+        correction_axes="ground",
+        correction_rotation="yaw",
+        use_verified_offset=True,
+        require_verification=True,
+        pause_graph_loops=True,
+    )
+    assert {k: getattr(PAPER, k) for k in paper} == paper
+    assert {k: getattr(DRIFT, k) for k in drift} == drift
+    assert SnapsLoopCloser(LoopConfig(policy="paper")).policy is PAPER
+    assert SnapsLoopCloser(LoopConfig()).policy is DRIFT
+
+
+@pytest.mark.parametrize("policy", ["paper", "drift"])
+def test_paper_policy_takes_an_unverified_loop_on_all_axes(policy):
+    """Frame 5 revisits frame 0 one metre higher (Q = 0.64) and fails verification. The paper's
+    rule takes it anyway and eq. 6 moves all three axes by Q·γ(s')·δ over [N - K, N]; ours
+    refuses it."""
+    c = LoopConfig(
+        policy=policy,
+        radius_m=5.5,
+        frame_distance=3,
+        discount_length=4,
+        min_similarity=0.6,
+        inter_frame_pause=2,
+        thumbnail_scale=1.0,
+        window=4,
+    )
+    closer = SnapsLoopCloser(c, verifier=Answers(lambda ref: None))
+    poses = [pose(z=k) for k in range(6)]
+    poses[5][1, 3] = 1.0
+    images = [tex(k) for k in range(6)]
+    images[5] = tex(0) // 2
+    ev = drive(closer, poses, images)[5].loop
+    if policy == "drift":
+        assert ev is None
+        return
+    assert ev is not None and not ev.verified and ev.weight == ev.q == pytest.approx(0.64, abs=1e-12)
+    np.testing.assert_allclose(ev.delta, [0.0, -1.0, -5.0], atol=1e-12)
+    P = closer.positions
+    for s in range(1, 6):
+        g = 0.64 * gamma(1, 5 - s)
+        np.testing.assert_allclose(P[s], [0.0, (1.0 if s == 5 else 0.0) - g, s - 5.0 * g], atol=1e-12)
+    np.testing.assert_array_equal(P[0], [0.0, 0.0, 0.0])
