@@ -220,7 +220,9 @@ class LoopConfig(Section):
     policy: Literal["drift", "paper"] = _f(
         "drift", "the rule: drift (ours: drift-model gate and correction, verified loops) or paper (SNAPS as printed)"
     )
-    radius_m: float = _f(10.0, "candidates lie within this distance of the current position (the drift gate's least), m", _pos(1e4))
+    radius_m: float = _f(
+        10.0, "candidates lie within this distance of the current position (the drift gate's least), m", _pos(1e4)
+    )
     frame_distance: int = _f(100, "M: candidate j must satisfy N - j >= M, frames", _in(1, MAX_FRAMES))
     discount_length: int = _f(100, "K: eq. 6 moves poses N-K..N (the paper policy's fixed window), frames", _nn(MAX_FRAMES))
     min_similarity: float = _f(0.15, "Q threshold for a loop (UIQI)", FRACTION)
