@@ -2,7 +2,7 @@
 
 For each real driving path (KITTI ground truth, ``--paths``), each drift level (``--pct``) and each
 seed, the drift tool makes the odometry; SNAPS runs on it with a verification oracle (a candidate
-verifies when the ground truth puts it within ``verification.max_distance_m``; its measurement is
+verifies when the ground truth puts it within ``MAX_DISTANCE_M`` (the verification's); its measurement is
 the true relative pose plus noise of a real verification's size), so every loop is a true one and
 what is measured is what the correction and the graph make of them. No images are rendered: all
 frames share one texture, so the similarity passes and the drift gate and verification decide.
@@ -36,6 +36,7 @@ from snaps_graph.frontend.external import PoseFileOdometry
 from snaps_graph.loop.snaps import SnapsLoopCloser
 from snaps_graph.trajectory_io import PoseFile, read_poses
 from snaps_graph.types import StereoFrame
+from snaps_graph.verification.features import MAX_DISTANCE_M, REFERENCE_EVERY
 
 GT_DIR = ROOT.parent / "shared" / "data" / "kitti_gt"
 LOOP_NOISE_ROT_RAD = 0.002  # a real verification's errors (docs/loop-closure.md, verification accuracy)
@@ -56,6 +57,25 @@ def parts(poses: np.ndarray, gt: np.ndarray) -> tuple[float, float, float]:
     return float(np.linalg.norm(d, axis=1).mean()), float(np.hypot(d[:, 0], d[:, 2]).mean()), float(np.abs(d[:, 1]).mean())
 
 
+class GroundTruthVerifier:
+    """Verifies a candidate of the current frame when the ground truth puts it within the
+    verification's distance; its measurement is the true relative pose with noise."""
+
+    def __init__(self, gt: np.ndarray, rng: np.random.Generator):
+        self.gt, self.rng, self.current = gt, rng, 0
+
+    def verify(self, ref: int):
+        from scipy.spatial.transform import Rotation
+
+        T = np.linalg.solve(self.gt[ref], self.gt[self.current])
+        if np.linalg.norm(T[:3, 3]) > MAX_DISTANCE_M:
+            return None
+        noise = np.eye(4)
+        noise[:3, :3] = Rotation.from_rotvec(self.rng.normal(0, LOOP_NOISE_ROT_RAD, 3)).as_matrix()
+        noise[:3, 3] = self.rng.normal(0, LOOP_NOISE_TRANS_M, 3)
+        return T @ noise, 200
+
+
 def run_one(spec: str, pct: float | None, seed: int, config: str | None, model: DriftModel) -> dict:
     name, a, b = parse_path(spec)
     gt_all = read_poses(GT_DIR / f"{name}.txt")
@@ -66,9 +86,9 @@ def run_one(spec: str, pct: float | None, seed: int, config: str | None, model: 
     n = len(gt)
     track = PoseFile("drift", "kitti", np.arange(n), odo, np.arange(1, n + 1))
     front = PoseFileOdometry(track, cfg.odometry)
-    snaps = SnapsLoopCloser(cfg.loop, cfg.odometry, cfg.verification.reference_every)
+    verifier = GroundTruthVerifier(gt, np.random.default_rng(1000 + seed))
+    snaps = SnapsLoopCloser(cfg.loop, cfg.odometry, REFERENCE_EVERY, verifier=verifier)
     graph = PoseGraph(cfg.graph, mode="batch", drift=cfg.odometry.model())
-    rng = np.random.default_rng(1000 + seed)
     loop_cov = np.diag([LOOP_NOISE_ROT_RAD**2] * 3 + [LOOP_NOISE_TRANS_M**2] * 3)
     steps: list[tuple[np.ndarray, np.ndarray | None]] = []
     loops: list[tuple[int, int, np.ndarray]] = []
@@ -76,21 +96,9 @@ def run_one(spec: str, pct: float | None, seed: int, config: str | None, model: 
     last = np.eye(4)
     for k in range(n):
         vo = front.process(StereoFrame(k, 0.1 * k, IMAGE, IMAGE))
-
-        def verify(ref: int, k: int = k):
-            T = np.linalg.solve(gt[ref], gt[k])
-            if np.linalg.norm(T[:3, 3]) > cfg.verification.max_distance_m:
-                return None
-            noise = np.eye(4)
-            w = rng.normal(0, LOOP_NOISE_ROT_RAD, 3)
-            from scipy.spatial.transform import Rotation
-
-            noise[:3, :3] = Rotation.from_rotvec(w).as_matrix()
-            noise[:3, 3] = rng.normal(0, LOOP_NOISE_TRANS_M, 3)
-            return T @ noise, 200
-
+        verifier.current = k
         before = last @ vo.T_rel if k else np.eye(4)
-        step = snaps.step(k, vo.T_rel, IMAGE, verify=verify)
+        step = snaps.step(k, vo.T_rel, IMAGE)
         last = step.pose
         if step.loop is not None and step.loop.T_ref_cur is not None:
             ref = step.loop.reference

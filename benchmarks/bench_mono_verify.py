@@ -1,6 +1,6 @@
 """Monocular loop verification (no right image) against ground truth, on real KITTI images.
 
-The pipeline's monocular path (``verification.mono``): every ``verification.reference_every``-th frame's
+The pipeline's monocular path (``verification.mono``): every ``REFERENCE_EVERY``-th frame's
 keypoints are triangulated against a later frame of the same pass using the odometry's length,
 and a candidate is verified by PnP of those points on the current frame's keypoints
 (``verification.features.verify_features`` without a depth check). Printed:
@@ -14,7 +14,7 @@ and a candidate is verified by PnP of those points on the current frame's keypoi
   translation errors against poses/00.txt, per axis, and the agreement between references of one
   current frame (carried to each other by the first pass's truth, locally exact);
 * false pairs (10-40 m apart in the truth): how many verify, and how many pass the
-  ``verification.max_distance_m`` gate.
+  ``MAX_DISTANCE_M`` gate.
 
 ``--pct P --seed S`` builds the bank from odometry drifted by the drift tool instead of the truth.
 
@@ -34,7 +34,7 @@ from snaps_graph.datasets.kitti import KittiSequence
 from snaps_graph.evaluation.drift import drift_trajectory
 from snaps_graph.geometry import log_so3, rotation_angle_deg
 from snaps_graph.trajectory_io import read_kitti_poses
-from snaps_graph.verification.features import LOOP_QUERY_FEATURES, verify_features
+from snaps_graph.verification.features import LOOP_QUERY_FEATURES, MAX_DISTANCE_M, verify_features
 from snaps_graph.verification.mono import MonoFeatureBank, two_view_features
 
 HERE = Path(__file__).resolve().parent
@@ -186,10 +186,8 @@ def main() -> int:
         (r, c) for c in range(1560, 1661, 2) for r in stored if r <= 230 and 10 < np.linalg.norm(G[r][:3, 3] - G[c][:3, 3]) <= 40
     ]
     ver = [m for m in (verify(c, r) for r, c in false) if m is not None]
-    near = sum(np.linalg.norm(m.T_ref_cur[:3, 3]) <= cfg.verification.max_distance_m for m in ver)
-    print(
-        f"false pairs (10-40 m apart): {len(false)}, verified {len(ver)}, within verification.max_distance_m {cfg.verification.max_distance_m:g} m: {near}"
-    )
+    near = sum(np.linalg.norm(m.T_ref_cur[:3, 3]) <= MAX_DISTANCE_M for m in ver)
+    print(f"false pairs (10-40 m apart): {len(false)}, verified {len(ver)}, within MAX_DISTANCE_M {MAX_DISTANCE_M:g} m: {near}")
     return 0
 
 

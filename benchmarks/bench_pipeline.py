@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 from snaps_graph.config import Config
 from snaps_graph.datasets.kitti import KittiSequence
 from snaps_graph.evaluation.metrics import evaluate
-from snaps_graph.evaluation.oracle import loop_oracle, true_revisit_pairs
+from snaps_graph.evaluation.oracle import REVISIT_MAX_YAW_DEG, loop_oracle, true_revisit_pairs
 from snaps_graph.io_utils import PREFETCH_FRAMES, prefetch
 from snaps_graph.pipeline import SlamPipeline
 from snaps_graph.runner import latency_summary, write_results
@@ -52,7 +52,7 @@ def revisit_stats(gt: np.ndarray, loops, frame_ids, cfg) -> dict:
     """True revisits (ground truth) found versus missed, and false loops."""
     p = gt[:, :3, 3]
     revisit = np.zeros(len(p), bool)
-    for _, k in true_revisit_pairs(gt, cfg.loop.radius_m, cfg.loop.frame_distance, cfg.loop.max_yaw_deg, step=1):
+    for _, k in true_revisit_pairs(gt, cfg.loop.radius_m, cfg.loop.frame_distance, REVISIT_MAX_YAW_DEG, step=1):
         revisit[k] = True
     # Segments: maximal runs of revisit frames (a gap of < 10 frames joins runs).
     segs, start, last = [], None, None
@@ -116,8 +116,9 @@ def main() -> None:
 
     t0 = time.perf_counter()
     with contextlib.closing(prefetch(seq, args.prefetch)) as frames:
+        covs = []  # each step's VOResult.cov, as the graph got it (the oracle's noise)
         for frame in tqdm(frames, total=len(seq), desc="slam", unit="frame", mininterval=2):
-            pipe.process(frame)
+            covs.append(pipe.process(frame).vo.cov)
     wall = time.perf_counter() - t0
     result = pipe.finish()  # iSAM2 estimate, then the batch optimisation of the same graph
     t_batch = pipe.graph.stats.batch_ms / 1e3
@@ -147,9 +148,7 @@ def main() -> None:
                 print(f"{name} mean deviation / SNAPS mean deviation = {ratio:.3f} (target <= 0.5)")
         # What any loop closure could reach on this VO: exact ground-truth loops at every revisit.
         rows = result.records
-        o = loop_oracle(
-            result.trajectories["vo"], gt, cfg, [r.vo_inliers for r in rows], [r.vo_ok for r in rows], covs=pipe.vo_covs
-        )
+        o = loop_oracle(result.trajectories["vo"], gt, cfg, [r.vo_inliers for r in rows], [r.vo_ok for r in rows], covs=covs)
         ored = 1 - o.mean_deviation / tr["vo"]["mean_deviation"]
         figures["oracle"] = {"loops": len(o.pairs), "mean_deviation": o.mean_deviation, "ate_rmse": o.ate_rmse, "reduction": ored}
         print(

@@ -48,9 +48,9 @@ def one_run(seq: Path, gt_all: np.ndarray, pct: float, seed: int, work: Path, ar
     odo = work / f"{name}.txt"
     write_kitti_poses(odo, drifted)
     out = work / name
-    cmd = [sys.executable, "-m", "snaps_graph.cli", "run", str(seq), "--odometry", str(odo), "--out", str(out)]
-    cmd += ["--refine", "batch", "--overwrite", "--set", f'loop.search="{args.search}"']
-    cmd += ["--set", f"loop.verify_all_candidates={str(args.verify_all).lower()}"]
+    cmd = [sys.executable, str(Path(__file__).with_name("_loop_research.py")), "--search", args.search]
+    cmd += ["--verify-all"] if args.verify_all else []
+    cmd += ["run", str(seq), "--odometry", str(odo), "--out", str(out), "--refine", "batch", "--overwrite"]
     for kv in args.set:
         cmd += ["--set", kv]
     proc = subprocess.run(cmd, capture_output=True, text=True)
@@ -108,7 +108,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="the kitti00_loop folder (sequences/00, poses/00.txt)")
     ap.add_argument("--pct", type=float, nargs="+", default=[1.0, 2.0], help="end drift, percent of the distance")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    ap.add_argument("--search", choices=["drift", "radius"], default="drift", help="loop.search")
+    ap.add_argument(
+        "--search",
+        choices=["drift", "radius"],
+        default="drift",
+        help="the candidate gate: the drift policy's or the paper's radius",
+    )
     ap.add_argument("--true-m", type=float, default=2.0, help="a compared pair within this is a true loop, m")
     ap.add_argument("--false-m", type=float, default=10.0, help="a loop between frames farther apart is false, m")
     ap.add_argument("--verify-all", action="store_true", help="verify every compared pair (the recall's full curve; same loops)")

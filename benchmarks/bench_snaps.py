@@ -6,7 +6,7 @@ find revisits by its own (drifted, corrected) positions. Thumbnails have the rea
 (207x63, fed at ``thumbnail_scale = 1``): a deterministic place texture keyed by the *true*
 position's coarse cell and heading quadrant (smoothed random noise) plus per-frame noise, so
 revisits look alike and different places do not. Everything else is LoopConfig's defaults
-(``--search drift``, the drift-aware gate; ``--search radius`` = the paper's fixed radius).
+and the drift policy (``--search drift``, the drift-aware gate; ``--search radius`` = the paper's fixed radius).
 
 Prints the median / p95 of ``SnapsStep.t_ms`` (detection + correction) for frames with no
 candidate, frames that computed similarities (with and without a loop) and loop frames; the number
@@ -27,6 +27,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from _loop_research import CountingThumbnails, policy
 
 from snaps_graph.config import LoopConfig
 from snaps_graph.geometry import inv, yaw_deg
@@ -83,7 +84,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cell-m", type=float, default=6.0, help="place texture cell size, metres")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument(
-        "--search", choices=["drift", "radius"], default="drift", help="loop.search (drift gate or the paper's radius)"
+        "--search",
+        choices=["drift", "radius"],
+        default="drift",
+        help="the candidate gate: the drift policy's or the paper's radius",
     )
     args = ap.parse_args(argv)
 
@@ -96,8 +100,10 @@ def main(argv: list[str] | None = None) -> int:
         gt = gt[: args.frames]
     n = len(gt)
 
-    cfg = LoopConfig(thumbnail_scale=1.0, search=args.search)  # the images below already have thumbnail size
-    closer = SnapsLoopCloser(cfg)
+    cfg = LoopConfig(thumbnail_scale=1.0)  # the images below already have thumbnail size
+    closer = SnapsLoopCloser(cfg, policy=policy("drift", search=args.search))
+    closer.thumbs = thumbs = CountingThumbnails(cfg.window)
+    similarities = 0
     textures = PlaceTextures(args.cell_m, args.seed)
     rng = np.random.default_rng(args.seed + 1)
     R_bias = yaw_rotation(args.yaw_bias_deg)
@@ -117,6 +123,7 @@ def main(argv: list[str] | None = None) -> int:
         img = textures(gt[k]) + rng.normal(0.0, args.noise, THUMB_HW).astype(np.float32)
         img = np.clip(img, 0, 255).astype(np.uint8)
         step = closer.step(k, T_rel, img)
+        similarities += step.candidates
         if step.loop is not None:
             t_loop.append(step.t_ms)
         elif step.candidates:
@@ -142,7 +149,8 @@ def main(argv: list[str] | None = None) -> int:
     heur = closer.poses
     dev_vo = float(np.mean(np.linalg.norm(vo[:, :3, 3] - gt[:, :3, 3], axis=1)))
     dev_snaps = float(np.mean(np.linalg.norm(heur[:, :3, 3] - gt[:, :3, 3], axis=1)))
-    cache_mb = sum(s.nbytes for s in closer._stats.values()) / 2**20
+    cached, cache_bytes = thumbs.cache_size()
+    cache_mb = cache_bytes / 2**20
 
     print(
         f"SNAPS latency on {args.gt.name}: {n} frames, thumbnails {THUMB_HW[1]}x{THUMB_HW[0]}, "
@@ -154,8 +162,8 @@ def main(argv: list[str] | None = None) -> int:
     print(row("loop closed (incl. eq. 6)", t_loop))
     print(row("all frames computing similarities", t_sim + t_loop))
     print(
-        f"loops closed: {len(loops)}   similarities computed: {closer.similarities_computed}   "
-        f"window sums computed: {closer.stats_computed}   stats cache: {len(closer._stats)} frames, {cache_mb:.0f} MB"
+        f"loops closed: {len(loops)}   similarities computed: {similarities}   "
+        f"window sums computed: {thumbs.computed}   stats cache: {cached} frames, {cache_mb:.0f} MB"
     )
     if loops:
         qs = np.array([e.q for e in loops])

@@ -122,11 +122,14 @@ class CachedOdometry:
         pass
 
 
-def replay(cache: VOCache, cfg: Config, refine: str = "batch", loops: str = "snaps"):
-    """Run SNAPS + graph over cached VO; returns (RunResult, pipeline)."""
+def replay(cache: VOCache, cfg: Config, refine: str = "batch", loops: str = "snaps", setup=None):
+    """Run SNAPS + graph over cached VO; returns (RunResult, pipeline). ``setup(pipeline)`` runs
+    before the first frame (e.g. benchmarks/_loop_research.use_closer)."""
     cfg = copy.deepcopy(cfg)
     cfg.loop.thumbnail_scale = 1.0  # the cached thumbnails are already at the configured scale
     pipe = SlamPipeline(cache.camera, cfg, loops=loops, refine=refine, build_map=False, frontend=CachedOdometry(cache))
+    if setup is not None:
+        setup(pipe)
     for idx, t in zip(cache.indices, cache.timestamps):
         th = cache.thumbs[int(idx)]
         pipe.process(StereoFrame(int(idx), float(t), th, th))

@@ -33,7 +33,7 @@ from snaps_graph.backend._values import array_to_values, to_pose3, values_to_arr
 from snaps_graph.backend.pose_graph import BATCH_MAX_ITERATIONS, PRIOR_SIGMA_ROT_RAD, PRIOR_SIGMA_TRANS_M, robust_loop_noise
 from snaps_graph.config import Config
 from snaps_graph.evaluation.metrics import ate_rmse, mean_deviation
-from snaps_graph.evaluation.oracle import odometry_graph, true_revisit_pairs
+from snaps_graph.evaluation.oracle import REVISIT_MAX_YAW_DEG, odometry_graph, true_revisit_pairs
 from snaps_graph.evaluation.results_io import read_frames_csv
 from snaps_graph.trajectory_io import read_poses
 
@@ -122,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
         base = figures(vo, gt)
         print(f"{run.name}: VO {' / '.join(f'{v:.3f}' for v in base)} m, {int(flagged.sum())} flagged steps")
         oracle = odometry_graph(vo, cfg, inliers, ~flagged)
-        pairs = true_revisit_pairs(gt, cfg.loop.radius_m, cfg.loop.frame_distance, cfg.loop.max_yaw_deg)
+        pairs = true_revisit_pairs(gt, cfg.loop.radius_m, cfg.loop.frame_distance, REVISIT_MAX_YAW_DEG)
         if skip:
             pairs = [(j, k) for j, k in pairs if not skip[0] <= k <= skip[1]]
         for j, k in pairs:

@@ -23,11 +23,15 @@ from __future__ import annotations
 import argparse
 import copy
 import pickle
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))  # the loop-closure instruments
 from _common import RESULTS, VOCache, md_table, replay, vo_cache
+from _loop_research import SnapsLoopCloser, VerifyAllCloser, policy, use_closer
 
 from snaps_graph.config import Config
 from snaps_graph.datasets.kitti import KittiSequence
@@ -76,7 +80,6 @@ def main() -> None:
     ap.add_argument("--write-runs", default=None, help="also write each replay's results folder under this folder")
     args = ap.parse_args()
     base = Config.load(args.config) if args.config else Config()
-    base.loop.verify_all_candidates = args.verify_all or base.loop.verify_all_candidates
     for item in args.set:
         key, value = item.split("=", 1)
         old = getattr(base.loop, key)
@@ -112,10 +115,12 @@ def main() -> None:
         )
         for name in args.variants:
             cfg = copy.deepcopy(base)
-            for k, v in VARIANTS[name].items():
-                setattr(cfg.loop, k, v)
+            rule = policy(cfg.loop.policy, **VARIANTS[name])
+            closer = VerifyAllCloser if args.verify_all else SnapsLoopCloser
             t0 = time.perf_counter()
-            result, pipe = replay(cache, cfg, refine="batch" if args.batch else "none")
+            result, pipe = replay(
+                cache, cfg, refine="batch" if args.batch else "none", setup=lambda p, c=closer, r=rule: use_closer(p, c, r)
+            )
             wall = time.perf_counter() - t0
             if args.write_runs:
                 write_results(Path(args.write_runs) / f"{seq_dir.name}_{name}", pipe, result, gt, overwrite=True)
@@ -125,7 +130,7 @@ def main() -> None:
                 [(l.frame, l.reference) for l in result.loops],
                 gt,
                 cache.indices,
-                LoopEvalSettings(frame_distance=cfg.loop.frame_distance, max_yaw_deg=cfg.loop.max_yaw_deg),
+                LoopEvalSettings(frame_distance=cfg.loop.frame_distance, max_yaw_deg=rule.max_yaw_deg),
                 cfg.loop.min_similarity,
             )
             t_cand = [r.t_loop_ms for r in result.records if r.loop_candidates > 0]
@@ -173,7 +178,14 @@ def main() -> None:
             )
         if args.batch:
             r0 = result.records
-            o = loop_oracle(vo, gt, base, [r.vo_inliers for r in r0], [r.vo_ok for r in r0], covs=pipe.vo_covs)
+            o = loop_oracle(
+                vo,
+                gt,
+                base,
+                [r.vo_inliers for r in r0],
+                [r.vo_ok for r in r0],
+                covs=[cache.results[int(i)].cov for i in cache.indices],
+            )
             rows.append(
                 [
                     seq_dir.name,

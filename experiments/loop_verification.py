@@ -28,11 +28,15 @@ import copy
 import dataclasses
 import hashlib
 import pickle
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))  # the loop-closure instruments
 from _common import RESULTS, CachedOdometry, md_table
+from _loop_research import SnapsLoopCloser, VerifyAllCloser, policy, use_closer
 
 import snaps_graph
 from snaps_graph.config import Config
@@ -85,13 +89,22 @@ def cached_vo(seq: KittiSequence, seq_dir: Path, cfg: Config, cache_dir: Path, f
     return results
 
 
-def apply(cfg: Config, items: list[str]) -> None:
+def apply(cfg: Config, items: list[str]) -> dict:
+    """Set each section.key=value; the loop rule's flags (loop.FLAG, a LoopPolicy field) are
+    returned instead, for :func:`policy`."""
+    flags: dict = {}
+    rule = policy(cfg.loop.policy)
     for item in items:
         key, value = item.split("=", 1)
         section, name = key.split(".", 1)
-        obj = getattr(cfg, section)
+        obj = rule if section == "loop" and hasattr(rule, name) else getattr(cfg, section)
         old = getattr(obj, name)
-        setattr(obj, name, value.lower() == "true" if isinstance(old, bool) else type(old)(value))
+        new = value.lower() == "true" if isinstance(old, bool) else type(old)(value)
+        if obj is rule:
+            flags[name] = new
+        else:
+            setattr(obj, name, new)
+    return flags
 
 
 def main() -> None:
@@ -115,8 +128,6 @@ def main() -> None:
     ap.add_argument("--out", default=str(RESULTS / "loop_verification.md"))
     args = ap.parse_args()
     base = Config.load(args.config) if args.config else Config()
-    if args.verify_all:
-        base.loop.verify_all_candidates = True
     if args.pause is not None:
         base.loop.inter_frame_pause = args.pause
     rows = []
@@ -156,7 +167,7 @@ def main() -> None:
         for spec in args.variant:
             name, _, sets = spec.partition(":")
             cfg = copy.deepcopy(base)
-            apply(cfg, [s for s in sets.split(",") if s])
+            rule = policy(cfg.loop.policy, **apply(cfg, [s for s in sets.split(",") if s]))
             t0 = time.perf_counter()
             pipe = SlamPipeline(
                 seq.camera,
@@ -166,6 +177,7 @@ def main() -> None:
                 build_map=False,
                 frontend=CachedOdometry(type("C", (), {"results": results})()),
             )
+            use_closer(pipe, VerifyAllCloser if args.verify_all else SnapsLoopCloser, rule)
             for f in seq:
                 pipe.process(f)
             result = pipe.finish()
@@ -183,7 +195,7 @@ def main() -> None:
                 [(lp.frame, lp.reference) for lp in result.loops],
                 gt,
                 seq.indices,
-                LoopEvalSettings(frame_distance=cfg.loop.frame_distance, max_yaw_deg=cfg.loop.max_yaw_deg),
+                LoopEvalSettings(frame_distance=cfg.loop.frame_distance, max_yaw_deg=rule.max_yaw_deg),
                 cfg.loop.min_similarity,
             )
             m = evaluate(result.trajectories["snaps"], gt)
@@ -194,7 +206,7 @@ def main() -> None:
             t_cand = [r.t_loop_ms for r in result.records if r.loop_candidates > 0]
             t_none = [r.t_loop_ms for r in result.records if r.loop_candidates == 0]
             t_ver = [r.t_verify_ms for r in result.records if r.t_verify_ms > 0]
-            bank = pipe.loop_features
+            bank = pipe.verifier.bank if pipe.verifier is not None else None
             lat = (
                 f"{np.median(t_cand):.2f} ms / {1e3 * np.median(t_none):.0f} us"
                 + (f", verify median {np.median(t_ver):.0f} ms on {len(t_ver)} frames" if t_ver else "")
@@ -239,7 +251,9 @@ def main() -> None:
             )
         if args.batch:
             r0 = result.records
-            o = loop_oracle(vo, gt, base, [r.vo_inliers for r in r0], [r.vo_ok for r in r0], covs=pipe.vo_covs)
+            o = loop_oracle(
+                vo, gt, base, [r.vo_inliers for r in r0], [r.vo_ok for r in r0], covs=[results[int(i)].cov for i in seq.indices]
+            )
             mo = evaluate(o.poses, gt)
             rows.append(
                 [

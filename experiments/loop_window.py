@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import dataclasses
 import json
 from pathlib import Path
 
@@ -25,12 +26,27 @@ from snaps_graph.config import Config
 from snaps_graph.evaluation.metrics import ate_rmse, mean_deviation
 from snaps_graph.geometry import inv
 from snaps_graph.loop import SnapsLoopCloser
+from snaps_graph.loop.policy import POLICIES
 from snaps_graph.trajectory_io import read_poses
 
 
 def horizontal_errors(est: np.ndarray, gt: np.ndarray) -> np.ndarray:
     d = est[:, :3, 3] - gt[:, :3, 3]
     return np.hypot(d[:, 0], d[:, 2])
+
+
+class ScriptedVerifier:
+    """Verifies the reference of the run's loop at the current frame with the run's measurement."""
+
+    loop: dict | None = None
+
+    def verify(self, ref: int) -> tuple[np.ndarray, int] | None:
+        lp = self.loop
+        if lp is None or ref != lp["reference"] or not lp.get("T_ref_cur"):
+            return None
+        T = np.eye(4)
+        T[:3, :4] = np.array(lp["T_ref_cur"], float).reshape(3, 4)
+        return T, int(lp.get("verify_inliers", 50))
 
 
 def replay(run: Path, cfg: Config, verbose: bool) -> np.ndarray:
@@ -47,22 +63,18 @@ def replay(run: Path, cfg: Config, verbose: bool) -> np.ndarray:
     for k, lp in script.items():
         tex[k] = tex[k_of[lp["reference"]]]
     lc = cfg.loop
-    lc.thumbnail_scale, lc.search, lc.radius_m, lc.max_yaw_deg, lc.attempts = 1.0, "radius", 1e4, 180.0, 1000
-    lc.search_max_radius_m, lc.window, lc.shift_px, lc.pause_graph_loops = 1e4, 8, 0, False
-    closer = SnapsLoopCloser(lc, cfg.odometry)
+    lc.thumbnail_scale, lc.radius_m, lc.window = 1.0, 1e4, 8
+    # The paper's radius gate, wide open: every scripted loop is a candidate.
+    rule = dataclasses.replace(
+        POLICIES["drift"], search="radius", max_yaw_deg=180.0, attempts=1000, search_max_radius_m=1e4, pause_graph_loops=False
+    )
+    verifier = ScriptedVerifier()
+    closer = SnapsLoopCloser(lc, cfg.odometry, verifier=verifier, policy=rule)
     for k in range(len(vo)):
         T_rel = np.eye(4) if k == 0 else inv(vo[k - 1]) @ vo[k]
-        lp = script.get(k)
-
-        def verify(ref: int, lp=lp) -> tuple[np.ndarray, int] | None:
-            if lp is None or ref != lp["reference"] or not lp.get("T_ref_cur"):
-                return None
-            T = np.eye(4)
-            T[:3, :4] = np.array(lp["T_ref_cur"], float).reshape(3, 4)
-            return T, int(lp.get("verify_inliers", 50))
-
+        lp = verifier.loop = script.get(k)
         before = closer.poses if lp is not None else None
-        step = closer.step(frames[k], T_rel, tex[k], verify=verify)
+        step = closer.step(frames[k], T_rel, tex[k])
         if lp is not None and verbose:
             j = k_of[lp["reference"]]
             after = closer.poses

@@ -25,7 +25,7 @@ from snaps_graph.config import Config
 from snaps_graph.datasets.kitti import KittiSequence
 from snaps_graph.evaluation.results_io import read_frames_csv, read_loops
 from snaps_graph.trajectory_io import read_poses
-from snaps_graph.verification.features import LoopFeatureBank, verify_features
+from snaps_graph.verification.features import MAX_DISTANCE_M, REFERENCE_EVERY, LoopFeatureBank, verify_features
 
 
 def first_loops(run: Path, row: dict[int, int], pause: int) -> list[tuple[int, int]]:
@@ -56,7 +56,7 @@ def main() -> None:
     ids = [int(i) for i in frames["frame"]]
     row = {f: k for k, f in enumerate(ids)}
     offset = frames["vo_disparity_offset_px"]
-    every = cfg.verification.reference_every
+    every = REFERENCE_EVERY
     bank = LoopFeatureBank(cam, cfg.frontend, cfg.verification, background=False)
     added: set[int] = set()  # references computed (a frame with too few stereo points stores none)
     for kn, kr0 in first_loops(args.run, row, cfg.loop.inter_frame_pause):
@@ -77,7 +77,7 @@ def main() -> None:
                     added.add(kr)
                 m = verify_features(bank.reference(kr), query, frame, cam, cfg.frontend, cfg.verification, float(offset[km]))
                 tried += 1
-                if m is not None and np.linalg.norm(m.T_ref_cur[:3, 3]) <= cfg.verification.max_distance_m:
+                if m is not None and np.linalg.norm(m.T_ref_cur[:3, 3]) <= MAX_DISTANCE_M:
                     passed.append(f"{ids[kr]} ({np.linalg.norm(gt[kr] - gt[km]):.1f} m, {m.inliers} inliers)")
             print(
                 f"  frame {ids[km]}: nearest earlier frame {ids[near]} at {d[near]:.1f} m; "

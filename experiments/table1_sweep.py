@@ -42,14 +42,8 @@ SWEEPS = {
     "discount_length": [25, 50, 100, 200, 400],
     "min_similarity": [0.5, 0.65, 0.75, 0.85, 0.95],
     "inter_frame_pause": [10, 25, 50, 100, 200],
-    "attempts": [1, 2, 5, 10, 20],
-    "max_yaw_deg": [5.0, 10.0, 20.0, 45.0],
-    "use_verified_offset": [False, True],
-    "shift_px": [0, 4, 8, 12],
     "window": [8, 16],
-    "correction_weight": ["q", "verified"],
-    "correction_axes": ["xyz", "ground"],
-    "correction_rotation": ["none", "yaw"],
+    "policy": ["drift", "paper"],
 }
 
 

@@ -133,12 +133,6 @@ class VerificationConfig(Section):
     _name = "verification"
 
     detector: Literal["orb", "sift"] = _f("orb", "loop verification keypoints: orb (pyramid) or sift (octave 0)")
-    reference_every: int = _f(5, "loop reference features every this many frames", _in(1, MAX_FRAMES))
-    depth_check_px: float = _f(
-        1.0, "a loop inlier's disparity must agree with its prediction within this (0 = off), px", _nn(100)
-    )
-    max_distance_m: float = _f(8.0, "a verified loop farther apart than this is refused, m", _pos(1e4))
-    subpixel_px: float = _f(2.0, "loop keypoint sub-pixel refinement half-window at level 0 (0 = off), px", _nn(100))
 
 
 @dataclass
@@ -147,54 +141,18 @@ class LoopConfig(Section):
 
     _name = "loop"
 
-    radius_m: float = _f(10.0, "candidates lie within this distance of the current position, m", _pos(1e4))
-    search: Literal["drift", "radius"] = _f(
-        "drift", "candidate gate: drift = within search_sigmas of the [odometry] drift, radius = the paper's fixed radius_m"
+    policy: Literal["drift", "paper"] = _f(
+        "drift", "the rule: drift (ours: drift-model gate and correction, verified loops) or paper (SNAPS as printed)"
     )
-    search_sigmas: float = _f(3.0, "drift gate width, standard deviations", _pos(100))
-    search_max_radius_m: float = _f(40.0, "the drift gate's largest radius, m", _pos(1e4))
+    radius_m: float = _f(
+        10.0, "candidates lie within this distance of the current position (the drift gate's least), m", _pos(1e4)
+    )
     frame_distance: int = _f(100, "M: candidate j must satisfy N - j >= M, frames", _in(1, MAX_FRAMES))
-    discount_length: int = _f(100, "K: eq. 6 moves poses N-K..N (discount_window fixed), frames", _nn(MAX_FRAMES))
+    discount_length: int = _f(100, "K: eq. 6 moves poses N-K..N (the paper policy's fixed window), frames", _nn(MAX_FRAMES))
     min_similarity: float = _f(0.15, "Q threshold for a loop (UIQI)", FRACTION)
     inter_frame_pause: int = _f(50, "frames after the last pinned frame before another loop", _nn(MAX_FRAMES))
-    attempts: int = _f(5, "at most this many candidates (nearest first) are compared", _nn(1000))
-    max_yaw_deg: float = _f(10.0, "candidate heading limit |yaw_j - yaw_N|, deg", Range(0, 180))
     thumbnail_scale: float = _f(1.0 / 6.0, "thumbnail = left image rescaled by this", FRACTION)
     window: int = _f(16, "UIQI sliding window B, thumbnail px", _in(2, 256))
-    shift_px: int = _f(0, "also compare at horizontal shifts up to this (0 = the paper), thumbnail px", _nn(256))
-    shift_step_px: int = _f(2, "...in steps of this, thumbnail px", _in(1, 256))
-    discount_offset: float = _f(3.0, "the 3 in eq. 6's gamma = 1 - exp(-(3 - alpha*0.01*s'))", _pos(1e6))
-    discount_rate: float = _f(0.01, "the 0.01 in the same formula", _nn(1000))
-    use_verified_offset: bool = _f(True, "eq. 6 aims at where verification puts frame N (false = the paper's same place)")
-    correction_weight: Literal["q", "verified"] = _f("verified", "weight of eq. 6's move: q (the paper) or 1 for a verified loop")
-    require_verification: bool = _f(True, "a loop must pass geometric verification (false = the paper)")
-    verify_attempts: int = _f(3, "candidates at or above min_similarity verified, best Q first", _in(1, 1000))
-    stats_cache_frames: int = _f(512, "thumbnails whose UIQI window sums are cached (~180 KB each; 0 = off)", _nn(MAX_FRAMES))
-    verify_all_candidates: bool = _f(False, "verify every compared candidate (for precision-recall with verification)")
-    correction_axes: Literal["xyz", "ground"] = _f("ground", "what eq. 6 moves: xyz (the paper) or the ground-plane components")
-    correction_rotation: Literal["none", "yaw"] = _f(
-        "yaw", "verified loop turns the window's heading (yaw) or not (none, the paper)"
-    )
-    verified_heading_sigma_deg: float = _f(0.1, "sigma of a verified heading in the turn's gain, deg", _nn(180))
-    discount_window: Literal["fixed", "span"] = _f(
-        "span", "eq. 6's window: fixed = discount_length (the paper), span = scaled with N - j"
-    )
-    discount_span_factor: float = _f(1.0, "span window = this x (N - j) frames", _pos(1000))
-    discount_length_max: int = _f(1000, "longest span window, frames", _nn(MAX_FRAMES))
-    discount_shape: Literal["paper", "drift"] = _f(
-        "drift", "gamma over the window: paper (eq. 6) or drift (each frame's expected share under the [odometry] drift model)"
-    )
-    pause_graph_loops: bool = _f(
-        True,
-        "in the pause and along a verified revisit, verified loops still go to the factor graph, eq. 6 not applied "
-        "(false = the paper's pause)",
-    )
-
-    def _cross_checks(self, source: str) -> None:
-        if self.search_max_radius_m < self.radius_m:
-            raise SnapsGraphError(
-                f"{source}: loop.search_max_radius_m must be >= loop.radius_m, got {self.search_max_radius_m} and {self.radius_m}"
-            )
 
 
 @dataclass
@@ -260,13 +218,11 @@ class OdometryConfig(Section):
 # Named presets: overrides of the defaults, checked as a config file is (``Config.preset``).
 # paper: the paper's front end (OpenCV SIFT with the doubled first octave, StereoBM + WLS depth,
 # PnP + LM, no local BA) and its loop closure rule.
-# (loop.policy comes with the loop closer's named policies; without it the preset is the front end.)
-_PAPER_LOOP = {"policy": "paper"} if "policy" in LoopConfig.__dataclass_fields__ else {}
 PRESETS: dict[str, dict[str, Any]] = {
     "default": {},
     "paper": {
         "frontend": {"mode": "sift", "sift_first_octave": -1, "disparity": "bm_wls", "motion": "pnp", "local_ba": False},
-        "loop": _PAPER_LOOP,
+        "loop": {"policy": "paper", "min_similarity": 0.75, "window": 8},  # Table I's threshold and UIQI window
     },
 }
 

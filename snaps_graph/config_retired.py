@@ -5,7 +5,6 @@ states are not kept: such a file is an error naming the key."""
 
 from __future__ import annotations
 
-import importlib
 from dataclasses import dataclass
 
 
@@ -92,12 +91,33 @@ OLD_KEYS: dict[str, str | Moved] = {
     ),
 }
 
-# The [loop] and [verification] rows live in their own module while it exists: folded in here.
-try:
-    _loop_rows = importlib.import_module(f"{__package__}._moved_loop_keys")
-except ImportError:
-    pass
-else:
-    for _rows in vars(_loop_rows).values():
-        if isinstance(_rows, dict) and _rows and all(isinstance(k, str) and "." in k for k in _rows):
-            OLD_KEYS |= {k: v if isinstance(v, (str, Moved)) else str(v) for k, v in _rows.items()}
+# [loop] and [verification]: the rule's flags are the two policies now, the rest constants.
+OLD_KEYS |= {
+    "loop.search": 'loop.policy: "drift" = drift, "paper" = radius',
+    "loop.discount_window": 'loop.policy: "drift" = span, "paper" = fixed (discount_length)',
+    "loop.discount_shape": 'loop.policy: "drift" = drift, "paper" = paper',
+    "loop.correction_weight": 'loop.policy: "drift" = verified, "paper" = q',
+    "loop.correction_axes": 'loop.policy: "drift" = ground, "paper" = xyz',
+    "loop.correction_rotation": 'loop.policy: "drift" = yaw, "paper" = none',
+    "loop.use_verified_offset": 'loop.policy: "drift" = true, "paper" = false',
+    "loop.require_verification": 'loop.policy: "drift" = true, "paper" = false',
+    "loop.pause_graph_loops": 'loop.policy: "drift" = true, "paper" = false',
+    "loop.attempts": "a constant of both policies (5, Table I)",
+    "loop.max_yaw_deg": "a constant of both policies (10 degrees, Table I)",
+    "loop.discount_offset": "a constant of both policies (the 3 in eq. 6)",
+    "loop.discount_rate": "a constant of both policies (the 0.01 in eq. 6)",
+    "loop.search_sigmas": "a constant of the drift policy (3 sigmas)",
+    "loop.search_max_radius_m": "a constant of the drift policy (40 m, never under radius_m)",
+    "loop.verify_attempts": "a constant of both policies (3)",
+    "loop.verified_heading_sigma_deg": "a constant of the drift policy (0.1 degrees)",
+    "loop.discount_span_factor": "a constant of the drift policy (1.0)",
+    "loop.discount_length_max": "a constant of the drift policy (1000 frames)",
+    "loop.stats_cache_frames": "a constant of the loop closer (512 thumbnails)",
+    "loop.shift_px": "removed: shifted thumbnails measured worse (docs/decisions.md); comparisons are unshifted",
+    "loop.shift_step_px": "removed with loop.shift_px",
+    "loop.verify_all_candidates": "removed: an experiment's switch (benchmarks/ verifies every candidate itself)",
+    "verification.reference_every": "a constant of the verification (5 frames)",
+    "verification.depth_check_px": "a constant of the verification (1 px)",
+    "verification.max_distance_m": "a constant of the verification (8 m)",
+    "verification.subpixel_px": "a constant of the verification (2 px)",
+}

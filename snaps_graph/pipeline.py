@@ -22,14 +22,12 @@ from .errors import SnapsGraphError
 from .frontend.depth import ORDER_MAX_FRAMES, check_stereo_pair, stereo_order
 from .frontend.external import PoseFileOdometry, time_origin
 from .frontend.odometry import StereoOdometry
-from .loop.snaps import SnapsLoopCloser
-from .loop.uiqi import make_thumbnail
+from .loop.snaps import SnapsLoopCloser, SnapsStep
 from .mapping.depth import map_depth
 from .mapping.tsdf import FusedMap
 from .trajectory_io import PoseFile
 from .types import FrameRecord, FrontEnd, LoopEvent, StereoFrame, VOResult
-from .verification.features import LoopFeatureBank, verify_features
-from .verification.mono import MonoFeatureBank, two_view_covariance
+from .verification.verifier import LoopVerifier
 
 
 @dataclass
@@ -89,42 +87,35 @@ class SlamPipeline:
         refine: str | None = None,
         build_map: bool | None = None,
         frontend: FrontEnd | None = None,
-        loop_features: LoopFeatureBank | None = None,
     ):
         """``cfg`` is copied, never changed; ``loops``/``refine``/``build_map`` override it in the
         copy (``self.cfg``, what ran). ``frontend``: any ``FrontEnd`` (the paper: "it is possible to substitute the visual odometry part with
-        any desired model"); default: ``StereoOdometry`` configured by ``cfg.frontend``.
-        ``loop_features``: the loop-verification feature store (default: a new
-        ``LoopFeatureBank`` when SNAPS runs)."""
+        any desired model"); default: ``StereoOdometry`` configured by ``cfg.frontend``."""
         self.cfg = (cfg or Config()).resolved(loops=loops, refine=refine, build_map=build_map)
         self.loops_mode = self.cfg.loops
         self.refine = self.cfg.graph.refine
 
         self.camera = camera
         self.vo: FrontEnd = frontend if frontend is not None else StereoOdometry(camera, self.cfg.frontend)
+        # Loop verification's features and answers (None without SNAPS), given to the loop closer.
+        self.verifier = LoopVerifier(camera, self.cfg.frontend, self.cfg.verification) if self.loops_mode == "snaps" else None
         self.snaps = (
-            SnapsLoopCloser(self.cfg.loop, self.cfg.odometry, self.cfg.verification.reference_every)
-            if self.loops_mode == "snaps"
+            SnapsLoopCloser(self.cfg.loop, self.cfg.odometry, LoopVerifier.reference_every, verifier=self.verifier)
+            if self.verifier is not None
             else None
         )
         self.graph = PoseGraph(
             self.cfg.graph, mode="isam2" if self.refine == "both" else self.refine, drift=self.cfg.odometry.model()
         )
         self.map = FusedMap(camera, self.cfg.map) if self.cfg.map.enabled else None
-        if loop_features is None and self.snaps is not None:
-            loop_features = LoopFeatureBank(camera, self.cfg.frontend, self.cfg.verification)
-        self.loop_features = loop_features
-        self._loop_cov: dict[int, np.ndarray] = {}  # reference index -> covariance of this frame's verified loop
 
         self._frame_ids: list[int] = []
-        self._k_of_frame: dict[int, int] = {}
         self._timestamps: list[float] = []
         self._vo_poses: list[np.ndarray] = []
-        self.vo_covs: list[np.ndarray | None] = []  # each step's VOResult.cov, as the graph got it (the oracle's noise)
         self._shape: tuple[int, int] | None = None  # (H, W) of the first frame
         self._order_pending = True  # no stereo_order verdict yet
         self._monocular: bool | None = None  # set by the first frame
-        self.two_view: MonoFeatureBank | None = None  # monocular loop verification's features
+        self._k_of_frame: dict[int, int] = {}
         self.loops: list[LoopEvent] = []
         self.records: list[FrameRecord] = []
         self._t_start = time.perf_counter()
@@ -145,15 +136,21 @@ class SlamPipeline:
             raise SnapsGraphError(f"frame {index!r}: the frame number must be a non-negative integer")
         if self._frame_ids and index <= self._frame_ids[-1]:
             raise SnapsGraphError(f"frame {index}: frame numbers must increase (the previous frame was {self._frame_ids[-1]})")
+        self._check_time(index, frame.timestamp)
+        self._check_images(frame)
+
+    def _check_time(self, index: int, timestamp) -> None:
         try:
-            t = float(frame.timestamp)
+            t = float(timestamp)
         except (TypeError, ValueError):
-            raise SnapsGraphError(f"frame {index}: timestamp {frame.timestamp!r} is not a number") from None
+            raise SnapsGraphError(f"frame {index}: timestamp {timestamp!r} is not a number") from None
         if not math.isfinite(t):
             raise SnapsGraphError(f"frame {index}: timestamp {t} is not finite")
         if self._timestamps and t <= self._timestamps[-1]:  # as times.txt: time must increase
             raise SnapsGraphError(f"frame {index}: timestamp {t} does not increase (previous {self._timestamps[-1]})")
-        mono = is_monocular(frame)
+
+    def _check_images(self, frame: StereoFrame) -> None:
+        index, mono = frame.index, is_monocular(frame)
         try:
             check_stereo_pair(frame.left, frame.left if mono else frame.right)
         except SnapsGraphError as exc:
@@ -173,153 +170,132 @@ class SlamPipeline:
                 f"frame {index}: image {w}x{h} differs from the first frame's {self._shape[1]}x{self._shape[0]}"
             )
         if self._shape is None and self.snaps is not None:
-            th, tw = make_thumbnail(frame.left, self.cfg.loop.thumbnail_scale).shape
-            if min(th, tw) < self.cfg.loop.window:
-                raise SnapsGraphError(
-                    f"frame {index}: image {w}x{h} is too small for SNAPS: its thumbnail ({tw}x{th} at "
-                    f"loop.thumbnail_scale = {self.cfg.loop.thumbnail_scale:g}) is smaller than loop.window = {self.cfg.loop.window}"
-                )
+            self.snaps.check_image(index, (h, w))
 
     def process(self, frame: StereoFrame) -> FrameOutput:
+        """One frame through the stages; returns its best pose now."""
         self.check_frame(frame)
         t0 = time.perf_counter()
+        k = self._admit(frame)
+        vo = self.vo.process(frame)
+        t_vo_ms = (time.perf_counter() - t0) * 1e3
+        self._keep(k, frame, vo)
+        heuristic, step = self._close_loop(k, frame, vo)
+        graph_ok, t_graph_ms = self._update_graph(k, heuristic, vo, step)
+        t_map_ms = self._add_to_map(k, frame)
+        self.records.append(
+            self._record(frame, vo, step, (time.perf_counter() - t0) * 1e3, t_vo_ms, t_graph_ms, graph_ok, t_map_ms)
+        )
+        output = FrameOutput(k, int(frame.index), self._best_pose(k, heuristic), vo, step.loop if step else None)
+        if self.observer is not None:
+            self.observer.on_frame(self, frame, output)
+        return output
+
+    def _admit(self, frame: StereoFrame) -> int:
+        """The frame's stream position; the first frame sets the run up (stereo or monocular),
+        the first pairs until one gives a verdict must not have left and right swapped."""
         k = len(self._frame_ids)
         if self._monocular is None:
             self._start_monocular(is_monocular(frame))
-        if self._order_pending and k < ORDER_MAX_FRAMES and not self._monocular:  # the first pairs until one gives a verdict
+        if self._order_pending and k < ORDER_MAX_FRAMES and not self._monocular:
             verdict, why = stereo_order(frame.left, frame.right)
             if verdict == "swapped":
                 raise SnapsGraphError(f"frame {frame.index}: left and right look swapped ({why}); swap the two inputs")
             if verdict == "same":
                 raise SnapsGraphError(f"frame {frame.index}: {why}; the right input must be the right camera's")
             self._order_pending = verdict == "unknown"
-        vo = self.vo.process(frame)
-        t1 = time.perf_counter()
+        return k
+
+    def _keep(self, k: int, frame: StereoFrame, vo: VOResult) -> None:
         self._shape = frame.left.shape
         self._frame_ids.append(int(frame.index))
         self._k_of_frame[int(frame.index)] = k
         self._timestamps.append(float(frame.timestamp))
         self._vo_poses.append(vo.pose)
 
-        loop: LoopEvent | None = None
-        candidates = 0
-        t_loop_ms = t_verify_ms = 0.0
-        if self.loop_features is not None:
-            self.loop_features.add(k, frame, vo.disparity_offset_px)
-        if self.two_view is not None:
-            self.two_view.observe(k, frame, vo.pose)
-        if self.snaps is not None:
-            self._loop_cov.clear()
-            step = self.snaps.step(frame.index, vo.T_rel, frame.left, verify=lambda ref: self._verify(ref, vo, frame, k))
-            heuristic = step.pose
-            loop, candidates, t_loop_ms, t_verify_ms = step.loop, step.candidates, step.t_ms, step.t_verify_ms
-        else:
-            heuristic = vo.pose
+    def _close_loop(self, k: int, frame: StereoFrame, vo: VOResult) -> tuple[np.ndarray, SnapsStep | None]:
+        """SNAPS on the frame (the verifier told the frame first): the heuristic pose and the step;
+        without SNAPS, the VO pose."""
+        if self.snaps is None or self.verifier is None:
+            return vo.pose, None
+        self.verifier.observe(k, frame, vo)
+        step = self.snaps.step(frame.index, vo.T_rel, frame.left)
+        self.graph.failures.extend(self.verifier.failures)
+        self.verifier.failures.clear()
+        return step.pose, step
 
+    def _update_graph(self, k: int, heuristic: np.ndarray, vo: VOResult, step: SnapsStep | None) -> tuple[bool, float]:
+        """The frame and its loop into the factor graph, one iSAM2 update: (no new failure, ms)."""
         tg = time.perf_counter()
         self.graph.add_frame(
             k, heuristic, None if k == 0 else vo.T_rel, inliers=vo.inliers, ok=vo.ok, cov=vo.cov, drift_cov=vo.drift_cov
         )
-        self.vo_covs.append(vo.cov)
-        if loop is not None:
-            self._add_loop_factor(loop, vo)
+        if step is not None and step.loop is not None:
+            self._add_loop_factor(step.loop)
         n_fail = len(self.graph.failures)
         self.graph.update()
-        graph_ok = len(self.graph.failures) == n_fail
-        t_graph_ms = (time.perf_counter() - tg) * 1e3
+        return len(self.graph.failures) == n_fail, (time.perf_counter() - tg) * 1e3
 
-        t_map_ms = 0.0
-        if self.map is not None and self.map.should_add(k):
-            tm = time.perf_counter()
-            self._add_map_keyframe(k, frame)
-            t_map_ms = (time.perf_counter() - tm) * 1e3
+    def _add_to_map(self, k: int, frame: StereoFrame) -> float:
+        """A map keyframe when the map wants this frame; the time it took, ms."""
+        if self.map is None or not self.map.should_add(k):
+            return 0.0
+        tm = time.perf_counter()
+        self._add_map_keyframe(k, frame)
+        return (time.perf_counter() - tm) * 1e3
 
-        self.records.append(
-            FrameRecord(
-                frame=int(frame.index),
-                timestamp=float(frame.timestamp),
-                t_total_ms=(time.perf_counter() - t0) * 1e3,
-                t_vo_ms=(t1 - t0) * 1e3,
-                vo_ok=int(vo.ok),
-                vo_inliers=int(vo.inliers),
-                vo_reason=vo.reason,
-                t_loop_ms=t_loop_ms,
-                loop_candidates=int(candidates),
-                loop_closed=int(loop is not None),
-                t_verify_ms=t_verify_ms,
-                t_graph_ms=t_graph_ms,
-                graph_ok=int(graph_ok),
-                t_map_ms=t_map_ms,
-                vo_disparity_offset_px=float(vo.disparity_offset_px),
-            )
+    def _record(
+        self,
+        frame: StereoFrame,
+        vo: VOResult,
+        step: SnapsStep | None,
+        t_total_ms: float,
+        t_vo_ms: float,
+        t_graph_ms: float,
+        graph_ok: bool,
+        t_map_ms: float,
+    ) -> FrameRecord:
+        return FrameRecord(
+            frame=int(frame.index),
+            timestamp=float(frame.timestamp),
+            t_total_ms=t_total_ms,
+            t_vo_ms=t_vo_ms,
+            vo_ok=int(vo.ok),
+            vo_inliers=int(vo.inliers),
+            vo_reason=vo.reason,
+            t_loop_ms=step.t_ms if step else 0.0,
+            loop_candidates=int(step.candidates) if step else 0,
+            loop_closed=int(step is not None and step.loop is not None),
+            t_verify_ms=step.t_verify_ms if step else 0.0,
+            t_graph_ms=t_graph_ms,
+            graph_ok=int(graph_ok),
+            t_map_ms=t_map_ms,
+            vo_disparity_offset_px=float(vo.disparity_offset_px),
         )
-        pose = heuristic
+
+    def _best_pose(self, k: int, heuristic: np.ndarray) -> np.ndarray:
+        """The iSAM2 estimate when it runs and is finite, else the heuristic (SNAPS or VO) pose."""
         if self.refine in ("isam2", "both"):
             est = self.graph.estimate(k)
             if np.all(np.isfinite(est)):
-                pose = est
-        output = FrameOutput(k, int(frame.index), pose, vo, loop)
-        if self.observer is not None:
-            self.observer.on_frame(self, frame, output)
-        return output
-
-    def _verify(self, ref_index: int, vo: VOResult, frame: StereoFrame | None = None, k: int | None = None):
-        """Geometric verification of a SNAPS loop: the stored reference nearest to the candidate
-        is verified (with the current frame's stereo depth check when it has a right image) and
-        the result carried to the candidate by the VO poses between the two (at most a few
-        frames); the covariance is kept for the loop factor. Returns (T_ref_cur, inliers) or
-        None; never raises."""
-        bank = self.two_view if self.two_view is not None else self.loop_features
-        k_ref = self._k_of_frame.get(ref_index)
-        if bank is None or frame is None or k is None or k_ref is None:
-            return None
-        k_feat = bank.nearest(k_ref)
-        if k_feat is None:
-            return None
-        try:
-            cur = bank.query(k, frame)
-            stereo = None if self._monocular else frame
-            m = verify_features(
-                bank.reference(k_feat),
-                cur,
-                stereo,
-                self.camera,
-                self.cfg.frontend,
-                self.cfg.verification,
-                vo.disparity_offset_px,
-                bank.merged,
-            )
-        except Exception as exc:  # best effort: an unverifiable candidate is not a loop
-            self.graph.failures.append((k, f"loop verification raised {type(exc).__name__}: {exc}"))
-            return None
-        if m is None:
-            return None
-        T = m.T_ref_cur
-        if k_feat != k_ref:
-            T = np.linalg.solve(self._vo_poses[k_ref], self._vo_poses[k_feat]) @ T
-        if np.linalg.norm(T[:3, 3]) > self.cfg.verification.max_distance_m:  # not the same place
-            return None
-        self._loop_cov[int(ref_index)] = two_view_covariance(m.cov) if self._monocular else m.cov
-        return T, m.inliers
+                return est
+        return heuristic
 
     def _start_monocular(self, mono: bool) -> None:
         """At the first frame: a monocular run verifies loops by two-view geometry."""
         self._monocular = mono
-        if not mono:
-            return
-        self._order_pending = False
-        if self.loop_features is not None:
-            self.loop_features.close()
-            self.loop_features = None
-        if self.snaps is not None:
-            self.two_view = MonoFeatureBank(self.camera, self.cfg.frontend, self.cfg.verification)
+        if mono:
+            self._order_pending = False
+        if self.verifier is not None:
+            self.verifier.start(mono)
 
-    def _add_loop_factor(self, loop: LoopEvent, vo: VOResult) -> None:
+    def _add_loop_factor(self, loop: LoopEvent) -> None:
         """A loop-closure factor for a SNAPS loop: measured by verification when it succeeded
         (done once, inside the SNAPS step), else the paper's same-place assumption."""
+        assert self.verifier is not None
         k_ref = self._k_of_frame.get(loop.reference, -1)
         k_cur = self._k_of_frame[loop.frame]
-        cov = self._loop_cov.get(int(loop.reference)) if loop.verified else None
+        cov = self.verifier.covariance(loop.reference) if loop.verified else None
         self.graph.add_loop(k_ref, k_cur, loop.q, loop.T_ref_cur if loop.verified else None, covariance=cov)
         self.loops.append(loop)
 
@@ -338,10 +314,8 @@ class SlamPipeline:
             raise SnapsGraphError("no frame was processed, nothing to finish")
         self._finished = True
         self.vo.close()
-        if self.loop_features is not None:
-            self.loop_features.close()
-        if self.two_view is not None:
-            self.two_view.close()
+        if self.verifier is not None:
+            self.verifier.close()
         trajs: dict[str, np.ndarray] = {"vo": np.array(self._vo_poses)}
         if self.snaps is not None:
             # The loop closer's trajectory, with every eq. 6 correction applied (a pose stored at

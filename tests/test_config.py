@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from snaps_graph.config import PRESETS, RULES, Config, LoopConfig, parse_set
+from snaps_graph.config import PRESETS, RULES, Config, parse_set
 from snaps_graph.config_retired import OLD_KEYS, Moved
 from snaps_graph.config_schema import settings
 from snaps_graph.errors import SnapsGraphError
@@ -70,8 +70,7 @@ def test_at_most_40_keys_each_with_help():
     for section, most in budget.items():
         assert len([k for k in keys if k.startswith(section + ".")]) <= most, section
     assert len([k for k in keys if "." not in k]) == 1  # loops
-    if "policy" in LoopConfig.__dataclass_fields__:  # [loop] + [verification] in at most 9
-        assert len(keys) <= 40, len(keys)
+    assert len(keys) <= 40, len(keys)  # [loop] + [verification] in at most 9
     for key, f, _ in settings(Config()):
         assert f.metadata.get("help"), f"{key} has no help"
     assert set(RULES) <= set(keys)
@@ -90,7 +89,7 @@ def test_the_previous_versions_config_loads_to_the_defaults_with_a_note_per_key(
     err = capsys.readouterr().err
     previous = tomllib.loads(PREVIOUS.read_text())
     old = [k for k in OLD_KEYS if _value(previous, k) is not None]
-    assert len(old) == len([k for k in OLD_KEYS if not k.startswith(("loop.", "verification."))])
+    assert len(old) == len(OLD_KEYS)
     for key in old:
         assert f"note: {PREVIOUS}: {key} " in err, key
     assert err.count("\n") == len(old)
@@ -180,8 +179,7 @@ def test_presets_by_name_and_their_order_with_a_file_and_set(tmp_path):
     assert Config.preset("default") == Config() and set(PRESETS) == {"default", "paper"}
     paper = Config.preset("paper")
     assert {k: getattr(paper.frontend, k) for k in PAPER_FRONTEND} == PAPER_FRONTEND
-    if "policy" in LoopConfig.__dataclass_fields__:
-        assert paper.loop.policy == "paper"  # type: ignore[attr-defined]
+    assert (paper.loop.policy, paper.loop.min_similarity, paper.loop.window) == ("paper", 0.75, 8)
     file = tmp_path / "c.toml"
     file.write_text('[frontend]\nmode = "orb"\nthreads = 1\n')
     cfg = Config.compose("paper", file, ["frontend.threads=3"])  # the preset, then the file, then --set

@@ -72,11 +72,13 @@ def test_budget_benchmark_variants_are_valid_overrides(tmp_path):
 def test_config_table1_defaults():
     """Table I's values, except the similarity settings tuned for the exact index and the
     discount length K = 300 where gamma itself ends for the first loop (README, measured)."""
+    from snaps_graph.loop.policy import DRIFT
+
     c = Config().loop
     assert (c.radius_m, c.frame_distance, c.discount_length) == (10.0, 100, 100)
-    assert (c.inter_frame_pause, c.attempts, c.max_yaw_deg) == (50, 5, 10.0)
+    assert (c.inter_frame_pause, DRIFT.attempts, DRIFT.max_yaw_deg, c.policy) == (50, 5, 10.0, "drift")
     assert c.thumbnail_scale == pytest.approx(1 / 6)
-    assert (c.min_similarity, c.window, c.shift_px, c.require_verification) == (0.15, 16, 0, True)
+    assert (c.min_similarity, c.window, DRIFT.require_verification) == (0.15, 16, True)
 
 
 @pytest.mark.parametrize(

@@ -2,19 +2,22 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from snaps_graph.backend import noise
 from snaps_graph.backend.pose_graph import PoseGraph, loop_covariance
-from snaps_graph.config import Config, FrontendConfig, GraphConfig, VerificationConfig
+from snaps_graph.config import Config, FrontendConfig, GraphConfig, LoopConfig, VerificationConfig
 from snaps_graph.datasets.kitti import KittiSequence
 from snaps_graph.frontend.keyframe import MIN_STEREO_POINTS
 from snaps_graph.frontend.motion import MIN_INLIERS
 from snaps_graph.geometry import inv, rotation_angle_deg
+from snaps_graph.loop.policy import DRIFT, PAPER, LoopPolicy
 from snaps_graph.pipeline import SlamPipeline
 from snaps_graph.types import FrameFeatures
-from snaps_graph.verification.features import LoopFeatureBank, pose_covariance, verify_features
+from snaps_graph.verification.features import REFERENCE_EVERY, LoopFeatureBank, pose_covariance, verify_features
 
 
 @pytest.fixture(scope="module")
@@ -54,8 +57,8 @@ def test_depth_check_rejects_a_lookalike_at_another_distance(kitti_pair):
     assert verify_features(ref, cur, f3, seq.camera, cfg, vcfg) is not None
     far = FrameFeatures(ref.uv, ref.pts3d * 2.0, ref.desc)
     assert verify_features(far, cur, f3, seq.camera, cfg, vcfg) is None
-    off = VerificationConfig(depth_check_px=0.0)  # without the check the scaled scene passes
-    assert verify_features(far, cur, f3, seq.camera, cfg, off) is not None
+    # Without the check the scaled scene passes.
+    assert verify_features(far, cur, f3, seq.camera, cfg, vcfg, depth_check_px=0.0) is not None
 
 
 def test_verify_features_rejects_an_unrelated_frame(kitti_pair):
@@ -71,7 +74,7 @@ def test_verify_features_rejects_an_unrelated_frame(kitti_pair):
 
 def test_bank_keeps_every_nth_frame_and_finds_the_nearest(kitti_pair):
     seq, f0, _ = kitti_pair
-    bank = LoopFeatureBank(seq.camera, FrontendConfig(), VerificationConfig(reference_every=5))
+    bank = LoopFeatureBank(seq.camera, FrontendConfig(), VerificationConfig())
     assert bank.wants(0) and bank.wants(10) and not bank.wants(3)
     ref = FrameFeatures(np.zeros((1, 2), np.float32), np.zeros((1, 3), np.float32), np.zeros((1, 32), np.uint8))
     for k in (0, 5, 10):
@@ -122,57 +125,51 @@ def test_loop_factor_uses_the_verification_covariance():
 
 
 def test_pipeline_keeps_reference_features(tiny_seq):
-    cfg = Config()
-    cfg.verification.reference_every = 2
     seq = KittiSequence(tiny_seq)
-    pipe = SlamPipeline(seq.camera, cfg, loops="snaps", refine="none", build_map=False)
+    pipe = SlamPipeline(seq.camera, Config(), loops="snaps", refine="none", build_map=False)
     for f in seq:
         pipe.process(f)
     pipe.finish()
-    assert pipe.loop_features is not None
-    assert set(pipe.loop_features._ref) <= {0, 2, 4, 6}
+    assert pipe.verifier is not None and pipe.verifier.bank is not None
+    assert set(pipe.verifier.bank._ref) <= {0, REFERENCE_EVERY}
 
 
 def test_discount_window_follows_the_loop_span():
-    from snaps_graph.config import LoopConfig
-    from snaps_graph.loop.snaps import SnapsLoopCloser
+    from snaps_graph.loop.correction import window_length
 
-    fixed = SnapsLoopCloser(LoopConfig(discount_window="fixed", discount_length=100))
-    assert fixed.window_length(1000) == 100 and fixed.window_length(120) == 100
-    span = SnapsLoopCloser(LoopConfig(discount_window="span", discount_span_factor=0.5, discount_length_max=300))
-    assert span.window_length(120) == 60 and span.window_length(1000) == 300
+    assert window_length(PAPER, 100, 1000) == 100 and window_length(PAPER, 100, 120) == 100
+    span = dataclasses.replace(DRIFT, span_factor=0.5, span_max=300)
+    assert window_length(span, 100, 120) == 60 and window_length(span, 100, 1000) == 300
 
 
 def test_span_window_moves_fewer_frames_on_a_short_loop():
     """Same loop, window by span: a loop 150 frames long corrects 75 frames with factor 0.5."""
-    from snaps_graph.config import LoopConfig
     from snaps_graph.loop.snaps import SnapsLoopCloser
 
-    def moved(cfg: LoopConfig) -> int:
-        c = SnapsLoopCloser(cfg)
+    def moved(cfg: LoopConfig, policy: LoopPolicy) -> int:
+        c = SnapsLoopCloser(cfg, policy=policy)
         T = np.eye(4)
         T[2, 3] = 1.0
         img = np.full((120, 240), 100, np.uint8)
         for k in range(151):
             c.step(k, T, img)
         before = c.positions
-        c._correct(150, 1.0, np.array([1.0, 0.0, 0.0]), 1, first=1)
+        c._correct(150, 0, 1.0, np.array([1.0, 0.0, 0.0]), 1, None)
         return int(np.count_nonzero(np.any(c.positions != before, axis=1)))
 
-    assert moved(LoopConfig(discount_window="fixed", discount_length=300)) == 150
-    assert moved(LoopConfig(discount_window="span", discount_span_factor=0.5)) == 76  # s in [N-75, N]
+    assert moved(LoopConfig(discount_length=300), dataclasses.replace(DRIFT, discount_window="fixed")) == 150
+    assert moved(LoopConfig(), dataclasses.replace(DRIFT, span_factor=0.5)) == 76  # s in [N-75, N]
 
 
 def test_discount_shapes_fall_to_zero_at_the_window_start():
-    from snaps_graph.config import LoopConfig
-    from snaps_graph.loop.snaps import discount
+    from snaps_graph.loop.correction import discount
 
-    cfg = LoopConfig(discount_shape="drift")
+    cfg = DRIFT
     s = np.arange(0, 201, dtype=float)
     g = discount(cfg, 3, s, window=200)
     assert g[0] == pytest.approx(1 - np.exp(-3)) and np.all(np.diff(g) < 0)
     assert g[-1] < 0.03 and np.max(np.abs(np.diff(g))) < 0.03  # no step anywhere
-    paper = discount(LoopConfig(), 1, s[:101])
+    paper = discount(PAPER, 1, s[:101])
     assert paper[-1] > 0.8  # the paper's curve at K = 100: a step from 0.86 to 0 at N - K
     assert np.array_equal(discount(cfg, 1, s[:101]), paper)  # no window given: the paper's curve
 
@@ -206,7 +203,7 @@ def test_subpixel_loop_keypoints_sit_on_the_corners():
     img = img.astype(np.uint8)
 
     def median_px_from_corner(sp: float) -> float:
-        uv, _, _ = detect_loop_keypoints(img, VerificationConfig(subpixel_px=sp), 500)
+        uv, _, _ = detect_loop_keypoints(img, VerificationConfig(), 500, subpixel_px=sp)
         c = uv + 0.5 - off  # pixel k covers [k, k + 1) of the supersampled plane
         return float(np.median(np.hypot(c[:, 0] - s * np.round(c[:, 0] / s), c[:, 1] - s * np.round(c[:, 1] / s))))
 

@@ -156,7 +156,9 @@ def test_python_api_monocular_with_pose_file(mono_seq):
     res = pipe.finish()
     assert ds.gt_poses is not None
     assert np.allclose(res.trajectories["vo"], ds.gt_poses, atol=1e-6)
-    assert pipe.two_view is not None and pipe.loop_features is None
+    from snaps_graph.verification.mono import MonoFeatureBank
+
+    assert pipe.verifier is not None and isinstance(pipe.verifier.bank, MonoFeatureBank)
     # the stereo VO cannot run on it: a one-line error, nothing changed
     stereo = SlamPipeline(ds.camera, cfg)
     with pytest.raises(SnapsGraphError, match="no right image: the stereo VO needs one"):
@@ -231,6 +233,6 @@ def test_stereo_sequence_with_pose_file_keeps_stereo_verification(tiny_seq):
     for f in ds:
         pipe.process(f)
     res = pipe.finish()
-    assert isinstance(pipe.loop_features, LoopFeatureBank) and pipe.two_view is None
+    assert pipe.verifier is not None and type(pipe.verifier.bank) is LoopFeatureBank
     assert ds.gt_poses is not None
     assert np.allclose(res.trajectories["vo"], ds.gt_poses, atol=1e-6)

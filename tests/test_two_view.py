@@ -15,7 +15,7 @@ from snaps_graph.datasets.kitti import KittiSequence
 from snaps_graph.frontend.motion import MIN_INLIERS
 from snaps_graph.geometry import inv, rotation_angle_deg
 from snaps_graph.types import FrameFeatures, StereoFrame
-from snaps_graph.verification.features import LOOP_QUERY_FEATURES, verify_features
+from snaps_graph.verification.features import LOOP_QUERY_FEATURES, MAX_DISTANCE_M, verify_features
 from snaps_graph.verification.mono import MonoFeatureBank, partner_pose, triangulate, two_view_features
 
 LOOP_SEQ = SHARED_DATA / "kitti00_loop" / "sequences" / "00"
@@ -139,7 +139,7 @@ def test_real_revisit_pair_and_a_street_apart():
     T = np.linalg.solve(G[155], G[1600])
     assert np.sign(m.T_ref_cur[2, 3]) == np.sign(T[2, 3]) and abs(m.T_ref_cur[1, 3]) < 0.2  # same road: same height
     far = verify_features(bank.reference(idx[140]), cur, None, seq.camera, cfg, vcfg, unique=True)
-    assert far is None or np.linalg.norm(far.T_ref_cur[:3, 3]) > vcfg.max_distance_m
+    assert far is None or np.linalg.norm(far.T_ref_cur[:3, 3]) > MAX_DISTANCE_M
 
 
 def test_reference_is_a_local_map_and_a_keypoint_counts_once():

@@ -180,22 +180,19 @@ def test_bad_input_is_a_clear_error():
         uiqi(x, x, window=1)
 
 
-def test_shifted_similarity_equals_uiqi_on_the_overlap():
-    from snaps_graph.loop.uiqi import similarity_shifted, window_stats
+def test_thumbnail_shape_matches_the_thumbnail_and_the_cache_is_bounded():
+    from snaps_graph.loop.uiqi import STATS_CACHE_FRAMES, Thumbnails, make_thumbnail, thumbnail_shape, window_stats
 
-    rng = np.random.default_rng(3)
-    a = rng.integers(0, 256, (20, 50), dtype=np.uint8)
-    b = rng.integers(0, 256, (20, 50), dtype=np.uint8)
-    A, B = window_stats(a, 8), window_stats(b, 8)
-    q, dx = similarity_shifted(A, B, max_shift=6, step=1)
-    m = 6  # a's central columns [6, 44) against b's columns moved by d
-    expect = {d: uiqi(a[:, m : 50 - m], b[:, m + d : 50 - m + d], 8).q for d in range(-6, 7)}
-    best = max(expect, key=expect.__getitem__)
-    assert dx == best and q == pytest.approx(expect[best], abs=1e-5)  # float32 ranking score
-    from snaps_graph.loop.uiqi import shifted_pair, similarity
-
-    assert similarity(*shifted_pair(A, B, dx, m)).q == pytest.approx(expect[best], abs=1e-12)  # exact
-    # A pure horizontal shift of the same content is found exactly, with Q = 1.
-    wide = rng.integers(0, 256, (20, 60), dtype=np.uint8)
-    q, dx = similarity_shifted(window_stats(wide[:, 4:54], 8), window_stats(wide[:, 0:50], 8), max_shift=8, step=2)
-    assert (q, dx) == (pytest.approx(1.0, abs=1e-5), 4)  # a[:, x] = b[:, x + 4]
+    for h, w in [(376, 1241), (370, 1226), (7, 5)]:
+        img = np.zeros((h, w), np.uint8)
+        assert make_thumbnail(img, 1 / 6).shape == thumbnail_shape((h, w), 1 / 6)
+    rng = np.random.default_rng(4)
+    store = Thumbnails(8)
+    for _ in range(STATS_CACHE_FRAMES + 2):
+        store.append(rng.integers(0, 256, (12, 12), dtype=np.uint8))
+    first = store.stats(0)
+    np.testing.assert_array_equal(first.v, window_stats(store[0], 8).v)
+    assert store.stats(0) is first and store.cached(0) is first  # cached, not recomputed
+    for k in range(1, STATS_CACHE_FRAMES + 1):
+        store.stats(k)
+    assert store.cached(0) is None and store.cached(STATS_CACHE_FRAMES) is not None  # the oldest went

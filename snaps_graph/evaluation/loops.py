@@ -29,7 +29,7 @@ class LoopEvalSettings:
     true_m: float = 5.0
     false_m: float = 10.0
     frame_distance: int = 100  # M of the revisit definition (the run's loop.frame_distance)
-    max_yaw_deg: float = 10.0  # yaw limit of the revisit definition (the run's loop.max_yaw_deg)
+    max_yaw_deg: float = 10.0  # yaw limit of the revisit definition (the loop policies' limit)
     segment_gap: int = 10
 
 

@@ -18,6 +18,8 @@ from ..config import Config
 from ..geometry import wrap_deg, yaw_deg
 from .metrics import ate_rmse, mean_deviation
 
+REVISIT_MAX_YAW_DEG = 10.0  # the loop policies' candidate heading limit (Table I): the revisits SNAPS may close
+
 
 @dataclass
 class OracleResult:
@@ -81,6 +83,7 @@ def loop_oracle(
     ok: np.ndarray | None = None,
     step: int = 5,
     covs: Sequence[np.ndarray | None] | None = None,
+    max_yaw_deg: float = REVISIT_MAX_YAW_DEG,
 ) -> OracleResult:
     """Batch-optimise the VO chain with an exact loop factor at every true revisit.
 
@@ -95,7 +98,7 @@ def loop_oracle(
         raise ValueError(f"vo {vo.shape} and gt {gt.shape} must both be (N, 4, 4)")
     cfg = cfg or Config()
     graph = odometry_graph(vo, cfg, inliers, ok, covs=covs)
-    pairs = true_revisit_pairs(gt, cfg.loop.radius_m, cfg.loop.frame_distance, cfg.loop.max_yaw_deg, step)
+    pairs = true_revisit_pairs(gt, cfg.loop.radius_m, cfg.loop.frame_distance, max_yaw_deg, step)
     for j, k in pairs:
         graph.add_loop(j, k, 1.0, np.linalg.solve(gt[j], gt[k]), covariance=np.zeros((6, 6)))
     poses = graph.optimize_batch()

@@ -20,7 +20,6 @@ from typing import Any
 
 import numpy as np
 
-from ..config import LoopConfig
 from ..errors import SnapsGraphError
 from ..io_utils import atomic_write_text, read_text
 from .latency import LATENCY_LABELS, latency_samples, summarise_samples
@@ -54,7 +53,7 @@ TRAJECTORY_LABELS = {
 # ---------------------------------------------------------------------------------------------
 def _discount_offset(run: Path) -> float:
     """eq. 6's offset (the 3 in gamma = 1 - exp(-(3 - alpha 0.01 s'))) this run used."""
-    default = LoopConfig().discount_offset
+    default = 3.0  # a constant of both loop policies (snaps_graph.loop.policy)
     p = run / "config.toml"
     if not p.is_file():
         return default

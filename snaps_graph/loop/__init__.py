@@ -1,13 +1,21 @@
-"""Loop closure: UIQI similarity (uiqi.py), the SNAPS loop closer (snaps.py) with its candidate
-search (search.py) and eq. 6 correction (correction.py)."""
+"""Loop closure: the SNAPS loop closer (snaps.py) composing the heuristic trajectory
+(trajectory.py), the candidate index (search.py), UIQI similarity over thumbnails (uiqi.py) and
+eq. 6's correction (correction.py), under a named rule (policy.py)."""
 
-from .snaps import SnapsLoopCloser, SnapsStep, discount
+from .correction import discount
+from .policy import DRIFT, PAPER, POLICIES, LoopPolicy
+from .snaps import SnapsLoopCloser, SnapsStep, Verifier
 from .uiqi import UIQI, WindowStats, make_thumbnail, similarity, similarity_q, uiqi, window_stats
 
 __all__ = [
+    "DRIFT",
+    "PAPER",
+    "POLICIES",
     "UIQI",
+    "LoopPolicy",
     "SnapsLoopCloser",
     "SnapsStep",
+    "Verifier",
     "WindowStats",
     "discount",
     "make_thumbnail",

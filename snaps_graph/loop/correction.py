@@ -13,9 +13,10 @@ import math
 
 import numpy as np
 
-from ..config import LoopConfig
 from ..drift_model import DriftModel
 from ..geometry import exp_so3_scaled, yaw_deg
+from .policy import LoopPolicy
+from .trajectory import Trajectory
 
 
 def yaw_correction(dR: np.ndarray) -> np.ndarray:
@@ -24,13 +25,13 @@ def yaw_correction(dR: np.ndarray) -> np.ndarray:
     return np.array([0.0, math.atan2(dR[0, 2] - dR[2, 0], dR[0, 0] + dR[2, 2]), 0.0])
 
 
-def discount(cfg: LoopConfig, alpha: int, s_prime: np.ndarray, window: int | None = None) -> np.ndarray:
+def discount(policy: LoopPolicy, alpha: int, s_prime: np.ndarray, window: int | None = None) -> np.ndarray:
     """γ of eq. 6 for offsets s' = N − s: max(0, 1 − exp(−(c − α·r·s'))); with ``window`` = K and
     ``discount_shape`` "drift", (1 − e^−c)·(1 − s'/(K + 1)) until :func:`drift_share` reshapes it
     by the distance driven."""
-    if window is None or cfg.discount_shape == "paper":
-        return np.maximum(0.0, 1.0 - np.exp(-(cfg.discount_offset - alpha * cfg.discount_rate * s_prime)))
-    return (1.0 - math.exp(-cfg.discount_offset)) * np.clip(1.0 - s_prime / (window + 1.0), 0.0, 1.0)
+    if window is None or policy.discount_shape == "paper":
+        return np.maximum(0.0, 1.0 - np.exp(-(policy.discount_offset - alpha * policy.discount_rate * s_prime)))
+    return (1.0 - math.exp(-policy.discount_offset)) * np.clip(1.0 - s_prime / (window + 1.0), 0.0, 1.0)
 
 
 def drift_share(model: DriftModel, driven: np.ndarray, heading_known: bool) -> np.ndarray:
@@ -53,70 +54,74 @@ def drift_share(model: DriftModel, driven: np.ndarray, heading_known: bool) -> n
     return num / den if den > 0.0 else u / U
 
 
-class Correction:
-    """Eq. 6 on :class:`~snaps_graph.loop.snaps.SnapsLoopCloser`'s trajectory (a mixin: the
-    closer owns the arrays; re-filing moved frames is the search's)."""
+def window_length(policy: LoopPolicy, discount_length: int, span: int) -> int:
+    """K of eq. 6 for a loop ``span`` = N − j frames long: ``discount_length`` under the fixed
+    window, else the policy's share of the span, at most its longest."""
+    if policy.discount_window == "span":
+        return int(min(policy.span_max, round(policy.span_factor * span)))
+    return int(discount_length)
 
-    cfg: LoopConfig
-    drift_model: DriftModel
-    _R: np.ndarray  # (cap, 3, 3) orientations
-    _p: np.ndarray  # (cap, 3) positions
-    _yaw: np.ndarray  # (cap,) headings, degrees
-    _s: np.ndarray  # (cap,) distance driven up to each frame, m
 
-    def _refile(self, lo: int, stop: int) -> None:
-        """Re-file the moved frames lo .. stop-1 in the candidate index (the search's; see search.py)."""
-        raise NotImplementedError
+def verified_gain(policy: LoopPolicy, prior: float) -> float:
+    """Share of a verified turn applied when the heading's prior variance is ``prior`` deg²."""
+    var = prior + policy.verified_heading_sigma_deg**2
+    return prior / var if var > 0 else 1.0
 
-    def _gain(self, prior: float) -> float:
-        """Share of a verified turn applied when the heading's prior variance is ``prior`` deg²."""
-        var = prior + self.cfg.verified_heading_sigma_deg**2
-        return prior / var if var > 0 else 1.0
 
-    def window_length(self, span: int) -> int:
-        """K of eq. 6 for a loop ``span`` = N − j frames long (``discount_window``)."""
-        if self.cfg.discount_window == "span":
-            return int(min(self.cfg.discount_length_max, round(self.cfg.discount_span_factor * span)))
-        return int(self.cfg.discount_length)
+def _weights(traj: Trajectory, policy: LoopPolicy, model: DriftModel, lo: int, n: int, alpha: int, turned: bool):
+    """(γ, share of the distance driven) of the window frames lo .. n. Each frame's share of the
+    drift: the distance driven from the anchor (frame lo - 1) over the window's, as drift grows
+    with distance, not frames (stops, gaps)."""
+    gamma = discount(policy, alpha, n - np.arange(lo, n + 1, dtype=float), n - lo)
+    frac = np.arange(1, n - lo + 2, dtype=float) / (n - lo + 1)
+    if lo > 0:
+        driven = traj.s[lo : n + 1] - traj.s[lo - 1]
+        if driven[-1] > 1e-9:
+            frac = driven / driven[-1]
+            if policy.discount_shape == "drift":
+                share = drift_share(model, driven, heading_known=turned)
+                gamma = (1.0 - math.exp(-policy.discount_offset)) * share
+    return gamma, frac
 
-    def _correct(self, n: int, q: float, delta: np.ndarray, alpha: int, rotvec: np.ndarray | None = None, first: int = 0) -> int:
-        """Eq. 6 (our reading): p_s += w·γ_s·δ for s in [max(N−K, first), N], w = Q (or 1 for a
-        verified loop under correction_weight = "verified"); with ``rotvec`` (world-frame axis-angle
-        toward the verified heading) first the bend, or, for a window that starts at frame 0 (no
-        anchor), R_s ← Exp(w·γ_s·rotvec)·R_s. ``first`` is the frame after the reference: the
-        reference and older frames are the loop's anchor and never move. Returns how many moved.
-        """
-        K = self.window_length(n - first + 1)
-        lo = max(0, n - K, first)
-        gamma = discount(self.cfg, alpha, n - np.arange(lo, n + 1, dtype=float), n - lo)
-        # Each window frame's share of the drift: the distance driven from the anchor (frame
-        # lo - 1) over the window's, as drift grows with distance, not frames (stops, gaps).
-        frac = np.arange(1, n - lo + 2, dtype=float) / (n - lo + 1)
-        if lo > 0:
-            driven = self._s[lo : n + 1] - self._s[lo - 1]
-            if driven[-1] > 1e-9:
-                frac = driven / driven[-1]
-                if self.cfg.discount_shape == "drift":
-                    share = drift_share(self.drift_model, driven, heading_known=rotvec is not None)
-                    gamma = (1.0 - math.exp(-self.cfg.discount_offset)) * share
-        if rotvec is not None and lo > 0:
-            # Turn the window's headings progressively from its anchor (frame lo - 1, fixed) to N
-            # and re-compose its positions from the VO steps turned with them; the ramp below
-            # then spreads only what remains of delta.
-            Rs = exp_so3_scaled(rotvec, q * frac)
-            steps = np.diff(self._p[lo - 1 : n + 1], axis=0)
-            turned = np.einsum("kij,kj->ki", np.concatenate([np.eye(3)[None], Rs[:-1]]), steps)
-            old_n = self._p[n].copy()
-            self._p[lo : n + 1] = self._p[lo - 1] + np.cumsum(turned, axis=0)
-            delta = delta - (self._p[n] - old_n)
-            if self.cfg.correction_axes == "ground":
-                delta[1] = 0.0
-            self._R[lo : n + 1] = Rs @ self._R[lo : n + 1]
-            self._yaw[lo : n + 1] = yaw_deg(self._R[lo : n + 1])
-            rotvec = None
-        self._p[lo : n + 1] += (q * gamma)[:, None] * delta
-        if rotvec is not None:
-            self._R[lo : n + 1] = exp_so3_scaled(rotvec, q * gamma) @ self._R[lo : n + 1]
-            self._yaw[lo : n + 1] = yaw_deg(self._R[lo : n + 1])
-        self._refile(lo, n + 1)
-        return int(np.count_nonzero(gamma > 0.0))
+
+def _bend(traj: Trajectory, lo: int, n: int, Rs: np.ndarray) -> np.ndarray:
+    """Turn the window's headings by ``Rs`` from its anchor (frame lo - 1, fixed) to N and
+    re-compose its positions from the VO steps turned with them; returns how far N moved."""
+    steps = np.diff(traj.p[lo - 1 : n + 1], axis=0)
+    turned = np.einsum("kij,kj->ki", np.concatenate([np.eye(3)[None], Rs[:-1]]), steps)
+    old_n = traj.p[n].copy()
+    traj.p[lo : n + 1] = traj.p[lo - 1] + np.cumsum(turned, axis=0)
+    traj.R[lo : n + 1] = Rs @ traj.R[lo : n + 1]
+    traj.yaw[lo : n + 1] = yaw_deg(traj.R[lo : n + 1])
+    return traj.p[n] - old_n
+
+
+def correct(
+    traj: Trajectory,
+    policy: LoopPolicy,
+    model: DriftModel,
+    window: tuple[int, int],
+    offset: np.ndarray,
+    weight: float,
+    alpha: int,
+    rotvec: np.ndarray | None = None,
+) -> int:
+    """Eq. 6 (our reading) on the window (lo, N): p_s += w·γ_s·δ for s in [lo, N], δ = ``offset``,
+    w = ``weight``; with ``rotvec`` (world-frame axis-angle toward the verified heading) first
+    the bend (:func:`_bend`), or, for a window that starts at frame 0 (no anchor),
+    R_s ← Exp(w·γ_s·rotvec)·R_s. Frame lo - 1 is the anchor and never moves. Returns how many moved.
+    """
+    lo, n = window
+    delta = offset
+    gamma, frac = _weights(traj, policy, model, lo, n, alpha, turned=rotvec is not None)
+    if rotvec is not None and lo > 0:
+        # The ramp below then spreads only what remains of delta.
+        delta = delta - _bend(traj, lo, n, exp_so3_scaled(rotvec, weight * frac))
+        if policy.correction_axes == "ground":
+            delta[1] = 0.0
+        rotvec = None
+    traj.p[lo : n + 1] += (weight * gamma)[:, None] * delta
+    if rotvec is not None:
+        traj.R[lo : n + 1] = exp_so3_scaled(rotvec, weight * gamma) @ traj.R[lo : n + 1]
+        traj.yaw[lo : n + 1] = yaw_deg(traj.R[lo : n + 1])
+    return int(np.count_nonzero(gamma > 0.0))

@@ -1,38 +1,45 @@
 """SNAPS: similarity and location-based real-time loop closure (paper §III, eq. 6, Table I).
 
-:class:`SnapsLoopCloser` owns the real-time *heuristic* trajectory. Per frame it composes the VO
-step onto the previous, corrected pose, keeps the 1/6-scale thumbnail and, once the pause after
-the last loop is over, compares up to ``attempts`` candidates (search.py) by UIQI; the loop is
-picked by :meth:`~SnapsLoopCloser._try_close` and corrected by eq. 6 (correction.py). M, K and the
-pause count processed frames (stream positions); :class:`LoopEvent` holds the caller's indices.
+:class:`SnapsLoopCloser` composes the heuristic trajectory (trajectory.py), the candidate index
+over it (search.py), the thumbnails (uiqi.py), eq. 6 (correction.py) and a verifier given at
+construction; the rule is a named :class:`~snaps_graph.loop.policy.LoopPolicy`. Per frame it
+composes the VO step onto the previous, corrected pose, keeps the thumbnail and, once the pause
+after the last loop is over, compares up to ``attempts`` candidates by UIQI, picks the loop and
+corrects. M, K and the pause count processed frames (stream positions); :class:`LoopEvent`
+holds the caller's frame numbers.
 """
 
 from __future__ import annotations
 
-import math
-from collections import OrderedDict
-from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from time import perf_counter
+from typing import Protocol
 
 import numpy as np
 
 from ..config import LoopConfig, OdometryConfig
 from ..drift_model import heading_sigma_deg
 from ..errors import SnapsGraphError
-from ..geometry import rotation_angle_deg, wrap_deg, yaw_deg
+from ..geometry import rotation_angle_deg, wrap_deg
 from ..types import CandidateRecord, LoopEvent
-from .correction import Correction, discount, yaw_correction
-from .search import CandidateSearch
-from .uiqi import WindowStats, make_thumbnail, shifted_pair, similarity, similarity_q, similarity_shifted, window_stats
+from .correction import correct, verified_gain, window_length, yaw_correction
+from .policy import POLICIES, LoopPolicy
+from .search import CandidateIndex
+from .trajectory import Trajectory
+from .uiqi import UIQI, Thumbnails, WindowStats, make_thumbnail, similarity, similarity_q, thumbnail_shape, window_stats
 
 FOLLOW_TOL_M = 1.0  # a graph-only loop on verification alone must land this close to the track's prediction, m
 FOLLOW_TOL_PER_M = 0.02  # ... plus this much per metre driven on both passes since the track's loop
 FOLLOW_TOL_DEG = 3.0  # ... and turn this close, degrees
 
-# Geometric verification, injected by the pipeline (loop/ never imports the front end):
-# reference dataset index -> (T_ref_cur, inliers) or None.
-Verifier = Callable[[int], "tuple[np.ndarray, int] | None"]
+
+class Verifier(Protocol):
+    """Geometric verification of a candidate against the current frame (loop/ never imports the
+    front end: the pipeline gives one, e.g. :class:`snaps_graph.verification.LoopVerifier`)."""
+
+    def verify(self, reference: int) -> tuple[np.ndarray, int] | None:
+        """(T_ref_cur, inliers) of the current frame in dataset frame ``reference``, or None."""
+        ...
 
 
 @dataclass
@@ -46,13 +53,36 @@ class SnapsStep:
     t_verify_ms: float = 0.0  # geometric verification time on this frame (tried or successful)
 
 
-class SnapsLoopCloser(CandidateSearch, Correction):
+@dataclass
+class Choice:
+    """What the comparison of one frame's candidates decided (indices into its candidates)."""
+
+    best: int = -1  # the loop's candidate (highest Q above the threshold, or the verified one)
+    accept: bool = False  # the loop is taken
+    verified: bool = False
+    T_ref_cur: np.ndarray | None = None
+    inliers: int = 0
+    graph_only: bool = False  # a loop for the factor graph only, the heuristic not corrected
+    t_verify_ms: float = 0.0
+    # The verifier's answer per candidate tried (absent: not tried).
+    outcome: dict[int, tuple[np.ndarray, int] | None] = field(default_factory=dict)
+
+
+class SnapsLoopCloser:
     """Real-time SNAPS loop closer and owner of the heuristic trajectory (no I/O inside)."""
 
-    def __init__(self, cfg: LoopConfig | None = None, odometry: OdometryConfig | None = None, pause_every: int = 1):
+    def __init__(
+        self,
+        cfg: LoopConfig | None = None,
+        odometry: OdometryConfig | None = None,
+        pause_every: int = 1,
+        verifier: Verifier | None = None,
+        policy: LoopPolicy | None = None,
+    ):
         """``pause_every``: in the pause, a graph-only loop is searched every this many frames
         (the verifier's reference spacing: loops measured against one stored reference share its
-        errors, and the graph would count them as independent)."""
+        errors, and the graph would count them as independent). ``verifier``: geometric
+        verification (None: loops by Q alone). ``policy``: the rule (default ``cfg.policy``)."""
         if pause_every < 1:
             raise SnapsGraphError(f"SNAPS: pause_every must be >= 1, got {pause_every}")
         self.pause_every = int(pause_every)
@@ -60,55 +90,39 @@ class SnapsLoopCloser(CandidateSearch, Correction):
         self.cfg.validate()
         self.odometry = odometry if odometry is not None else OdometryConfig()
         self.odometry.validate()
+        self.policy = policy if policy is not None else POLICIES[self.cfg.policy]
+        self.verifier = verifier
         self.drift_model = self.odometry.model()
-        self._last_loop: tuple[int, int] | None = None  # (frame, reference) of the last verified loop
+        self.traj = Trajectory()
+        self.index = CandidateIndex(self.traj, self.cfg, self.policy, self.drift_model)
+        self.thumbs = Thumbnails(self.cfg.window)
         self._track: tuple[int, int, np.ndarray] | None = None  # (frame, reference, T_ref_cur): the last verified loop
-        self._speed = 0.0  # metres per frame number, running mean (see step)
-        cap = 1024
-        self._R = np.empty((cap, 3, 3))
-        self._p = np.empty((cap, 3))
-        self._yaw = np.empty(cap)
-        self._index = np.empty(cap, dtype=np.int64)
-        self._s = np.empty(cap)  # distance driven up to each frame (estimated), m
-        self._n = 0  # frames processed
-        self._init_search()
-        self._thumbs: list[np.ndarray] = []
-        self._stats: OrderedDict[int, WindowStats] = OrderedDict()
         self._last_pinned: int | None = None
         self._pause_from = 0  # the loop that started the current pause
         self._alpha = 0  # loops that corrected the trajectory (eq. 6's alpha)
         self._loops: list[LoopEvent] = []
-        self.similarities_computed = 0
-        self.rejected_unverified = 0  # loops refused because no candidate verified
-        self._t_verify_ms = 0.0  # verification time inside the current step (excluded from t_ms)
-        self.stats_computed = 0
-        # One tuple per compared candidate (types.CandidateRecord, built at the end): (n, j, distance, yaw difference, Q,
-        # shift, above threshold, verification tried, passed, inliers, accepted), stream positions.
+        # One tuple per compared candidate (types.CandidateRecord, built at the end): (n, j, distance,
+        # yaw difference, Q, above threshold, verification tried, passed, inliers, accepted), stream positions.
         self._cand: list[tuple] = []
 
     # ---- accessors ----
     def __len__(self) -> int:
-        return self._n
+        return len(self.traj)
 
     @property
     def poses(self) -> np.ndarray:
         """(N, 4, 4) heuristic trajectory T_world_cam (a copy)."""
-        n = self._n
-        out = np.zeros((n, 4, 4))
-        out[:, :3, :3] = self._R[:n]
-        out[:, :3, 3] = self._p[:n]
-        out[:, 3, 3] = 1.0
-        return out
+        return self.traj.poses()
 
     @property
     def positions(self) -> np.ndarray:
         """(N, 3) heuristic positions (a copy)."""
-        return self._p[: self._n].copy()
+        return self.traj.p[: len(self.traj)].copy()
 
     @property
     def indices(self) -> np.ndarray:
         """(N,) the caller's frame index of each processed frame (stream position -> dataset index)."""
-        return self._index[: self._n].copy()
+        return self.traj.index[: len(self.traj)].copy()
 
     @property
     def loops(self) -> list[LoopEvent]:
@@ -121,88 +135,64 @@ class SnapsLoopCloser(CandidateSearch, Correction):
 
     def thumbnail(self, k: int) -> np.ndarray:
         """Thumbnail of the frame at stream position ``k`` (uint8 for uint8 input)."""
-        return self._thumbs[k]
+        return self.thumbs[k]
 
     def pose(self, k: int) -> np.ndarray:
-        T = np.eye(4)
-        T[:3, :3] = self._R[k]
-        T[:3, 3] = self._p[k]
-        return T
+        return self.traj.pose(k)
 
     # ---- the per-frame step ----
-    def step(self, index: int, T_rel: np.ndarray, left: np.ndarray, verify: Verifier | None = None) -> SnapsStep:
+    def check_image(self, index: int, shape: tuple[int, ...]) -> None:
+        """SnapsGraphError unless an image of ``shape`` can be compared: its thumbnail has the
+        first frame's size and holds the UIQI window. :meth:`step` assumes this was checked."""
+        th, tw = thumbnail_shape(shape, self.cfg.thumbnail_scale)
+        if len(self.thumbs) and (th, tw) != self.thumbs[0].shape:
+            raise SnapsGraphError(f"SNAPS: frame {index}: image size {shape[1]}x{shape[0]} differs from the first frame's")
+        if min(th, tw) < self.cfg.window:
+            raise SnapsGraphError(
+                f"frame {index}: image {shape[1]}x{shape[0]} is too small for SNAPS: its thumbnail ({tw}x{th} at "
+                f"loop.thumbnail_scale = {self.cfg.thumbnail_scale:g}) is smaller than loop.window = {self.cfg.window}"
+            )
+
+    def step(self, index: int, T_rel: np.ndarray, left: np.ndarray) -> SnapsStep:
         """Process one frame: compose the pose, store the thumbnail, detect and close a loop.
 
         ``T_rel`` is T_prev_cur from the VO (ignored for the first frame, which is the identity);
-        ``left`` is the full left grey image. ``verify``, when given, is called with the dataset
-        index of a loop's reference and returns ``(T_ref_cur, inliers)`` from geometric
-        verification or None (see :meth:`_try_close`). Raises SnapsGraphError for a non-finite or
-        malformed ``T_rel`` and for an image whose size differs from the first frame's.
+        ``left`` is the full left grey image, checked by :meth:`check_image`. Raises
+        SnapsGraphError for a non-finite or malformed ``T_rel``.
         """
-        n = self._n
         thumb = make_thumbnail(left, self.cfg.thumbnail_scale)
-        if self._thumbs and thumb.shape != self._thumbs[0].shape:
-            raise SnapsGraphError(
-                f"SNAPS: frame {index}: image size {np.shape(left)[1]}x{np.shape(left)[0]} differs from the first frame's"
-            )
-        if min(thumb.shape) < self.cfg.window:
-            raise SnapsGraphError(
-                f"SNAPS: frame {index}: thumbnail {thumb.shape[1]}x{thumb.shape[0]} "
-                f"is smaller than the UIQI window {self.cfg.window}"
-            )
-        self._grow(n + 1)
-        if n == 0:
-            R, p = np.eye(3), np.zeros(3)
-            self._s[0] = 0.0
-        else:
-            T = np.asarray(T_rel, dtype=float)
-            if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-                raise SnapsGraphError(f"SNAPS: frame {index}: T_rel must be a finite 4x4 transform")
-            R_prev, p_prev = self._R[n - 1], self._p[n - 1]
-            R = R_prev @ T[:3, :3]
-            p = p_prev + R_prev @ T[:3, 3]
-            # Distance driven: a jump in the frame numbers (frames left out) is driven at the
-            # speed of the frames before it, never less than the straight line across it.
-            step_m = math.sqrt(float(T[0, 3] ** 2 + T[1, 3] ** 2 + T[2, 3] ** 2))
-            gap = max(1, int(index) - int(self._index[n - 1]))
-            if gap == 1:
-                self._speed += 0.1 * (step_m - self._speed) if n > 1 else step_m - self._speed
-            self._s[n] = self._s[n - 1] + (step_m if gap == 1 else max(step_m, gap * self._speed))
-        self._R[n], self._p[n] = R, p
-        self._yaw[n] = yaw_deg(R)
-        self._index[n] = index
-        self._thumbs.append(thumb)
-        self._n = n + 1
-
+        n = self.traj.append(index, T_rel)
+        self.thumbs.append(thumb)
         t0 = perf_counter()
-        if n - self.cfg.frame_distance >= 0:
-            self._insert(n - self.cfg.frame_distance)
-            for lvl in range(1, len(self._levels)):
-                self._promote(n, lvl)
-        loop, computed = None, 0
-        if self._last_pinned is None or n - self._pause_from > self.cfg.inter_frame_pause:
-            ids, dists = self.search(n)
-            if ids.size:
-                pick = self._pick(len(ids))
-                loop, computed = self._try_close(n, ids[pick], dists[pick], verify, follow=self._tracking(n, cadence=True))
-        elif self.cfg.pause_graph_loops and (n - self._pause_from) % self.pause_every == 0:  # verified revisits for the graph
-            ids, dists = self.search(n)
-            if ids.size:
-                a = self.cfg.attempts
-                loop, computed = self._try_close(n, ids[:a], dists[:a], verify, in_pause=True)
+        self.index.add(n)
+        loop, computed, t_verify_ms = self._detect(n)
         # Verification (tried or successful) is the graph's work, timed on its own.
-        t_verify_ms, self._t_verify_ms = self._t_verify_ms, 0.0
         t_ms = (perf_counter() - t0) * 1e3 - t_verify_ms
         if loop is not None:
             loop.t_ms = t_ms
         return SnapsStep(pose=self.pose(n), loop=loop, candidates=computed, t_ms=t_ms, t_verify_ms=t_verify_ms)
+
+    def _detect(self, n: int) -> tuple[LoopEvent | None, int, float]:
+        """Search and compare outside the pause; inside it (``pause_graph_loops``), on the
+        verifier's reference spacing, verified revisits for the graph only."""
+        if self._last_pinned is None or n - self._pause_from > self.cfg.inter_frame_pause:
+            ids, dists = self.index.search(n)
+            if ids.size:
+                pick = self.index.pick(len(ids))
+                return self._try_close(n, ids[pick], dists[pick], follow=self._tracking(n, cadence=True))
+        elif self.policy.pause_graph_loops and (n - self._pause_from) % self.pause_every == 0:
+            ids, dists = self.index.search(n)
+            if ids.size:
+                a = self.policy.attempts
+                return self._try_close(n, ids[:a], dists[:a], in_pause=True)
+        return None, 0, 0.0
 
     # ---- candidates ----
     def _tracking(self, n: int, cadence: bool = False) -> bool:
         """Whether frame n follows a verified revisit: a verified loop (of any kind) lies at most
         ``inter_frame_pause`` frames back, with graph-only loops allowed (``pause_graph_loops``);
         ``cadence``: and n is on the pause's cadence since that loop (a frame outside the pause)."""
-        if not self.cfg.pause_graph_loops or self._track is None:
+        if not self.policy.pause_graph_loops or self._track is None:
             return False
         age = n - self._track[0]
         return 0 < age <= self.cfg.inter_frame_pause and (not cadence or age % self.pause_every == 0)
@@ -215,193 +205,186 @@ class SnapsLoopCloser(CandidateSearch, Correction):
         W = self.pose
         pred = np.linalg.solve(W(ref), W(r0)) @ M0 @ np.linalg.solve(W(n0), W(n))
         E = np.linalg.solve(pred, np.asarray(T_ref_cur, float))
-        driven = abs(self._s[n] - self._s[n0]) + abs(self._s[ref] - self._s[r0])
+        s = self.traj.s
+        driven = abs(s[n] - s[n0]) + abs(s[ref] - s[r0])
         tol_m = FOLLOW_TOL_M + FOLLOW_TOL_PER_M * driven
         return bool(np.linalg.norm(E[:3, 3]) <= tol_m and rotation_angle_deg(E) <= FOLLOW_TOL_DEG)
 
-    def _first_verified(
-        self, n: int, ids: np.ndarray, tries: list[int], verify: Verifier, outcome: dict, on_track: bool
-    ) -> "tuple[int, tuple[np.ndarray, int]] | None":
+    def _first_verified(self, n: int, ids: np.ndarray, tries: list[int], outcome: dict, on_track: bool):
         """Verify candidates ``tries`` in turn (each answer into ``outcome``): the first that verifies,
         and with ``on_track`` agrees with the track (:meth:`_agrees`), as (i, (T_ref_cur, inliers))."""
+        assert self.verifier is not None
         for i in tries:
-            outcome[i] = result = verify(int(self._index[int(ids[i])]))
+            outcome[i] = result = self.verifier.verify(int(self.traj.index[int(ids[i])]))
             if result is not None and (not on_track or self._agrees(n, int(ids[i]), result[0])):
                 return i, result
         return None
 
     def _try_close(
-        self,
-        n: int,
-        ids: np.ndarray,
-        dists: np.ndarray,
-        verify: Verifier | None = None,
-        in_pause: bool = False,
-        follow: bool = False,
-    ) -> tuple[LoopEvent | None, int]:
-        """Compare candidates, pick the loop, correct (eq. 6). Those at or above ``min_similarity`` are
-        verified highest Q first (at most ``verify_attempts``); the first that verifies is the loop, or,
-        without a verifier or under ``require_verification = false``, the best Q. δ aims at p_ref, or with
-        ``use_verified_offset`` at p_ref + R_ref·t_ref_cur. ``in_pause``: only a verified candidate makes
-        a loop, and it goes to the graph without correcting. While a verified revisit is followed
-        (:meth:`_tracking`; ``follow`` outside the pause), candidates below the threshold are verified
-        too, and one that agrees with the track (:meth:`_agrees`) is a graph-only loop.
-        """
-        cur = self._window_stats(n)
-        if self.cfg.shift_px > 0:  # best horizontal shift per candidate (heading differences)
-            scored = [similarity_shifted(cur, self._window_stats(int(j)), self.cfg.shift_px, self.cfg.shift_step_px) for j in ids]
-            qs = np.array([q for q, _ in scored])
-            shifts = [dx for _, dx in scored]
-        else:
-            qs = np.array([similarity_q(cur, self._window_stats(int(j))) for j in ids])
-            shifts = [0] * len(ids)
-        self.similarities_computed += len(ids)
+        self, n: int, ids: np.ndarray, dists: np.ndarray, in_pause: bool = False, follow: bool = False
+    ) -> tuple[LoopEvent | None, int, float]:
+        """Compare candidates by Q, pick the loop (:meth:`_choose`), correct (:meth:`_close`).
+        Returns (the loop or None, similarities computed, verification time in ms)."""
+        cur = self.thumbs.stats(n)
+        qs = np.array([similarity_q(cur, self.thumbs.stats(int(j))) for j in ids])
         # Candidates at or above the threshold, highest Q first (stable: nearer first on ties).
         order = np.argsort(-qs, kind="stable")
         passing = [int(i) for i in order if qs[i] >= self.cfg.min_similarity]
-        # Verification outcome per candidate: None = not tried, else the verifier's answer.
-        outcome: dict[int, "tuple[np.ndarray, int] | None"] = {}
-        best, verified, T_ref_cur, inliers, t_verify_ms = -1, False, None, 0, 0.0
-        graph_only = in_pause  # a loop for the factor graph only, the heuristic not corrected
-        if passing:
-            best = passing[0]
-        tracking = follow or (in_pause and self._tracking(n))
-        if verify is not None and (passing or tracking or self.cfg.verify_all_candidates):
-            # Geometric verification of the best candidates in turn: the first that verifies is
-            # the loop. With require_verification, none verifying means no loop (a same-place
-            # assumption up to the radius away does more harm than a missed loop); otherwise the
-            # paper's rule: the highest Q, unverified. verify_all_candidates verifies the rest
-            # too, for the record only.
+        c = self._choose(n, ids, order, passing, tracking=follow or (in_pause and self._tracking(n)), in_pause=in_pause)
+        self._record(n, ids, dists, qs, c.outcome, c.best if c.accept else -1)
+        if not c.accept:
+            return None, len(ids), c.t_verify_ms
+        return self._close(n, ids, dists[c.best], cur, c), len(ids), c.t_verify_ms
+
+    def _choose(self, n: int, ids: np.ndarray, order: np.ndarray, passing: list[int], tracking: bool, in_pause: bool) -> Choice:
+        """Those at or above ``min_similarity`` are verified highest Q first (at most
+        ``verify_attempts``); the first that verifies is the loop, or, without a verifier or when
+        the policy does not require verification, the best Q. ``in_pause``: only a verified
+        candidate makes a loop, for the graph only. While a verified revisit is followed
+        (``tracking``), candidates below the threshold are verified too, and one that agrees with
+        the track (:meth:`_agrees`) is a graph-only loop: Q falls with traffic and light while the
+        place is the same."""
+        c = Choice(best=passing[0] if passing else -1, graph_only=in_pause)
+        if self.verifier is not None and (passing or tracking):
             tv = perf_counter()
-            attempts = max(1, self.cfg.verify_attempts)
-            hit = self._first_verified(n, ids, passing[:attempts], verify, outcome, on_track=False)
+            attempts = max(1, self.policy.verify_attempts)
+            hit = self._first_verified(n, ids, passing[:attempts], c.outcome, on_track=False)
             if hit is None and tracking:
-                # Along a verified revisit Q falls with traffic and light while the place is the
-                # same: verification and the track's geometry decide, for the graph only.
-                rest = [int(i) for i in order if int(i) not in outcome][:attempts]
-                hit = self._first_verified(n, ids, rest, verify, outcome, on_track=True)
-                graph_only = graph_only or hit is not None
-            if self.cfg.verify_all_candidates:
-                for i in order.tolist():
-                    if i not in outcome:
-                        outcome[i] = verify(int(self._index[int(ids[i])]))
+                rest = [int(i) for i in order if int(i) not in c.outcome][:attempts]
+                hit = self._first_verified(n, ids, rest, c.outcome, on_track=True)
+                c.graph_only = c.graph_only or hit is not None
             if hit is not None:
-                best, (T_ref_cur, inliers) = hit
-                verified = True
-            t_verify_ms = (perf_counter() - tv) * 1e3
-            self._t_verify_ms = t_verify_ms
-        # A verified loop is taken; an unverified best Q only by the paper's rule, outside the pause.
-        accept = verified or (bool(passing) and not in_pause and (verify is None or not self.cfg.require_verification))
-        if passing and not accept:
-            self.rejected_unverified += 1
-        self._record(n, ids, dists, qs, shifts, outcome, best if accept else -1)
-        if not accept:
-            return None, len(ids)
-        ref = int(ids[best])
-        # The winner's factors, same arithmetic, at its best shift.
-        margin = min(self.cfg.shift_px, (cur.shape[1] - cur.window) // 2)
-        sim = similarity(*shifted_pair(cur, self._window_stats(ref), shifts[best], margin))
-        target = self._p[ref].copy()
-        if verified and self.cfg.use_verified_offset:
-            target = target + self._R[ref] @ np.asarray(T_ref_cur, float)[:3, 3]
-        delta = target - self._p[n]
-        if self.cfg.correction_axes == "ground":  # the reference's height error stays out
-            delta[1] = 0.0
-        rotvec = None
-        if verified and self.cfg.correction_rotation != "none" and not graph_only:
-            gain = self._gain(float(heading_sigma_deg(self.drift_model, self._s[n] - self._s[ref])) ** 2)
-            rotvec = yaw_correction(self._R[ref] @ np.asarray(T_ref_cur, float)[:3, :3] @ self._R[n].T) * gain
+                c.best, (c.T_ref_cur, c.inliers) = hit
+                c.verified = True
+            c.t_verify_ms = (perf_counter() - tv) * 1e3
+        # A verified loop is taken; an unverified best Q only by the paper's rule, outside the pause
+        # (a same-place assumption up to the radius away does more harm than a missed loop).
+        unverified_ok = not in_pause and (self.verifier is None or not self.policy.require_verification)
+        c.accept = c.verified or (bool(passing) and unverified_ok)
+        return c
+
+    # ---- the loop ----
+    def _close(self, n: int, ids: np.ndarray, distance_m: float, cur: WindowStats, c: Choice) -> LoopEvent:
+        """Correct by eq. 6 toward the chosen candidate (a graph-only loop corrects nothing: the
+        last loop already explained what it would re-bend) and record the loop."""
+        ref = int(ids[c.best])
+        sim = similarity(cur, self.thumbs.stats(ref))
+        delta, rotvec = self._offset(n, ref, c)
         # Eq. 6 weighs the move by Q: the confidence that N stands where the reference stood. A
-        # verified loop measured where N stands, so with correction_weight = "verified" it moves
-        # with weight 1 (gamma still discounts older poses); "q" is the paper's rule everywhere.
-        weight = 1.0 if (verified and self.cfg.correction_weight == "verified") else sim.q
-        if graph_only:
-            # Correcting again re-bends what the last loop explained: the loop goes to the factor
-            # graph only and the pause keeps running.
+        # verified loop measured where N stands: under the drift policy it moves with weight 1.
+        weight = 1.0 if (c.verified and self.policy.correction_weight == "verified") else sim.q
+        if c.graph_only:
             weight, n_corrected, alpha = 0.0, 0, self._alpha
         else:
             self._alpha = alpha = self._alpha + 1
-            n_corrected = self._correct(n, weight, delta, alpha, rotvec, first=ref + 1)
+            n_corrected = self._correct(n, ref, weight, delta, alpha, rotvec)
             self._last_pinned = self._pause_from = n
-            if verified:  # the search's uncertainty restarts from this measurement
-                self._last_loop = (n, ref)
-        if verified:
-            self._track = (n, ref, np.asarray(T_ref_cur, float).copy())
-        event = LoopEvent(
-            frame=int(self._index[n]),
-            reference=int(self._index[ref]),
-            distance_m=float(dists[best]),
-            yaw_diff_deg=float(wrap_deg(self._yaw[ref] - self._yaw[n])),
+            if c.verified:  # the search's uncertainty restarts from this measurement
+                self.index.last_loop = (n, ref)
+        if c.verified:
+            self._track = (n, ref, np.asarray(c.T_ref_cur, float).copy())
+        event = self._event(n, ref, distance_m, sim, delta, c, weight, n_corrected, alpha, len(ids))
+        self._loops.append(event)
+        return event
+
+    def _offset(self, n: int, ref: int, c: Choice) -> tuple[np.ndarray, np.ndarray | None]:
+        """Eq. 6's δ (toward p_ref, or where verification puts N under ``use_verified_offset``)
+        and, for a verified loop that corrects, the turn toward the verified heading."""
+        R, p = self.traj.R, self.traj.p
+        target = p[ref].copy()
+        if c.verified and self.policy.use_verified_offset:
+            target = target + R[ref] @ np.asarray(c.T_ref_cur, float)[:3, 3]
+        delta = target - p[n]
+        if self.policy.correction_axes == "ground":  # the reference's height error stays out
+            delta[1] = 0.0
+        if not c.verified or self.policy.correction_rotation == "none" or c.graph_only:
+            return delta, None
+        gain = verified_gain(self.policy, float(heading_sigma_deg(self.drift_model, self.traj.s[n] - self.traj.s[ref])) ** 2)
+        return delta, yaw_correction(R[ref] @ np.asarray(c.T_ref_cur, float)[:3, :3] @ R[n].T) * gain
+
+    def _correct(self, n: int, ref: int, weight: float, delta: np.ndarray, alpha: int, rotvec: np.ndarray | None) -> int:
+        """Eq. 6 over [max(N − K, ref + 1), N] (the reference and older frames are the loop's anchor
+        and never move); the moved frames are re-filed in the index. Returns how many moved."""
+        first = ref + 1
+        lo = max(0, n - window_length(self.policy, self.cfg.discount_length, n - first + 1), first)
+        moved = correct(self.traj, self.policy, self.drift_model, (lo, n), delta, weight, alpha, rotvec)
+        self.index.refile(lo, n + 1)
+        return moved
+
+    def _event(
+        self,
+        n: int,
+        ref: int,
+        distance_m: float,
+        sim: UIQI,
+        delta: np.ndarray,
+        c: Choice,
+        weight: float,
+        moved: int,
+        alpha: int,
+        candidates: int,
+    ) -> LoopEvent:
+        index, yaw = self.traj.index, self.traj.yaw
+        return LoopEvent(
+            frame=int(index[n]),
+            reference=int(index[ref]),
+            distance_m=float(distance_m),
+            yaw_diff_deg=float(wrap_deg(yaw[ref] - yaw[n])),
             q=sim.q,
             correlation=sim.correlation,
             luminance=sim.luminance,
             contrast=sim.contrast,
             delta=delta.copy(),
-            n_corrected=n_corrected,
+            n_corrected=moved,
             alpha=alpha,
-            candidates=len(ids),
+            candidates=candidates,
             t_ms=0.0,  # set by step() once the frame's detection + correction is over
-            verified=verified,
-            shift_px=int(shifts[best]),
+            verified=c.verified,
             weight=float(weight),
-            verify_inliers=int(inliers),
-            T_ref_cur=None if T_ref_cur is None else np.asarray(T_ref_cur, float).copy(),
-            t_verify_ms=t_verify_ms,
+            verify_inliers=int(c.inliers),
+            T_ref_cur=None if c.T_ref_cur is None else np.asarray(c.T_ref_cur, float).copy(),
+            t_verify_ms=c.t_verify_ms,
         )
-        self._loops.append(event)
-        return event, len(ids)
 
     # ---- records ----
-    def _record(self, n, ids, dists, qs, shifts, outcome, accepted: int) -> None:
+    def _record(self, n: int, ids: np.ndarray, dists: np.ndarray, qs: np.ndarray, outcome: dict, accepted: int) -> None:
         """Append one tuple per compared candidate (no formatting; types.CandidateRecord at the end)."""
-        yaw_n = float(self._yaw[n])
-        yaws = self._yaw
+        yaw_n = float(self.traj.yaw[n])
+        yaws = self.traj.yaw
         thr = self.cfg.min_similarity
         app = self._cand.append
         for i, j in enumerate(ids.tolist()):
             res = outcome.get(i, False)
             app(
-                (
-                    n,
-                    j,
-                    float(dists[i]),
-                    float(yaws[j]) - yaw_n,
-                    float(qs[i]),
-                    int(shifts[i]),
-                    bool(qs[i] >= thr),
-                    res is not False,
-                    bool(res),
-                    res[1] if res else 0,
-                    i == accepted,
-                )
+                (n, j, float(dists[i]), float(yaws[j]) - yaw_n, float(qs[i]), bool(qs[i] >= thr))
+                + (res is not False, bool(res), res[1] if res else 0, i == accepted)
             )
 
     def candidate_records(self) -> list[CandidateRecord]:
         """Every similarity computed so far as :class:`CandidateRecord` (dataset frame indices),
-        with Q's three factors computed now from the stored thumbnails at the recorded shift."""
+        with Q's three factors computed now from the stored thumbnails."""
         out = []
         stats: dict[int, WindowStats] = {}
 
         def st(k: int) -> WindowStats:
             if k not in stats:
-                stats[k] = self._stats.get(k) or window_stats(self._thumbs[k], self.cfg.window)
+                stats[k] = self.thumbs.cached(k) or window_stats(self.thumbs[k], self.cfg.window)
             return stats[k]
 
-        for n, j, d, dyaw, q, dx, above, tried, passed, inl, acc in self._cand:
-            a, b = st(n), st(j)
-            margin = min(self.cfg.shift_px, (a.shape[1] - a.window) // 2)
-            sim = similarity(*shifted_pair(a, b, dx, margin))
+        index = self.traj.index
+        for n, j, d, dyaw, q, above, tried, passed, inl, acc in self._cand:
+            sim = similarity(st(n), st(j))
             out.append(
                 CandidateRecord(
-                    frame=int(self._index[n]),
-                    reference=int(self._index[j]),
+                    frame=int(index[n]),
+                    reference=int(index[j]),
                     distance_m=d,
                     yaw_diff_deg=float(wrap_deg(dyaw)),
                     q=q,
                     correlation=sim.correlation,
                     luminance=sim.luminance,
                     contrast=sim.contrast,
-                    shift_px=dx,
+                    shift_px=0,
                     above_threshold=above,
                     verify_tried=tried,
                     verify_passed=passed,
@@ -413,35 +396,5 @@ class SnapsLoopCloser(CandidateSearch, Correction):
                 stats.clear()
         return out
 
-    def _window_stats(self, k: int) -> WindowStats:
-        cache = self._stats
-        st = cache.get(k)
-        if st is not None:
-            cache.move_to_end(k)
-            return st
-        st = window_stats(self._thumbs[k], self.cfg.window)
-        self.stats_computed += 1
-        if self.cfg.stats_cache_frames > 0:
-            cache[k] = st
-            if len(cache) > self.cfg.stats_cache_frames:
-                cache.popitem(last=False)
-        return st
 
-    def _grow(self, need: int) -> None:
-        cap = len(self._p)
-        if need <= cap:
-            return
-        new_cap = max(need, 2 * cap)
-
-        def grown(old: np.ndarray) -> np.ndarray:
-            arr = np.empty((new_cap,) + old.shape[1:], dtype=old.dtype)
-            arr[:cap] = old
-            return arr
-
-        for name in ("_R", "_p", "_yaw", "_index", "_s"):
-            setattr(self, name, grown(getattr(self, name)))
-        self._cells = [grown(c) for c in self._cells]
-        self._cell = self._cells[0]
-
-
-__all__ = ["SnapsLoopCloser", "SnapsStep", "discount"]
+__all__ = ["Choice", "SnapsLoopCloser", "SnapsStep", "Verifier"]

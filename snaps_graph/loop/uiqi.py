@@ -9,6 +9,7 @@ arithmetic and the rules for zero denominators: docs/loop-closure.md, "The simil
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any
 
@@ -181,108 +182,6 @@ def similarity_q(a: WindowStats, b: WindowStats) -> float:
     return 4.0 * float(cxy.mean())
 
 
-def columns(a: WindowStats, c0: int, c1: int) -> WindowStats:
-    """The statistics of the image's columns [c0, c1): a view, no recomputation.
-
-    A window lies inside the crop exactly when it starts at a column in [c0, c1 - B], so the
-    crop's window sums are a column slice of the full image's. ``special`` is inherited (a crop
-    of an image without flat windows has none; otherwise the exact masked branch runs).
-    """
-    b = a.window
-    if not 0 <= c0 < c1 <= a.shape[1] or c1 - c0 < b:
-        raise SnapsGraphError(f"UIQI: column crop [{c0}, {c1}) does not hold a {b}-pixel window")
-    return WindowStats(image=a.image[:, c0:c1], s=a.s[:, c0 : c1 - b + 1], v=a.v[:, c0 : c1 - b + 1], window=b, special=a.special)
-
-
-def shifted_pair(a: WindowStats, b: WindowStats, dx: int, margin: int) -> tuple[WindowStats, WindowStats]:
-    """The columns compared at shift ``dx``: a's central columns [margin, W - margin) against b's
-    columns moved by dx, so a[:, x] meets b[:, x + dx] (|dx| <= margin). Every shift compares
-    the same number of windows, which keeps the scores of different shifts comparable."""
-    w = a.shape[1]
-    if abs(dx) > margin:
-        raise SnapsGraphError(f"UIQI: shift {dx} exceeds the margin {margin}")
-    return columns(a, margin, w - margin), columns(b, margin + dx, w - margin + dx)
-
-
-@dataclass
-class _Workspace:
-    prods: np.ndarray
-    sums: np.ndarray
-    sb: np.ndarray
-    vb: np.ndarray
-    t1: np.ndarray
-    t2: np.ndarray
-
-
-_WORKSPACES: dict[tuple[int, ...], _Workspace] = {}
-
-
-def _workspace(ns: int, h: int, wc: int, hv: int, wv: int) -> _Workspace:
-    """Buffers for :func:`similarity_shifted`, kept per shape: fresh large arrays page-fault on
-    every call (docs/decisions.md, "Speed")."""
-    key = (ns, h, wc, hv, wv)
-    ws = _WORKSPACES.get(key)
-    if ws is None:
-        f = np.float32
-        ws = _Workspace(
-            np.empty((ns, h, wc), f),
-            np.empty((ns * h, wc), f),
-            np.empty((ns, hv, wv), f),
-            np.empty((ns, hv, wv), f),
-            np.empty((ns, hv, wv), f),
-            np.empty((ns, hv, wv), f),
-        )
-        _WORKSPACES.clear()  # one thumbnail shape per run: keep only the latest
-        _WORKSPACES[key] = ws
-    return ws
-
-
-def similarity_shifted(a: WindowStats, b: WindowStats, max_shift: int, step: int = 1) -> tuple[float, int]:
-    """Rank horizontal shifts: the mean Q of a's central columns against b's columns moved by dx
-    (:func:`shifted_pair`), dx in [-max_shift, max_shift] every ``step`` pixels; returns (Q at the
-    best shift, that dx). All shifts are box-filtered in one stacked call and scored in float32
-    (within about 1e-6 of :func:`uiqi`: enough to rank); a loop's reported Q and factors are
-    computed exactly by :func:`similarity` on :func:`shifted_pair`.
-    """
-    if a.shape != b.shape or a.window != b.window:
-        raise SnapsGraphError(f"UIQI: image sizes differ ({a.shape[1]}x{a.shape[0]} vs {b.shape[1]}x{b.shape[0]})")
-    h, w = a.shape
-    win = a.window
-    m = int(max(0, min(max_shift, (w - win) // 2)))
-    shifts = list(range(-m, m + 1, max(1, int(step))))
-    if len(shifts) == 1 or a.special or b.special:  # exact path for flat windows (rare in images)
-        scored = [(similarity_q(*shifted_pair(a, b, dx, m)), dx) for dx in shifts]
-        q, dx = max(scored, key=lambda t: (t[0], -abs(t[1])))
-        return float(q), dx
-    ns = len(shifts)
-    wc = w - 2 * m
-    hv, wv = h - win + 1, wc - win + 1
-    ws = _workspace(ns, h, wc, hv, wv)
-    ca = a.image[:, m : w - m]
-    for i, dx in enumerate(shifts):
-        np.multiply(ca, b.image[:, m + dx : w - m + dx], out=ws.prods[i], dtype=np.float32)
-        ws.sb[i] = b.s[:, m + dx : m + dx + wv]
-        ws.vb[i] = b.v[:, m + dx : m + dx + wv]
-    cv2.boxFilter(ws.prods.reshape(ns * h, wc), cv2.CV_32F, (win, win), dst=ws.sums, anchor=(0, 0), normalize=False)
-    sxy = ws.sums.reshape(ns, h, wc)[:, :hv, :wv]
-    sa = a.s[:, m : m + wv].astype(np.float32)
-    va = a.v[:, m : m + wv].astype(np.float32)
-    # Q = 4 (N Sxy - SaSb) SaSb / ((Va + Vb)(Sa^2 + Sb^2)), in place on the workspace.
-    sab, num, den = ws.t1, ws.t2, ws.vb
-    np.multiply(ws.sb, sa, out=sab)
-    np.multiply(sxy, float(win * win), out=num)
-    num -= sab
-    num *= sab
-    den += va
-    np.multiply(ws.sb, ws.sb, out=ws.sb)
-    ws.sb += sa * sa
-    den *= ws.sb
-    num /= den
-    means = num.reshape(ns, -1).mean(axis=1, dtype=np.float64)
-    best = int(np.argmax(means))
-    return 4.0 * float(means[best]), shifts[best]
-
-
 def uiqi(x: np.ndarray, y: np.ndarray, window: int = 8, return_maps: bool = False) -> UIQI:
     """Universal image quality index of two same-size grey images (eq. 4-5), B×B windows, step 1.
 
@@ -308,7 +207,56 @@ def make_thumbnail(image: np.ndarray, scale: float = 1.0 / 6.0) -> np.ndarray:
     if image.dtype != np.uint8:
         image = image.astype(np.float32)
     h, w = image.shape
-    size = (max(1, int(round(w * scale))), max(1, int(round(h * scale))))
+    th, tw = thumbnail_shape((h, w), scale)
+    size = (tw, th)
     if size == (w, h):
         return image.copy()
     return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+
+
+def thumbnail_shape(shape: tuple[int, ...], scale: float) -> tuple[int, int]:
+    """(rows, columns) of :func:`make_thumbnail`'s thumbnail of an image of ``shape``."""
+    h, w = shape[:2]
+    return max(1, int(round(h * scale))), max(1, int(round(w * scale)))
+
+
+# Thumbnails whose window sums are kept (~180 KB each at 1/6 of KITTI's size): a loop's candidates
+# come back frame after frame, and 512 cover the candidates of a revisit with room to spare.
+STATS_CACHE_FRAMES = 512
+
+
+class Thumbnails:
+    """Every frame's thumbnail (13 KB at 1/6 of KITTI's size) and a bounded cache of their
+    window sums, by stream position."""
+
+    def __init__(self, window: int):
+        self.window = window
+        self._thumbs: list[np.ndarray] = []
+        self._stats: OrderedDict[int, WindowStats] = OrderedDict()
+
+    def __len__(self) -> int:
+        return len(self._thumbs)
+
+    def __getitem__(self, k: int) -> np.ndarray:
+        return self._thumbs[k]
+
+    def append(self, thumb: np.ndarray) -> None:
+        """Keep the next frame's thumbnail (:func:`make_thumbnail`)."""
+        self._thumbs.append(thumb)
+
+    def stats(self, k: int) -> WindowStats:
+        """The window sums of thumbnail ``k``, from the cache or computed and cached."""
+        cache = self._stats
+        st = cache.get(k)
+        if st is not None:
+            cache.move_to_end(k)
+            return st
+        st = window_stats(self._thumbs[k], self.window)
+        cache[k] = st
+        if len(cache) > STATS_CACHE_FRAMES:
+            cache.popitem(last=False)
+        return st
+
+    def cached(self, k: int) -> WindowStats | None:
+        """The cached window sums of thumbnail ``k``, without computing them."""
+        return self._stats.get(k)

@@ -35,6 +35,10 @@ VERIFY_MAX_TRANSLATION_M = 30.0  # a verified relative pose farther than this is
 VERIFY_MAX_ROTATION_DEG = 90.0  # a verified relative pose turned more than this is implausible
 LOOP_ORB_FEATURES = 1000  # loop keypoints per reference frame (before the stereo check)
 LOOP_QUERY_FEATURES = 1500  # loop keypoints of the current frame when verifying
+REFERENCE_EVERY = 5  # loop reference features every this many frames: nearer ones share their errors
+DEPTH_CHECK_PX = 1.0  # a loop inlier's disparity must agree with its prediction within this, px (0 = off)
+SUBPIXEL_PX = 2.0  # loop keypoint sub-pixel refinement half-window at level 0, px (0 = off)
+MAX_DISTANCE_M = 8.0  # a verified loop farther apart than this is not the same place, m
 
 
 @dataclass
@@ -48,7 +52,7 @@ class LoopMatch:
 
 
 def detect_loop_keypoints(
-    img: np.ndarray, cfg: VerificationConfig, n: int | None = None
+    img: np.ndarray, cfg: VerificationConfig, n: int | None = None, subpixel_px: float = SUBPIXEL_PX
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Multi-scale keypoints for loops: (uv float32 (N,2), descriptors, size float32 (N,)).
 
@@ -81,15 +85,15 @@ def detect_loop_keypoints(
     if desc is None or not kps:
         return np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8), np.zeros(0, np.float32)
     uv = np.array([k.pt for k in kps], np.float32)
-    if cfg.subpixel_px > 0:
-        uv = _subpixel(img, uv, np.array([k.octave for k in kps]), cfg)
+    if subpixel_px > 0:
+        uv = _subpixel(img, uv, np.array([k.octave for k in kps]), subpixel_px)
     size = np.array([k.size for k in kps], np.float32)
     resp = np.array([k.response for k in kps], np.float32)
     order = np.lexsort((uv[:, 1], uv[:, 0], -resp))
     return uv[order], np.ascontiguousarray(desc[order], np.uint8), size[order]
 
 
-def _subpixel(img: np.ndarray, uv: np.ndarray, octave: np.ndarray, cfg: VerificationConfig) -> np.ndarray:
+def _subpixel(img: np.ndarray, uv: np.ndarray, octave: np.ndarray, subpixel_px: float) -> np.ndarray:
     """FAST corners found on a pyramid level sit on that level's pixel grid (up to
     ``LOOP_ORB_SCALE``^octave px off at full resolution): refine each at full resolution by
     ``cv2.cornerSubPix`` with a half-window of ``subpixel_px`` x scale^octave, and keep the
@@ -98,7 +102,7 @@ def _subpixel(img: np.ndarray, uv: np.ndarray, octave: np.ndarray, cfg: Verifica
     crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 20, 0.01)
     for o in np.unique(octave):
         sel = np.flatnonzero(octave == o)
-        half = max(2, int(round(cfg.subpixel_px * LOOP_ORB_SCALE ** int(o))))
+        half = max(2, int(round(subpixel_px * LOOP_ORB_SCALE ** int(o))))
         pts = uv[sel].reshape(-1, 1, 2).copy()
         ref = cv2.cornerSubPix(img, pts, (half, half), (-1, -1), crit).reshape(-1, 2)
         ok = np.all(np.isfinite(ref), 1) & (np.abs(ref - uv[sel]).max(1) <= half)
@@ -224,11 +228,12 @@ def verify_features(
     vcfg: VerificationConfig,
     offset_px: float = 0.0,
     unique: bool = False,
+    depth_check_px: float = DEPTH_CHECK_PX,
 ) -> LoopMatch | None:
     """Verify a loop from the reference's 3D points to the current frame's keypoints.
 
     Ratio-test matches, PnP RANSAC (``pnp_ransac``), then, with ``cur_frame`` and
-    ``vcfg.depth_check_px`` > 0, the inliers' stereo disparity in the current frame must agree
+    ``depth_check_px`` > 0, the inliers' stereo disparity in the current frame must agree
     with their predicted one within that many pixels; at least ``MIN_INLIERS`` must pass both
     and at least ``LOOP_DEPTH_MIN_RATIO`` of the inliers that have a current disparity. The pose
     must be :func:`plausible`. None if anything fails. ``unique`` as in :func:`ratio_matches`.
@@ -238,13 +243,13 @@ def verify_features(
         return None
     T_cur_ref, ia, ib, inl = found
     pts, uv = ref.pts3d[ia[inl]], cur.uv[ib[inl]]
-    if cur_frame is not None and vcfg.depth_check_px > 0:
+    if cur_frame is not None and depth_check_px > 0:
         Xc = pts.astype(np.float64) @ T_cur_ref[:3, :3].T + T_cur_ref[:3, 3]
         d_pred = camera.fx * camera.baseline_m / np.maximum(Xc[:, 2], 1e-6)
         d_raw = sparse_disparity(cur_frame.left, cur_frame.right, uv, cfg)
         d_meas = correct_disparity(d_raw, uv[:, 0], offset_px, camera)
         has = d_meas > 0
-        agree = has & (np.abs(d_meas - d_pred) <= vcfg.depth_check_px)
+        agree = has & (np.abs(d_meas - d_pred) <= depth_check_px)
         if int(agree.sum()) < MIN_INLIERS or agree.sum() < LOOP_DEPTH_MIN_RATIO * max(int(has.sum()), 1):
             return None
         pts, uv = pts[agree], uv[agree]
@@ -291,7 +296,7 @@ class LoopFeatureBank:
         return sum(f.uv.nbytes + f.pts3d.nbytes + f.desc.nbytes for f in self._ref.values())
 
     def wants(self, k: int) -> bool:
-        return k % self.vcfg.reference_every == 0
+        return k % REFERENCE_EVERY == 0
 
     def add(self, k: int, frame: StereoFrame, offset_px: float = 0.0) -> None:
         """Compute and keep reference features for stream position ``k`` if it is one
@@ -336,7 +341,7 @@ class LoopFeatureBank:
     def nearest(self, k: int) -> int | None:
         """The stored reference nearest to stream position ``k`` (ties: the older), or None."""
         self._collect()
-        e = self.vcfg.reference_every
+        e = REFERENCE_EVERY
         base = k - k % e
         for c in (base, base + e, base - e, base + 2 * e) if k - base <= e // 2 else (base + e, base, base + 2 * e, base - e):
             if c in self._ref:

@@ -19,7 +19,7 @@ from ..frontend.keyframe import MIN_STEREO_POINTS
 from ..frontend.motion import PNP_REPROJECTION_PX, RANSAC_SEED
 from ..geometry import inv
 from ..types import FrameFeatures, StereoFrame
-from .features import LOOP_QUERY_FEATURES, LOOP_RATIO_TEST, LoopFeatureBank, detect_loop_keypoints, ratio_matches
+from .features import LOOP_QUERY_FEATURES, LOOP_RATIO_TEST, REFERENCE_EVERY, LoopFeatureBank, detect_loop_keypoints, ratio_matches
 
 BASELINE_M = 1.0  # a reference is triangulated against the first later frame this far along the odometry
 MAX_PARTNER_FRAMES = 30  # ...arriving within this many frames, else the reference is dropped (a camera at rest)
@@ -162,7 +162,7 @@ class MonoFeatureBank(LoopFeatureBank):
         own = self._ref.get(k)
         if own is None or k not in self._pose:
             return own
-        e = self.vcfg.reference_every
+        e = REFERENCE_EVERY
         parts = [own]
         for n in [k + s * d * e for d in range(1, NEIGHBOURS + 1) for s in (-1, 1)]:
             other = self._ref.get(n)
