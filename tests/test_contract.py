@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from inprocess import Ran, cli  # the command line in this process (tests/inprocess.py)
 
 from snaps_graph.config import Config
 from snaps_graph.datasets.kitti import KittiSequence
@@ -31,17 +32,12 @@ from snaps_graph.synth import SyntheticSequence, load_trajectory
 from snaps_graph.types import StereoFrame
 
 ROOT = Path(__file__).resolve().parents[1]
-CLI = [sys.executable, "-m", "snaps_graph.cli"]
+CLI = [sys.executable, "-m", "snaps_graph.cli"]  # a process, where the process is the point (signals, stdout, imports)
 N_FRAMES = 8  # frames of the tiny_seq fixture (conftest.py)
 BINARY = bytes(range(256)) * 4  # not UTF-8, has NUL bytes
 
 
-def cli(*args, timeout: float = 300) -> subprocess.CompletedProcess:
-    env = dict(os.environ, PYTHONWARNINGS="ignore")
-    return subprocess.run(CLI + [str(a) for a in args], capture_output=True, text=True, env=env, timeout=timeout)
-
-
-def assert_user_error(proc: subprocess.CompletedProcess, *names: str | Path) -> str:
+def assert_user_error(proc: Ran | subprocess.CompletedProcess, *names: str | Path) -> str:
     """Exit 2, exactly one line of output, ``error: `` naming every one of ``names``, no traceback."""
     text = proc.stdout + proc.stderr
     assert "Traceback" not in text, text
@@ -709,10 +705,8 @@ def test_out_the_current_folder_or_a_symlink_is_refused_before_the_first_frame(s
     (seq / "image_0" / "000003.png").write_bytes(b"corrupt")  # reached only if frames were read
     empty = tmp_path / "empty"
     empty.mkdir()
-    env = dict(os.environ, PYTHONWARNINGS="ignore")
     if how == "dot":
-        proc = subprocess.run(CLI + ["run", str(seq), "--out", "."], capture_output=True, text=True, env=env, cwd=empty)
-        assert_user_error(proc, "current folder")
+        assert_user_error(cli("run", seq, "--out", ".", cwd=empty), "current folder")
     else:
         link = tmp_path / "link"
         link.symlink_to(empty)
