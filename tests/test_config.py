@@ -6,13 +6,13 @@ section, still load from an older config with a note."""
 from __future__ import annotations
 
 import importlib
-import os
-import subprocess
 import sys
 import tomllib
 from pathlib import Path
 
 import pytest
+from inprocess import Ran
+from inprocess import cli as run_cli
 
 from snaps_graph.config import FIXED, MOVED, RETIRED, RULES, Config, parse_set
 from snaps_graph.config_schema import settings
@@ -22,9 +22,8 @@ ROOT = Path(__file__).resolve().parents[1]
 CLI = [sys.executable, "-m", "snaps_graph.cli"]
 
 
-def cli(*args, timeout: float = 300) -> subprocess.CompletedProcess:
-    env = dict(os.environ, PYTHONWARNINGS="ignore")
-    return subprocess.run(CLI + [str(a) for a in args], capture_output=True, text=True, env=env, timeout=timeout, cwd=ROOT)
+def cli(*args) -> Ran:
+    return run_cli(*args, cwd=ROOT)  # in this process (tests/inprocess.py)
 
 
 def _keys(cfg: Config) -> list[str]:

@@ -26,6 +26,8 @@ from snaps_graph.runner import run_sequence
 sys.path.insert(0, str(Path(__file__).parent))
 from bagutil import make_image, write_stereo_bag  # noqa: E402
 from conftest import SHARED_DATA, _need, need_extra  # noqa: E402
+from inprocess import Ran  # noqa: E402
+from inprocess import cli as run_cli  # noqa: E402
 
 CLI = [sys.executable, "-m", "snaps_graph.cli"]
 N_BAG = 8  # frames of the KITTI 06 clip written into test bags
@@ -37,9 +39,8 @@ def euroc_dir() -> Path:
     return _need(SHARED_DATA / "euroc" / "V1_01_easy_first95")
 
 
-def cli(*args: str) -> subprocess.CompletedProcess:
-    env = dict(os.environ, PYTHONWARNINGS="ignore")
-    return subprocess.run(CLI + list(args), capture_output=True, text=True, env=env, timeout=600)
+def cli(*args: str) -> Ran:
+    return run_cli(*args)  # in this process (tests/inprocess.py)
 
 
 def run_poses(seq) -> dict[str, np.ndarray]:
