@@ -48,15 +48,21 @@ def seq(tiny_seq, tmp_path) -> Path:
     return out
 
 
-@pytest.fixture
-def done_run(tiny_seq, tmp_path) -> Path:
-    """A finished results folder of 5 frames, written in this process."""
+@pytest.fixture(scope="module")
+def finished_run(tiny_seq, tmp_path_factory) -> Path:
+    """A finished results folder of 5 frames, written in this process once for the module."""
     from snaps_graph.datasets.kitti import KittiSequence
     from snaps_graph.runner import run_sequence
 
-    out = tmp_path / "done"
+    out = tmp_path_factory.mktemp("finished") / "done"
     run_sequence(KittiSequence(tiny_seq, frames="0:5"), out, Config(), loops="snaps", build_map=False, prefetch_frames=0)
     return out
+
+
+@pytest.fixture
+def done_run(finished_run, tmp_path) -> Path:
+    """A private copy of the finished results folder (a test may change, lock or replace it)."""
+    return Path(shutil.copytree(finished_run, tmp_path / "done"))
 
 
 # ------------------------------------------------------------------ writers racing for one output

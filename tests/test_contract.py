@@ -613,13 +613,19 @@ def no_leftovers(folder: Path) -> list[str]:
     return [p.name for p in folder.iterdir() if re.match(r"^\..*\.(tmp|old)-\d+$", p.name)]
 
 
-@pytest.fixture
-def done_run(seq, tmp_path) -> Path:
-    """A finished results folder of the tiny sequence (5 frames)."""
-    out = tmp_path / "done"
-    proc = cli("run", seq, "--out", out, "--frames", "0:5")
+@pytest.fixture(scope="module")
+def finished_run(tiny_seq, tmp_path_factory) -> Path:
+    """A finished results folder of the tiny sequence (5 frames), run once for the module."""
+    out = tmp_path_factory.mktemp("finished") / "done"
+    proc = cli("run", tiny_seq, "--out", out, "--frames", "0:5")
     assert proc.returncode == 0, proc.stderr
     return out
+
+
+@pytest.fixture
+def done_run(finished_run, tmp_path) -> Path:
+    """A private copy of the finished results folder (a test may change or replace it)."""
+    return Path(shutil.copytree(finished_run, tmp_path / "done"))
 
 
 def test_rrd_never_replaces_an_input_or_another_runs_file(seq, done_run, tmp_path):
