@@ -123,7 +123,11 @@ def test_ctrl_c_prints_one_line_exits_130_and_leaves_no_folder(seq, tmp_path, si
     proc = subprocess.Popen(
         CLI + ["run", str(seq), "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
     )
-    time.sleep(6.0)  # imports (~2 s) done, frames being processed
+    deadline = time.monotonic() + 60
+    while not list(tmp_path.glob(".run.tmp-*")) and time.monotonic() < deadline:  # frames being processed
+        assert proc.poll() is None, "the run ended before it could be interrupted"
+        time.sleep(0.05)
+    time.sleep(0.5)
     assert proc.poll() is None, "the run ended before it could be interrupted"
     proc.send_signal(sig)
     stdout, stderr = proc.communicate(timeout=60)

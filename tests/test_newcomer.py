@@ -409,7 +409,11 @@ def test_ctrl_c_over_an_earlier_run_with_overwrite_says_it_was_kept(bin_dir, tin
         stderr=subprocess.PIPE,
         text=True,
     )
-    time.sleep(6.0)  # imports done, frames being processed
+    deadline = time.monotonic() + 60
+    while not list(tmp_path.glob(".old.tmp-*")) and time.monotonic() < deadline:  # frames being processed
+        assert proc.poll() is None, "the run ended before it could be interrupted"
+        time.sleep(0.05)
+    time.sleep(0.5)
     assert proc.poll() is None, "the run ended before it could be interrupted"
     proc.send_signal(signal.SIGINT)
     _, stderr = proc.communicate(timeout=60)
