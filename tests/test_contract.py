@@ -1008,3 +1008,17 @@ def test_wrong_folder_mistakes_name_the_fix(tmp_path):
         assert proc.returncode == 2 and proc.stderr.count("\n") == 1
         assert f"holds sequences 00, 06: pass one of them (e.g. {tmp_path / 'kitti' / 'sequences' / '00'})" in proc.stderr
     assert not (tmp_path / "r1").exists() and not (tmp_path / "r2").exists()
+
+
+def test_an_in_process_run_leaves_the_test_process_as_it_was(seq, tmp_path):
+    """tests/inprocess.py puts back what main() changes, so in-process runs cannot see each other."""
+    from snaps_graph import io_utils
+
+    def state() -> tuple:
+        handlers = [signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)]
+        return handlers, os.getcwd(), dict(os.environ), io_utils.committed_folders()
+
+    before = state()
+    proc = cli("run", seq, "--out", "r", "--frames", "0:3", cwd=tmp_path, env={"SNAPS_GRAPH_TEST_VAR": "1"})
+    assert proc.returncode == 0 and (tmp_path / "r" / "metrics.json").is_file(), proc.stderr
+    assert state() == before
