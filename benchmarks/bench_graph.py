@@ -23,12 +23,12 @@ import time
 from pathlib import Path
 
 import numpy as np
+from oracle import true_revisit_pairs
 
 from snaps_graph.backend import PoseGraph
 from snaps_graph.backend.noise import ODOM_REF_INLIERS
 from snaps_graph.config import GraphConfig
 from snaps_graph.evaluation.metrics import ate_rmse, kitti_relative_errors, mean_deviation
-from snaps_graph.evaluation.oracle import true_revisit_pairs
 from snaps_graph.geometry import exp_so3
 from snaps_graph.trajectory_io import read_kitti_poses
 

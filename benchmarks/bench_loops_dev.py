@@ -5,7 +5,7 @@ For each rendered sequence folder (``snaps-graph synth --trajectory ../shared/da
 --refine batch`` (or reuses the run in ``--work`` with ``--reuse``) and prints per path the VO's
 3D mean deviation, horizontal mean deviation and ATE, then SNAPS's heuristic and the refined
 (batch) trajectory as ratios to VO, the loop oracle beside them (the run's VO chain with an exact
-loop factor at every true revisit, batch; snaps_graph.evaluation.oracle), the loops and the false
+loop factor at every true revisit, batch; benchmarks/oracle.py), the loops and the false
 loops (references more than ``--false-m`` from the loop frame in the ground truth).
 
     python benchmarks/bench_loops_dev.py SEQ [SEQ ...] [--work DIR] [--reuse] [--config TOML]
@@ -21,10 +21,10 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from oracle import loop_oracle
 
 from snaps_graph.config import Config
 from snaps_graph.evaluation.metrics import ate_rmse, mean_deviation
-from snaps_graph.evaluation.oracle import loop_oracle
 from snaps_graph.trajectory_io import read_poses
 
 

@@ -21,10 +21,11 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 
+from oracle import REVISIT_MAX_YAW_DEG, loop_oracle, true_revisit_pairs
+
 from snaps_graph.config import Config
 from snaps_graph.datasets.kitti import KittiSequence
 from snaps_graph.evaluation.metrics import evaluate
-from snaps_graph.evaluation.oracle import REVISIT_MAX_YAW_DEG, loop_oracle, true_revisit_pairs
 from snaps_graph.io_utils import PREFETCH_FRAMES, prefetch
 from snaps_graph.pipeline import SlamPipeline
 from snaps_graph.runner import latency_summary, write_results

@@ -4,7 +4,7 @@ Reads a results folder of ``snaps-graph run --refine batch`` (graph.g2o, poses_s
 frames.csv, config.toml) and re-solves its graph (the factors as written, the loops under the
 run's robust kernel again, from the SNAPS poses as the run does) with the run's Levenberg-Marquardt
 stop and to convergence, with the flagged VO steps at their sigmas and at ``--flagged-scale``
-times the reference sigmas instead; the ground-truth loop oracle (snaps_graph.evaluation.oracle)
+times the reference sigmas instead; the ground-truth loop oracle (benchmarks/oracle.py)
 likewise. Prints 3D mean deviation / horizontal / vertical / ATE as multiples of VO's, and the
 iterations. ``--exact-loops`` and ``--add-oracle A-B`` solve once instead (flagged at
 ``--flagged-scale``, converged): the run's loops measured by the ground truth instead, and the
@@ -29,16 +29,34 @@ import gtsam
 import numpy as np
 
 from snaps_graph.backend import noise
-from snaps_graph.backend._values import array_to_values, to_pose3, values_to_array
 from snaps_graph.backend.pose_graph import BATCH_MAX_ITERATIONS, PRIOR_SIGMA_ROT_RAD, PRIOR_SIGMA_TRANS_M, robust_loop_noise
 from snaps_graph.config import Config
 from snaps_graph.evaluation.metrics import ate_rmse, mean_deviation
-from snaps_graph.evaluation.oracle import REVISIT_MAX_YAW_DEG, odometry_graph, true_revisit_pairs
 from snaps_graph.evaluation.results_io import read_frames_csv
 from snaps_graph.trajectory_io import read_poses
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from oracle import REVISIT_MAX_YAW_DEG, odometry_graph, true_revisit_pairs
+
 CONVERGED_TOL = 1e-10  # relative and absolute error decrease at which "converged" stops
 CONVERGED_MAX_ITERATIONS = 2000
+
+
+def to_pose3(T: np.ndarray) -> gtsam.Pose3:
+    """A Pose3 from a 4x4 whose rotation is projected onto SO(3) (a chained product is not exactly one)."""
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    return gtsam.Pose3(gtsam.Rot3(U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt), np.asarray(T[:3, 3], dtype=float))
+
+
+def array_to_values(poses: np.ndarray) -> gtsam.Values:
+    values = gtsam.Values()
+    for k, T in enumerate(poses):
+        values.insert(k, to_pose3(T))
+    return values
+
+
+def values_to_array(values: gtsam.Values, n: int) -> np.ndarray:
+    return np.array([values.atPose3(k).matrix() for k in range(n)])
 
 
 def solve_g2o(

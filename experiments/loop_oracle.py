@@ -5,7 +5,7 @@ of poses_snaps / poses_isam2 / poses_batch it has) and the ground truth, then pr
 
 * the mean deviation (the paper's figure, no alignment) and ATE of each trajectory;
 * the oracle: the same pose graph (the run's VO steps with their inlier noise) with an *exact*
-  ground-truth loop factor at every true revisit (snaps_graph.evaluation.oracle), batch
+  ground-truth loop factor at every true revisit (benchmarks/oracle.py), batch
   optimised; under the run's candidate geometry (radius, frame distance, yaw), and under a
   generous one (30 m, any heading) with 100x tighter loop factors and no robust kernel;
 * how the VO's mean deviation falls when its pose at frame k is re-anchored on the ground truth,
@@ -24,49 +24,50 @@ from __future__ import annotations
 
 import argparse
 import copy
-import csv
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
-from _common import md_table
 
 from snaps_graph.config import Config
 from snaps_graph.errors import SnapsGraphError
 from snaps_graph.evaluation.metrics import ate_rmse, mean_deviation
-from snaps_graph.evaluation.oracle import loop_oracle, odometry_graph
+from snaps_graph.evaluation.results_io import frame_ids, read_frames_csv, read_loops
 from snaps_graph.geometry import rotation_angle_deg
 from snaps_graph.trajectory_io import read_poses
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from oracle import loop_oracle, odometry_graph
 
-def frame_columns(run: Path, n: int) -> tuple[np.ndarray, np.ndarray, list[int]]:
+
+def md_table(header: list[str], rows: list[list]) -> str:
+    def fmt(v) -> str:
+        return f"{v:.3f}" if isinstance(v, float) else str(v)
+
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    return "\n".join(lines + ["| " + " | ".join(fmt(v) for v in r) + " |" for r in rows]) + "\n"
+
+
+def frame_columns(run: Path, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """frames.csv's VO inlier counts, VO flags and dataset frame numbers."""
-    with open(run / "frames.csv", newline="") as f:
-        rows = list(csv.DictReader(f))
-    if len(rows) != n:
-        raise SnapsGraphError(f"{run / 'frames.csv'} has {len(rows)} rows, poses_vo.txt {n}")
-    inliers = np.array([int(r["vo_inliers"]) for r in rows])
-    ok = np.array([r["vo_ok"] == "1" for r in rows])
-    return inliers, ok, [int(r["frame"]) for r in rows]
+    cols = read_frames_csv(run / "frames.csv")
+    rows = len(cols["vo_inliers"])
+    if rows != n:
+        raise SnapsGraphError(f"{run / 'frames.csv'} has {rows} rows, poses_vo.txt {n}")
+    return cols["vo_inliers"].astype(int), cols["vo_ok"] == 1, frame_ids(cols, rows, run / "frames.csv")
 
 
-def rebuilt_batch(
-    run: Path, cfg: Config, vo: np.ndarray, inliers: np.ndarray, ok: np.ndarray, frame_ids: list[int]
-) -> np.ndarray:
+def rebuilt_batch(run: Path, cfg: Config, vo: np.ndarray, inliers: np.ndarray, ok: np.ndarray, ids: np.ndarray) -> np.ndarray:
     """The run's graph rebuilt from its files (VO steps, loops.jsonl), batch-optimised from the
     SNAPS poses (the initial estimates a run uses)."""
     init = read_poses(run / "poses_snaps.txt") if (run / "poses_snaps.txt").is_file() else vo
     graph = odometry_graph(vo, cfg, inliers, ok, initial=init)
-    k_of = {f: k for k, f in enumerate(frame_ids)}
-    if (run / "loops.jsonl").is_file():
-        for line in (run / "loops.jsonl").read_text().splitlines():
-            loop = json.loads(line)
-            T = None
-            if loop.get("verified") and loop.get("T_ref_cur"):
-                T = np.eye(4)
-                T[:3, :4] = np.array(loop["T_ref_cur"], float).reshape(3, 4)
-            graph.add_loop(k_of[loop["reference"]], k_of[loop["frame"]], loop["q"], T)
+    for loop in read_loops(run / "loops.jsonl", {int(f): k for k, f in enumerate(ids)}):
+        T = None
+        if loop.get("verified") and loop.get("T_ref_cur"):
+            T = np.eye(4)
+            T[:3, :4] = np.array(loop["T_ref_cur"], float).reshape(3, 4)
+        graph.add_loop(loop["reference_row"], loop["row"], loop["q"], T)
     return graph.optimize_batch()
 
 
@@ -82,7 +83,7 @@ def main() -> None:
         vo = read_poses(run / "poses_vo.txt")
         if len(gt) != len(vo):
             raise SnapsGraphError(f"ground truth has {len(gt)} poses, poses_vo.txt {len(vo)}")
-        inliers, ok, frame_ids = frame_columns(run, len(vo))
+        inliers, ok, ids = frame_columns(run, len(vo))
         cfg = Config.load(run / "config.toml") if (run / "config.toml").is_file() else Config()
     except (OSError, SnapsGraphError) as exc:
         sys.exit(f"error: {exc}")
@@ -121,7 +122,7 @@ def main() -> None:
         ]
     )
 
-    est = rebuilt_batch(run, cfg, vo, inliers, ok, frame_ids)
+    est = rebuilt_batch(run, cfg, vo, inliers, ok, ids)
     md = mean_deviation(est, gt)
     rows.append(["batch, rebuilt", "the run's", md, 100 * (md / vo_md - 1), ate_rmse(est, gt)])
 

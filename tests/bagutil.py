@@ -6,6 +6,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from conftest import need_extra
 
 
 def write_stereo_bag(
@@ -23,7 +24,9 @@ def write_stereo_bag(
 ) -> Path:
     """kind: 'mcap' | 'sqlite3' (ROS 2 bag folder) or 'ros1' (a .bag file). ``seq``: a dataset
     (rectified: CameraInfo from its camera, D = 0, R = I); or ``raw_pairs`` [(t s, left, right)]
-    with ``infos`` ((K, D, R, P) left, (K, D, R, P) right) of raw cameras."""
+    with ``infos`` ((K, D, R, P) left, (K, D, R, P) right) of raw cameras. A test that writes a
+    bag skips where rosbags (the bags extra) is not installed."""
+    need_extra("rosbags")
     from rosbags.typesys import Stores, get_typestore
 
     if kind == "ros1":

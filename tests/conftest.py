@@ -1,13 +1,33 @@
-"""Shared fixtures. Tests that need ../shared/data skip with a clear reason where it is absent."""
+"""Shared fixtures. Tests that need ../shared/data skip with a clear reason where it is absent,
+and tests of an extra (pyproject.toml's optional dependencies) where it is not installed."""
 
 from __future__ import annotations
 
+import importlib.util
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = ROOT.parent / "shared" / "data"
+
+
+# The optional modules and the extra that installs each (a core install has none of them).
+EXTRAS = {"rosbags": "bags", "rerun": "viewer", "ray": "ray", "threadpoolctl": "ray", "evo": "dev"}
+
+
+def installed(module: str) -> bool:
+    """Whether an extra's module can be imported, without importing it (ray's import takes seconds)."""
+    try:
+        return importlib.util.find_spec(module) is not None
+    except ImportError:
+        return False
+
+
+def need_extra(module: str) -> None:
+    """Skip the calling test unless ``module`` is installed, naming the extra that brings it."""
+    if not installed(module):
+        pytest.skip(f"{module} is not installed: it comes with the {EXTRAS[module]} extra (pip install -e '.[{EXTRAS[module]}]')")
 
 
 def _need(path: Path) -> Path:

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from inprocess import Ran, cli  # the command line in this process (tests/inprocess.py)
 
 from snaps_graph.config import Config
 from snaps_graph.errors import SnapsGraphError
@@ -27,16 +28,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 import bench_race  # noqa: E402
 
-CLI = [sys.executable, "-m", "snaps_graph.cli"]
+CLI = [sys.executable, "-m", "snaps_graph.cli"]  # a process, where signals are the point
 DEAD = 2**22 + 4321  # above Linux's pid_max default: no such process
 
 
-def cli(*args, timeout: float = 300) -> subprocess.CompletedProcess:
-    env = dict(os.environ, PYTHONWARNINGS="ignore", PYTHONPATH=str(ROOT))
-    return subprocess.run(CLI + [str(a) for a in args], capture_output=True, text=True, env=env, timeout=timeout)
-
-
-def one_error(proc: subprocess.CompletedProcess, *names) -> str:
+def one_error(proc: Ran, *names) -> str:
     """Exit 2 and exactly one stderr line, ``error:`` naming each of ``names``."""
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert proc.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: "), proc.stderr
@@ -52,15 +48,21 @@ def seq(tiny_seq, tmp_path) -> Path:
     return out
 
 
-@pytest.fixture
-def done_run(tiny_seq, tmp_path) -> Path:
-    """A finished results folder of 5 frames, written in this process."""
+@pytest.fixture(scope="module")
+def finished_run(tiny_seq, tmp_path_factory) -> Path:
+    """A finished results folder of 5 frames, written in this process once for the module."""
     from snaps_graph.datasets.kitti import KittiSequence
     from snaps_graph.runner import run_sequence
 
-    out = tmp_path / "done"
+    out = tmp_path_factory.mktemp("finished") / "done"
     run_sequence(KittiSequence(tiny_seq, frames="0:5"), out, Config(), loops="snaps", build_map=False, prefetch_frames=0)
     return out
+
+
+@pytest.fixture
+def done_run(finished_run, tmp_path) -> Path:
+    """A private copy of the finished results folder (a test may change, lock or replace it)."""
+    return Path(shutil.copytree(finished_run, tmp_path / "done"))
 
 
 # ------------------------------------------------------------------ writers racing for one output

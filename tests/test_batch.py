@@ -21,6 +21,8 @@ os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
 os.environ["RAY_USAGE_STATS_ENABLED"] = "0"
 
 import pytest  # noqa: E402
+from conftest import need_extra  # noqa: E402
+from inprocess import cli  # noqa: E402  # the command line in this process (tests/inprocess.py)
 
 from snaps_graph.batch import CELL_FILE, completed, load_plan, plan_from_dict, run_batch, run_cell  # noqa: E402
 from snaps_graph.errors import SnapsGraphError  # noqa: E402
@@ -147,13 +149,7 @@ def test_cli_bad_plan_is_one_line_error_before_anything_is_written(seqs, tmp_pat
         tmp_path / "plan.toml", f'sequences = ["{seqs["good"]}"]\n[variants.x]\ngraph = {{ odom_sigma_rot_rad = -1.0 }}\n'
     )
     out = tmp_path / "out"
-    proc = subprocess.run(
-        [sys.executable, "-m", "snaps_graph.cli", "batch", str(plan), "--out", str(out)],
-        capture_output=True,
-        text=True,
-        env={**os.environ, "PYTHONPATH": str(ROOT)},
-        timeout=120,
-    )
+    proc = cli("batch", plan, "--out", out)
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(
@@ -170,6 +166,7 @@ def test_a_euroc_sequence_is_a_cell_like_any_run_input(tmp_path):
     plan = plan_from_dict({"sequences": [str(euroc)], "frames": "0:6", "loops": "none"})
     cell = plan.cells[0]
     assert cell.sequence == "V1_01_easy_first95" and cell.gt is None
+    need_extra("threadpoolctl")  # a cell pins its threads
     rec = run_cell(cell, str(tmp_path), threads=1)
     assert rec["status"] == "ok", rec["reason"]
     assert rec["metrics"]["frames"] == 6 and "vo" not in rec["metrics"]  # no ground truth: no metrics per trajectory
@@ -177,6 +174,7 @@ def test_a_euroc_sequence_is_a_cell_like_any_run_input(tmp_path):
 
 # ---------------------------------------------------------------- one cell, without Ray
 def test_run_cell_records_ok_and_failed_and_resume_checks_the_hash(seqs, tmp_path):
+    need_extra("threadpoolctl")  # a cell pins its threads
     plan = plan_from_dict(
         {
             "sequences": [str(seqs["good"]), str(seqs["broken"])],
@@ -204,6 +202,7 @@ def test_run_cell_records_ok_and_failed_and_resume_checks_the_hash(seqs, tmp_pat
 
 
 def test_pinned_threads_limits_opencv_and_blas_and_restores_them(monkeypatch):
+    need_extra("threadpoolctl")
     import cv2
     from threadpoolctl import threadpool_info
 
@@ -345,6 +344,7 @@ def test_an_address_nothing_answers_on_is_a_one_line_error(seqs, tmp_path):
 
 # ---------------------------------------------------------------- never stale, never on an input
 def test_resume_is_keyed_on_the_inputs_content_and_checks_the_folder_whole(seqs, tmp_path):
+    need_extra("threadpoolctl")  # a cell pins its threads
     seq = tmp_path / "seq"
     shutil.copytree(seqs["good"], seq)
     body = {"sequences": [str(seq)], "frames": "0:6"}

@@ -7,14 +7,14 @@ holds the value that key had."""
 from __future__ import annotations
 
 import importlib
-import os
 import re
-import subprocess
 import sys
 import tomllib
 from pathlib import Path
 
 import pytest
+from inprocess import Ran
+from inprocess import cli as run_cli
 
 from snaps_graph.config import PRESETS, RULES, Config, parse_set
 from snaps_graph.config_retired import OLD_KEYS, Moved
@@ -26,9 +26,8 @@ CLI = [sys.executable, "-m", "snaps_graph.cli"]
 PREVIOUS = ROOT / "tests" / "data" / "config_previous_version.toml"  # what the version before wrote
 
 
-def cli(*args, timeout: float = 300) -> subprocess.CompletedProcess:
-    env = dict(os.environ, PYTHONWARNINGS="ignore")
-    return subprocess.run(CLI + [str(a) for a in args], capture_output=True, text=True, env=env, timeout=timeout, cwd=ROOT)
+def cli(*args) -> Ran:
+    return run_cli(*args, cwd=ROOT)  # in this process (tests/inprocess.py)
 
 
 def _keys(cfg: Config) -> list[str]:

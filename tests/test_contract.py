@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from inprocess import Ran, cli  # the command line in this process (tests/inprocess.py)
 
 from snaps_graph.config import Config
 from snaps_graph.datasets.kitti import KittiSequence
@@ -31,17 +32,12 @@ from snaps_graph.synth import SyntheticSequence, load_trajectory
 from snaps_graph.types import StereoFrame
 
 ROOT = Path(__file__).resolve().parents[1]
-CLI = [sys.executable, "-m", "snaps_graph.cli"]
+CLI = [sys.executable, "-m", "snaps_graph.cli"]  # a process, where the process is the point (signals, stdout, imports)
 N_FRAMES = 8  # frames of the tiny_seq fixture (conftest.py)
 BINARY = bytes(range(256)) * 4  # not UTF-8, has NUL bytes
 
 
-def cli(*args, timeout: float = 300) -> subprocess.CompletedProcess:
-    env = dict(os.environ, PYTHONWARNINGS="ignore")
-    return subprocess.run(CLI + [str(a) for a in args], capture_output=True, text=True, env=env, timeout=timeout)
-
-
-def assert_user_error(proc: subprocess.CompletedProcess, *names: str | Path) -> str:
+def assert_user_error(proc: Ran | subprocess.CompletedProcess, *names: str | Path) -> str:
     """Exit 2, exactly one line of output, ``error: `` naming every one of ``names``, no traceback."""
     text = proc.stdout + proc.stderr
     assert "Traceback" not in text, text
@@ -127,7 +123,11 @@ def test_ctrl_c_prints_one_line_exits_130_and_leaves_no_folder(seq, tmp_path, si
     proc = subprocess.Popen(
         CLI + ["run", str(seq), "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
     )
-    time.sleep(6.0)  # imports (~2 s) done, frames being processed
+    deadline = time.monotonic() + 60
+    while not list(tmp_path.glob(".run.tmp-*")) and time.monotonic() < deadline:  # frames being processed
+        assert proc.poll() is None, "the run ended before it could be interrupted"
+        time.sleep(0.05)
+    time.sleep(0.5)
     assert proc.poll() is None, "the run ended before it could be interrupted"
     proc.send_signal(sig)
     stdout, stderr = proc.communicate(timeout=60)
@@ -614,13 +614,19 @@ def no_leftovers(folder: Path) -> list[str]:
     return [p.name for p in folder.iterdir() if re.match(r"^\..*\.(tmp|old)-\d+$", p.name)]
 
 
-@pytest.fixture
-def done_run(seq, tmp_path) -> Path:
-    """A finished results folder of the tiny sequence (5 frames)."""
-    out = tmp_path / "done"
-    proc = cli("run", seq, "--out", out, "--frames", "0:5")
+@pytest.fixture(scope="module")
+def finished_run(tiny_seq, tmp_path_factory) -> Path:
+    """A finished results folder of the tiny sequence (5 frames), run once for the module."""
+    out = tmp_path_factory.mktemp("finished") / "done"
+    proc = cli("run", tiny_seq, "--out", out, "--frames", "0:5")
     assert proc.returncode == 0, proc.stderr
     return out
+
+
+@pytest.fixture
+def done_run(finished_run, tmp_path) -> Path:
+    """A private copy of the finished results folder (a test may change or replace it)."""
+    return Path(shutil.copytree(finished_run, tmp_path / "done"))
 
 
 def test_rrd_never_replaces_an_input_or_another_runs_file(seq, done_run, tmp_path):
@@ -706,10 +712,8 @@ def test_out_the_current_folder_or_a_symlink_is_refused_before_the_first_frame(s
     (seq / "image_0" / "000003.png").write_bytes(b"corrupt")  # reached only if frames were read
     empty = tmp_path / "empty"
     empty.mkdir()
-    env = dict(os.environ, PYTHONWARNINGS="ignore")
     if how == "dot":
-        proc = subprocess.run(CLI + ["run", str(seq), "--out", "."], capture_output=True, text=True, env=env, cwd=empty)
-        assert_user_error(proc, "current folder")
+        assert_user_error(cli("run", seq, "--out", ".", cwd=empty), "current folder")
     else:
         link = tmp_path / "link"
         link.symlink_to(empty)
@@ -1001,3 +1005,17 @@ def test_wrong_folder_mistakes_name_the_fix(tmp_path):
         assert proc.returncode == 2 and proc.stderr.count("\n") == 1
         assert f"holds sequences 00, 06: pass one of them (e.g. {tmp_path / 'kitti' / 'sequences' / '00'})" in proc.stderr
     assert not (tmp_path / "r1").exists() and not (tmp_path / "r2").exists()
+
+
+def test_an_in_process_run_leaves_the_test_process_as_it_was(seq, tmp_path):
+    """tests/inprocess.py puts back what main() changes, so in-process runs cannot see each other."""
+    from snaps_graph import io_utils
+
+    def state() -> tuple:
+        handlers = [signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)]
+        return handlers, os.getcwd(), dict(os.environ), io_utils.committed_folders()
+
+    before = state()
+    proc = cli("run", seq, "--out", "r", "--frames", "0:3", cwd=tmp_path, env={"SNAPS_GRAPH_TEST_VAR": "1"})
+    assert proc.returncode == 0 and (tmp_path / "r" / "metrics.json").is_file(), proc.stderr
+    assert state() == before

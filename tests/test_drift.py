@@ -70,19 +70,18 @@ def test_long_real_path():
 
 
 def test_cli_writes_and_never_replaces(tmp_path):
-    import subprocess
-    import sys
+    from inprocess import cli
 
     from snaps_graph.trajectory_io import read_kitti_poses, write_kitti_poses
 
     gt_file, out = tmp_path / "gt.txt", tmp_path / "drifted.txt"
     write_kitti_poses(gt_file, _square(50))
-    cmd = [sys.executable, "-m", "snaps_graph.cli", "drift", str(gt_file), "--out", str(out), "--seed", "2", "--pct", "1"]
-    done = subprocess.run(cmd, capture_output=True, text=True)
+    cmd = ["drift", gt_file, "--out", out, "--seed", "2", "--pct", "1"]
+    done = cli(*cmd)
     assert done.returncode == 0, done.stderr
     d = read_kitti_poses(out)
     assert abs(end_drift_pct(d, _square(50)) - 1.0) < 0.02
     before = out.read_bytes()
-    again = subprocess.run(cmd, capture_output=True, text=True)
+    again = cli(*cmd)
     assert again.returncode == 2 and again.stderr.startswith("error:") and "exists" in again.stderr
     assert out.read_bytes() == before

@@ -343,13 +343,6 @@ def test_no_import_circle_in_the_package():
     assert not circles, circles[:5]
 
 
-def test_no_module_over_600_lines_but_the_renderers_world():
-    """A file of more than 600 lines holds more than one idea; the renderer's world is one long idea."""
-    pkg = Path(__file__).resolve().parents[1] / "snaps_graph"
-    long = {str(p.relative_to(pkg)): n for p in pkg.rglob("*.py") if (n := len(p.read_text().splitlines())) > 600}
-    assert set(long) <= {"synth/_world.py"}, long
-
-
 def test_every_reader_shares_the_stereo_source_defaults():
     """Each reader subclasses SequenceBase, so the optional StereoSource members exist on all."""
     from snaps_graph.datasets.euroc import EurocSequence

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import need_extra
 
 from snaps_graph.errors import SnapsGraphError
 from snaps_graph.evaluation.metrics import (
@@ -90,6 +91,7 @@ def real_pair(request, kitti_gt_dir):
 
 
 def test_mean_deviation_and_ate_match_evo_api(real_pair):
+    need_extra("evo")
     from evo.core import metrics as evo_metrics
     from evo.core.trajectory import PosePath3D
 
@@ -112,6 +114,7 @@ def test_mean_deviation_and_ate_match_evo_api(real_pair):
 
 
 def test_umeyama_matches_evo_and_recovers_a_known_similarity(real_pair):
+    need_extra("evo")
     from evo.core.geometry import umeyama_alignment as evo_umeyama
 
     est, gt = real_pair

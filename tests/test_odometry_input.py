@@ -6,13 +6,12 @@ from __future__ import annotations
 import json
 import math
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 from conftest import SHARED_DATA
+from inprocess import cli  # the command line in this process (tests/inprocess.py)
 
 from snaps_graph.config import Config, OdometryConfig
 from snaps_graph.datasets.kitti import KittiSequence
@@ -22,12 +21,7 @@ from snaps_graph.frontend.external import PoseFileOdometry
 from snaps_graph.pipeline import SlamPipeline
 from snaps_graph.trajectory_io import kitti_text, read_kitti_poses, read_pose_file, tum_text
 
-CLI = [sys.executable, "-m", "snaps_graph.cli"]
 LOOP_DATA = SHARED_DATA / "kitti00_loop"
-
-
-def cli(*args: str, timeout: float = 120) -> subprocess.CompletedProcess:
-    return subprocess.run(CLI + list(args), capture_output=True, text=True, timeout=timeout)
 
 
 def _poses(n: int, step: float = 1.0) -> np.ndarray:

@@ -1,14 +1,18 @@
-"""The ground-truth loop oracle (snaps_graph.evaluation.oracle)."""
+"""The ground-truth loop oracle (benchmarks/oracle.py, a research tool outside the package)."""
 
 from __future__ import annotations
 
 import math
+import sys
+from pathlib import Path
 
 import numpy as np
 
 from snaps_graph.config import Config
 from snaps_graph.evaluation.metrics import mean_deviation
-from snaps_graph.evaluation.oracle import loop_oracle, true_revisit_pairs
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from oracle import loop_oracle, true_revisit_pairs  # noqa: E402
 
 
 def yaw_pose(x: float, z: float, yaw_deg: float) -> np.ndarray:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 import shutil
 import subprocess
 import sys
@@ -12,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from inprocess import Ran
+from inprocess import cli as run_cli
 
 from snaps_graph.config import Config
 from snaps_graph.datasets.kitti import KittiSequence
@@ -26,9 +27,8 @@ from snaps_graph.types import StereoFrame
 CLI = [sys.executable, "-m", "snaps_graph.cli"]
 
 
-def cli(*args: str, check: bool = True) -> subprocess.CompletedProcess:
-    env = dict(os.environ, PYTHONWARNINGS="ignore")
-    proc = subprocess.run(CLI + list(args), capture_output=True, text=True, env=env, timeout=300)
+def cli(*args: str, check: bool = True) -> Ran:
+    proc = run_cli(*args)  # in this process (tests/inprocess.py)
     if check and proc.returncode != 0:
         raise AssertionError(f"exit {proc.returncode}\n{proc.stdout}\n{proc.stderr}")
     return proc

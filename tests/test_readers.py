@@ -25,7 +25,9 @@ from snaps_graph.runner import run_sequence
 
 sys.path.insert(0, str(Path(__file__).parent))
 from bagutil import make_image, write_stereo_bag  # noqa: E402
-from conftest import SHARED_DATA, _need  # noqa: E402
+from conftest import SHARED_DATA, _need, need_extra  # noqa: E402
+from inprocess import Ran  # noqa: E402
+from inprocess import cli as run_cli  # noqa: E402
 
 CLI = [sys.executable, "-m", "snaps_graph.cli"]
 N_BAG = 8  # frames of the KITTI 06 clip written into test bags
@@ -37,9 +39,8 @@ def euroc_dir() -> Path:
     return _need(SHARED_DATA / "euroc" / "V1_01_easy_first95")
 
 
-def cli(*args: str) -> subprocess.CompletedProcess:
-    env = dict(os.environ, PYTHONWARNINGS="ignore")
-    return subprocess.run(CLI + list(args), capture_output=True, text=True, env=env, timeout=600)
+def cli(*args: str) -> Ran:
+    return run_cli(*args)  # in this process (tests/inprocess.py)
 
 
 def run_poses(seq) -> dict[str, np.ndarray]:
@@ -250,6 +251,7 @@ def test_bag_raw_images_rectified_from_camera_info(euroc_dir, tmp_path):
 
 @pytest.mark.parametrize("encoding", ["mono8", "mono16", "rgb8", "bgr8"])
 def test_image_encodings(encoding, kitti8):
+    need_extra("rosbags")
     from rosbags.typesys import Stores, get_typestore
 
     from snaps_graph.datasets.rosbag import decode_image
@@ -271,6 +273,7 @@ def test_image_encodings(encoding, kitti8):
 
 
 def test_bad_bags_are_one_line(kitti8, tmp_path):
+    need_extra("rosbags")
     # unknown encoding
     from rosbags.typesys import Stores, get_typestore
 
@@ -571,6 +574,7 @@ def test_euroc_cam0_alone_with_absolute_tum_odometry(euroc_dir, tmp_path):
 def test_bag_with_one_image_topic_is_monocular(kitti8, tmp_path):
     """A ROS 2 bag with one image topic (and its CameraInfo): monocular frames, run on a TUM
     file stamped in the bag's absolute time."""
+    need_extra("rosbags")
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 

@@ -107,16 +107,12 @@ def test_image_temporaries_do_not_page_fault_on_every_call():
 
 
 def test_cli_prefetch_option_gives_the_same_results(tiny_seq, tmp_path):
-    import os
-    import subprocess
-    import sys
+    from inprocess import cli
 
-    env = dict(os.environ, PYTHONWARNINGS="ignore")
     outs = []
     for n in ("0", "3"):
         out = tmp_path / f"run{n}"
-        cmd = [sys.executable, "-m", "snaps_graph.cli", "run", str(tiny_seq), "--out", str(out), "--prefetch", n]
-        proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
+        proc = cli("run", tiny_seq, "--out", out, "--prefetch", n)
         assert proc.returncode == 0, proc.stdout + proc.stderr
         assert "wall" in proc.stdout and "frames/s" in proc.stdout
         outs.append(out)

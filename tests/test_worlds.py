@@ -5,25 +5,17 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from inprocess import cli  # the command line in this process (tests/inprocess.py)
 
 from snaps_graph.errors import SnapsGraphError
 from snaps_graph.synth import SyntheticSequence, WorldConfig, builtin_loop_trajectory, load_trajectory
 from snaps_graph.trajectory_io import read_kitti_poses
 
 W, H = 320, 96
-CLI = [sys.executable, "-m", "snaps_graph.cli"]
-
-
-def cli(*args: str) -> subprocess.CompletedProcess:
-    env = dict(os.environ, PYTHONWARNINGS="ignore")
-    return subprocess.run(CLI + list(args), capture_output=True, text=True, env=env, timeout=300)
 
 
 def digest(seq: SyntheticSequence, frames) -> str:

@@ -2,8 +2,9 @@
 
 :func:`loop_oracle` builds a run's pose graph over the VO steps, adds an exact loop factor at
 every true revisit and optimises it in batch (why it is a floor and not zero:
-docs/loop-closure.md, "The dev paths"). An evaluation tool: it reads ground truth, and nothing in
-a run uses it.
+docs/loop-closure.md, "The dev paths"). A research tool beside the benchmarks that use it
+(bench_loops_dev.py, bench_pipeline.py, bench_graph.py, experiments/): it reads ground truth,
+and nothing in the package uses it.
 """
 
 from __future__ import annotations
@@ -13,10 +14,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..backend.pose_graph import PoseGraph
-from ..config import Config
-from ..geometry import wrap_deg, yaw_deg
-from .metrics import ate_rmse, mean_deviation
+from snaps_graph.backend.pose_graph import PoseGraph
+from snaps_graph.config import Config
+from snaps_graph.evaluation.metrics import ate_rmse, mean_deviation
+from snaps_graph.geometry import wrap_deg, yaw_deg
 
 REVISIT_MAX_YAW_DEG = 10.0  # the loop policies' candidate heading limit (Table I): the revisits SNAPS may close
 
