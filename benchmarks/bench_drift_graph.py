@@ -104,7 +104,7 @@ def run_one(spec: str, pct: float | None, seed: int, config: str | None, model: 
             ref = step.loop.reference
             at_loops.append(
                 (
-                    float(np.linalg.norm(snaps.poses[ref][:3, 3] - gt[ref][:3, 3])),
+                    float(np.linalg.norm(snaps.traj.p[ref] - gt[ref][:3, 3])),
                     float(np.linalg.norm(before[:3, 3] - gt[k][:3, 3])),
                 )
             )

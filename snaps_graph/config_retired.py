@@ -102,22 +102,19 @@ OLD_KEYS |= {
     "loop.use_verified_offset": 'loop.policy: "drift" = true, "paper" = false',
     "loop.require_verification": 'loop.policy: "drift" = true, "paper" = false',
     "loop.pause_graph_loops": 'loop.policy: "drift" = true, "paper" = false',
-    "loop.attempts": "a constant of both policies (5, Table I)",
-    "loop.max_yaw_deg": "a constant of both policies (10 degrees, Table I)",
-    "loop.discount_offset": "a constant of both policies (the 3 in eq. 6)",
-    "loop.discount_rate": "a constant of both policies (the 0.01 in eq. 6)",
-    "loop.search_sigmas": "a constant of the drift policy (3 sigmas)",
-    "loop.search_max_radius_m": "a constant of the drift policy (40 m, never under radius_m)",
-    "loop.verify_attempts": "a constant of both policies (3)",
-    "loop.verified_heading_sigma_deg": "a constant of the drift policy (0.1 degrees)",
-    "loop.discount_span_factor": "a constant of the drift policy (1.0)",
-    "loop.discount_length_max": "a constant of the drift policy (1000 frames)",
-    "loop.stats_cache_frames": "a constant of the loop closer (512 thumbnails)",
     "loop.shift_px": "removed: shifted thumbnails measured worse (docs/decisions.md); comparisons are unshifted",
     "loop.shift_step_px": "removed with loop.shift_px",
     "loop.verify_all_candidates": "removed: an experiment's switch (benchmarks/ verifies every candidate itself)",
-    "verification.reference_every": "a constant of the verification (5 frames)",
-    "verification.depth_check_px": "a constant of the verification (1 px)",
-    "verification.max_distance_m": "a constant of the verification (8 m)",
-    "verification.subpixel_px": "a constant of the verification (2 px)",
+    **_constants(
+        "loop.policy",
+        {f"loop.{k}": f"LoopPolicy.{k}" for k in ("attempts", "max_yaw_deg", "discount_offset", "discount_rate")}
+        | {f"loop.{k}": f"LoopPolicy.{k}" for k in ("search_sigmas", "search_max_radius_m", "verify_attempts")}
+        | {"loop.verified_heading_sigma_deg": "LoopPolicy.verified_heading_sigma_deg"}
+        | {"loop.discount_span_factor": "LoopPolicy.span_factor", "loop.discount_length_max": "LoopPolicy.span_max"},
+    ),
+    **_constants("loop.uiqi", {"loop.stats_cache_frames": "STATS_CACHE_FRAMES"}),
+    **_constants(
+        "verification.features",
+        {f"verification.{k}": k.upper() for k in ("reference_every", "depth_check_px", "max_distance_m", "subpixel_px")},
+    ),
 }

@@ -20,7 +20,6 @@ MAP_LR_CHECK_PX = 1.0  # left-right consistency limit, px (0 = off)
 MAP_MIN_CONFIDENCE = 0.0  # WLS confidence (0-255) below this is invalid; 0 = no WLS pass (it fills across edges)
 MAP_EDGE_RATIO = 0.1  # invalid where the 3x3 disparity spread exceeds this x d: a blend of two depths
 MAP_SPECKLE_PX = 50  # disparity regions smaller than this are dropped, working px
-MAP_DEPTH_METHODS = ("bm", "sgbm")  # MAP_DEPTH_METHOD
 
 
 def map_camera(camera: StereoCamera, scale: float, width: int, height: int) -> StereoCamera:
