@@ -4,14 +4,13 @@ both must reach the same minimum (pose, landmarks, cost)."""
 
 from __future__ import annotations
 
-from collections import deque
-
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
 
 from snaps_graph.camera import StereoCamera
 from snaps_graph.config import FrontendConfig
+from snaps_graph.frontend import local_ba
 from snaps_graph.frontend.local_ba import LocalBundleAdjuster
 from snaps_graph.frontend.stereo_ba import StereoBAParams, stereo_two_view_ba
 from snaps_graph.geometry import rotation_angles
@@ -98,7 +97,7 @@ def test_stereo_two_view_ba_reaches_gtsams_minimum():
     assert 0.3 < res.rmse_px < 0.7
 
 
-def test_local_ba_window_reaches_gtsams_minimum():
+def test_local_ba_window_reaches_gtsams_minimum(monkeypatch):
     rng = np.random.default_rng(5)
     n_kf, n_pts = 4, 60
     truth = [_pose(0.4 * k, (0.03 * k, 0.0, 1.5 * k)) for k in range(n_kf)]  # T_world_cam, driving forward
@@ -108,9 +107,11 @@ def test_local_ba_window_reaches_gtsams_minimum():
         Pc = (world - T[:3, 3]) @ T[:3, :3]  # camera frame: R^T (X - t)
         meas.append(_stereo(Pc) + rng.normal(0, SIGMA_PX, (n_pts, 3)))
     given = [truth[0]] + [T @ _pose(0.2, (0.02, -0.01, 0.03)) for T in truth[1:]]  # VO a little off
+    # The window, iterations and kernel are the local BA's constants: this solve's, set before it is built.
+    monkeypatch.setattr(local_ba, "LBA_WINDOW", n_kf)
+    monkeypatch.setattr(local_ba, "LBA_ITERATIONS", 30)
+    monkeypatch.setattr(local_ba, "STEREO_BA", StereoBAParams(huber_px=PLAIN))
     lba = LocalBundleAdjuster(CAM, FrontendConfig(estimate_offset=False))
-    lba.huber_px, lba.iterations = PLAIN, 30
-    lba.window, lba.kfs = n_kf, deque(maxlen=n_kf)
     ids = np.arange(n_pts)
     for k, (T, z) in enumerate(zip(given, meas)):
         lba.add_keyframe(k, T, ids, z[:, :2], z[:, 0] - z[:, 2])

@@ -18,6 +18,7 @@ from snaps_graph.config import Config
 from snaps_graph.datasets.kitti import KittiSequence
 from snaps_graph.errors import SnapsGraphError
 from snaps_graph.evaluation.metrics import mean_deviation
+from snaps_graph.evaluation.results_io import frame_ids, read_frames_csv
 from snaps_graph.pipeline import SlamPipeline
 from snaps_graph.trajectory_io import read_kitti_poses
 from snaps_graph.types import StereoFrame
@@ -193,7 +194,8 @@ def test_demo_smoke(tmp_path):
     # Every loop is true (the reference within the search radius in the truth) and one verified;
     # the batch refinement pulls the end of the loop onto its start.
     gt = read_kitti_poses(run / "poses_gt.txt")
-    row = {int(r["frame"]): k for k, r in enumerate(csv.DictReader((run / "frames.csv").open()))}
+    cols = read_frames_csv(run / "frames.csv")
+    row = {int(f): k for k, f in enumerate(frame_ids(cols, len(gt), run / "frames.csv"))}
     for lp in loops:
         assert np.linalg.norm(gt[row[lp["frame"]], :3, 3] - gt[row[lp["reference"]], :3, 3]) <= Config().loop.radius_m
     assert any(lp["verified"] for lp in loops)
