@@ -13,7 +13,7 @@ from ..frontend.depth import check_stereo_pair, correct_disparity
 DEPTH_TEXTURE_THRESHOLD = 10  # map StereoBM: minimum local texture (prefiltered sum)
 DEPTH_SPECKLE_RANGE_PX = 1.0  # map speckle filter: neighbours within this disparity form one region
 # The map's matcher (docs/decisions.md, "Map"): a pixel is kept only where all the evidence agrees.
-MAP_DEPTH_METHOD = "sgbm"  # SGBM, not the paper's BM: BM keeps about 6x fewer valid pixels on KITTI 06
+MAP_DEPTH_METHOD = "sgbm"  # SGBM, not the paper's BM: BM keeps far fewer valid pixels (docs/decisions.md, "Map")
 MAP_BLOCK_SIZE = 5  # matcher block at the working size, px (odd; BM needs >= 5)
 MAP_UNIQUENESS = 15  # the best match must beat the second by this, percent
 MAP_LR_CHECK_PX = 1.0  # left-right consistency limit, px (0 = off)
