@@ -205,6 +205,10 @@ def run(
         "(t x y z qx qy qz qw, matched by timestamp); SEQ may then be monocular.",
     ),
     odometry_format: Optional[str] = typer.Option(None, "--odometry-format", help="kitti | tum (default: by the column count)."),
+    prior: list[Path] = typer.Option(
+        [], "--prior", help="An earlier run's results folder to relocalise against (read only); repeatable."
+    ),
+    same_start: bool = typer.Option(False, "--same-start", help="With --prior: the run starts where the priors started."),
 ) -> None:
     """Run stereo VO (+ SNAPS, + graph refinement, + map) over a sequence and write a results folder.
 
@@ -220,7 +224,7 @@ def run(
     # path the run reads or writes against it.
     build_map = cfg.resolved(loops=loops, refine=refine, build_map=map_).map.enabled
     inputs = [("sequence", seq_dir), ("config", config), ("ground truth", gt), ("calibration", calib), ("odometry", odometry)]
-    check_inputs_outside(out, inputs + [("world mesh", world_mesh)])
+    check_inputs_outside(out, inputs + [("world mesh", world_mesh)] + [("prior", p) for p in prior])
     support.check_output(out, overwrite)
     rrd_inside = check_recording_path(rrd, out) if rrd is not None else None
     support.check_odometry(odometry, odometry_format)
@@ -232,9 +236,12 @@ def run(
     support.check_stereo(seq, seq_dir, odometry is not None, build_map)
     print_input_notes(seq, frames, topics_given=left_topic is not None)
     recording = support.Recording(seq, str(seq_dir), viewer, rrd, rrd_inside, rrd_images)
-    options: dict = dict(loops=loops, refine=refine, build_map=map_, overwrite=overwrite, prefetch_frames=prefetch)
-    options |= dict(odometry=odometry, odometry_format=odometry_format, world_mesh=world_mesh)
+    options: dict = dict(
+        loops=loops, refine=refine, build_map=map_, overwrite=overwrite, prefetch_frames=prefetch, odometry=odometry
+    )
+    options |= dict(odometry_format=odometry_format, world_mesh=world_mesh, priors=prior, same_start=same_start)
     metrics, rate = _run_with_progress(seq, out, cfg, recording, options)
+    support.print_sessions(metrics)
     if rrd is not None:
         typer.echo(f"rerun recording in {rrd}: {support.rrd_size_text(rrd, metrics['frames'])}")
     print_summary(metrics, out, rate, partial=frames is not None)

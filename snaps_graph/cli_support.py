@@ -299,3 +299,17 @@ def check_synth_options(
         if world_mesh.exists() and not overwrite:
             raise SnapsGraphError(f"{world_mesh}: exists (use --overwrite to replace it)")
     return mesh_inside
+
+
+def print_sessions(metrics: dict) -> None:
+    """One line per prior session: where the run relocalised against it, or that it never did."""
+    for entry in metrics.get("sessions", []):
+        if not entry.get("relocalised"):
+            typer.echo(f"never relocalised against {entry['session']}: the outputs keep the run's own frame")
+        elif entry.get("frame") is None:
+            typer.echo(f"started where {entry['session']} started (--same-start); {entry['loops']} loops with it")
+        else:
+            typer.echo(
+                f"relocalised against {entry['session']} at frame {entry['frame']} (its frame {entry['reference']});"
+                f" {entry['loops']} loops with it; the outputs are in its frame"
+            )

@@ -9,24 +9,30 @@ state changes. The same config and input give bit-identical poses, loops and gra
 
 from __future__ import annotations
 
+import hashlib
 import math
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from .backend.pose_graph import PoseGraph
+from .backend.pose_graph import PoseGraph, PriorGraph, SessionLink
 from .camera import StereoCamera
 from .config import Config
 from .errors import SnapsGraphError
 from .frontend.depth import ORDER_MAX_FRAMES, check_stereo_pair, stereo_order
 from .frontend.external import PoseFileOdometry, time_origin
 from .frontend.odometry import StereoOdometry
+from .geometry import inv
+from .loop.prior import PriorMap
 from .loop.snaps import SnapsLoopCloser, SnapsStep
 from .mapping.depth import map_depth
 from .mapping.tsdf import FusedMap
+from .session.store import Factors, Session, check_compatible, loop_settings
 from .trajectory_io import PoseFile
 from .types import FrameRecord, FrontEnd, LoopEvent, StereoFrame, VOResult
+from .verification.features import LoopFeatureBank
+from .verification.mono import MonoFeatureBank
 from .verification.verifier import LoopVerifier
 
 
@@ -53,6 +59,11 @@ class RunResult:
     graph_failures: list = field(default_factory=list)  # (k, reason); k = -1: not tied to a frame
     graph_stats: dict = field(default_factory=dict)  # PoseGraph.stats.summary()
     wall_s: float = 0.0
+    # With prior sessions: per prior its relocalisation (SlamPipeline.relocalisation), and the
+    # priors' trajectories as the joint graph refined them (prior index -> (N_i, 4, 4)).
+    sessions: list[dict] = field(default_factory=list)
+    prior_trajectories: dict[int, np.ndarray] = field(default_factory=dict)
+    joint: dict = field(default_factory=dict)  # the joint refinement's summary (PoseGraph.optimize_joint)
 
     @property
     def n_flagged(self) -> int:
@@ -87,10 +98,14 @@ class SlamPipeline:
         refine: str | None = None,
         build_map: bool | None = None,
         frontend: FrontEnd | None = None,
+        priors: list[Session] | None = None,
+        same_start: bool = False,
     ):
         """``cfg`` is copied, never changed; ``loops``/``refine``/``build_map`` override it in the
         copy (``self.cfg``, what ran). ``frontend``: any ``FrontEnd`` (the paper: "it is possible to substitute the visual odometry part with
-        any desired model"); default: ``StereoOdometry`` configured by ``cfg.frontend``."""
+        any desired model"); default: ``StereoOdometry`` configured by ``cfg.frontend``.
+        ``priors``: earlier sessions (``session.read_session``) to relocalise against and close
+        loops with; ``same_start``: the run starts where they started (no appearance search)."""
         self.cfg = (cfg or Config()).resolved(loops=loops, refine=refine, build_map=build_map)
         self.loops_mode = self.cfg.loops
         self.refine = self.cfg.graph.refine
@@ -99,11 +114,22 @@ class SlamPipeline:
         self.vo: FrontEnd = frontend if frontend is not None else StereoOdometry(camera, self.cfg.frontend)
         # Loop verification's features and answers (None without SNAPS), given to the loop closer.
         self.verifier = LoopVerifier(camera, self.cfg.frontend, self.cfg.verification) if self.loops_mode == "snaps" else None
+        self.priors = list(priors or [])
+        if self.priors and self.verifier is None:
+            raise SnapsGraphError("a prior session needs loop closure: run with loops = snaps")
+        maps = [self._prior_map(s) for s in self.priors]
         self.snaps = (
-            SnapsLoopCloser(self.cfg.loop, self.cfg.odometry, LoopVerifier.reference_every, verifier=self.verifier)
+            SnapsLoopCloser(self.cfg.loop, self.cfg.odometry, LoopVerifier.reference_every, verifier=self.verifier, priors=maps)
             if self.verifier is not None
             else None
         )
+        self._links: list[SessionLink] = []  # verified loops to the priors, for the joint graph
+        self._frame_prior: int | None = None  # the prior whose frame the outputs are in, once relocalised
+        if same_start:
+            for i, m in enumerate(maps):  # the run's first frame is the prior's first
+                m.relocalise(inv(m.poses[0]), (0, 0))
+                self._links.append(SessionLink(i, 0, 0, np.eye(4), None))
+            self._frame_prior = 0 if maps else None
         self.graph = PoseGraph(
             self.cfg.graph, mode="isam2" if self.refine == "both" else self.refine, drift=self.cfg.odometry.model()
         )
@@ -171,6 +197,8 @@ class SlamPipeline:
             )
         if self._shape is None and self.snaps is not None:
             self.snaps.check_image(index, (h, w))
+            for prior in self.priors:
+                check_compatible(prior, self.camera, loop_settings(self.cfg), image_size=(w, h))
 
     def process(self, frame: StereoFrame) -> FrameOutput:
         """One frame through the stages; returns its best pose now."""
@@ -278,8 +306,8 @@ class SlamPipeline:
         if self.refine in ("isam2", "both"):
             est = self.graph.estimate(k)
             if np.all(np.isfinite(est)):
-                return est
-        return heuristic
+                return self.to_output(est)
+        return self.to_output(heuristic)
 
     def _start_monocular(self, mono: bool) -> None:
         """At the first frame: a monocular run verifies loops by two-view geometry."""
@@ -293,11 +321,80 @@ class SlamPipeline:
         """A loop-closure factor for a SNAPS loop: measured by verification when it succeeded
         (done once, inside the SNAPS step), else the paper's same-place assumption."""
         assert self.verifier is not None
-        k_ref = self._k_of_frame.get(loop.reference, -1)
         k_cur = self._k_of_frame[loop.frame]
+        if loop.session:
+            self._add_session_loop(k_cur, loop)
+            return
+        k_ref = self._k_of_frame.get(loop.reference, -1)
         cov = self.verifier.covariance(loop.reference) if loop.verified else None
         self.graph.add_loop(k_ref, k_cur, loop.q, loop.T_ref_cur if loop.verified else None, covariance=cov)
         self.loops.append(loop)
+
+    def _prior_map(self, s: Session) -> PriorMap:
+        """A prior session for the loop closer; its reference features go to the verifier."""
+        assert self.verifier is not None
+        check_compatible(s, self.camera, loop_settings(self.cfg))
+        bank: LoopFeatureBank = (
+            MonoFeatureBank(self.camera, self.cfg.frontend, self.cfg.verification)
+            if s.monocular
+            else LoopFeatureBank(self.camera, self.cfg.frontend, self.cfg.verification, background=False)
+        )
+        bank.load({int(k): s.features(r) for r, k in enumerate(s.refs)}, s.vo_poses)
+        self.verifier.add_prior(bank, s.frame_ids, s.vo_poses)
+        return PriorMap(s.name, s.poses, s.driven, s.frame_ids, s.thumbs, self.cfg.loop.window)
+
+    def _add_session_loop(self, k_cur: int, loop: LoopEvent) -> None:
+        """A verified loop to a prior: online an anchor (the prior held fixed), and a link for the
+        joint refinement at the end; the first relocalisation sets the outputs' frame."""
+        assert self.snaps is not None and self.verifier is not None
+        prior = self.snaps.priors[loop.prior]
+        j = prior.position(loop.reference)
+        T_ref_cur = np.asarray(loop.T_ref_cur, float)
+        cov = self.verifier.covariance(loop.reference, loop.prior)
+        self.graph.add_anchor(k_cur, prior.pose_own(j) @ T_ref_cur, cov)
+        self._links.append(SessionLink(loop.prior, j, k_cur, T_ref_cur, cov))
+        if self._frame_prior is None:
+            self._frame_prior = loop.prior
+        self.loops.append(loop)
+
+    @property
+    def frame_prior(self) -> int | None:
+        """The prior whose frame the outputs are in (None: the run's own)."""
+        return self._frame_prior
+
+    def output_frame(self) -> np.ndarray:
+        """T_out_own: the outputs' frame (the first prior relocalised against, else this run's own)
+        from the run's own frame, where the loop closer and the graph work."""
+        if self._frame_prior is None or self.snaps is None:
+            return np.eye(4)
+        T = self.snaps.priors[self._frame_prior].T_own_prior
+        return np.eye(4) if T is None else inv(T)
+
+    def placed_priors(self) -> list[tuple[int, np.ndarray]]:
+        """(prior, T_out_prior) of every relocalised prior: where its frame lies in the outputs'."""
+        if self.snaps is None:
+            return []
+        T = self.output_frame()
+        return [(i, T @ m.T_own_prior) for i, m in enumerate(self.snaps.priors) if m.T_own_prior is not None]
+
+    def to_output(self, poses: np.ndarray) -> np.ndarray:
+        """Poses (one or many) of the run's own frame in the outputs' frame; unchanged, not even
+        multiplied by the identity, while the run has its own frame."""
+        return poses if self._frame_prior is None else self.output_frame() @ poses
+
+    def relocalisation(self) -> list[dict]:
+        """Per prior: its folder, whether the run relocalised against it, at which frame of each,
+        and T_prior_run (the run's own frame in the prior's)."""
+        out = []
+        for i, m in enumerate(self.snaps.priors if self.snaps is not None else []):
+            first = next((lp for lp in self.loops if lp.prior == i and lp.relocalised), None)
+            entry: dict = {"session": m.name, "relocalised": m.relocalised, "loops": sum(lp.prior == i for lp in self.loops)}
+            if m.T_own_prior is not None:
+                entry["T_prior_run"] = [float(v) for v in inv(m.T_own_prior)[:3, :4].ravel()]
+                entry["frame"] = None if first is None else first.frame
+                entry["reference"] = None if first is None else first.reference
+            out.append(entry)
+        return out
 
     def _add_map_keyframe(self, k: int, frame: StereoFrame) -> None:
         assert self.map is not None
@@ -325,10 +422,17 @@ class SlamPipeline:
             # iSAM2 takes one step per update; a robust loop near the end needs a few more.
             self.graph.converge()
             trajs["isam2"] = self.graph.estimates()
+        joint: dict = {}
+        prior_trajs: dict[int, np.ndarray] = {}
         if self.refine in ("batch", "both"):
             if "snaps" in trajs:  # start from every SNAPS correction, not the poses at arrival
                 self.graph.set_initial_estimates(trajs["snaps"])
-            trajs["batch"] = self.graph.optimize_batch()
+            if self._links:
+                trajs["batch"], prior_trajs, joint = self._optimize_joint(trajs["snaps"])
+            else:
+                trajs["batch"] = self.graph.optimize_batch()
+        for name in [n for n in trajs if not (n == "batch" and self._links)]:  # the joint batch is in it already
+            trajs[name] = self.to_output(trajs[name])
         for name, poses in trajs.items():
             if not np.all(np.isfinite(poses)):  # never a NaN pose in any output
                 raise RuntimeError(f"internal error: non-finite pose in the {name} trajectory")
@@ -341,10 +445,66 @@ class SlamPipeline:
             graph_failures=list(self.graph.failures),
             graph_stats=self.graph.stats.summary(),
             wall_s=time.perf_counter() - self._t_start,
+            sessions=self.relocalisation(),
+            prior_trajectories=prior_trajs,
+            joint=joint,
         )
         if self.observer is not None:
             self.observer.on_finish(self, result)
         return result
+
+    def _optimize_joint(self, initial: np.ndarray) -> tuple[np.ndarray, dict[int, np.ndarray], dict]:
+        """The batch over this run and the relocalised priors joined by their loops, in the frame
+        of the prior the outputs are in (its first pose where the session put it)."""
+        assert self.snaps is not None and self._frame_prior is not None
+        used = sorted({link.prior for link in self._links})
+        maps = self.snaps.priors
+        graphs = [self._prior_graph(i) for i in used]
+        links = [SessionLink(used.index(lk.prior), lk.j, lk.k, lk.T_ref_cur, lk.covariance) for lk in self._links]
+        own, others, summary = self.graph.optimize_joint(initial, graphs, links)
+        out = used.index(self._frame_prior)
+        G = maps[self._frame_prior].poses[0] @ inv(others[out][0])
+        return G @ own, {i: G @ others[used.index(i)] for i in used}, summary
+
+    def _prior_graph(self, i: int) -> PriorGraph:
+        assert self.snaps is not None
+        s, m = self.priors[i], self.snaps.priors[i]
+        f = s.factors
+        return PriorGraph(f.pairs, f.measured, f.covariance, f.robust, np.asarray(m.T_own_prior) @ m.poses)
+
+    def session(self, result: RunResult) -> Session | None:
+        """What a later run needs of this one (``session.write_session`` writes it); None without
+        SNAPS (no thumbnails, no verifier) or before the first frame."""
+        if self.snaps is None or self.verifier is None or self.verifier.bank is None or self._shape is None:
+            return None
+        refs = self.verifier.bank.stored()
+        feats = [f for _, f in refs]
+        start = np.concatenate([[0], np.cumsum([len(f.uv) for f in feats])]).astype(np.int64)
+        empty_desc = np.zeros((0, 32), np.uint8) if self.cfg.verification.detector == "orb" else np.zeros((0, 128), np.float32)
+        best = next(n for n in ("batch", "isam2", "snaps", "vo") if n in result.trajectories)
+        pairs, measured, cov, robust = self.graph.factors()
+        h, w = self._shape
+        return Session(
+            name="",
+            camera=self.camera,
+            image_size=(int(w), int(h)),
+            monocular=bool(self._monocular),
+            loop_settings=loop_settings(self.cfg),
+            config_digest=hashlib.sha256(self.cfg.dumps().encode()).hexdigest(),
+            trajectory=best,
+            frame_ids=np.array(self._frame_ids, np.int64),
+            timestamps=np.array(self._timestamps),
+            poses=result.trajectories[best],
+            vo_poses=np.array(self._vo_poses),
+            driven=self.snaps.traj.s[: len(self.snaps)].copy(),
+            thumbs=np.stack([self.snaps.thumbs[k] for k in range(len(self.snaps))]),
+            refs=np.array([k for k, _ in refs], np.int64),
+            ref_start=start,
+            ref_uv=np.concatenate([f.uv for f in feats]) if feats else np.zeros((0, 2), np.float32),
+            ref_pts=np.concatenate([f.pts3d for f in feats]) if feats else np.zeros((0, 3), np.float32),
+            ref_desc=np.concatenate([f.desc for f in feats]) if feats else empty_desc,
+            factors=Factors(pairs, measured, cov, robust),
+        )
 
     @property
     def frame_ids(self) -> list[int]:

@@ -26,9 +26,11 @@ from .evaluation.results_io import (
     write_metrics_json,
     write_trajectories,
 )
-from .io_utils import PREFETCH_FRAMES, output_folder, prefetch
+from .io_utils import PREFETCH_FRAMES, inside, output_folder, prefetch
 from .mapping.outputs import write_map_outputs
+from .mapping.sessions import write_sessions_map
 from .pipeline import FrameOutput, RunResult, SlamPipeline, pose_file_frontend
+from .session import Session, read_session, session_folder, write_session
 from .trajectory_io import read_pose_file
 from .types import StereoSource
 
@@ -53,6 +55,8 @@ def run_sequence(
     odometry=None,
     odometry_format: str | None = None,
     world_mesh: str | Path | None = None,
+    priors: Iterable[str | Path] = (),
+    same_start: bool = False,
 ) -> tuple[RunResult, dict]:
     """Run a whole dataset (any reader of ``datasets.open.open_dataset``) and write the results folder;
     the configuration and the folder are checked before the first frame. ``observer``: a
@@ -60,8 +64,11 @@ def run_sequence(
     one; ``prefetch_frames``: frames read ahead on a thread (0: none); ``before_commit``: called with
     the whole temporary folder before it is renamed; ``odometry``: a pose file (KITTI or TUM,
     ``odometry_format`` or detected; a pose for every frame) or a front end, instead of the stereo VO;
-    ``world_mesh``: the true world (PLY), the map's accuracy measured against it.
+    ``world_mesh``: the true world (PLY), the map's accuracy measured against it; ``priors``:
+    results folders of earlier runs to relocalise against (read, never written); ``same_start``:
+    the run starts where they started.
     """
+    sessions = read_priors(priors, out_dir)
     if (cfg or Config()).resolved(loops=loops, refine=refine, build_map=build_map).map.enabled and world_mesh:
         if not Path(world_mesh).is_file():  # else the map stage fails after every frame
             what = "is a folder, not a world mesh" if Path(world_mesh).is_dir() else "world mesh not found"
@@ -72,7 +79,16 @@ def run_sequence(
         track = read_pose_file(odometry, odometry_format)
         frontend = pose_file_frontend(track, cfg, dataset.indices, dataset.timestamps, None if t0_ns is None else t0_ns * 1e-9)
     with output_folder(out_dir, overwrite) as tmp:
-        pipe = SlamPipeline(dataset.camera, cfg, loops=loops, refine=refine, build_map=build_map, frontend=frontend)
+        pipe = SlamPipeline(
+            dataset.camera,
+            cfg,
+            loops=loops,
+            refine=refine,
+            build_map=build_map,
+            frontend=frontend,
+            priors=sessions,
+            same_start=same_start,
+        )
         if callable(observer) and not hasattr(observer, "on_frame"):
             observer = observer(tmp)
         pipe.observer = observer
@@ -91,10 +107,44 @@ def run_sequence(
         t0_ns = dataset.t0_ns  # .tum keeps the sequence's own clock (evo matches stamps)
         topics = dict(dataset.source_info)  # a bag's image topics
         t0_s = 0.0 if t0_ns is None else t0_ns * 1e-9
-        metrics = _write_all(tmp, pipe, result, dataset.gt_poses, t0_s, topics, world_mesh)
+        gt, origin = ground_truth_in_output_frame(pipe, dataset.gt_poses, getattr(dataset, "gt_origin", None))
+        metrics = _write_all(tmp, pipe, result, gt, t0_s, topics, world_mesh, origin)
         if before_commit is not None:
             before_commit(tmp)
     return result, metrics
+
+
+def ground_truth_in_output_frame(
+    pipe: SlamPipeline, gt: np.ndarray | None, origin: np.ndarray | None
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The ground truth in the frame the outputs are in, and the ground truth's pose of that frame's
+    origin: re-based on the run's first frame, or, once relocalised, on the prior's (None when
+    either lacks ground truth: the figures would compare two frames)."""
+    i = pipe.frame_prior
+    if i is None or gt is None:
+        return gt, origin
+    prior_origin = pipe.priors[i].gt_origin
+    if origin is None or prior_origin is None:
+        return None, None
+    return np.linalg.inv(prior_origin) @ origin @ gt, prior_origin
+
+
+def read_priors(priors: Iterable[str | Path], out_dir: str | Path) -> list[Session]:
+    """The prior sessions, checked before the results folder opens: each once, none the output."""
+    sessions: list[Session] = []
+    seen: dict[Path, str] = {}
+    for given in priors:
+        path = Path(given)
+        full = path.resolve()
+        if full == Path(out_dir).resolve():
+            raise SnapsGraphError(f"{path}: the prior is the output folder; a run never writes its prior, name another --out")
+        if inside(out_dir, full):
+            raise SnapsGraphError(f"{path}: the output folder {out_dir} lies inside the prior; a run never writes its prior")
+        if full in seen:
+            raise SnapsGraphError(f"{path}: given twice as a prior (also as {seen[full]})")
+        seen[full] = str(given)
+        sessions.append(read_session(path))
+    return sessions
 
 
 def write_results(
@@ -113,9 +163,16 @@ def _write_all(
     t0_s: float = 0.0,
     topics: dict | None = None,
     world_mesh: str | Path | None = None,
+    gt_origin: np.ndarray | None = None,
 ) -> dict:
     stamps = result.timestamps + t0_s
     write_trajectories(out, result.trajectories, stamps)
+    session = pipe.session(result)
+    if session is not None:  # what a later run needs to relocalise against this one
+        session.gt_origin = gt_origin
+        write_session(session_folder(out), session)
+    for i, poses in result.prior_trajectories.items():  # the priors as the joint graph refined them
+        write_trajectories(out, {f"prior{i}_batch": poses}, pipe.priors[i].timestamps)
     if gt_poses is not None:
         write_gt(out, gt_poses, stamps)
     write_frames_csv(out / "frames.csv", result.records)
@@ -139,6 +196,15 @@ def _write_all(
             map_metrics = {"error": _one_line(f"{type(exc).__name__}: {exc}")}
         if map_metrics is not None:
             metrics["map"] = map_metrics
+            placed = pipe.placed_priors()
+            if placed and "error" not in map_metrics:  # the priors' maps beside this run's, one file
+                sessions_map = write_sessions_map(out, [(Path(pipe.priors[i].name), T) for i, T in placed])
+                if sessions_map is not None:
+                    map_metrics["sessions"] = sessions_map
+    if result.sessions:
+        metrics["sessions"] = result.sessions
+        if result.joint:
+            metrics["joint"] = result.joint
     track = getattr(pipe.vo, "track", None)  # a pose-file front end (run --odometry): the report names it
     if track is not None:
         metrics["odometry_file"] = str(track.path)

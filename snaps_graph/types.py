@@ -169,6 +169,11 @@ class LoopEvent:
     t_verify_ms: float = 0.0  # geometric verification time (not part of t_ms)
     shift_px: int = 0  # horizontal thumbnail shift at which Q was highest
     weight: float = 0.0  # the weight eq. 6 applied (Q, or 1 for a verified loop)
+    # A loop to a prior session: its name (the folder it came from; "" for this run's own frames),
+    # its index among the run's priors, and whether this loop relocalised the run against it.
+    session: str = ""
+    prior: int = -1
+    relocalised: bool = False
 
     def to_json(self) -> dict:
         d = {
@@ -193,6 +198,8 @@ class LoopEvent:
         }
         if self.T_ref_cur is not None:
             d["T_ref_cur"] = [float(v) for v in np.asarray(self.T_ref_cur)[:3, :4].reshape(-1)]
+        if self.session:  # a loop to a prior session: its reference is that session's frame
+            d["session"], d["relocalised"] = self.session, self.relocalised
         return d
 
 

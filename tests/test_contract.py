@@ -495,7 +495,7 @@ def test_images_too_small_for_snaps_name_the_image(tmp_path):
 # ------------------------------------------------------------------ layout
 # What each part of the package may import from the package (the data's flow: camera -> front end
 # -> loop verification -> loop -> back end -> map -> evaluation; the pipeline runs the stages, the
-# runner does the I/O).
+# runner does the I/O; a session's format stands apart, read by the runner, given to the pipeline).
 BASE = {"errors", "types", "config", "config_schema", "drift_model", "io_utils", "geometry", "camera", "trajectory_io"}
 ALLOWED = {
     "datasets": BASE | {"datasets"},
@@ -506,8 +506,9 @@ ALLOWED = {
     "backend": BASE | {"backend"},
     "mapping": BASE | {"mapping", "frontend"},
     "evaluation": BASE | {"evaluation", "backend"},
-    "pipeline": BASE | {"frontend", "verification", "loop", "backend", "mapping"},
-    "runner": BASE | {"pipeline", "evaluation", "mapping"},
+    "session": BASE | {"session"},
+    "pipeline": BASE | {"frontend", "verification", "loop", "backend", "mapping", "session"},
+    "runner": BASE | {"pipeline", "evaluation", "mapping", "session"},
 }
 
 

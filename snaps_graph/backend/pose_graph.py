@@ -163,6 +163,8 @@ class PoseGraph:
         self._initial: list[np.ndarray] = []  # heuristic poses, the initial estimates
         self._base = gtsam.NonlinearFactorGraph()  # prior + odometry (known inliers)
         self._loops: list[_Loop] = []
+        self._steps: list[tuple[int, np.ndarray, np.ndarray]] = []  # (k, T_rel, covariance) per odometry factor
+        self._anchors: list[gtsam.NonlinearFactor] = []  # loops to a fixed prior session (add_anchor)
         self._initial_values = gtsam.Values()
         # iSAM2 state: pending factors/values since the last update, the solver, cached estimate.
         self._isam: gtsam.ISAM2 | None = None
@@ -213,6 +215,7 @@ class PoseGraph:
             C = odometry_step_covariance(self.cfg, self.drift, T_rel, int(inliers), bool(ok), cov, drift_cov)
             noise = gtsam.noiseModel.Gaussian.Covariance(C)
             factor = gtsam.BetweenFactorPose3(k - 1, k, _to_pose3(T_rel), noise)
+            self._steps.append((k, T_rel.copy(), C))
             self.stats.n_odometry_factors += 1
             self.stats.n_flagged_odometry += int(not ok)
         # Validated: only now touch the state, so a rejected frame leaves no trace.
@@ -279,22 +282,59 @@ class PoseGraph:
         return info
 
     def _loop_factor(self, loop: _Loop, robust: bool) -> gtsam.BetweenFactorPose3:
-        if loop.cov is not None:
-            noise = gtsam.noiseModel.Gaussian.Covariance(loop.cov)
-        else:
-            noise = gtsam.noiseModel.Diagonal.Sigmas(loop.sigmas)
-        if robust:
-            noise = robust_loop_noise(self.cfg, noise)
-        return gtsam.BetweenFactorPose3(loop.ref, loop.cur, loop.measurement, noise)
+        return gtsam.BetweenFactorPose3(loop.ref, loop.cur, loop.measurement, self._loop_noise(loop.sigmas, loop.cov, robust))
 
-    def _graph(self, robust: bool) -> tuple[gtsam.NonlinearFactorGraph, int]:
-        """Prior + odometry + active loops; returns the graph and the number of base factors
-        (the base factors come first, at indices 0..n_base-1)."""
+    def _loop_noise(self, sigmas: np.ndarray, cov: np.ndarray | None, robust: bool) -> gtsam.noiseModel.Base:
+        if cov is not None:
+            noise = gtsam.noiseModel.Gaussian.Covariance(cov)
+        else:
+            noise = gtsam.noiseModel.Diagonal.Sigmas(sigmas)
+        return robust_loop_noise(self.cfg, noise) if robust else noise
+
+    def add_anchor(self, cur: int, T_world_cur: np.ndarray, covariance: np.ndarray | None) -> bool:
+        """A verified loop to a prior session held fixed: frame ``cur`` is at ``T_world_cur`` (where
+        the prior puts it, in this graph's frame), a robust unary factor with the loop's noise.
+        False (nothing added, the reason in ``failures``) for a pose or key that cannot be used."""
+        if not 0 <= cur < len(self._initial) or np.shape(T_world_cur) != (4, 4) or not np.all(np.isfinite(T_world_cur)):
+            self.failures.append((int(cur), "loop to a prior session not added: no such frame or a non-finite pose"))
+            return False
+        sig = loop_sigmas(self.cfg, 1.0, True)
+        cov = loop_covariance(self.cfg, covariance) if covariance is not None else None
+        factor = gtsam.PriorFactorPose3(int(cur), _to_pose3(np.asarray(T_world_cur, float)), self._loop_noise(sig, cov, True))
+        self._anchors.append(factor)
+        if self._isam is not None:
+            self._pending_factors.add(factor)
+        self.stats.n_loops_added += 1
+        self.stats.n_loops_verified += 1
+        return True
+
+    def _graph(self, robust: bool, anchors: bool = True) -> tuple[gtsam.NonlinearFactorGraph, int]:
+        """Prior + odometry + active loops (+ the anchors to prior sessions); returns the graph and
+        the number of base factors (the base factors come first, at indices 0..n_base-1)."""
         g = gtsam.NonlinearFactorGraph(self._base)
         for loop in self._loops:
             if loop.active:
                 g.add(self._loop_factor(loop, robust))
+        for factor in self._anchors if anchors else ():
+            g.add(factor)
         return g, self._base.size()
+
+    def factors(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The graph's between factors as arrays, for a later session to join this graph: pairs
+        (F, 2) of keys, measured T (F, 4, 4), covariance (F, 6, 6), robust (F,)."""
+        rows = [(k - 1, k, T, C, False) for k, T, C in self._steps]
+        for loop in self._loops:
+            if loop.active:
+                C = loop.cov if loop.cov is not None else np.diag(loop.sigmas**2)
+                rows.append((loop.ref, loop.cur, loop.measurement.matrix(), C, True))
+        if not rows:
+            return np.zeros((0, 2), np.int64), np.zeros((0, 4, 4)), np.zeros((0, 6, 6)), np.zeros(0, bool)
+        return (
+            np.array([(a, b) for a, b, *_ in rows], np.int64),
+            np.array([r[2] for r in rows], float),
+            np.array([r[3] for r in rows], float),
+            np.array([r[4] for r in rows], bool),
+        )
 
     # ------------------------------------------------------------------ solving
     def _new_isam2(self) -> gtsam.ISAM2:
@@ -448,6 +488,56 @@ class PoseGraph:
         self.stats.consistency = self.consistency(poses)
         return poses.copy()
 
+    def optimize_joint(
+        self, initial: np.ndarray, priors: list[PriorGraph], links: list[SessionLink]
+    ) -> tuple[np.ndarray, list[np.ndarray], dict]:
+        """Batch-refine this graph joined with prior sessions' graphs by the loops between them.
+
+        ``initial``: this run's poses (this graph's frame); each :class:`PriorGraph` its factors and
+        its poses placed in this graph's frame; ``links``: verified loops between the sessions
+        (their anchors in this graph are replaced by these). Levenberg-Marquardt as
+        :meth:`optimize_batch`; on a failure or a rise of the error, the initial poses come back
+        with the reason in ``failures``. Returns (this run's poses, each prior's, a summary).
+        """
+        graph, _ = self._graph(robust=True, anchors=False)
+        values = _array_to_values(np.asarray(initial, float))
+        for i, prior in enumerate(priors):
+            for j, T in enumerate(prior.initial):
+                values.insert(_prior_key(i, j), _to_pose3(T))
+            for (a, b), T, C, robust in zip(prior.pairs, prior.measured, prior.covariance, prior.robust):
+                noise: gtsam.noiseModel.Base = gtsam.noiseModel.Gaussian.Covariance(np.asarray(C, float))
+                noise = robust_loop_noise(self.cfg, noise) if robust else noise
+                graph.add(gtsam.BetweenFactorPose3(_prior_key(i, int(a)), _prior_key(i, int(b)), _to_pose3(T), noise))
+        for link in links:
+            cov = loop_covariance(self.cfg, link.covariance) if link.covariance is not None else None
+            noise = self._loop_noise(loop_sigmas(self.cfg, 1.0, True), cov, True)
+            graph.add(gtsam.BetweenFactorPose3(_prior_key(link.prior, link.j), int(link.k), _to_pose3(link.T_ref_cur), noise))
+        e0 = float(graph.error(values))
+        summary = {"links": len(links), "error_initial": e0, "error_final": e0, "iterations": 0, "stop": ""}
+        try:
+            lm = gtsam.LevenbergMarquardtParams()
+            lm.setMaxIterations(BATCH_MAX_ITERATIONS)
+            lm.setRelativeErrorTol(BATCH_RELATIVE_TOL)
+            opt = gtsam.LevenbergMarquardtOptimizer(graph, values, lm)
+            result = opt.optimize()
+            e1 = float(graph.error(result))
+            summary.update(
+                iterations=opt.iterations(),
+                error_final=e1,
+                stop="converged" if opt.iterations() < BATCH_MAX_ITERATIONS else "iteration limit",
+            )
+            own = np.array([result.atPose3(k).matrix() for k in range(len(initial))])
+            others = [
+                np.array([result.atPose3(_prior_key(i, j)).matrix() for j in range(len(p.initial))]) for i, p in enumerate(priors)
+            ]
+            if e1 > e0 or not all(np.all(np.isfinite(a)) for a in [own, *others]):
+                raise RuntimeError(f"the error rose from {e0:.4g} to {e1:.4g}" if e1 > e0 else "non-finite result")
+        except RuntimeError as exc:
+            self.failures.append((len(initial) - 1, f"joint optimisation failed, the initial estimates kept: {_one_line(exc)}"))
+            summary["stop"] = "failed: the initial estimates kept"
+            return np.array(initial, float), [np.array(p.initial, float) for p in priors], summary
+        return own, others, summary
+
     def consistency(self, poses: np.ndarray) -> dict:
         """How well ``poses`` fit the graph, judged without ground truth: per factor type the
         chi-square per degree of freedom (about 1 when the noise models describe the errors), each
@@ -550,6 +640,34 @@ class PoseGraph:
         if self.mode == "batch" and self._batch_estimate is not None and k < len(self._batch_estimate):
             return self._batch_estimate[k]
         return self._initial[k]
+
+
+@dataclass
+class PriorGraph:
+    """A prior session's part of a joint graph: its factors (``Factors`` arrays of the session)
+    and its poses placed in the joint graph's frame, the initial estimate."""
+
+    pairs: np.ndarray
+    measured: np.ndarray
+    covariance: np.ndarray
+    robust: np.ndarray
+    initial: np.ndarray
+
+
+@dataclass
+class SessionLink:
+    """A verified loop between prior ``prior``'s frame ``j`` and this run's frame ``k``."""
+
+    prior: int
+    j: int
+    k: int
+    T_ref_cur: np.ndarray
+    covariance: np.ndarray | None
+
+
+def _prior_key(i: int, j: int) -> int:
+    """The joint graph's key of prior ``i``'s frame ``j`` (this run's frames keep keys 0 .. N-1)."""
+    return gtsam.symbol(chr(ord("a") + i), j)
 
 
 def robust_loop_noise(cfg: GraphConfig, noise: gtsam.noiseModel.Base) -> gtsam.noiseModel.Base:

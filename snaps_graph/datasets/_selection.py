@@ -42,3 +42,8 @@ class FrameSelection(SequenceBase):
             return None
         gt = self._gt_all[self.start : self.stop]
         return np.linalg.inv(gt[0]) @ gt
+
+    @property
+    def gt_origin(self) -> np.ndarray | None:
+        """The ground truth's own pose of the first selected frame (what ``gt_poses`` re-bases)."""
+        return None if self._gt_all is None else np.array(self._gt_all[self.start])

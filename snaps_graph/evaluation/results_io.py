@@ -184,7 +184,9 @@ def write_loops_jsonl(path: str | Path, loops: list[LoopEvent]) -> None:
 
 
 def read_loops(path: Path, row_of_frame: dict[int, int]) -> list[dict]:
-    """The loop objects, each with ``row`` / ``reference_row`` (rows of frames.csv); [] without a file."""
+    """The run's own loop objects, each with ``row`` / ``reference_row`` (rows of frames.csv); []
+    without a file. Loops to a prior session (a ``session`` key) are left out: their reference
+    is that session's frame."""
     if not path.is_file():
         return []
     loops = []
@@ -196,6 +198,8 @@ def read_loops(path: Path, row_of_frame: dict[int, int]) -> list[dict]:
             frame, ref = int(obj["frame"]), int(obj["reference"])
         except (json.JSONDecodeError, KeyError, TypeError, ValueError):
             raise SnapsGraphError(f"{path}:{lineno}: not a loop object with integer 'frame' and 'reference'") from None
+        if obj.get("session"):
+            continue
         for key, value in (("frame", frame), ("reference", ref)):
             if value not in row_of_frame:
                 raise SnapsGraphError(f"{path}:{lineno}: {key} {value} is not a frame of this run (frames.csv)")

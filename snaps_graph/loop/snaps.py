@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from time import perf_counter
-from typing import Protocol
+from typing import Protocol, cast
 
 import numpy as np
 
@@ -23,7 +23,9 @@ from ..errors import SnapsGraphError
 from ..geometry import rotation_angle_deg, wrap_deg
 from ..types import CandidateRecord, LoopEvent
 from .correction import correct, verified_gain, window_length, yaw_correction
+from .cross import CrossMatch, CrossSession, PriorVerifier
 from .policy import POLICIES, LoopPolicy
+from .prior import PriorMap
 from .search import CandidateIndex
 from .trajectory import Trajectory
 from .uiqi import UIQI, Thumbnails, WindowStats, make_thumbnail, similarity, similarity_q, thumbnail_shape, window_stats
@@ -38,7 +40,8 @@ class Verifier(Protocol):
     front end: the pipeline gives one, e.g. :class:`snaps_graph.verification.LoopVerifier`)."""
 
     def verify(self, reference: int) -> tuple[np.ndarray, int] | None:
-        """(T_ref_cur, inliers) of the current frame in dataset frame ``reference``, or None."""
+        """(T_ref_cur, inliers) of the current frame in dataset frame ``reference``, or None.
+        With prior sessions it must also take ``prior`` (:class:`~snaps_graph.loop.cross.PriorVerifier`)."""
         ...
 
 
@@ -78,11 +81,13 @@ class SnapsLoopCloser:
         pause_every: int = 1,
         verifier: Verifier | None = None,
         policy: LoopPolicy | None = None,
+        priors: list[PriorMap] | None = None,
     ):
         """``pause_every``: in the pause, a graph-only loop is searched every this many frames
         (the verifier's reference spacing: loops measured against one stored reference share its
         errors, and the graph would count them as independent). ``verifier``: geometric
-        verification (None: loops by Q alone). ``policy``: the rule (default ``cfg.policy``)."""
+        verification (None: loops by Q alone). ``policy``: the rule (default ``cfg.policy``).
+        ``priors``: earlier sessions to relocalise against and close loops with (needs ``verifier``)."""
         if pause_every < 1:
             raise SnapsGraphError(f"SNAPS: pause_every must be >= 1, got {pause_every}")
         self.pause_every = int(pause_every)
@@ -96,6 +101,23 @@ class SnapsLoopCloser:
         self.traj = Trajectory()
         self.index = CandidateIndex(self.traj, self.cfg, self.policy, self.drift_model)
         self.thumbs = Thumbnails(self.cfg.window)
+        self.priors = list(priors or [])
+        if self.priors and verifier is None:
+            raise SnapsGraphError("SNAPS: loops with prior sessions need a verifier")
+        self.cross = (
+            CrossSession(
+                self.priors,
+                self.traj,
+                self.thumbs,
+                self.cfg,
+                self.policy,
+                self.drift_model,
+                cast(PriorVerifier, verifier),
+                self.pause_every,
+            )
+            if self.priors
+            else None
+        )
         self._track: tuple[int, int, np.ndarray] | None = None  # (frame, reference, T_ref_cur): the last verified loop
         self._last_pinned: int | None = None
         self._pause_from = 0  # the loop that started the current pause
@@ -166,6 +188,11 @@ class SnapsLoopCloser:
         t0 = perf_counter()
         self.index.add(n)
         loop, computed, t_verify_ms = self._detect(n)
+        if loop is None and self.cross is not None:
+            match, more, t_more = self.cross.detect(n)
+            computed, t_verify_ms = computed + more, t_verify_ms + t_more
+            if match is not None:
+                loop = self._close_prior(n, match)
         # Verification (tried or successful) is the graph's work, timed on its own.
         t_ms = (perf_counter() - t0) * 1e3 - t_verify_ms
         if loop is not None:
@@ -310,6 +337,44 @@ class SnapsLoopCloser:
         moved = correct(self.traj, self.policy, self.drift_model, (lo, n), delta, weight, alpha, rotvec)
         self.index.refile(lo, n + 1)
         return moved
+
+    def _close_prior(self, n: int, m: CrossMatch) -> LoopEvent:
+        """A verified loop to a prior frame: the relocalising one only places the prior (nothing
+        to correct); a later one corrects by eq. 6 toward where the prior puts frame n, over the
+        window since the last match with that prior (its anchor)."""
+        prior = self.priors[m.prior]
+        target = prior.pose_own(m.j) @ m.T_ref_cur
+        sim = similarity(self.thumbs.stats(n), prior.stats(m.j))
+        delta = target[:3, 3] - self.traj.p[n]
+        weight, moved = 0.0, 0
+        if not (m.relocalised or m.graph_only):
+            if self.policy.correction_axes == "ground":
+                delta[1] = 0.0
+            rotvec = None
+            if self.policy.correction_rotation != "none":
+                D = float(self.cross.driven(n, prior, np.array([m.j]))[0]) if self.cross else 0.0
+                gain = verified_gain(self.policy, float(heading_sigma_deg(self.drift_model, D)) ** 2)
+                rotvec = yaw_correction(target[:3, :3] @ self.traj.R[n].T) * gain
+            first = prior.pause_from + 1
+            lo = max(0, n - window_length(self.policy, self.cfg.discount_length, n - first + 1), first)
+            self._alpha += 1
+            weight, moved = 1.0, correct(self.traj, self.policy, self.drift_model, (lo, n), delta, 1.0, self._alpha, rotvec)
+            self.index.refile(lo, n + 1)
+            self._last_pinned = self._pause_from = prior.pause_from = n
+        prior.anchor = (n, m.j)
+        c = Choice(best=0, accept=True, verified=True, T_ref_cur=m.T_ref_cur, inliers=m.inliers, t_verify_ms=m.t_verify_ms)
+        event = self._event(
+            n, n, float(np.linalg.norm(m.T_ref_cur[:3, 3])), sim, delta, c, weight, moved, self._alpha, m.candidates
+        )
+        event.reference, event.session, event.prior, event.relocalised = (
+            int(prior.frame_ids[m.j]),
+            prior.name,
+            m.prior,
+            m.relocalised,
+        )
+        event.yaw_diff_deg = float(wrap_deg(prior.yaw[m.j] - self.traj.yaw[n]))
+        self._loops.append(event)
+        return event
 
     def _event(
         self,

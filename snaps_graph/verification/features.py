@@ -334,6 +334,16 @@ class LoopFeatureBank:
         """Store precomputed reference features (replays)."""
         self._ref[k] = features
 
+    def load(self, refs: dict[int, FrameFeatures], vo_poses: np.ndarray) -> None:
+        """Take a saved session's references by stream position (``vo_poses``: its odometry
+        poses, which a monocular bank needs)."""
+        self._ref.update(refs)
+
+    def stored(self) -> list[tuple[int, FrameFeatures]]:
+        """The references kept so far, by stream position (what a session saves)."""
+        self._collect()
+        return sorted(self._ref.items(), key=lambda kv: kv[0])
+
     def reference(self, k: int) -> FrameFeatures | None:
         self._collect()
         return self._ref.get(k)

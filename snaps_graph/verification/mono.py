@@ -155,6 +155,10 @@ class MonoFeatureBank(LoopFeatureBank):
         if cur is not None and self.wants(k):
             self._waiting[k] = (cur, np.array(pose, float))
 
+    def load(self, refs: dict[int, FrameFeatures], vo_poses: np.ndarray) -> None:
+        self._ref.update(refs)
+        self._pose.update({k: np.asarray(vo_poses[k], float) for k in refs})
+
     def reference(self, k: int) -> FrameFeatures | None:
         """Reference ``k``'s points with those of its ``NEIGHBOURS`` stored references on each
         side, carried into ``k``'s camera frame by the odometry between them (a few metres: close

@@ -35,7 +35,8 @@ class LoopVerifier:
         self._k_of_frame: dict[int, int] = {}
         self._vo_poses: list[np.ndarray] = []
         self._current: tuple[int, StereoFrame, float] | None = None  # (k, frame, disparity offset)
-        self._cov: dict[int, np.ndarray] = {}  # reference frame number -> covariance, this frame's loops
+        self._cov: dict[tuple[int | None, int], np.ndarray] = {}  # (prior, reference frame) -> covariance, this frame's loops
+        self._priors: list[tuple[LoopFeatureBank, dict[int, int], np.ndarray]] = []  # add_prior()
 
     def start(self, monocular: bool) -> None:
         """At the first frame: stereo features, or two-view ones for a run without right images."""
@@ -55,25 +56,37 @@ class LoopVerifier:
         self._current = (k, frame, vo.disparity_offset_px)
         self._cov.clear()
 
-    def covariance(self, reference: int) -> np.ndarray | None:
-        """The covariance of this frame's verified loop to frame number ``reference``, if any."""
-        return self._cov.get(int(reference))
+    def covariance(self, reference: int, prior: int | None = None) -> np.ndarray | None:
+        """The covariance of this frame's verified loop to frame number ``reference`` (of prior
+        session ``prior``), if any."""
+        return self._cov.get((prior, int(reference)))
 
-    def verify(self, reference: int) -> tuple[np.ndarray, int] | None:
-        """(T_ref_cur, inliers) of the current frame in frame number ``reference``, or None."""
-        k_ref = self._k_of_frame.get(reference)
-        if self.bank is None or self._current is None or k_ref is None:
+    def add_prior(self, bank: LoopFeatureBank, frame_ids: np.ndarray, vo_poses: np.ndarray) -> int:
+        """A prior session's references (a bank filled from the session), its frame numbers and
+        odometry poses by stream position; returns the index :meth:`verify` takes as ``prior``."""
+        self._priors.append((bank, {int(f): k for k, f in enumerate(frame_ids)}, vo_poses))
+        return len(self._priors) - 1
+
+    def verify(self, reference: int, prior: int | None = None) -> tuple[np.ndarray, int] | None:
+        """(T_ref_cur, inliers) of the current frame in frame number ``reference`` of this run
+        (or of prior session ``prior``, :meth:`add_prior`), or None."""
+        bank: LoopFeatureBank | None
+        vo_poses: list[np.ndarray] | np.ndarray
+        if prior is None:
+            bank, k_of_frame, vo_poses = self.bank, self._k_of_frame, self._vo_poses
+        else:
+            bank, k_of_frame, vo_poses = self._priors[prior]
+        k_ref = k_of_frame.get(reference)
+        if bank is None or self.bank is None or self._current is None or k_ref is None:
             return None
-        k_feat = self.bank.nearest(k_ref)
+        k_feat = bank.nearest(k_ref)
         if k_feat is None:
             return None
         k, frame, offset_px = self._current
         try:
             cur = self.bank.query(k, frame)
             stereo = None if self.monocular else frame
-            m = verify_features(
-                self.bank.reference(k_feat), cur, stereo, self.camera, self.cfg, self.vcfg, offset_px, self.bank.merged
-            )
+            m = verify_features(bank.reference(k_feat), cur, stereo, self.camera, self.cfg, self.vcfg, offset_px, bank.merged)
         except Exception as exc:  # best effort: an unverifiable candidate is not a loop
             self.failures.append((k, f"loop verification raised {type(exc).__name__}: {exc}"))
             return None
@@ -81,10 +94,10 @@ class LoopVerifier:
             return None
         T = m.T_ref_cur
         if k_feat != k_ref:
-            T = np.linalg.solve(self._vo_poses[k_ref], self._vo_poses[k_feat]) @ T
+            T = np.linalg.solve(vo_poses[k_ref], vo_poses[k_feat]) @ T
         if np.linalg.norm(T[:3, 3]) > MAX_DISTANCE_M:  # not the same place
             return None
-        self._cov[int(reference)] = two_view_covariance(m.cov) if self.monocular else m.cov
+        self._cov[(prior, int(reference))] = two_view_covariance(m.cov) if self.monocular else m.cov
         return T, m.inliers
 
     def close(self) -> None:
