@@ -206,7 +206,7 @@ def run(
     ),
     odometry_format: Optional[str] = typer.Option(None, "--odometry-format", help="kitti | tum (default: by the column count)."),
     prior: list[Path] = typer.Option(
-        [], "--prior", help="An earlier run's results folder to relocalise against (read only); repeatable."
+        [], "--prior", help="An earlier run's folder to relocalise against (read only); repeatable."
     ),
     same_start: bool = typer.Option(False, "--same-start", help="With --prior: the run starts where the priors started."),
 ) -> None:
@@ -215,9 +215,7 @@ def run(
     The folder is written whole at the end (or not at all). Exit status: 0 done; 2 bad input (one
     `error:` line); 3 done, but more than half of the frames were flagged; 130 interrupted.
     """
-    _check_choice("--loops", loops, LoopMode)
-    _check_choice("--refine", refine, RefineMode)
-    _check_choice("--mode", mode, FrontendMode)
+    _check_choices(("--loops", loops, LoopMode), ("--refine", refine, RefineMode), ("--mode", mode, FrontendMode))
     cfg = support.run_config(preset, config, set_, mode, map_all)
     support.check_run_inputs(seq_dir, gt, calib, world_mesh)
     # Before anything is read: the configuration that will run, the output folder, and every
@@ -229,22 +227,26 @@ def run(
     rrd_inside = check_recording_path(rrd, out) if rrd is not None else None
     support.check_odometry(odometry, odometry_format)
     from .datasets.open import open_dataset  # the heavy imports (OpenCV, gtsam) after the checks
-    from .runner import mostly_flagged
 
     seq = open_dataset(seq_dir, frames=frames, gt=gt, left_topic=left_topic, right_topic=right_topic, calib=calib)
     check_inputs_outside(out, [("ground truth", seq.gt_path)])
     support.check_stereo(seq, seq_dir, odometry is not None, build_map)
     print_input_notes(seq, frames, topics_given=left_topic is not None)
     recording = support.Recording(seq, str(seq_dir), viewer, rrd, rrd_inside, rrd_images)
-    options: dict = dict(
-        loops=loops, refine=refine, build_map=map_, overwrite=overwrite, prefetch_frames=prefetch, odometry=odometry
-    )
-    options |= dict(odometry_format=odometry_format, world_mesh=world_mesh, priors=prior, same_start=same_start)
+    options: dict = dict(loops=loops, refine=refine, build_map=map_, overwrite=overwrite, prefetch_frames=prefetch)
+    options |= dict(odometry=odometry, odometry_format=odometry_format, world_mesh=world_mesh)
+    options |= dict(priors=prior, same_start=same_start)
     metrics, rate = _run_with_progress(seq, out, cfg, recording, options)
-    support.print_sessions(metrics)
+    _report_run(metrics, out, rate, frames is not None, rrd)
+
+
+def _report_run(metrics: dict, out: Path, rate: float | None, partial: bool, rrd: Path | None) -> None:
+    """The run's summary; exit status EXIT_MOSTLY_FLAGGED when most frames were flagged."""
+    from .runner import mostly_flagged
+
     if rrd is not None:
         typer.echo(f"rerun recording in {rrd}: {support.rrd_size_text(rrd, metrics['frames'])}")
-    print_summary(metrics, out, rate, partial=frames is not None)
+    print_summary(metrics, out, rate, partial=partial)
     if mostly_flagged(metrics):
         warn_mostly_flagged(metrics)
         raise typer.Exit(EXIT_MOSTLY_FLAGGED)
@@ -272,6 +274,7 @@ def _run_with_progress(seq, out: Path, cfg: Config, recording, options: dict) ->
         except BaseException:
             recording.abort()  # no half-written recording
             raise
+    support.print_sessions(metrics)
     return metrics, bar.rate
 
 
@@ -459,6 +462,12 @@ def _check_choice(option: str, value: str | None, literal) -> None:
     allowed = choices(literal) or ()
     if value is not None and value not in allowed:
         raise_user(f"{option} must be one of {', '.join(allowed)}, not '{value}'")
+
+
+def _check_choices(*checks: tuple[str, str | None, object]) -> None:
+    """:func:`_check_choice` for each (option, value, literal)."""
+    for option, value, literal in checks:
+        _check_choice(option, value, literal)
 
 
 def main() -> None:

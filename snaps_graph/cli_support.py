@@ -309,7 +309,8 @@ def print_sessions(metrics: dict) -> None:
         elif entry.get("frame") is None:
             typer.echo(f"started where {entry['session']} started (--same-start); {entry['loops']} loops with it")
         else:
+            where = "; the outputs are in its frame" if entry.get("outputs_frame") else ""
             typer.echo(
                 f"relocalised against {entry['session']} at frame {entry['frame']} (its frame {entry['reference']});"
-                f" {entry['loops']} loops with it; the outputs are in its frame"
+                f" {entry['loops']} loops with it{where}"
             )

@@ -389,6 +389,7 @@ class SlamPipeline:
         for i, m in enumerate(self.snaps.priors if self.snaps is not None else []):
             first = next((lp for lp in self.loops if lp.prior == i and lp.relocalised), None)
             entry: dict = {"session": m.name, "relocalised": m.relocalised, "loops": sum(lp.prior == i for lp in self.loops)}
+            entry["outputs_frame"] = i == self._frame_prior  # the outputs are in this prior's frame
             if m.T_own_prior is not None:
                 entry["T_prior_run"] = [float(v) for v in inv(m.T_own_prior)[:3, :4].ravel()]
                 entry["frame"] = None if first is None else first.frame

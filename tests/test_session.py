@@ -73,6 +73,15 @@ def test_a_session_reads_back_as_written(tmp_path):
     assert isinstance(r.thumbs, np.memmap)  # the large arrays are read lazily
 
 
+def test_sift_descriptors_are_stored_as_bytes_and_read_back_as_they_were(tmp_path):
+    s = small_session()
+    s.ref_desc = np.random.default_rng(1).integers(0, 256, (len(s.ref_uv), 128)).astype(np.float32)
+    write_session(tmp_path / "run" / "session", s)
+    assert np.load(tmp_path / "run" / "session" / "ref_desc.npy").dtype == np.uint8
+    got = read_session(tmp_path / "run").features(0).desc
+    assert got.dtype == np.float32 and np.array_equal(got, s.ref_desc[:3])
+
+
 @pytest.mark.parametrize(
     "damage, message",
     [

@@ -102,22 +102,7 @@ class SnapsLoopCloser:
         self.index = CandidateIndex(self.traj, self.cfg, self.policy, self.drift_model)
         self.thumbs = Thumbnails(self.cfg.window)
         self.priors = list(priors or [])
-        if self.priors and verifier is None:
-            raise SnapsGraphError("SNAPS: loops with prior sessions need a verifier")
-        self.cross = (
-            CrossSession(
-                self.priors,
-                self.traj,
-                self.thumbs,
-                self.cfg,
-                self.policy,
-                self.drift_model,
-                cast(PriorVerifier, verifier),
-                self.pause_every,
-            )
-            if self.priors
-            else None
-        )
+        self.cross = self._cross_session(verifier) if self.priors else None
         self._track: tuple[int, int, np.ndarray] | None = None  # (frame, reference, T_ref_cur): the last verified loop
         self._last_pinned: int | None = None
         self._pause_from = 0  # the loop that started the current pause
@@ -126,6 +111,13 @@ class SnapsLoopCloser:
         # One tuple per compared candidate (types.CandidateRecord, built at the end): (n, j, distance,
         # yaw difference, Q, above threshold, verification tried, passed, inliers, accepted), stream positions.
         self._cand: list[tuple] = []
+
+    def _cross_session(self, verifier: Verifier | None) -> CrossSession:
+        """The search over the priors, sharing this closer's trajectory, thumbnails and rule."""
+        if verifier is None:
+            raise SnapsGraphError("SNAPS: loops with prior sessions need a verifier")
+        parts = (self.traj, self.thumbs, self.cfg, self.policy, self.drift_model)
+        return CrossSession(self.priors, *parts, cast(PriorVerifier, verifier), self.pause_every)
 
     # ---- accessors ----
     def __len__(self) -> int:

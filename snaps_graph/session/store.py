@@ -78,6 +78,7 @@ class Session:
     ref_desc: np.ndarray
     factors: Factors
     gt_origin: np.ndarray | None = None  # the ground truth's pose of the session frame's origin, when known
+    desc_dtype: str = ""  # the descriptors' type when stored narrower ("float32": SIFT's whole 0-255 values as uint8)
 
     def __len__(self) -> int:
         return len(self.frame_ids)
@@ -85,7 +86,8 @@ class Session:
     def features(self, r: int) -> FrameFeatures:
         """Reference ``r``'s features (views of the stored rows)."""
         a, b = int(self.ref_start[r]), int(self.ref_start[r + 1])
-        return FrameFeatures(self.ref_uv[a:b], self.ref_pts[a:b], self.ref_desc[a:b])
+        desc = self.ref_desc[a:b]
+        return FrameFeatures(self.ref_uv[a:b], self.ref_pts[a:b], desc.astype(self.desc_dtype) if self.desc_dtype else desc)
 
 
 def session_folder(run: str | Path) -> Path:
@@ -128,7 +130,7 @@ def write_session(folder: str | Path, s: Session) -> None:
         "thumbs.npy": np.ascontiguousarray(s.thumbs, np.uint8),
         "ref_uv.npy": np.ascontiguousarray(s.ref_uv, np.float32),
         "ref_pts.npy": np.ascontiguousarray(s.ref_pts, np.float32),
-        "ref_desc.npy": np.ascontiguousarray(s.ref_desc),
+        "ref_desc.npy": _narrow(s.ref_desc),
     }
     for name, arr in arrays.items():
         with atomic_output(folder / name) as tmp, open(tmp, "wb") as fh:
@@ -160,9 +162,18 @@ def write_session(folder: str | Path, s: Session) -> None:
         "loop": s.loop_settings,
         "config_digest": s.config_digest,
         "trajectory": s.trajectory,
+        "descriptors": str(np.asarray(s.ref_desc).dtype),
         "files": {p.name: {"bytes": p.stat().st_size, "sha256": _sha256(p)} for p in sorted(folder.iterdir())},
     }
     atomic_write_text(folder / INDEX, json.dumps(index, indent=1) + "\n")
+
+
+def _narrow(desc: np.ndarray) -> np.ndarray:
+    """SIFT's float32 descriptors hold whole numbers 0-255: stored as uint8, a quarter of the size."""
+    desc = np.ascontiguousarray(desc)
+    if desc.dtype == np.float32 and desc.size and np.all((desc >= 0) & (desc <= 255) & (desc == np.round(desc))):
+        return desc.astype(np.uint8)
+    return desc
 
 
 def _sha256(path: Path) -> str:
@@ -210,6 +221,11 @@ def read_session(run: str | Path) -> Session:
         factors=Factors(fa["pairs"].astype(np.int64), fa["measured"], fa["covariance"], fa["robust"].astype(bool)),
         gt_origin=fr.get("gt_origin"),
     )
+    stored = str(s.ref_desc.dtype)
+    wanted = str(index.get("descriptors", stored))
+    if wanted not in ("uint8", "float32"):
+        raise SnapsGraphError(f"{index_path}: descriptors of type {wanted!r}: expected uint8 or float32")
+    s.desc_dtype = "" if wanted == stored else wanted
     _check_shapes(s, index, folder)
     return s
 
