@@ -167,6 +167,18 @@ def test_the_later_run_relocalises_against_the_prior_and_lands_in_its_frame(two_
     assert metrics["joint"]["stop"] == "converged"
 
 
+def test_compare_shows_the_sessions_and_measures_in_the_prior_frame(two_sessions, tmp_path):
+    a, b, _, _, _ = two_sessions
+    run = tmp_path / "B"
+    shutil.copytree(b, run)
+    ran = cli("compare", run)
+    assert ran.returncode == 0, ran.stderr
+    report = (run / "report.md").read_text()
+    assert f"Prior `{a}`: relocalised at frame" in report and "in the prior's frame, as the run wrote it" in report
+    # Measured against the ground truth in A's frame (re-based to B's first frame, it would be tens of metres off).
+    assert json.loads((run / "metrics.json").read_text())["trajectories"]["batch"]["mean_deviation"] < 2.0
+
+
 def test_the_prior_folder_is_never_written(two_sessions):
     a, _, before, _, _ = two_sessions
     assert digests(a) == before

@@ -115,13 +115,15 @@ def plot_trajectories(
     loops: Sequence[tuple[int, int]] | None = None,
     title: str = "Trajectories",
     frames: Sequence[int] | np.ndarray | None = None,
+    others: Mapping[str, np.ndarray] | None = None,
 ) -> Path:
     """Top view (x right against z forward, KITTI camera axes) beside height (-y) over distance.
 
     ``trajs`` maps a name to an (N, 4, 4) pose stack, ``"gt"`` (or ``"ground truth"``) the ground
     truth; ``loops`` are (frame, reference) *row* indices, drawn on ``"snaps"`` (else the first
     estimate); ``frames``, the rows' frame numbers: lines break across a gap in them, and the
-    distance does not count the jump. Returns the path written.
+    distance does not count the jump. ``others``: trajectories of other frames (a prior session's)
+    drawn in the top view only, thin and grey. Returns the path written.
     """
     if not trajs:
         raise SnapsGraphError(f"{path_png}: no trajectory to plot")
@@ -154,6 +156,9 @@ def plot_trajectories(
         ax.plot(_broken(p[:, 0], gaps), _broken(p[:, 2], gaps), **style)
         if len(p) == len(dist):
             axh.plot(_broken(dist, gaps), _broken(-p[:, 1], gaps), **style)
+    for name, poses in (others or {}).items():
+        q = np.asarray(poses)[:, :3, 3]
+        ax.plot(q[:, 0], q[:, 2], color="0.55", lw=0.9, ls=":", label=name, zorder=0)
     ax.plot([0.0], [0.0], "ko", ms=4, zorder=4)
     if loops and names:
         _draw_loops(ax, axh, trajs, loops, estimates, names, dist, ref)

@@ -22,6 +22,7 @@ import numpy as np
 
 from ..errors import SnapsGraphError
 from ..io_utils import atomic_write_text, read_text
+from ..trajectory_io import read_kitti_poses
 from .latency import LATENCY_LABELS, latency_samples, summarise_samples
 from .loops import loops_run, summary_lines
 from .metrics import evaluate, notes_text, parts, path_length, position_errors
@@ -321,16 +322,50 @@ def map_section_lines(run_dir: str | Path, map_entry: dict | None) -> list[str]:
     return md
 
 
-def _odometry_file(run: Path) -> str | None:
-    """The pose file a ``run --odometry`` read (metrics.json's ``odometry_file``), else None."""
+def _metrics_entry(run: Path, key: str) -> Any:
+    """metrics.json's ``key`` (None without the file or the key)."""
     p = run / "metrics.json"
     if not p.is_file():
         return None
     try:
-        value = read_metrics_json(p).get("odometry_file")
+        return read_metrics_json(p).get(key)
     except SnapsGraphError:
         return None  # a malformed metrics.json is reported where it is read in full
+
+
+def _odometry_file(run: Path) -> str | None:
+    """The pose file a ``run --odometry`` read (metrics.json's ``odometry_file``), else None."""
+    value = _metrics_entry(run, "odometry_file")
     return value if isinstance(value, str) else None
+
+
+def _in_prior_frame(run: Path) -> bool:
+    """The run relocalised against a prior: it wrote its trajectories and poses_gt.txt in that frame."""
+    entries = _metrics_entry(run, "sessions")
+    return isinstance(entries, list) and any(isinstance(e, dict) and e.get("outputs_frame") for e in entries)
+
+
+def _session_lines(run: Path, priors: dict[str, np.ndarray]) -> list[str]:
+    """A run with ``--prior``: where it relocalised against each prior, and the priors drawn."""
+    entries = _metrics_entry(run, "sessions")
+    if not isinstance(entries, list):
+        return []
+    md = []
+    for i, e in enumerate(entries):
+        if not isinstance(e, dict):
+            continue
+        if not e.get("relocalised"):
+            md.append(f"Prior `{e.get('session')}`: never relocalised against; the trajectories keep the run's own frame.")
+            continue
+        where = (
+            "from the first frame (--same-start)"
+            if e.get("frame") is None
+            else f"at frame {e['frame']} (its frame {e['reference']})"
+        )
+        frame = "; the trajectories are in its frame" if e.get("outputs_frame") else ""
+        drawn = f"; as the joint graph refined it, **prior{i}_batch** in the top view" if f"prior{i}_batch" in priors else ""
+        md.append(f"Prior `{e.get('session')}`: relocalised {where}, {e.get('loops', 0)} loop(s) with it{frame}{drawn}.")
+    return md
 
 
 # ---------------------------------------------------------------------------------------------
@@ -348,6 +383,7 @@ class _Run:
     gt: np.ndarray | None
     gt_file: Any
     loops: list[dict]
+    priors: dict[str, np.ndarray]  # poses_prior<i>_batch.txt: the priors as the joint graph refined them
 
 
 def _read_run(run: Path, gt_path: str | Path | None) -> _Run:
@@ -365,9 +401,10 @@ def _read_run(run: Path, gt_path: str | Path | None) -> _Run:
         raise SnapsGraphError(f"{csv_path}: {n_rows} rows, but poses_vo.txt has {n} poses")
     frame_ids = frame_ids_of(cols, n, csv_path)
     row_of_frame = {int(f): i for i, f in enumerate(frame_ids)}
-    gt, gt_file = load_gt(run, gt_path, frame_ids)
+    gt, gt_file = load_gt(run, gt_path, frame_ids, rebased=not (_in_prior_frame(run) and gt_path is None))
     loops = read_loops(run / "loops.jsonl", row_of_frame)
-    return _Run(run, gone, trajs, cols, frame_ids, gt, gt_file, loops)
+    priors = {p.name[len("poses_") : -len(".txt")]: read_kitti_poses(p) for p in sorted(run.glob("poses_prior*_batch.txt"))}
+    return _Run(run, gone, trajs, cols, frame_ids, gt, gt_file, loops, priors)
 
 
 def _figures(r: _Run, samples: dict) -> tuple[list[str], list[dict] | None]:
@@ -384,6 +421,7 @@ def _figures(r: _Run, samples: dict) -> tuple[list[str], list[dict] | None]:
         loops=[(lp["row"], lp["reference_row"]) for lp in r.loops],
         title=f"{run.name}: trajectories",
         frames=frame_ids,
+        others=r.priors,
     )
     figures.append("trajectories.png")
     if gt is not None:
@@ -416,8 +454,13 @@ def _intro_lines(r: _Run) -> list[str]:
             f"The frames run in {len(runs)} parts: path length, t_rel / r_rel and end drift are taken over the parts "
             "(each part's own length and segments, each part's end error relative to its start), not across the gaps."
         )
+    frame = (
+        "in the prior's frame, as the run wrote it"
+        if _in_prior_frame(run) and r.gt_file == run / "poses_gt.txt"
+        else "re-based to the first processed frame"
+    )
     md.append(
-        f"Ground truth: `{r.gt_file}` (re-based to the first processed frame)."
+        f"Ground truth: `{r.gt_file}` ({frame})."
         if gt is not None
         else "Ground truth: none (no poses_gt.txt and no --gt), so no error columns and no errors.png."
     )
@@ -428,7 +471,7 @@ def _intro_lines(r: _Run) -> list[str]:
     md.append("Trajectories: " + "; ".join(f"**{k}** = {labels[k]}" for k in trajs) + ".")
     if r.gone:
         md.append(f"Missing: {', '.join(f'`{name}`' for name in r.gone)}, written by the run and deleted since; left out here.")
-    return md
+    return md + _session_lines(run, r.priors)
 
 
 def _corrections_section(r: _Run, corrections: list[dict], offset: float, gamma0: float) -> list[str]:

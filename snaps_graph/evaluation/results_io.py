@@ -87,8 +87,11 @@ def rebase(poses: np.ndarray) -> np.ndarray:
     return np.einsum("ij,njk->nik", inv(poses[0]), poses)
 
 
-def load_gt(run: Path, gt_path: str | Path | None, frame_ids: np.ndarray) -> tuple[np.ndarray | None, Path | None]:
-    """Ground truth of the run's rows, re-based to the first (``gt_path`` or ``RUN/poses_gt.txt``).
+def load_gt(
+    run: Path, gt_path: str | Path | None, frame_ids: np.ndarray, rebased: bool = True
+) -> tuple[np.ndarray | None, Path | None]:
+    """Ground truth of the run's rows, re-based to the first (``gt_path`` or ``RUN/poses_gt.txt``;
+    ``rebased=False``: as the file has it, for a run written in a prior session's frame).
 
     A file with one pose per row is used as is; a longer one (the whole sequence) is indexed by
     the dataset frame numbers ``frame_ids``. (None, None) when the run has none and none is given.
@@ -111,7 +114,7 @@ def load_gt(run: Path, gt_path: str | Path | None, frame_ids: np.ndarray) -> tup
         raise SnapsGraphError(
             f"{p}: {len(gt)} poses cover neither the run's {n} rows nor its dataset frames {frame_ids.min()}..{frame_ids.max()}"
         )
-    return rebase(selected), p
+    return (rebase(selected) if rebased else selected), p
 
 
 # ---------------------------------------------------------------------------------------------
