@@ -517,14 +517,8 @@ def test_failed_run_leaves_no_recording(kitti06_dir, tmp_path):
 
 def test_viewer_without_display_is_one_line(kitti06_dir, tmp_path):
     pytest.importorskip("rerun")
-    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
-    proc = subprocess.run(
-        CLI + ["run", str(kitti06_dir), "--frames", "0:2", "--out", str(tmp_path / "o"), "--viewer"],
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=300,
-    )
+    no_display = {"DISPLAY": None, "WAYLAND_DISPLAY": None}  # None: unset for the call
+    proc = run_cli("run", kitti06_dir, "--frames", "0:2", "--out", tmp_path / "o", "--viewer", env=no_display)
     if sys.platform.startswith("linux"):
         assert proc.returncode == 2 and proc.stderr.strip().splitlines()[-1].startswith("error: --viewer: no display")
         assert not (tmp_path / "o").exists()
