@@ -29,7 +29,6 @@ from conftest import SHARED_DATA, _need, need_extra  # noqa: E402
 from inprocess import Ran  # noqa: E402
 from inprocess import cli as run_cli  # noqa: E402
 
-CLI = [sys.executable, "-m", "snaps_graph.cli"]
 N_BAG = 8  # frames of the KITTI 06 clip written into test bags
 
 
