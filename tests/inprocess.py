@@ -19,6 +19,7 @@ import signal
 import sys
 import traceback
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -44,7 +45,7 @@ def _no_exit_on_interrupt() -> None:
     raise AssertionError("the in-process run was interrupted: test Ctrl-C in a subprocess")
 
 
-def cli(*args: object, cwd: str | Path | None = None, env: dict[str, str] | None = None) -> Ran:
+def cli(*args: object, cwd: str | Path | None = None, env: Mapping[str, str | None] | None = None) -> Ran:
     """``snaps-graph ARGS`` in this process: its exit status and its output."""
     argv = ["snaps-graph", *(str(a) for a in args)]
     handlers = {sig: signal.getsignal(sig) for sig in SIGNALS}

@@ -66,7 +66,7 @@ def done_run(finished_run, tmp_path) -> Path:
 
 
 # ------------------------------------------------------------------ writers racing for one output
-@pytest.mark.parametrize("n", [2, 3, 8])
+@pytest.mark.parametrize("n", [2, 8])  # few racers, and many: the benchmark adds 3
 def test_concurrent_runs_into_one_folder_lose_nothing(tiny_seq, tmp_path, n):
     found, wrote = bench_race.run_race(tiny_seq, tmp_path, n)
     assert not found and wrote >= 1, found

@@ -9,12 +9,10 @@ from __future__ import annotations
 
 import csv
 import json
-import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
+from inprocess import cli  # the command line in this process (tests/inprocess.py)
 
 from snaps_graph.config import Config
 from snaps_graph.errors import SnapsGraphError
@@ -161,14 +159,7 @@ def test_tiny_run_writes_candidates_and_loops_cli(tmp_path):
     assert accepted == {(l.frame, l.reference) for l in result.loops}
     for r in rows:  # Q is the product of the factors window by window, so bounded by the factors' range
         assert -1.0 <= float(r["q"]) <= 1.0 and 0.0 <= float(r["luminance"]) <= 1.0
-    env = dict(os.environ, PYTHONWARNINGS="ignore")
-    proc = subprocess.run(
-        [sys.executable, "-m", "snaps_graph.cli", "loops", str(run), "--json"],
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=120,
-    )
+    proc = cli("loops", run, "--json")
     assert proc.returncode == 0, proc.stderr
     ev = json.loads(proc.stdout)
     for key in (
@@ -192,13 +183,7 @@ def test_tiny_run_writes_candidates_and_loops_cli(tmp_path):
     metrics = compare_run(run)  # compare puts the same into report.md and metrics.json
     assert "## Loop closure against ground truth" in (run / "report.md").read_text()
     assert metrics["loop_evaluation"]["pairs"] == ev["pairs"]
-    bad = subprocess.run(
-        [sys.executable, "-m", "snaps_graph.cli", "loops", str(tmp_path / "nope")],
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=120,
-    )
+    bad = cli("loops", tmp_path / "nope")
     assert bad.returncode == 2 and bad.stderr.startswith("error:")
 
 
@@ -232,9 +217,7 @@ def test_loops_without_a_compared_pair_say_na(tmp_path):
     lines = summary_lines(ev)
     assert "max recall at 100% precision: n/a (no revisit in this run)" in lines
     assert not any("0.000" in line for line in lines if "recall" in line)
-    out = subprocess.run(
-        [sys.executable, "-m", "snaps_graph.cli", "loops", str(run)], capture_output=True, text=True, timeout=120
-    )
+    out = cli("loops", run)
     assert out.returncode == 0, out.stderr
     assert "n/a (no revisit in this run)" in out.stdout
     compare_run(run)

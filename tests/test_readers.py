@@ -29,7 +29,6 @@ from conftest import SHARED_DATA, _need, need_extra  # noqa: E402
 from inprocess import Ran  # noqa: E402
 from inprocess import cli as run_cli  # noqa: E402
 
-CLI = [sys.executable, "-m", "snaps_graph.cli"]
 N_BAG = 8  # frames of the KITTI 06 clip written into test bags
 
 
@@ -517,14 +516,8 @@ def test_failed_run_leaves_no_recording(kitti06_dir, tmp_path):
 
 def test_viewer_without_display_is_one_line(kitti06_dir, tmp_path):
     pytest.importorskip("rerun")
-    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
-    proc = subprocess.run(
-        CLI + ["run", str(kitti06_dir), "--frames", "0:2", "--out", str(tmp_path / "o"), "--viewer"],
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=300,
-    )
+    no_display = {"DISPLAY": None, "WAYLAND_DISPLAY": None}  # None: unset for the call
+    proc = run_cli("run", kitti06_dir, "--frames", "0:2", "--out", tmp_path / "o", "--viewer", env=no_display)
     if sys.platform.startswith("linux"):
         assert proc.returncode == 2 and proc.stderr.strip().splitlines()[-1].startswith("error: --viewer: no display")
         assert not (tmp_path / "o").exists()

@@ -88,9 +88,9 @@ def ate_rmse(est: np.ndarray, gt: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum((aligned - p_gt) ** 2, axis=1))))
 
 
-def _cumulative_distance(poses: np.ndarray) -> np.ndarray:
-    p = poses[:, :3, 3]
-    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+def distance_along(positions: np.ndarray) -> np.ndarray:
+    """Distance travelled at each row of an (N, 3) position array, metres (0 at the first row)."""
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(positions, axis=0), axis=1))])
 
 
 def _relative(poses: np.ndarray, first: np.ndarray, last: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -102,19 +102,6 @@ def _relative(poses: np.ndarray, first: np.ndarray, last: np.ndarray) -> tuple[n
     Rab = np.einsum("kji,kjl->kil", Ra, Rb)  # Ra^T Rb
     tab = np.einsum("kji,kj->ki", Ra, tb - ta)  # Ra^T (tb - ta)
     return Rab, tab
-
-
-def step_error_axes_percent(est: np.ndarray, gt: np.ndarray) -> np.ndarray:
-    """Sum of the per-step translation errors in each true step's start camera frame (x right,
-    y down, z forward), % of the true path. A constant rotation between the estimate's camera
-    and the ground truth's (a calibration between them) shows as a steady x / y share that no
-    front end can remove; z is the step-length bias."""
-    est, gt = _check_pair(est, gt)
-    i = np.arange(len(gt) - 1)
-    Rg, tg = _relative(gt, i, i + 1)
-    _, te = _relative(est, i, i + 1)
-    err = np.einsum("nji,nj->ni", Rg, te - tg)
-    return 100.0 * err.sum(0) / max(path_length(gt), 1e-9)
 
 
 def kitti_relative_errors(
@@ -136,7 +123,7 @@ def kitti_relative_errors(
     lens = np.asarray(lengths, dtype=float)
     if lens.size == 0 or np.any(~np.isfinite(lens)) or np.any(lens <= 0):
         raise SnapsGraphError("kitti_relative_errors: segment lengths must be positive numbers of metres")
-    dist = _cumulative_distance(gt)
+    dist = distance_along(gt[:, :3, 3])
     firsts = np.arange(0, len(gt), step)
     first_grid = np.repeat(firsts, lens.size)
     len_grid = np.tile(lens, firsts.size)
@@ -163,7 +150,7 @@ def _relative_errors_over_parts(est: np.ndarray, gt: np.ndarray, rows_of: list[n
     t_sum = r_sum = 0.0
     count = 0
     for rows in rows_of:
-        dist = _cumulative_distance(gt[rows])
+        dist = distance_along(gt[rows, :3, 3])
         n_seg = sum(
             int(np.sum(np.searchsorted(dist, dist[::KITTI_STEP_FRAMES] + L, side="right") < len(rows))) for L in KITTI_LENGTHS_M
         )

@@ -14,6 +14,7 @@ import numpy as np
 
 from ..errors import SnapsGraphError
 from ..io_utils import atomic_write_bytes
+from .metrics import distance_along
 
 GT_NAMES = ("gt", "ground truth", "ground_truth")
 # Fixed colours per known trajectory so every figure of every run reads the same way.
@@ -64,12 +65,6 @@ STATIONARY_EXTENT_M = 1.0
 MIN_HEIGHT_SPAN_M = 0.2
 # Equal axes hide a lateral drift on a long straight drive: past this aspect the narrow axis is stretched.
 MAX_EQUAL_ASPECT = 8.0
-
-
-def _distance_along(p: np.ndarray) -> np.ndarray:
-    """Cumulative distance travelled at each row of an (N, 3) position array, metres."""
-    steps = np.linalg.norm(np.diff(p, axis=0), axis=1) if len(p) > 1 else np.zeros(0)
-    return np.concatenate([[0.0], np.cumsum(steps)])
 
 
 def top_view_scale(ext_x: float, ext_z: float) -> str:
@@ -133,7 +128,7 @@ def plot_trajectories(
     estimates = [n for n in names if n.lower() not in GT_NAMES]
     gt_name = next((n for n in names if n.lower() in GT_NAMES), None)
     ref = np.asarray(trajs[gt_name if gt_name is not None else names[0]])[:, :3, 3]
-    dist = _distance_along(ref)
+    dist = distance_along(ref)
     gaps = np.zeros(len(ref), bool)  # row i starts a part after a gap in the frame numbers
     if frames is not None and len(frames) == len(ref):
         gaps[1:] = np.diff(np.asarray(frames, dtype=np.int64)) != 1

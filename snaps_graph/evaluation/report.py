@@ -280,7 +280,6 @@ def map_section_lines(run_dir: str | Path, map_entry: dict | None) -> list[str]:
     acc = map_entry.get("accuracy")
     if acc:
         any_acc = next(iter(acc.values()))
-        any_acc = next(iter(acc.values()))
         md += [
             "",
             f"Accuracy against the true world (`{map_entry.get('world_mesh', '?')}`): distance of the map's "

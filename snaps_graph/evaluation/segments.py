@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .metrics import position_errors
+from .metrics import distance_along, position_errors
 
 SEGMENTS = 8  # a run is split into this many stretches of equal ground-truth distance
 MIN_FRAMES = 5  # ...fewer when a stretch would hold fewer frames than this
@@ -18,7 +18,7 @@ def segment_bounds(gt: np.ndarray, segments: int = SEGMENTS) -> list[tuple[int, 
     """Row ranges [a, b) of stretches of equal ground-truth distance, each of at least MIN_FRAMES rows."""
     n = len(gt)
     k = max(1, min(int(segments), n // MIN_FRAMES))
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1))])
+    s = distance_along(gt[:, :3, 3])
     if s[-1] <= 0.0:
         cuts = np.linspace(0, n, k + 1).astype(int)
     else:
@@ -30,7 +30,7 @@ def segment_bounds(gt: np.ndarray, segments: int = SEGMENTS) -> list[tuple[int, 
 
 def segment_errors(trajs: dict[str, np.ndarray], gt: np.ndarray, segments: int = SEGMENTS) -> list[dict]:
     """One row per stretch: its rows, its frames' distance span and each trajectory's mean position error (m)."""
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1))])
+    s = distance_along(gt[:, :3, 3])
     errs = {name: position_errors(p, gt) for name, p in trajs.items()}
     rows = []
     for a, b in segment_bounds(gt, segments):
