@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .backend.pose_graph import PoseGraph, PriorGraph, SessionLink
+from .backend.pose_graph import PoseGraph
 from .camera import StereoCamera
 from .config import Config
 from .errors import SnapsGraphError
@@ -59,11 +59,10 @@ class RunResult:
     graph_failures: list = field(default_factory=list)  # (k, reason); k = -1: not tied to a frame
     graph_stats: dict = field(default_factory=dict)  # PoseGraph.stats.summary()
     wall_s: float = 0.0
-    # With prior sessions: per prior its relocalisation (SlamPipeline.relocalisation), and the
-    # priors' trajectories as the joint graph refined them (prior index -> (N_i, 4, 4)).
+    # With prior sessions: per prior its relocalisation (SlamPipeline.relocalisation), and each
+    # relocalised prior's trajectory in the outputs' frame (prior index -> (N_i, 4, 4)).
     sessions: list[dict] = field(default_factory=list)
     prior_trajectories: dict[int, np.ndarray] = field(default_factory=dict)
-    joint: dict = field(default_factory=dict)  # the joint refinement's summary (PoseGraph.optimize_joint)
 
     @property
     def n_flagged(self) -> int:
@@ -123,12 +122,10 @@ class SlamPipeline:
             if self.verifier is not None
             else None
         )
-        self._links: list[SessionLink] = []  # verified loops to the priors, for the joint graph
         self._frame_prior: int | None = None  # the prior whose frame the outputs are in, once relocalised
         if same_start:
-            for i, m in enumerate(maps):  # the run's first frame is the prior's first
+            for m in maps:  # the run's first frame is the prior's first
                 m.relocalise(inv(m.poses[0]), (0, 0))
-                self._links.append(SessionLink(i, 0, 0, np.eye(4), None))
             self._frame_prior = 0 if maps else None
         self.graph = PoseGraph(
             self.cfg.graph, mode="isam2" if self.refine == "both" else self.refine, drift=self.cfg.odometry.model()
@@ -344,15 +341,14 @@ class SlamPipeline:
         return PriorMap(s.name, s.poses, s.driven, s.frame_ids, s.thumbs, self.cfg.loop.window)
 
     def _add_session_loop(self, k_cur: int, loop: LoopEvent) -> None:
-        """A verified loop to a prior: online an anchor (the prior held fixed), and a link for the
-        joint refinement at the end; the first relocalisation sets the outputs' frame."""
+        """A verified loop to a prior, held fixed where the run placed it: a robust unary factor
+        on the frame (the graph's batch and iSAM2 alike); the first relocalisation sets the
+        outputs' frame."""
         assert self.snaps is not None and self.verifier is not None
         prior = self.snaps.priors[loop.prior]
         j = prior.position(loop.reference)
-        T_ref_cur = np.asarray(loop.T_ref_cur, float)
         cov = self.verifier.covariance(loop.reference, loop.prior)
-        self.graph.add_anchor(k_cur, prior.pose_own(j) @ T_ref_cur, cov)
-        self._links.append(SessionLink(loop.prior, j, k_cur, T_ref_cur, cov))
+        self.graph.add_anchor(k_cur, prior.pose_own(j) @ np.asarray(loop.T_ref_cur, float), cov)
         if self._frame_prior is None:
             self._frame_prior = loop.prior
         self.loops.append(loop)
@@ -423,17 +419,11 @@ class SlamPipeline:
             # iSAM2 takes one step per update; a robust loop near the end needs a few more.
             self.graph.converge()
             trajs["isam2"] = self.graph.estimates()
-        joint: dict = {}
-        prior_trajs: dict[int, np.ndarray] = {}
         if self.refine in ("batch", "both"):
             if "snaps" in trajs:  # start from every SNAPS correction, not the poses at arrival
                 self.graph.set_initial_estimates(trajs["snaps"])
-            if self._links:
-                trajs["batch"], prior_trajs, joint = self._optimize_joint(trajs["snaps"])
-            else:
-                trajs["batch"] = self.graph.optimize_batch()
-        for name in [n for n in trajs if not (n == "batch" and self._links)]:  # the joint batch is in it already
-            trajs[name] = self.to_output(trajs[name])
+            trajs["batch"] = self.graph.optimize_batch()
+        trajs = {name: self.to_output(poses) for name, poses in trajs.items()}
         for name, poses in trajs.items():
             if not np.all(np.isfinite(poses)):  # never a NaN pose in any output
                 raise RuntimeError(f"internal error: non-finite pose in the {name} trajectory")
@@ -447,31 +437,11 @@ class SlamPipeline:
             graph_stats=self.graph.stats.summary(),
             wall_s=time.perf_counter() - self._t_start,
             sessions=self.relocalisation(),
-            prior_trajectories=prior_trajs,
-            joint=joint,
+            prior_trajectories={i: T @ self.priors[i].poses for i, T in self.placed_priors()},
         )
         if self.observer is not None:
             self.observer.on_finish(self, result)
         return result
-
-    def _optimize_joint(self, initial: np.ndarray) -> tuple[np.ndarray, dict[int, np.ndarray], dict]:
-        """The batch over this run and the relocalised priors joined by their loops, in the frame
-        of the prior the outputs are in (its first pose where the session put it)."""
-        assert self.snaps is not None and self._frame_prior is not None
-        used = sorted({link.prior for link in self._links})
-        maps = self.snaps.priors
-        graphs = [self._prior_graph(i) for i in used]
-        links = [SessionLink(used.index(lk.prior), lk.j, lk.k, lk.T_ref_cur, lk.covariance) for lk in self._links]
-        own, others, summary = self.graph.optimize_joint(initial, graphs, links)
-        out = used.index(self._frame_prior)
-        G = maps[self._frame_prior].poses[0] @ inv(others[out][0])
-        return G @ own, {i: G @ others[used.index(i)] for i in used}, summary
-
-    def _prior_graph(self, i: int) -> PriorGraph:
-        assert self.snaps is not None
-        s, m = self.priors[i], self.snaps.priors[i]
-        f = s.factors
-        return PriorGraph(f.pairs, f.measured, f.covariance, f.robust, np.asarray(m.T_own_prior) @ m.poses)
 
     def session(self, result: RunResult) -> Session | None:
         """What a later run needs of this one (``session.write_session`` writes it); None without

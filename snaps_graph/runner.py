@@ -171,8 +171,8 @@ def _write_all(
     if session is not None:  # what a later run needs to relocalise against this one
         session.gt_origin = gt_origin
         write_session(session_folder(out), session)
-    for i, poses in result.prior_trajectories.items():  # the priors as the joint graph refined them
-        write_trajectories(out, {f"prior{i}_batch": poses}, pipe.priors[i].timestamps)
+    for i, poses in result.prior_trajectories.items():  # the priors as the run placed them (drawn by compare)
+        write_trajectories(out, {f"prior{i}": poses}, pipe.priors[i].timestamps)
     if gt_poses is not None:
         write_gt(out, gt_poses, stamps)
     write_frames_csv(out / "frames.csv", result.records)
@@ -203,8 +203,6 @@ def _write_all(
                     map_metrics["sessions"] = sessions_map
     if result.sessions:
         metrics["sessions"] = result.sessions
-        if result.joint:
-            metrics["joint"] = result.joint
     track = getattr(pipe.vo, "track", None)  # a pose-file front end (run --odometry): the report names it
     if track is not None:
         metrics["odometry_file"] = str(track.path)

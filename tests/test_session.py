@@ -160,11 +160,10 @@ def test_the_later_run_relocalises_against_the_prior_and_lands_in_its_frame(two_
     for name in ("snaps", "batch"):
         d = read_poses(b / f"poses_{name}.txt")[after, :3, 3] - truth[after, :3, 3]
         assert np.hypot(d[:, 0], d[:, 2]).mean() < 1.5, name
-    # The prior as the joint graph refined it, and the session B keeps in A's frame too.
-    assert read_poses(b / "poses_prior0_batch.txt").shape == (131, 4, 4)
+    # The prior where B placed it (in its own frame: as A wrote it), and B's session in A's frame too.
+    assert np.allclose(read_poses(b / "poses_prior0.txt"), read_poses(a / "poses_batch.txt"), atol=1e-3)
     origin = read_session(b).gt_origin
     assert origin is not None and np.allclose(origin, gt[100])
-    assert metrics["joint"]["stop"] == "converged"
 
 
 def test_compare_shows_the_sessions_and_measures_in_the_prior_frame(two_sessions, tmp_path):

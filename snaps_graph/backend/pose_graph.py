@@ -488,56 +488,6 @@ class PoseGraph:
         self.stats.consistency = self.consistency(poses)
         return poses.copy()
 
-    def optimize_joint(
-        self, initial: np.ndarray, priors: list[PriorGraph], links: list[SessionLink]
-    ) -> tuple[np.ndarray, list[np.ndarray], dict]:
-        """Batch-refine this graph joined with prior sessions' graphs by the loops between them.
-
-        ``initial``: this run's poses (this graph's frame); each :class:`PriorGraph` its factors and
-        its poses placed in this graph's frame; ``links``: verified loops between the sessions
-        (their anchors in this graph are replaced by these). Levenberg-Marquardt as
-        :meth:`optimize_batch`; on a failure or a rise of the error, the initial poses come back
-        with the reason in ``failures``. Returns (this run's poses, each prior's, a summary).
-        """
-        graph, _ = self._graph(robust=True, anchors=False)
-        values = _array_to_values(np.asarray(initial, float))
-        for i, prior in enumerate(priors):
-            for j, T in enumerate(prior.initial):
-                values.insert(_prior_key(i, j), _to_pose3(T))
-            for (a, b), T, C, robust in zip(prior.pairs, prior.measured, prior.covariance, prior.robust):
-                noise: gtsam.noiseModel.Base = gtsam.noiseModel.Gaussian.Covariance(np.asarray(C, float))
-                noise = robust_loop_noise(self.cfg, noise) if robust else noise
-                graph.add(gtsam.BetweenFactorPose3(_prior_key(i, int(a)), _prior_key(i, int(b)), _to_pose3(T), noise))
-        for link in links:
-            cov = loop_covariance(self.cfg, link.covariance) if link.covariance is not None else None
-            noise = self._loop_noise(loop_sigmas(self.cfg, 1.0, True), cov, True)
-            graph.add(gtsam.BetweenFactorPose3(_prior_key(link.prior, link.j), int(link.k), _to_pose3(link.T_ref_cur), noise))
-        e0 = float(graph.error(values))
-        summary = {"links": len(links), "error_initial": e0, "error_final": e0, "iterations": 0, "stop": ""}
-        try:
-            lm = gtsam.LevenbergMarquardtParams()
-            lm.setMaxIterations(BATCH_MAX_ITERATIONS)
-            lm.setRelativeErrorTol(BATCH_RELATIVE_TOL)
-            opt = gtsam.LevenbergMarquardtOptimizer(graph, values, lm)
-            result = opt.optimize()
-            e1 = float(graph.error(result))
-            summary.update(
-                iterations=opt.iterations(),
-                error_final=e1,
-                stop="converged" if opt.iterations() < BATCH_MAX_ITERATIONS else "iteration limit",
-            )
-            own = np.array([result.atPose3(k).matrix() for k in range(len(initial))])
-            others = [
-                np.array([result.atPose3(_prior_key(i, j)).matrix() for j in range(len(p.initial))]) for i, p in enumerate(priors)
-            ]
-            if e1 > e0 or not all(np.all(np.isfinite(a)) for a in [own, *others]):
-                raise RuntimeError(f"the error rose from {e0:.4g} to {e1:.4g}" if e1 > e0 else "non-finite result")
-        except RuntimeError as exc:
-            self.failures.append((len(initial) - 1, f"joint optimisation failed, the initial estimates kept: {_one_line(exc)}"))
-            summary["stop"] = "failed: the initial estimates kept"
-            return np.array(initial, float), [np.array(p.initial, float) for p in priors], summary
-        return own, others, summary
-
     def consistency(self, poses: np.ndarray) -> dict:
         """How well ``poses`` fit the graph, judged without ground truth: per factor type the
         chi-square per degree of freedom (about 1 when the noise models describe the errors), each
@@ -640,34 +590,6 @@ class PoseGraph:
         if self.mode == "batch" and self._batch_estimate is not None and k < len(self._batch_estimate):
             return self._batch_estimate[k]
         return self._initial[k]
-
-
-@dataclass
-class PriorGraph:
-    """A prior session's part of a joint graph: its factors (``Factors`` arrays of the session)
-    and its poses placed in the joint graph's frame, the initial estimate."""
-
-    pairs: np.ndarray
-    measured: np.ndarray
-    covariance: np.ndarray
-    robust: np.ndarray
-    initial: np.ndarray
-
-
-@dataclass
-class SessionLink:
-    """A verified loop between prior ``prior``'s frame ``j`` and this run's frame ``k``."""
-
-    prior: int
-    j: int
-    k: int
-    T_ref_cur: np.ndarray
-    covariance: np.ndarray | None
-
-
-def _prior_key(i: int, j: int) -> int:
-    """The joint graph's key of prior ``i``'s frame ``j`` (this run's frames keep keys 0 .. N-1)."""
-    return gtsam.symbol(chr(ord("a") + i), j)
 
 
 def robust_loop_noise(cfg: GraphConfig, noise: gtsam.noiseModel.Base) -> gtsam.noiseModel.Base:

@@ -362,7 +362,7 @@ def _session_lines(run: Path, priors: dict[str, np.ndarray]) -> list[str]:
             else f"at frame {e['frame']} (its frame {e['reference']})"
         )
         frame = "; the trajectories are in its frame" if e.get("outputs_frame") else ""
-        drawn = f"; as the joint graph refined it, **prior{i}_batch** in the top view" if f"prior{i}_batch" in priors else ""
+        drawn = f"; its trajectory (**prior{i}**) in the top view" if f"prior{i}" in priors else ""
         md.append(f"Prior `{e.get('session')}`: relocalised {where}, {e.get('loops', 0)} loop(s) with it{frame}{drawn}.")
     return md
 
@@ -382,7 +382,7 @@ class _Run:
     gt: np.ndarray | None
     gt_file: Any
     loops: list[dict]
-    priors: dict[str, np.ndarray]  # poses_prior<i>_batch.txt: the priors as the joint graph refined them
+    priors: dict[str, np.ndarray]  # poses_prior<i>.txt: the priors where the run placed them
 
 
 def _read_run(run: Path, gt_path: str | Path | None) -> _Run:
@@ -402,7 +402,7 @@ def _read_run(run: Path, gt_path: str | Path | None) -> _Run:
     row_of_frame = {int(f): i for i, f in enumerate(frame_ids)}
     gt, gt_file = load_gt(run, gt_path, frame_ids, rebased=not (_in_prior_frame(run) and gt_path is None))
     loops = read_loops(run / "loops.jsonl", row_of_frame)
-    priors = {p.name[len("poses_") : -len(".txt")]: read_kitti_poses(p) for p in sorted(run.glob("poses_prior*_batch.txt"))}
+    priors = {p.name[len("poses_") : -len(".txt")]: read_kitti_poses(p) for p in sorted(run.glob("poses_prior*.txt"))}
     return _Run(run, gone, trajs, cols, frame_ids, gt, gt_file, loops, priors)
 
 
