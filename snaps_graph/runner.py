@@ -107,7 +107,7 @@ def run_sequence(
         t0_ns = dataset.t0_ns  # .tum keeps the sequence's own clock (evo matches stamps)
         topics = dict(dataset.source_info)  # a bag's image topics
         t0_s = 0.0 if t0_ns is None else t0_ns * 1e-9
-        gt, origin = ground_truth_in_output_frame(pipe, dataset.gt_poses, getattr(dataset, "gt_origin", None))
+        gt, origin = ground_truth_in_output_frame(pipe, dataset.gt_poses, dataset.gt_origin)
         metrics = _write_all(tmp, pipe, result, gt, t0_s, topics, world_mesh, origin)
         if before_commit is not None:
             before_commit(tmp)

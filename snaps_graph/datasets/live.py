@@ -57,6 +57,7 @@ class LiveStereo(SequenceBase):
         self._count = 0
         self._t0: float | None = None
         self.gt_poses = None
+        self.gt_origin = None
         self.notes: list[str] = []
         self._pending: StereoFrame | None = None
         if not self.camera.width:  # calib.txt carries no size: the first frame tells it

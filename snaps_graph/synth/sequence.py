@@ -108,6 +108,7 @@ class SyntheticSequence(SequenceBase):
         # pixels smaller than calib.txt implies (a residual of the rig's rectification).
         a = -self.rectification_error_px / camera.fx
         self._right_turn = np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
+        self._origin = np.array(poses[0], float)
         self._poses = np.linalg.inv(poses[0]) @ poses  # rebased: frame 0 is the identity
         self._times = times
         self.world = World(self._poses[:, :3, 3], self._poses[:, :3, 1], seed=self.seed, config=world_config, times=times)
@@ -121,6 +122,10 @@ class SyntheticSequence(SequenceBase):
     @property
     def gt_poses(self) -> np.ndarray:
         return self._poses.copy()
+
+    @property
+    def gt_origin(self) -> np.ndarray:
+        return self._origin.copy()
 
     @property
     def timestamps(self) -> np.ndarray:
