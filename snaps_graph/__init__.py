@@ -28,6 +28,8 @@ _EXPORTS = {
     "RunResult": "pipeline",
     "run_sequence": "runner",
     "write_results": "runner",
+    "read_session": "session",
+    "Session": "session",
     "SnapsGraphError": "errors",
 }
 
@@ -35,6 +37,7 @@ __all__ = [
     "Config",
     "FrameOutput",
     "RunResult",
+    "Session",
     "SlamPipeline",
     "SnapsGraphError",
     "StereoCamera",
@@ -42,6 +45,7 @@ __all__ = [
     "StereoSource",
     "__version__",
     "open_dataset",
+    "read_session",
     "run_sequence",
     "write_results",
 ]
