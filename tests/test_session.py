@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import SHARED_DATA
+from conftest import SHARED_DATA, need_extra
 from inprocess import cli
 
 from snaps_graph.camera import StereoCamera
@@ -193,6 +193,19 @@ def test_same_start_skips_the_appearance_search(two_sessions, tmp_path):
     assert f"started where {a} started" in ran.stdout
     snaps = read_poses(tmp_path / "c" / "poses_snaps.txt")
     assert np.allclose(snaps[0], read_session(a).poses[0], atol=1e-9)
+
+
+def test_a_recording_of_a_run_with_a_prior(two_sessions, tmp_path):
+    """The viewer draws in the outputs' frame and the prior beside the run; the recording completes."""
+    need_extra("rerun")
+    a, _, _, gt, _ = two_sessions
+    write_kitti_poses(tmp_path / "odo.txt", drift_trajectory(gt, 1, pct=1.0))
+    rrd = tmp_path / "b.rrd"
+    ran = cli(
+        "run", SEQ, "--frames", "150:190", "--odometry", tmp_path / "odo.txt", "--prior", a, "--out", tmp_path / "b", "--rrd", rrd
+    )
+    assert ran.returncode == 0, ran.stderr
+    assert f"relocalised against {a}" in ran.stdout and rrd.read_bytes()[:4] == b"RRF2"
 
 
 def _bad_prior_cases(a: Path, work: Path) -> list[tuple[list, object]]:

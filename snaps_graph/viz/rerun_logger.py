@@ -17,6 +17,7 @@ from ..errors import SnapsGraphError
 from ..locks import writer_lock
 
 TRAJ_COLOURS = {"gt": (150, 150, 150), "vo": (230, 80, 60), "snaps": (60, 140, 240), "refined": (60, 200, 90)}
+PRIOR_COLOUR = (120, 120, 200)  # a prior session's trajectory
 
 
 def _import_rerun():
@@ -107,7 +108,7 @@ class RerunLogger:
         self.jpeg_quality = None if jpeg_quality is None else int(jpeg_quality)
         self.max_map_points = int(max_map_points)
         self._n_map = 0
-        self._vo_xyz: list[np.ndarray] = []
+        self._vo_poses: list[np.ndarray] = []
         self._k_of_frame: dict[int, int] = {}
         self._series: dict[str, list] = {"frame": [], "time": [], "frame_ms": [], "vo_ms": [], "inliers": []}
         self._loop_segments: list[np.ndarray] = []
@@ -178,7 +179,7 @@ class RerunLogger:
         rec.set_time("frame", sequence=int(frame.index))
         rec.set_time("time", duration=float(frame.timestamp))
         pose = np.asarray(out.pose)
-        self._vo_xyz.append(np.asarray(out.vo.pose)[:3, 3])
+        self._vo_poses.append(np.asarray(out.vo.pose))  # the run's own frame: shown in the outputs' frame
         self._k_of_frame[int(out.frame)] = int(out.k)
         rec.log("world/camera", rr.Transform3D(translation=pose[:3, 3], mat3x3=pose[:3, :3]))
         if out.k % self.image_every == 0:
@@ -245,13 +246,16 @@ class RerunLogger:
                     out["refined"] = trajs[name][:, :3, 3]
                     break
             return out
-        out = {"vo": np.array(self._vo_xyz)}
+        # The pipeline's own frame, shown in the outputs' (a prior's, once the run relocalised).
+        out = {"vo": pipe.to_output(np.array(self._vo_poses))[:, :3, 3]}
         if pipe.snaps is not None:
-            out["snaps"] = np.asarray(pipe.snaps.poses)[:, :3, 3]
+            out["snaps"] = pipe.to_output(np.asarray(pipe.snaps.poses))[:, :3, 3]
         if pipe.refine in ("isam2", "both"):
             est = pipe.graph.estimates()
             if len(est) and np.all(np.isfinite(est)):
-                out["refined"] = np.asarray(est)[:, :3, 3]
+                out["refined"] = pipe.to_output(np.asarray(est))[:, :3, 3]
+        for i, T in pipe.placed_priors():
+            out[f"prior{i}"] = (T @ pipe.priors[i].poses)[:, :3, 3]
         return out
 
     def _send_series(self) -> None:
@@ -272,16 +276,21 @@ class RerunLogger:
             if len(xyz) >= 2:
                 self.rec.log(
                     f"world/trajectory/{name}",
-                    rr.LineStrips3D([xyz], colors=[TRAJ_COLOURS[name]], radii=rr.Radius.ui_points(1.5)),
+                    rr.LineStrips3D([xyz], colors=[TRAJ_COLOURS.get(name, PRIOR_COLOUR)], radii=rr.Radius.ui_points(1.5)),
                 )
 
     def _log_loop(self, pipe, loop) -> None:
         rr = self.rr
-        snaps = np.asarray(pipe.snaps.poses) if pipe.snaps is not None else None
-        k_ref = self._k_of_frame.get(loop.reference)
+        snaps = pipe.to_output(np.asarray(pipe.snaps.poses)) if pipe.snaps is not None else None
         k_cur = self._k_of_frame.get(loop.frame)
-        if snaps is not None and k_ref is not None and k_cur is not None:
-            self._loop_segments.append(np.stack([snaps[k_cur, :3, 3], snaps[k_ref, :3, 3]]))
+        ref_xyz = None
+        if loop.session and pipe.snaps is not None:  # a prior's frame: where the run placed it
+            prior = pipe.snaps.priors[loop.prior]
+            ref_xyz = pipe.to_output(prior.pose_own(prior.position(loop.reference)))[:3, 3]
+        elif snaps is not None and loop.reference in self._k_of_frame:
+            ref_xyz = snaps[self._k_of_frame[loop.reference], :3, 3]
+        if snaps is not None and ref_xyz is not None and k_cur is not None:
+            self._loop_segments.append(np.stack([snaps[k_cur, :3, 3], ref_xyz]))
             self._loop_labels.append(f"Q {loop.q:.2f}")
             self.rec.log(
                 "world/loops",
