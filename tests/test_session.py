@@ -241,3 +241,27 @@ def test_bad_priors_are_one_line_errors_and_leave_everything_as_it_was(two_sessi
         ran = cli("run", SEQ, "--frames", "0:20", "--odometry", tmp_path / "odo.txt", "--prior", a, "--out", out, "--overwrite")
         assert ran.returncode == 2 and str(a) in ran.stderr and "Traceback" not in ran.stderr
     assert digests(a) == before
+
+
+def test_the_sessions_map_holds_each_prior_map_where_the_run_placed_it(tmp_path):
+    import open3d as o3d
+
+    from snaps_graph.mapping.sessions import write_sessions_map
+
+    def cloud(path: Path, xyz: np.ndarray) -> None:
+        c = o3d.geometry.PointCloud()
+        c.points = o3d.utility.Vector3dVector(xyz)
+        o3d.io.write_point_cloud(str(path), c)
+
+    out, prior, empty = tmp_path / "run", tmp_path / "prior", tmp_path / "no_map"
+    for folder in (out, prior, empty):
+        folder.mkdir()
+    cloud(out / "map.ply", np.zeros((3, 3)))
+    cloud(prior / "map.ply", np.array([[1.0, 0.0, 0.0], [0.0, 2.0, 0.0]]))
+    T = np.eye(4)
+    T[:3, 3] = [10.0, 0.0, -5.0]
+    entry = write_sessions_map(out, [(prior, T), (empty, np.eye(4))])  # a prior without a map is left out
+    assert entry == {"file": "map_sessions.ply", "sessions": 2, "points": 5}
+    got = np.asarray(o3d.io.read_point_cloud(str(out / "map_sessions.ply")).points)
+    assert np.allclose(got[3:], [[11.0, 0.0, -5.0], [10.0, 2.0, -5.0]])
+    assert write_sessions_map(empty, [(prior, T)]) is None  # no map of this run: nothing written
