@@ -1,6 +1,7 @@
 """Loop closure: the SNAPS loop closer (snaps.py) composing the heuristic trajectory
 (trajectory.py), the candidate index (search.py), UIQI similarity over thumbnails (uiqi.py) and
-eq. 6's correction (correction.py), under a named rule (policy.py)."""
+eq. 6's correction (correction.py), under a named rule (policy.py); prior sessions are searched
+by appearance, then by location (prior.py, cross.py)."""
 
 from .correction import discount
 from .policy import DRIFT, PAPER, POLICIES, LoopPolicy
