@@ -14,11 +14,9 @@ from typing import Protocol
 
 import numpy as np
 
-from ..config import LoopConfig
-from ..drift_model import DriftModel, heading_sigma_deg, position_sigma
 from ..geometry import wrap_deg
-from .policy import LoopPolicy
 from .prior import PriorMap, gist
+from .search import CandidateIndex
 from .trajectory import Trajectory
 from .uiqi import Thumbnails, similarity_q
 
@@ -58,16 +56,15 @@ class CrossSession:
         priors: list[PriorMap],
         traj: Trajectory,
         thumbs: Thumbnails,
-        cfg: LoopConfig,
-        policy: LoopPolicy,
-        model: DriftModel,
+        index: CandidateIndex,
         verifier: PriorVerifier,
         pause_every: int = 1,
     ):
-        """As :class:`SnapsLoopCloser`: in the pause after a correction, graph-only loops every
-        ``pause_every`` frames (the verifier's reference spacing) under ``pause_graph_loops``."""
-        self.priors, self.traj, self.thumbs = priors, traj, thumbs
-        self.cfg, self.policy, self.model, self.verifier = cfg, policy, model, verifier
+        """As :class:`SnapsLoopCloser`: the run's trajectory, thumbnails and candidate index (its
+        rule and gates serve the priors too); in the pause after a correction, graph-only loops
+        every ``pause_every`` frames (the verifier's reference spacing) under ``pause_graph_loops``."""
+        self.priors, self.traj, self.thumbs, self.index = priors, traj, thumbs, index
+        self.cfg, self.policy, self.verifier = index.cfg, index.policy, verifier
         self.pause_every = pause_every
 
     def detect(self, n: int) -> tuple[CrossMatch | None, int, float]:
@@ -89,7 +86,7 @@ class CrossSession:
             if not ids.size:
                 continue
             cur = self.thumbs.stats(n)
-            qs = np.array([similarity_q(cur, prior.stats(int(j))) for j in ids])
+            qs = np.array([similarity_q(cur, prior.thumbs.stats(int(j))) for j in ids])
             computed += len(ids)
             order = [int(o) for o in np.argsort(-qs, kind="stable") if qs[o] >= self.cfg.min_similarity][:tries]
             match, dt = self._verify(n, i, prior, [int(ids[o]) for o in order])
@@ -124,28 +121,16 @@ class CrossSession:
         return (self.traj.s[n] - self.traj.s[prior.anchor[0]]) + prior.driven_since_anchor(ids)
 
     def near(self, n: int, prior: PriorMap) -> np.ndarray:
-        """Prior frames within the gate of own frame ``n``, nearest in sigmas first, at most
-        ``attempts``: the drift gate (or the paper's radius) and the yaw gate."""
-        policy, r = self.policy, self.cfg.radius_m
-        drift = policy.search == "drift"
-        cap = max(policy.search_max_radius_m, r) if drift else r
+        """Prior frames within the gates of own frame ``n`` (:meth:`CandidateIndex.admit`),
+        nearest first, at most ``attempts``."""
         p = self.traj.p[n]
-        ids = prior.near(p, cap)
+        ids = prior.near(p, self.index.reach)
         if not ids.size:
             return ids
         d = np.linalg.norm(prior.p[ids] - p, axis=1)
-        dyaw = np.abs(wrap_deg(prior.yaw[ids] - self.traj.yaw[n]))
-        if drift:
-            D = self.driven(n, prior, ids)
-            sigma = np.maximum(position_sigma(self.model, D), r / policy.search_sigmas)
-            ok = (d <= np.minimum(policy.search_sigmas * sigma, cap)) & (
-                dyaw <= policy.max_yaw_deg + policy.search_sigmas * heading_sigma_deg(self.model, D)
-            )
-        else:
-            sigma = np.ones_like(d)
-            ok = (d <= r) & (dyaw <= policy.max_yaw_deg)
-        ids, m = ids[ok], (d / sigma)[ok]
-        return ids[np.lexsort((ids, m))][: policy.attempts]
+        ok, m = self.index.admit(d, wrap_deg(prior.yaw[ids] - self.traj.yaw[n]), self.driven(n, prior, ids))
+        ids, m = ids[ok], m[ok]
+        return ids[np.lexsort((ids, m))][: self.policy.attempts]
 
 
 __all__ = ["APPEARANCE_VERIFY", "CrossMatch", "CrossSession", "PriorVerifier"]

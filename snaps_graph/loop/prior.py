@@ -10,14 +10,12 @@ run's own frame, as the run's own frames are. No I/O: the arrays come from ``ses
 
 from __future__ import annotations
 
-from collections import OrderedDict
-
 import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
 from ..geometry import inv, rotation_angle_deg, yaw_deg
-from .uiqi import WindowStats, window_stats
+from .uiqi import Thumbnails
 
 # The coarse appearance vector: the thumbnail area-averaged to this many (rows, columns), zero
 # mean and unit norm. Coarse enough to forgive a lane's shift, fine enough to rank streets apart.
@@ -56,12 +54,11 @@ class PriorMap:
         self.poses = poses  # (N, 4, 4) T_prior_cam
         self.driven = np.asarray(driven, float)
         self.frame_ids = np.asarray(frame_ids, np.int64)
-        self.thumbs = thumbs  # (N, h, w), read lazily when memory-mapped
-        self.window = window
+        # (N, h, w), read lazily when memory-mapped; their window sums cached as the run's own.
+        self.thumbs = Thumbnails(window, thumbs, STATS_CACHE_FRAMES)
         self.gists = (
             np.stack([gist(t) for t in thumbs]) if len(thumbs) else np.zeros((0, GIST_SHAPE[0] * GIST_SHAPE[1]), np.float32)
         )
-        self._stats: OrderedDict[int, WindowStats] = OrderedDict()
         self.T_own_prior: np.ndarray | None = None
         self.anchor: tuple[int, int] | None = None  # (own stream position, prior position) of the last verified match
         self.pause_from = 0  # own stream position of the last match that moved the trajectory (or relocalised)
@@ -76,18 +73,6 @@ class PriorMap:
     @property
     def relocalised(self) -> bool:
         return self.T_own_prior is not None
-
-    def stats(self, j: int) -> WindowStats:
-        """The window sums of prior thumbnail ``j`` (bounded cache)."""
-        st = self._stats.get(j)
-        if st is not None:
-            self._stats.move_to_end(j)
-            return st
-        st = window_stats(np.asarray(self.thumbs[j]), self.window)
-        self._stats[j] = st
-        if len(self._stats) > STATS_CACHE_FRAMES:
-            self._stats.popitem(last=False)
-        return st
 
     def shortlist(self, g: np.ndarray) -> np.ndarray:
         """The prior frames most alike ``g`` (a :func:`gist`), best first."""

@@ -155,6 +155,22 @@ class CandidateIndex:
         sigma = np.maximum(self.drift_sigma(driven), cfg.radius_m / self._sigmas)
         return sigma, np.minimum(self._sigmas * sigma, self._cap)
 
+    @property
+    def reach(self) -> float:
+        """The farthest any candidate may lie, m: the drift gate's cap, or the paper's radius."""
+        return self._cap if self.policy.search == "drift" else self.cfg.radius_m
+
+    def admit(self, d: np.ndarray, dyaw: np.ndarray | float, driven: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Which candidates ``d`` metres and ``dyaw`` degrees (wrapped) away, ``driven`` metres of
+        odometry apart, pass the position and yaw gates, and their order key: the distance in
+        sigmas (drift search) or in metres (the paper's radius)."""
+        if self.policy.search != "drift":
+            return (d <= self.cfg.radius_m) & (np.abs(dyaw) <= self.policy.max_yaw_deg), d
+        sigma, gates = self.gates(driven)
+        # The yaw gate widens by the heading drift too (n sigma of the heading walk, degrees).
+        yaw_gate = self.policy.max_yaw_deg + self._sigmas * heading_sigma_deg(self._model, driven)
+        return (d <= gates) & (np.abs(dyaw) <= yaw_gate), d / sigma
+
     def _search_drift(self, n: int) -> tuple[np.ndarray, np.ndarray]:
         cfg = self.cfg
         last = n - cfg.frame_distance
@@ -184,14 +200,10 @@ class CandidateIndex:
         ids = np.unique(np.array(found, dtype=np.int64))
         ids = ids[ids <= n - cfg.frame_distance]
         d = np.linalg.norm(self.traj.p[ids] - self.traj.p[n], axis=1)
-        driven = self.driven_since(n, ids)
-        sigma, gates = self.gates(driven)
-        # The yaw gate widens by the heading drift too (n sigma of the heading walk, degrees).
-        yaw_gate = self.policy.max_yaw_deg + self._sigmas * heading_sigma_deg(self._model, driven)
-        ok = (d <= gates) & (np.abs(wrap_deg(self.traj.yaw[ids] - self.traj.yaw[n])) <= yaw_gate)
+        ok, m = self.admit(d, wrap_deg(self.traj.yaw[ids] - self.traj.yaw[n]), self.driven_since(n, ids))
         if not ok.any():
             return _NO_IDS, _NO_DISTS
-        ids, d, m = ids[ok], d[ok], d[ok] / sigma[ok]
+        ids, d, m = ids[ok], d[ok], m[ok]
         order = np.lexsort((ids, m))
         return ids[order], d[order]
 

@@ -116,8 +116,7 @@ class SnapsLoopCloser:
         """The search over the priors, sharing this closer's trajectory, thumbnails and rule."""
         if verifier is None:
             raise SnapsGraphError("SNAPS: loops with prior sessions need a verifier")
-        parts = (self.traj, self.thumbs, self.cfg, self.policy, self.drift_model)
-        return CrossSession(self.priors, *parts, cast(PriorVerifier, verifier), self.pause_every)
+        return CrossSession(self.priors, self.traj, self.thumbs, self.index, cast(PriorVerifier, verifier), self.pause_every)
 
     # ---- accessors ----
     def __len__(self) -> int:
@@ -336,7 +335,7 @@ class SnapsLoopCloser:
         window since the last match with that prior (its anchor)."""
         prior = self.priors[m.prior]
         target = prior.pose_own(m.j) @ m.T_ref_cur
-        sim = similarity(self.thumbs.stats(n), prior.stats(m.j))
+        sim = similarity(self.thumbs.stats(n), prior.thumbs.stats(m.j))
         delta = target[:3, 3] - self.traj.p[n]
         weight, moved = 0.0, 0
         if not (m.relocalised or m.graph_only):

@@ -229,10 +229,13 @@ class Thumbnails:
     """Every frame's thumbnail (13 KB at 1/6 of KITTI's size) and a bounded cache of their
     window sums, by stream position."""
 
-    def __init__(self, window: int):
+    def __init__(self, window: int, thumbs: Any = None, cache_frames: int = STATS_CACHE_FRAMES):
+        """``thumbs``: thumbnails already made (a prior session's, an (N, h, w) array, read by
+        row), else an empty list :meth:`append` grows; ``cache_frames``: window sums kept."""
         self.window = window
-        self._thumbs: list[np.ndarray] = []
+        self._thumbs: Any = [] if thumbs is None else thumbs
         self._stats: OrderedDict[int, WindowStats] = OrderedDict()
+        self._cache_frames = cache_frames
 
     def __len__(self) -> int:
         return len(self._thumbs)
@@ -253,7 +256,7 @@ class Thumbnails:
             return st
         st = window_stats(self._thumbs[k], self.window)
         cache[k] = st
-        if len(cache) > STATS_CACHE_FRAMES:
+        if len(cache) > self._cache_frames:
             cache.popitem(last=False)
         return st
 
