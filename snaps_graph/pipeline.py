@@ -27,8 +27,9 @@ from .geometry import inv
 from .loop.prior import PriorMap
 from .loop.snaps import SnapsLoopCloser, SnapsStep
 from .mapping.depth import map_depth
+from .mapping.outputs import BEST_ORDER
 from .mapping.tsdf import FusedMap
-from .session.store import Factors, Session, check_compatible, loop_settings
+from .session.store import Factors, Session, check_compatible, check_image_size, loop_settings
 from .trajectory_io import PoseFile
 from .types import FrameRecord, FrontEnd, LoopEvent, StereoFrame, VOResult
 from .verification.features import LoopFeatureBank
@@ -195,7 +196,7 @@ class SlamPipeline:
         if self._shape is None and self.snaps is not None:
             self.snaps.check_image(index, (h, w))
             for prior in self.priors:
-                check_compatible(prior, self.camera, loop_settings(self.cfg), image_size=(w, h))
+                check_image_size(prior, (w, h))
 
     def process(self, frame: StereoFrame) -> FrameOutput:
         """One frame through the stages; returns its best pose now."""
@@ -336,7 +337,7 @@ class SlamPipeline:
             if s.monocular
             else LoopFeatureBank(self.camera, self.cfg.frontend, self.cfg.verification, background=False)
         )
-        bank.load({int(k): s.features(r) for r, k in enumerate(s.refs)}, s.vo_poses)
+        bank.load(s.references(), s.vo_poses)
         self.verifier.add_prior(bank, s.frame_ids, s.vo_poses)
         return PriorMap(s.name, s.poses, s.driven, s.frame_ids, s.thumbs, self.cfg.loop.window)
 
@@ -452,7 +453,7 @@ class SlamPipeline:
         feats = [f for _, f in refs]
         start = np.concatenate([[0], np.cumsum([len(f.uv) for f in feats])]).astype(np.int64)
         empty_desc = np.zeros((0, 32), np.uint8) if self.cfg.verification.detector == "orb" else np.zeros((0, 128), np.float32)
-        best = next(n for n in ("batch", "isam2", "snaps", "vo") if n in result.trajectories)
+        best = next(n for n in BEST_ORDER if n in result.trajectories)
         pairs, measured, cov, robust = self.graph.factors()
         h, w = self._shape
         return Session(

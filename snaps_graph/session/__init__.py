@@ -1,7 +1,18 @@
-"""Sessions: what a run keeps so that a later run can relocalise against it, close loops with it
-and join its graph (store.py owns the format; docs/sessions.md describes it)."""
+"""Sessions: what a run keeps so that a later run can relocalise against it and close loops with
+it (store.py owns the format; docs/sessions.md describes it)."""
 
-from .store import FOLDER, VERSION, Factors, Session, check_compatible, loop_settings, read_session, session_folder, write_session
+from .store import (
+    FOLDER,
+    VERSION,
+    Factors,
+    Session,
+    check_compatible,
+    check_image_size,
+    loop_settings,
+    read_session,
+    session_folder,
+    write_session,
+)
 
 __all__ = [
     "FOLDER",
@@ -9,6 +20,7 @@ __all__ = [
     "Factors",
     "Session",
     "check_compatible",
+    "check_image_size",
     "loop_settings",
     "read_session",
     "session_folder",

@@ -1,5 +1,5 @@
 """The session format: what a later run needs of this one to relocalise against it, close loops
-with it and join its graph. One folder, ``session/``, inside a run's results folder:
+with it (and, for a reader of the format, its graph). One folder, ``session/``, inside a run's results folder:
 
 - ``session.json``: format name and version, the camera, image size, monocular or stereo, the loop
   settings the thumbnails and features depend on, the config's digest, which trajectory the poses
@@ -20,6 +20,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -83,11 +84,33 @@ class Session:
     def __len__(self) -> int:
         return len(self.frame_ids)
 
+    def references(self) -> Mapping[int, FrameFeatures]:
+        """The reference features by stream position, each made when asked for (a prior's
+        thousands of references stay on disk until a loop needs one)."""
+        return _References(self)
+
     def features(self, r: int) -> FrameFeatures:
         """Reference ``r``'s features (views of the stored rows)."""
         a, b = int(self.ref_start[r]), int(self.ref_start[r + 1])
         desc = self.ref_desc[a:b]
         return FrameFeatures(self.ref_uv[a:b], self.ref_pts[a:b], desc.astype(self.desc_dtype) if self.desc_dtype else desc)
+
+
+class _References(Mapping[int, FrameFeatures]):
+    """:meth:`Session.references`: stream position -> that reference's features, on demand."""
+
+    def __init__(self, s: Session):
+        self._session = s
+        self._row = {int(k): r for r, k in enumerate(s.refs)}
+
+    def __getitem__(self, k: int) -> FrameFeatures:
+        return self._session.features(self._row[k])
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self._row)
+
+    def __len__(self) -> int:
+        return len(self._row)
 
 
 def session_folder(run: str | Path) -> Path:
@@ -100,9 +123,9 @@ def loop_settings(cfg) -> dict:
     return {"thumbnail_scale": cfg.loop.thumbnail_scale, "window": cfg.loop.window, "detector": cfg.verification.detector}
 
 
-def check_compatible(s: Session, camera: StereoCamera, settings: dict, image_size: tuple[int, int] | None = None) -> None:
-    """A one-line SnapsGraphError naming the session's index unless its camera, its loop
-    settings and (when given) its image size are this run's."""
+def check_compatible(s: Session, camera: StereoCamera, settings: dict) -> None:
+    """A one-line SnapsGraphError naming the session's index unless its camera and its loop
+    settings are this run's (the image size: :func:`check_image_size`, at the first frame)."""
     where = session_folder(s.name) / INDEX
     c = s.camera
     for key in ("fx", "fy", "cx", "cy", "baseline_m"):
@@ -116,9 +139,14 @@ def check_compatible(s: Session, camera: StereoCamera, settings: dict, image_siz
             raise SnapsGraphError(
                 f"{where}: its thumbnails and features were made with {key} = {s.loop_settings.get(key)!r}, this run uses {value!r}"
             )
-    if image_size is not None and tuple(image_size) != tuple(s.image_size):
+
+
+def check_image_size(s: Session, image_size: tuple[int, int]) -> None:
+    """A one-line SnapsGraphError naming the session's index unless its images were (width, height)."""
+    if tuple(image_size) != tuple(s.image_size):
         raise SnapsGraphError(
-            f"{where}: images of {s.image_size[0]}x{s.image_size[1]} there, {image_size[0]}x{image_size[1]} here; a prior must come from the same camera"
+            f"{session_folder(s.name) / INDEX}: images of {s.image_size[0]}x{s.image_size[1]} there, "
+            f"{image_size[0]}x{image_size[1]} here; a prior must come from the same camera"
         )
 
 

@@ -9,6 +9,7 @@ frame's stereo, and the pose's covariance for the graph (docs/decisions.md, "Loo
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -281,7 +282,8 @@ class LoopFeatureBank:
     def __init__(self, camera: StereoCamera, cfg: FrontendConfig, vcfg: VerificationConfig, background: bool = True):
         self.camera = camera
         self.cfg, self.vcfg = cfg, vcfg  # stereo depth; the keypoints and references
-        self._ref: dict[int, FrameFeatures] = {}
+        self._own: dict[int, FrameFeatures] = {}  # the references this bank computed or was given
+        self._ref: Mapping[int, FrameFeatures] = self._own  # what it verifies against (load: a session's)
         self._pending: dict[int, Future] = {}
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="loop-features") if background else None
         self._query_k: int | None = None
@@ -317,7 +319,7 @@ class LoopFeatureBank:
 
     def _keep(self, k: int, features: FrameFeatures | None) -> None:
         if features is not None:
-            self._ref[k] = features
+            self._own[k] = features
 
     def _collect(self) -> None:
         """Wait for the pending references and keep them (in stream order)."""
@@ -332,12 +334,13 @@ class LoopFeatureBank:
 
     def put(self, k: int, features: FrameFeatures) -> None:
         """Store precomputed reference features (replays)."""
-        self._ref[k] = features
+        self._own[k] = features
 
-    def load(self, refs: dict[int, FrameFeatures], vo_poses: np.ndarray) -> None:
-        """Take a saved session's references by stream position (``vo_poses``: its odometry
-        poses, which a monocular bank needs)."""
-        self._ref.update(refs)
+    def load(self, refs: Mapping[int, FrameFeatures], vo_poses: np.ndarray) -> None:
+        """Verify against a saved session's references by stream position, read as asked for
+        (``vo_poses``: its odometry poses, which a monocular bank needs); the bank then holds
+        nothing of its own."""
+        self._ref = refs
 
     def stored(self) -> list[tuple[int, FrameFeatures]]:
         """The references kept so far, by stream position (what a session saves)."""

@@ -8,6 +8,7 @@ neighbouring references' points too. Why and how: docs/odometry-input.md.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from typing import Literal
 
 import cv2
@@ -155,8 +156,8 @@ class MonoFeatureBank(LoopFeatureBank):
         if cur is not None and self.wants(k):
             self._waiting[k] = (cur, np.array(pose, float))
 
-    def load(self, refs: dict[int, FrameFeatures], vo_poses: np.ndarray) -> None:
-        self._ref.update(refs)
+    def load(self, refs: Mapping[int, FrameFeatures], vo_poses: np.ndarray) -> None:
+        super().load(refs, vo_poses)
         self._pose.update({k: np.asarray(vo_poses[k], float) for k in refs})
 
     def reference(self, k: int) -> FrameFeatures | None:
