@@ -3,7 +3,7 @@
 For each rendered sequence folder (``snaps-graph synth --trajectory ../shared/data/kitti_gt/NN.txt
 ... --out SEQ``, plain or with ``--aliasing --traffic --lighting``), runs ``snaps-graph run SEQ
 --refine batch`` (or reuses the run in ``--work`` with ``--reuse``) and prints per path the VO's
-3D mean deviation, horizontal mean deviation and ATE, then SNAPS's heuristic and the refined
+3D mean deviation, horizontal and vertical mean deviation and ATE, then SNAPS's heuristic and the refined
 (batch) trajectory as ratios to VO, the loop oracle beside them (the run's VO chain with an exact
 loop factor at every true revisit, batch; benchmarks/oracle.py), the loops and the false
 loops (references more than ``--false-m`` from the loop frame in the ground truth).
@@ -28,13 +28,9 @@ from snaps_graph.evaluation.metrics import ate_rmse, mean_deviation
 from snaps_graph.trajectory_io import read_poses
 
 
-def horizontal(est: np.ndarray, gt: np.ndarray) -> float:
+def figures(est: np.ndarray, gt: np.ndarray) -> tuple[float, float, float, float]:
     d = est[:, :3, 3] - gt[:, :3, 3]
-    return float(np.hypot(d[:, 0], d[:, 2]).mean())
-
-
-def figures(est: np.ndarray, gt: np.ndarray) -> tuple[float, float, float]:
-    return mean_deviation(est, gt), horizontal(est, gt), ate_rmse(est, gt)
+    return mean_deviation(est, gt), float(np.hypot(d[:, 0], d[:, 2]).mean()), float(np.abs(d[:, 1]).mean()), ate_rmse(est, gt)
 
 
 def run_folder(seq: Path, out: Path, args) -> None:
@@ -81,8 +77,8 @@ def main(argv: list[str] | None = None) -> int:
         if not (seq / "image_0").is_dir():
             print(f"error: {seq}: not a sequence folder (no image_0/)", file=sys.stderr)
             return 2
-    print("VO: metres (3D mean deviation / horizontal / ATE); the others: x VO")
-    print(f"{'path':<16} {'VO m':>20} {'SNAPS x VO':>20} {'batch x VO':>20} {'oracle x VO':>20} {'loops':>5} {'false':>5}")
+    print("VO: metres (3D mean deviation / horizontal / vertical / ATE); the others: x VO")
+    print(f"{'path':<16} {'VO m':>27} {'SNAPS x VO':>25} {'batch x VO':>25} {'oracle x VO':>25} {'loops':>5} {'false':>5}")
     for seq in args.seqs:
         name = seq.resolve().parent.name if seq.name == "sequence" else seq.name  # `snaps-graph demo` names it so
         run = args.work / name
@@ -94,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
             for key in ("snaps", "batch", "oracle")
         }
         print(
-            f"{name:<16} {' / '.join(f'{v:.3f}' for v in vo):>20} {ratio['snaps']:>20} {ratio['batch']:>20} {ratio['oracle']:>20} "
+            f"{name:<16} {' / '.join(f'{v:.3f}' for v in vo):>27} {ratio['snaps']:>25} {ratio['batch']:>25} {ratio['oracle']:>25} "
             f"{ev['loops']:5d} {ev['false']:5d}",
             flush=True,
         )
