@@ -29,7 +29,13 @@ import gtsam
 import numpy as np
 
 from snaps_graph.backend import noise
-from snaps_graph.backend.pose_graph import BATCH_MAX_ITERATIONS, PRIOR_SIGMA_ROT_RAD, PRIOR_SIGMA_TRANS_M, robust_loop_noise
+from snaps_graph.backend.pose_graph import (
+    BATCH_MAX_ITERATIONS,
+    BATCH_RELATIVE_TOL,
+    PRIOR_SIGMA_ROT_RAD,
+    PRIOR_SIGMA_TRANS_M,
+    robust_loop_noise,
+)
 from snaps_graph.config import Config
 from snaps_graph.evaluation.metrics import ate_rmse, mean_deviation
 from snaps_graph.evaluation.results_io import read_frames_csv
@@ -100,6 +106,7 @@ def solve_g2o(
             graph.add(gtsam.BetweenFactorPose3(j, k, to_pose3(np.linalg.solve(exact[j], exact[k])), tight))
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(BATCH_MAX_ITERATIONS)
+    params.setRelativeErrorTol(BATCH_RELATIVE_TOL)  # the run's own stop
     if converge:
         params.setMaxIterations(CONVERGED_MAX_ITERATIONS)
         params.setRelativeErrorTol(CONVERGED_TOL)
