@@ -1,7 +1,8 @@
 # Two commands do everything on a fresh machine (Python 3.11, Debian):
 #   make demo   -- set up .venv with the package alone (no extras), then run the demo on built-in synthetic data
-#   make test   -- set up .venv with the dev extra, then lint (ruff, mypy) and run the test suite
-#   make quick  -- the tests without the slow ones (pytest -m "not slow"), for a local loop
+#   make test   -- set up .venv with the dev extra, then lint (ruff, mypy) and run the test suite on all cores (pytest-xdist;
+#                  --dist loadfile: a test file's tests share one worker, so its module-scoped fixtures are built once)
+#   make quick  -- the tests without the slow ones (pytest -m "not slow"), on all cores too, for a local loop
 #   make data   -- render the synthetic benchmark sequences (docs/datasets.md) into results/data/
 PYTHON ?= python3
 VENV   ?= .venv
@@ -27,7 +28,7 @@ define venv_ready
 		$(BIN)/python -m pip uninstall --quiet --yes open3d; fi
 endef
 
-# The dev extra (pytest, evo, ruff, mypy, rosbags, rerun-sdk, ray): what make test needs.
+# The dev extra (pytest, pytest-xdist, evo, ruff, mypy, rosbags, rerun-sdk, ray): what make test needs.
 $(STAMP): pyproject.toml
 	$(venv_ready)
 	$(BIN)/python -m pip install --quiet -e ".[dev]"
@@ -53,10 +54,10 @@ lint: setup
 	$(BIN)/mypy  # snaps_graph and tests: [tool.mypy] files in pyproject.toml
 
 test: lint
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n auto --dist loadfile
 
 quick: setup
-	$(BIN)/python -m pytest -q -m "not slow"
+	$(BIN)/python -m pytest -q -n auto --dist loadfile -m "not slow"
 
 bench: setup
 	$(BIN)/python benchmarks/run_all.py

@@ -30,6 +30,14 @@ def need_extra(module: str) -> None:
         pytest.skip(f"{module} is not installed: it comes with the {EXTRAS[module]} extra (pip install -e '.[{EXTRAS[module]}]')")
 
 
+def pytest_configure(config) -> None:
+    """Under pytest-xdist (make test runs ``-n auto``), in the controller before the workers start:
+    evo sets up its user folder (~/.evo) at its first import, unlocked, so two workers' first evo
+    imports on a fresh machine could race; it is done once here instead."""
+    if getattr(config.option, "numprocesses", None) and not hasattr(config, "workerinput") and installed("evo"):
+        import evo.tools.settings  # noqa: F401
+
+
 def _need(path: Path) -> Path:
     if not path.exists():
         pytest.skip(f"real data not found at {path} (it is in CI's ../shared/data; a user's clone lacks it)")
