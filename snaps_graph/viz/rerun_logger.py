@@ -280,17 +280,17 @@ class RerunLogger:
                 )
 
     def _log_loop(self, pipe, loop) -> None:
-        rr = self.rr
-        snaps = pipe.to_output(np.asarray(pipe.snaps.poses)) if pipe.snaps is not None else None
+        rr, snaps = self.rr, pipe.snaps
         k_cur = self._k_of_frame.get(loop.frame)
-        ref_xyz = None
-        if loop.session and pipe.snaps is not None:  # a prior's frame: where the run placed it
-            prior = pipe.snaps.priors[loop.prior]
-            ref_xyz = pipe.to_output(prior.pose_own(prior.position(loop.reference)))[:3, 3]
+        ref = None  # the reference's pose in the run's own frame
+        if loop.session and snaps is not None:  # a prior's frame: where the run placed it
+            prior = snaps.priors[loop.prior]
+            ref = prior.pose_own(prior.position(loop.reference))
         elif snaps is not None and loop.reference in self._k_of_frame:
-            ref_xyz = snaps[self._k_of_frame[loop.reference], :3, 3]
-        if snaps is not None and ref_xyz is not None and k_cur is not None:
-            self._loop_segments.append(np.stack([snaps[k_cur, :3, 3], ref_xyz]))
+            ref = snaps.pose(self._k_of_frame[loop.reference])
+        if snaps is not None and ref is not None and k_cur is not None:
+            # Only the segment's two ends, not the whole heuristic trajectory, in the outputs' frame.
+            self._loop_segments.append(pipe.to_output(np.stack([snaps.pose(k_cur), ref]))[:, :3, 3])
             self._loop_labels.append(f"Q {loop.q:.2f}")
             self.rec.log(
                 "world/loops",
