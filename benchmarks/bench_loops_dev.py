@@ -28,9 +28,10 @@ from snaps_graph.evaluation.metrics import ate_rmse, mean_deviation
 from snaps_graph.trajectory_io import read_poses
 
 
-def figures(est: np.ndarray, gt: np.ndarray) -> tuple[float, float, float, float]:
+def figures(est: np.ndarray, gt: np.ndarray) -> np.ndarray:
+    """3D mean deviation, horizontal and vertical mean deviation, ATE (m) of ``est`` against ``gt``."""
     d = est[:, :3, 3] - gt[:, :3, 3]
-    return mean_deviation(est, gt), float(np.hypot(d[:, 0], d[:, 2]).mean()), float(np.abs(d[:, 1]).mean()), ate_rmse(est, gt)
+    return np.array([mean_deviation(est, gt), np.hypot(d[:, 0], d[:, 2]).mean(), np.abs(d[:, 1]).mean(), ate_rmse(est, gt)])
 
 
 def run_folder(seq: Path, out: Path, args) -> None:

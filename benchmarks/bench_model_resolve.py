@@ -20,6 +20,7 @@ from pathlib import Path
 
 import gtsam
 import numpy as np
+from bench_loops_dev import figures
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -34,7 +35,6 @@ from snaps_graph.backend.pose_graph import (
 )
 from snaps_graph.config import Config
 from snaps_graph.drift_model import DriftModel, step_covariance
-from snaps_graph.evaluation.metrics import ate_rmse, mean_deviation
 from snaps_graph.trajectory_io import read_poses
 
 FLOOR = np.diag(np.array([ODOM_FLOOR_ROT_RAD] * 3 + [ODOM_FLOOR_TRANS_M] * 3) ** 2)
@@ -74,11 +74,6 @@ def solve(odo: list, loops: list, initial: np.ndarray, used: DriftModel, model: 
     lm.setRelativeErrorTol(BATCH_RELATIVE_TOL)
     result = gtsam.LevenbergMarquardtOptimizer(g, values, lm).optimize()
     return np.array([result.atPose3(k).matrix() for k in range(len(initial))])
-
-
-def figures(est: np.ndarray, gt: np.ndarray) -> np.ndarray:
-    d = est[:, :3, 3] - gt[:, :3, 3]
-    return np.array([mean_deviation(est, gt), np.hypot(d[:, 0], d[:, 2]).mean(), np.abs(d[:, 1]).mean(), ate_rmse(est, gt)])
 
 
 def main(argv: list[str] | None = None) -> int:

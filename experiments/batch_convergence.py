@@ -37,11 +37,11 @@ from snaps_graph.backend.pose_graph import (
     robust_loop_noise,
 )
 from snaps_graph.config import Config
-from snaps_graph.evaluation.metrics import ate_rmse, mean_deviation
 from snaps_graph.evaluation.results_io import read_frames_csv
 from snaps_graph.trajectory_io import read_poses
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from bench_loops_dev import figures
 from oracle import REVISIT_MAX_YAW_DEG, odometry_graph, true_revisit_pairs
 
 CONVERGED_TOL = 1e-10  # relative and absolute error decrease at which "converged" stops
@@ -114,11 +114,6 @@ def solve_g2o(
     opt = gtsam.LevenbergMarquardtOptimizer(graph, array_to_values(init), params)
     result = opt.optimize()
     return values_to_array(result, len(init)), opt.iterations()
-
-
-def figures(est: np.ndarray, gt: np.ndarray) -> np.ndarray:
-    d = est[:, :3, 3] - gt[:, :3, 3]
-    return np.array([mean_deviation(est, gt), np.hypot(d[:, 0], d[:, 2]).mean(), np.abs(d[:, 1]).mean(), ate_rmse(est, gt)])
 
 
 def main(argv: list[str] | None = None) -> int:
