@@ -184,7 +184,7 @@ def test_the_prior_folder_is_never_written(two_sessions):
 
 
 def test_same_start_skips_the_appearance_search(two_sessions, tmp_path):
-    a, _, _, gt, _ = two_sessions
+    a, _, before, gt, _ = two_sessions
     write_kitti_poses(tmp_path / "odo.txt", drift_trajectory(gt, 2, pct=1.0))
     ran = cli(
         "run", SEQ, "--frames", "0:40", "--odometry", tmp_path / "odo.txt", "--prior", a, "--same-start", "--out", tmp_path / "c"
@@ -193,12 +193,13 @@ def test_same_start_skips_the_appearance_search(two_sessions, tmp_path):
     assert f"started where {a} started" in ran.stdout
     snaps = read_poses(tmp_path / "c" / "poses_snaps.txt")
     assert np.allclose(snaps[0], read_session(a).poses[0], atol=1e-9)
+    assert digests(a) == before  # read, never written
 
 
 def test_a_recording_of_a_run_with_a_prior(two_sessions, tmp_path):
     """The viewer draws in the outputs' frame and the prior beside the run; the recording completes."""
     need_extra("rerun")
-    a, _, _, gt, _ = two_sessions
+    a, _, before, gt, _ = two_sessions
     write_kitti_poses(tmp_path / "odo.txt", drift_trajectory(gt, 1, pct=1.0))
     rrd = tmp_path / "b.rrd"
     ran = cli(
@@ -206,6 +207,7 @@ def test_a_recording_of_a_run_with_a_prior(two_sessions, tmp_path):
     )
     assert ran.returncode == 0, ran.stderr
     assert f"relocalised against {a}" in ran.stdout and rrd.read_bytes()[:4] == b"RRF2"
+    assert digests(a) == before  # read, never written
 
 
 def _bad_prior_cases(a: Path, work: Path) -> list[tuple[list, object]]:
