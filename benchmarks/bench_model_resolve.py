@@ -27,10 +27,9 @@ sys.path.insert(0, str(ROOT))
 
 from snaps_graph.backend.noise import ODOM_FLOOR_ROT_RAD, ODOM_FLOOR_TRANS_M
 from snaps_graph.backend.pose_graph import (
-    BATCH_MAX_ITERATIONS,
-    BATCH_RELATIVE_TOL,
     PRIOR_SIGMA_ROT_RAD,
     PRIOR_SIGMA_TRANS_M,
+    batch_params,
     robust_loop_noise,
 )
 from snaps_graph.config import Config
@@ -69,10 +68,7 @@ def solve(odo: list, loops: list, initial: np.ndarray, used: DriftModel, model: 
     values = gtsam.Values()
     for k, P in enumerate(initial):
         values.insert(k, gtsam.Pose3(P))
-    lm = gtsam.LevenbergMarquardtParams()
-    lm.setMaxIterations(BATCH_MAX_ITERATIONS)
-    lm.setRelativeErrorTol(BATCH_RELATIVE_TOL)
-    result = gtsam.LevenbergMarquardtOptimizer(g, values, lm).optimize()
+    result = gtsam.LevenbergMarquardtOptimizer(g, values, batch_params()).optimize()
     return np.array([result.atPose3(k).matrix() for k in range(len(initial))])
 
 

@@ -30,10 +30,9 @@ import numpy as np
 
 from snaps_graph.backend import noise
 from snaps_graph.backend.pose_graph import (
-    BATCH_MAX_ITERATIONS,
-    BATCH_RELATIVE_TOL,
     PRIOR_SIGMA_ROT_RAD,
     PRIOR_SIGMA_TRANS_M,
+    batch_params,
     robust_loop_noise,
 )
 from snaps_graph.config import Config
@@ -104,9 +103,7 @@ def solve_g2o(
         tight = robust_loop_noise(cfg.graph, gtsam.noiseModel.Gaussian.Covariance(cov))
         for j, k in extra:
             graph.add(gtsam.BetweenFactorPose3(j, k, to_pose3(np.linalg.solve(exact[j], exact[k])), tight))
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(BATCH_MAX_ITERATIONS)
-    params.setRelativeErrorTol(BATCH_RELATIVE_TOL)  # the run's own stop
+    params = batch_params()  # the run's own stop
     if converge:
         params.setMaxIterations(CONVERGED_MAX_ITERATIONS)
         params.setRelativeErrorTol(CONVERGED_TOL)

@@ -34,11 +34,23 @@ ISAM2_LOOP_ITERATIONS = 0  # extra iSAM2 steps after an update with a loop (late
 ISAM2_FINAL_ITERATIONS = 10  # PoseGraph.converge(): at most this many extra iSAM2 steps
 BATCH_MAX_ITERATIONS = 100  # batch Levenberg-Marquardt iterations
 BATCH_RELATIVE_TOL = 1e-8  # LM stops when an iteration lowers the error by less than this share
+# QR, not Cholesky: a flagged step's loose factor squares into a normal system too ill-conditioned
+# for Cholesky, and LM then crawls and stops far from the minimum (docs/loop-closure.md).
+BATCH_LINEAR_SOLVER = "MULTIFRONTAL_QR"
 # A solved graph is doubtful when its loops or its odometry disagree by more than this many sigmas
 # on average (sqrt of chi-square per degree of freedom; about 1 when the noise models are right).
 DOUBTFUL_SIGMAS = 3.0
 
 MODES = ("none", "isam2", "batch")  # graph.refine's values but "both" (= isam2 here + optimize_batch)
+
+
+def batch_params() -> gtsam.LevenbergMarquardtParams:
+    """The batch solve's Levenberg-Marquardt settings (the run's and every re-solve's)."""
+    lm = gtsam.LevenbergMarquardtParams()
+    lm.setMaxIterations(BATCH_MAX_ITERATIONS)
+    lm.setRelativeErrorTol(BATCH_RELATIVE_TOL)
+    lm.setLinearSolverType(BATCH_LINEAR_SOLVER)
+    return lm
 
 
 @dataclass
@@ -459,9 +471,7 @@ class PoseGraph:
         graph, _ = self._graph(robust=True)
         e0 = float(graph.error(self._initial_values))
         try:
-            lm = gtsam.LevenbergMarquardtParams()
-            lm.setMaxIterations(BATCH_MAX_ITERATIONS)
-            lm.setRelativeErrorTol(BATCH_RELATIVE_TOL)
+            lm = batch_params()
             opt = gtsam.LevenbergMarquardtOptimizer(graph, self._initial_values, lm)
             result = opt.optimize()
             iterations = opt.iterations()
