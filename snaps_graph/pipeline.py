@@ -374,6 +374,10 @@ class SlamPipeline:
         T = self.output_frame()
         return [(i, T @ m.T_own_prior) for i, m in enumerate(self.snaps.priors) if m.T_own_prior is not None]
 
+    def prior_trajectories(self) -> dict[int, np.ndarray]:
+        """Every relocalised prior's trajectory, (N, 4, 4), in the outputs' frame."""
+        return {i: T @ self.priors[i].poses for i, T in self.placed_priors()}
+
     def to_output(self, poses: np.ndarray) -> np.ndarray:
         """Poses (one or many) of the run's own frame in the outputs' frame; unchanged, not even
         multiplied by the identity, while the run has its own frame."""
@@ -438,7 +442,7 @@ class SlamPipeline:
             graph_stats=self.graph.stats.summary(),
             wall_s=time.perf_counter() - self._t_start,
             sessions=self.relocalisation(),
-            prior_trajectories={i: T @ self.priors[i].poses for i, T in self.placed_priors()},
+            prior_trajectories=self.prior_trajectories(),
         )
         if self.observer is not None:
             self.observer.on_finish(self, result)

@@ -254,8 +254,8 @@ class RerunLogger:
             est = pipe.graph.estimates()
             if len(est) and np.all(np.isfinite(est)):
                 out["refined"] = pipe.to_output(np.asarray(est))[:, :3, 3]
-        for i, T in pipe.placed_priors():
-            out[f"prior{i}"] = (T @ pipe.priors[i].poses)[:, :3, 3]
+        for i, poses in pipe.prior_trajectories().items():
+            out[f"prior{i}"] = poses[:, :3, 3]
         return out
 
     def _send_series(self) -> None:
