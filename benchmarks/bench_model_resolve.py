@@ -39,9 +39,15 @@ from snaps_graph.trajectory_io import read_poses
 FLOOR = np.diag(np.array([ODOM_FLOOR_ROT_RAD] * 3 + [ODOM_FLOOR_TRANS_M] * 3) ** 2)
 
 
-def factors(run: Path) -> tuple[list, list]:
-    """(odometry, loops) of graph.g2o as (a, b, T_a_b, covariance) in GTSAM's [rot, trans] order."""
-    graph, _ = gtsam.readG2o(str(run / "graph.g2o"), True)
+def to_pose3(T: np.ndarray) -> gtsam.Pose3:
+    """A Pose3 from a 4x4 whose rotation is projected onto SO(3) (a chained product is not exactly one)."""
+    U, _, Vt = np.linalg.svd(T[:3, :3])
+    return gtsam.Pose3(gtsam.Rot3(U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt), np.asarray(T[:3, 3], dtype=float))
+
+
+def factors(g2o: Path) -> tuple[list, list]:
+    """(odometry, loops) of a graph.g2o as (a, b, T_a_b, covariance) in GTSAM's [rot, trans] order."""
+    graph, _ = gtsam.readG2o(str(g2o), True)
     odo, loops = [], []
     for i in range(graph.size()):
         f = graph.at(i)
@@ -51,25 +57,35 @@ def factors(run: Path) -> tuple[list, list]:
     return odo, loops
 
 
-def solve(odo: list, loops: list, initial: np.ndarray, used: DriftModel, model: DriftModel, cfg: Config) -> np.ndarray:
+def solve_factors(
+    odo: list, loops: list, initial: np.ndarray, cfg: Config, params: gtsam.LevenbergMarquardtParams | None = None
+) -> tuple[np.ndarray, int]:
+    """(poses, iterations): the factors solved as a run solves its graph (the first pose's prior,
+    the loops under the run's robust kernel, Levenberg-Marquardt from ``initial``)."""
     g = gtsam.NonlinearFactorGraph()
     prior = gtsam.noiseModel.Diagonal.Sigmas(np.array([PRIOR_SIGMA_ROT_RAD] * 3 + [PRIOR_SIGMA_TRANS_M] * 3))
-    g.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(initial[0]), prior))
+    g.add(gtsam.PriorFactorPose3(0, to_pose3(initial[0]), prior))
+    for a, b, T, C in odo:
+        g.add(gtsam.BetweenFactorPose3(a, b, to_pose3(T), gtsam.noiseModel.Gaussian.Covariance(C)))
+    for a, b, T, C in loops:
+        g.add(gtsam.BetweenFactorPose3(a, b, to_pose3(T), robust_loop_noise(cfg.graph, gtsam.noiseModel.Gaussian.Covariance(C))))
+    values = gtsam.Values()
+    for k, P in enumerate(initial):
+        values.insert(k, to_pose3(P))
+    opt = gtsam.LevenbergMarquardtOptimizer(g, values, params if params is not None else batch_params())
+    result = opt.optimize()
+    return np.array([result.atPose3(k).matrix() for k in range(len(initial))]), opt.iterations()
+
+
+def solve(odo: list, loops: list, initial: np.ndarray, used: DriftModel, model: DriftModel, cfg: Config) -> np.ndarray:
+    """The run's factors solved with ``model`` in place of the drift model ``used`` in every odometry factor."""
+    swapped = []
     for a, b, T, C in odo:
         t = T[:3, 3]
         chord, driven = T[:3, :3].T @ t, float(np.linalg.norm(t))
         own = C - step_covariance(used, driven, chord) - FLOOR  # the step's own measurement noise
-        cov = own + step_covariance(model, driven, chord) + FLOOR
-        g.add(gtsam.BetweenFactorPose3(a, b, gtsam.Pose3(T), gtsam.noiseModel.Gaussian.Covariance(cov)))
-    for a, b, T, C in loops:
-        g.add(
-            gtsam.BetweenFactorPose3(a, b, gtsam.Pose3(T), robust_loop_noise(cfg.graph, gtsam.noiseModel.Gaussian.Covariance(C)))
-        )
-    values = gtsam.Values()
-    for k, P in enumerate(initial):
-        values.insert(k, gtsam.Pose3(P))
-    result = gtsam.LevenbergMarquardtOptimizer(g, values, batch_params()).optimize()
-    return np.array([result.atPose3(k).matrix() for k in range(len(initial))])
+        swapped.append((a, b, T, own + step_covariance(model, driven, chord) + FLOOR))
+    return solve_factors(swapped, loops, initial, cfg)[0]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -89,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     models.update({f"{c}": Config.load(c).odometry.model() for c in args.config})
     models.update({f"x {k:g}": used.scaled(k) for k in args.scale})
     gt, vo, heuristic = (read_poses(run / f"poses_{n}.txt") for n in ("gt", "vo", "snaps"))
-    odo, loops = factors(run)
+    odo, loops = factors(run / "graph.g2o")
     base = figures(vo, gt)
     fmt = lambda v: " / ".join(f"{x:.2f}" for x in v)  # noqa: E731
     print(f"{run}: {len(odo)} odometry and {len(loops)} loop factors")

@@ -25,43 +25,21 @@ import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
-import gtsam
 import numpy as np
 
 from snaps_graph.backend import noise
-from snaps_graph.backend.pose_graph import (
-    PRIOR_SIGMA_ROT_RAD,
-    PRIOR_SIGMA_TRANS_M,
-    batch_params,
-    robust_loop_noise,
-)
+from snaps_graph.backend.pose_graph import batch_params
 from snaps_graph.config import Config
 from snaps_graph.evaluation.results_io import read_frames_csv
 from snaps_graph.trajectory_io import read_poses
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from bench_loops_dev import figures
+from bench_model_resolve import factors, solve_factors
 from oracle import REVISIT_MAX_YAW_DEG, odometry_graph, true_revisit_pairs
 
 CONVERGED_TOL = 1e-10  # relative and absolute error decrease at which "converged" stops
 CONVERGED_MAX_ITERATIONS = 2000
-
-
-def to_pose3(T: np.ndarray) -> gtsam.Pose3:
-    """A Pose3 from a 4x4 whose rotation is projected onto SO(3) (a chained product is not exactly one)."""
-    U, _, Vt = np.linalg.svd(T[:3, :3])
-    return gtsam.Pose3(gtsam.Rot3(U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt), np.asarray(T[:3, 3], dtype=float))
-
-
-def array_to_values(poses: np.ndarray) -> gtsam.Values:
-    values = gtsam.Values()
-    for k, T in enumerate(poses):
-        values.insert(k, to_pose3(T))
-    return values
-
-
-def values_to_array(values: gtsam.Values, n: int) -> np.ndarray:
-    return np.array([values.atPose3(k).matrix() for k in range(n)])
 
 
 def solve_g2o(
@@ -78,39 +56,20 @@ def solve_g2o(
     run's kernel back; a flagged step's information is multiplied by ``flag_gain``. With ``exact``
     (ground-truth poses) every loop measures the truth, and the pairs ``extra`` are added as exact
     loops at the tightest noise a verified loop gets."""
-    written, _ = gtsam.readG2o(str(g2o), True)
-    graph = gtsam.NonlinearFactorGraph()
-    prior = gtsam.noiseModel.Diagonal.Sigmas(np.array([PRIOR_SIGMA_ROT_RAD] * 3 + [PRIOR_SIGMA_TRANS_M] * 3))
-    graph.add(gtsam.PriorFactorPose3(0, to_pose3(init[0]), prior))
-    for i in range(written.size()):
-        f = written.at(i)
-        if f is None:
-            continue
-        a, b = f.keys()
-        R = f.noiseModel().R()
-        info = R.T @ R
-        measured = f.measured()
-        if b == a + 1:
-            model = gtsam.noiseModel.Gaussian.Information(info * (flag_gain if flagged[b] else 1.0))
-        else:
-            model = robust_loop_noise(cfg.graph, gtsam.noiseModel.Gaussian.Information(info))
-            if exact is not None:
-                measured = to_pose3(np.linalg.solve(exact[a], exact[b]))
-        graph.add(gtsam.BetweenFactorPose3(a, b, measured, model))
+    odo, loops = factors(g2o)
+    odo = [(a, b, T, C / flag_gain if flagged[b] else C) for a, b, T, C in odo]
+    if exact is not None:
+        loops = [(a, b, np.linalg.solve(exact[a], exact[b]), C) for a, b, _, C in loops]
     if extra:
         assert exact is not None
-        cov = noise.loop_covariance(cfg.graph, np.zeros((6, 6)))
-        tight = robust_loop_noise(cfg.graph, gtsam.noiseModel.Gaussian.Covariance(cov))
-        for j, k in extra:
-            graph.add(gtsam.BetweenFactorPose3(j, k, to_pose3(np.linalg.solve(exact[j], exact[k])), tight))
+        tight = noise.loop_covariance(cfg.graph, np.zeros((6, 6)))
+        loops += [(j, k, np.linalg.solve(exact[j], exact[k]), tight) for j, k in extra]
     params = batch_params()  # the run's own stop
     if converge:
         params.setMaxIterations(CONVERGED_MAX_ITERATIONS)
         params.setRelativeErrorTol(CONVERGED_TOL)
         params.setAbsoluteErrorTol(CONVERGED_TOL)
-    opt = gtsam.LevenbergMarquardtOptimizer(graph, array_to_values(init), params)
-    result = opt.optimize()
-    return values_to_array(result, len(init)), opt.iterations()
+    return solve_factors(odo, loops, init, cfg, params)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -46,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
             return 2
     cfg = Config.load(run / "config.toml") if (run / "config.toml").is_file() else Config()
     gt, vo, heuristic = (read_poses(run / f"poses_{n}.txt") for n in ("gt", "vo", "snaps"))
-    odo, loops = factors(run)
+    odo, loops = factors(run / "graph.g2o")
     refined = solve(odo, loops, heuristic, cfg.odometry.model(), cfg.odometry.model(), cfg)
     fmt = lambda v: " ".join(f"{x:+6.2f}" for x in v)  # noqa: E731
     print("relative rotation error, deg (pitch heading roll): VO | refined")
