@@ -88,6 +88,19 @@ def solve(odo: list, loops: list, initial: np.ndarray, used: DriftModel, model: 
     return solve_factors(swapped, loops, initial, cfg)[0]
 
 
+def load_run(run: Path) -> tuple[Config, np.ndarray, np.ndarray, np.ndarray, list, list] | None:
+    """(config, ground truth, VO, heuristic, odometry factors, loop factors) of a run folder, or
+    None after a one-line error naming the missing file."""
+    for name in ("graph.g2o", "poses_vo.txt", "poses_snaps.txt", "poses_gt.txt"):
+        if not (run / name).is_file():
+            print(f"error: {run / name}: missing (a run with loops, --refine batch and ground truth)", file=sys.stderr)
+            return None
+    cfg = Config.load(run / "config.toml") if (run / "config.toml").is_file() else Config()
+    gt, vo, heuristic = (read_poses(run / f"poses_{n}.txt") for n in ("gt", "vo", "snaps"))
+    odo, loops = factors(run / "graph.g2o")
+    return cfg, gt, vo, heuristic, odo, loops
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0], epilog=__doc__.split("\n\n", 1)[1])
     ap.add_argument("run", type=Path, help="a run folder with graph.g2o, poses_vo/snaps/gt.txt and config.toml")
@@ -95,17 +108,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scale", type=float, nargs="*", default=[], help="the run's model with every rate times K")
     args = ap.parse_args(argv)
     run = args.run
-    for name in ("graph.g2o", "poses_vo.txt", "poses_snaps.txt", "poses_gt.txt"):
-        if not (run / name).is_file():
-            print(f"error: {run / name}: missing (a run with loops, --refine and ground truth)", file=sys.stderr)
-            return 2
-    cfg = Config.load(run / "config.toml") if (run / "config.toml").is_file() else Config()
+    loaded = load_run(run)
+    if loaded is None:
+        return 2
+    cfg, gt, vo, heuristic, odo, loops = loaded
     used = cfg.odometry.model()
     models = {"the run's model": used}
     models.update({f"{c}": Config.load(c).odometry.model() for c in args.config})
     models.update({f"x {k:g}": used.scaled(k) for k in args.scale})
-    gt, vo, heuristic = (read_poses(run / f"poses_{n}.txt") for n in ("gt", "vo", "snaps"))
-    odo, loops = factors(run / "graph.g2o")
     base = figures(vo, gt)
     fmt = lambda v: " / ".join(f"{x:.2f}" for x in v)  # noqa: E731
     print(f"{run}: {len(odo)} odometry and {len(loops)} loop factors")

@@ -20,11 +20,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from snaps_graph.config import Config
-from snaps_graph.trajectory_io import read_poses
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from bench_model_resolve import factors, solve
+from bench_model_resolve import load_run, solve
 
 
 def rotation_error_deg(P: np.ndarray, gt: np.ndarray, a: int, b: int) -> np.ndarray:
@@ -39,14 +36,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pairs", nargs="+", default=[], metavar="A-B", help="frame pairs whose relative rotation to print")
     ap.add_argument("--frames", nargs="+", type=int, default=[], help="frames whose height and pitch error to print")
     args = ap.parse_args(argv)
-    run = args.run
-    for name in ("graph.g2o", "poses_vo.txt", "poses_snaps.txt", "poses_gt.txt"):
-        if not (run / name).is_file():
-            print(f"error: {run / name}: missing (a run with loops, --refine batch and ground truth)", file=sys.stderr)
-            return 2
-    cfg = Config.load(run / "config.toml") if (run / "config.toml").is_file() else Config()
-    gt, vo, heuristic = (read_poses(run / f"poses_{n}.txt") for n in ("gt", "vo", "snaps"))
-    odo, loops = factors(run / "graph.g2o")
+    loaded = load_run(args.run)
+    if loaded is None:
+        return 2
+    cfg, gt, vo, heuristic, odo, loops = loaded
     refined = solve(odo, loops, heuristic, cfg.odometry.model(), cfg.odometry.model(), cfg)
     fmt = lambda v: " ".join(f"{x:+6.2f}" for x in v)  # noqa: E731
     print("relative rotation error, deg (pitch heading roll): VO | refined")
