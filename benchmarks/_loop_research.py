@@ -69,10 +69,10 @@ def with_switches(search: str | None, verify_all: bool) -> type[SnapsLoopCloser]
     base = VerifyAllCloser if verify_all else SnapsLoopCloser
 
     class Closer(base):  # type: ignore[valid-type, misc]
-        def __init__(self, cfg, odometry=None, pause_every=1, verifier=None, policy=None):
+        def __init__(self, cfg, odometry=None, pause_every=1, policy=None, **kw):
             rule = policy or POLICIES[cfg.policy]
             rule = dataclasses.replace(rule, search=search) if search else rule
-            super().__init__(cfg, odometry, pause_every, verifier=verifier, policy=rule)
+            super().__init__(cfg, odometry, pause_every, policy=rule, **kw)
 
     return Closer
 

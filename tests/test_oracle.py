@@ -1,4 +1,5 @@
-"""The ground-truth loop oracle (benchmarks/oracle.py, a research tool outside the package)."""
+"""The research tools outside the package: the ground-truth loop oracle (benchmarks/oracle.py) and
+the loop closer under research switches (benchmarks/_loop_research.py)."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ from snaps_graph.config import Config
 from snaps_graph.evaluation.metrics import mean_deviation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from _loop_research import with_switches  # noqa: E402
 from oracle import loop_oracle, true_revisit_pairs  # noqa: E402
 
 
@@ -118,3 +120,12 @@ def test_oracle_weighs_the_steps_by_the_covariances_it_is_given():
     spread = loop_oracle(vo, gt, c).mean_deviation
     placed = loop_oracle(vo, gt, c, covs=covs).mean_deviation
     assert placed < 0.02 and placed < 0.25 * spread, (placed, spread)
+
+
+def test_the_research_closer_is_built_as_the_pipeline_builds_its_own():
+    """bench_revisit swaps the pipeline's loop closer for this one: it must take every argument
+    the pipeline passes (priors too) and only change the gate."""
+    cfg = Config()
+    closer = with_switches("radius", False)(cfg.loop, cfg.odometry, 5, verifier=None, priors=None)
+    assert closer.policy.search == "radius" and closer.pause_every == 5
+    assert with_switches(None, False)(cfg.loop, cfg.odometry).policy.search == "drift"
