@@ -25,6 +25,7 @@ from bench_loops_dev import figures
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from snaps_graph.backend import array_to_values, to_pose3, values_to_array
 from snaps_graph.backend.noise import ODOM_FLOOR_ROT_RAD, ODOM_FLOOR_TRANS_M
 from snaps_graph.backend.pose_graph import (
     PRIOR_SIGMA_ROT_RAD,
@@ -37,12 +38,6 @@ from snaps_graph.drift_model import DriftModel, step_covariance
 from snaps_graph.trajectory_io import read_poses
 
 FLOOR = np.diag(np.array([ODOM_FLOOR_ROT_RAD] * 3 + [ODOM_FLOOR_TRANS_M] * 3) ** 2)
-
-
-def to_pose3(T: np.ndarray) -> gtsam.Pose3:
-    """A Pose3 from a 4x4 whose rotation is projected onto SO(3) (a chained product is not exactly one)."""
-    U, _, Vt = np.linalg.svd(T[:3, :3])
-    return gtsam.Pose3(gtsam.Rot3(U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt), np.asarray(T[:3, 3], dtype=float))
 
 
 def factors(g2o: Path) -> tuple[list, list]:
@@ -69,12 +64,9 @@ def solve_factors(
         g.add(gtsam.BetweenFactorPose3(a, b, to_pose3(T), gtsam.noiseModel.Gaussian.Covariance(C)))
     for a, b, T, C in loops:
         g.add(gtsam.BetweenFactorPose3(a, b, to_pose3(T), robust_loop_noise(cfg.graph, gtsam.noiseModel.Gaussian.Covariance(C))))
-    values = gtsam.Values()
-    for k, P in enumerate(initial):
-        values.insert(k, to_pose3(P))
-    opt = gtsam.LevenbergMarquardtOptimizer(g, values, params if params is not None else batch_params())
+    opt = gtsam.LevenbergMarquardtOptimizer(g, array_to_values(initial), params if params is not None else batch_params())
     result = opt.optimize()
-    return np.array([result.atPose3(k).matrix() for k in range(len(initial))]), opt.iterations()
+    return values_to_array(result, len(initial)), opt.iterations()
 
 
 def solve(odo: list, loops: list, initial: np.ndarray, used: DriftModel, model: DriftModel, cfg: Config) -> np.ndarray:

@@ -1,6 +1,6 @@
 """What a loop corrects and what it cannot: relative rotations against absolute tilt, per frame.
 
-Re-solves a run's graph.g2o as the run does (bench_model_resolve, the run's own drift model) and
+Re-solves a run's graph.g2o as the run does (bench_model_resolve.solve_factors) and
 prints, for VO and the refined trajectory: the rotation error (deg, camera axes x = pitch,
 y = heading, z = roll) between frame pairs ``--pairs A-B ...`` against the ground truth, and at
 frames ``--frames`` the vertical error (m) and the pitch error relative to frame 0. A loop fixes
@@ -21,7 +21,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from bench_model_resolve import load_run, solve
+from bench_model_resolve import load_run, solve_factors
 
 
 def rotation_error_deg(P: np.ndarray, gt: np.ndarray, a: int, b: int) -> np.ndarray:
@@ -40,7 +40,7 @@ def main(argv: list[str] | None = None) -> int:
     if loaded is None:
         return 2
     cfg, gt, vo, heuristic, odo, loops = loaded
-    refined = solve(odo, loops, heuristic, cfg.odometry.model(), cfg.odometry.model(), cfg)
+    refined, _ = solve_factors(odo, loops, heuristic, cfg)
     fmt = lambda v: " ".join(f"{x:+6.2f}" for x in v)  # noqa: E731
     print("relative rotation error, deg (pitch heading roll): VO | refined")
     for pair in args.pairs:
