@@ -203,7 +203,7 @@ def test_flagged_step_absorbs_the_correction():
 def test_flagged_steps_outside_every_loop_stay_as_measured():
     """A 1500 m circle of tight BA-like steps with two flagged blocks, loops joining its end to the
     part after the first block. No loop spans the first block, so at the minimum its steps keep
-    their measurements; with Cholesky the batch stopped with them bent by 0.23 deg each."""
+    their measurements (a Cholesky solve stops short of it with them bent: docs/loop-closure.md)."""
     from scipy.spatial.transform import Rotation
 
     n, rng = 1500, np.random.default_rng(0)
