@@ -229,6 +229,11 @@ def main() -> None:
         d = np.linalg.inv(gt[f]) @ ref[f]
         r = np.degrees(Rotation.from_matrix(d[:3, :3]).as_rotvec())
         print(f"{f:5d} | {d[0, 3]:+6.2f} {d[1, 3]:+6.2f} {d[2, 3]:+6.2f}      {r[0]:+6.2f} {r[1]:+6.2f} {r[2]:+6.2f}")
+    fit = consistent_truth(gt, ref)
+    res = np.array([np.linalg.norm(fit[f][:3, 3] - ref[f][:3, 3]) for f in sorted(ref)])
+    print(
+        f"the smooth fit through it (consistent_truth, --truth images): residual mean {res.mean():.3f} m, max {res.max():.3f} m"
+    )
     common = sorted(set(ref) & set(alt))
     spread = np.array([np.linalg.norm(ref[f][:3, 3] - alt[f][:3, 3]) for f in common])
     print(
