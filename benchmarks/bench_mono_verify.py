@@ -28,6 +28,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from revisit_reference import image_reference
 
 from snaps_graph.config import Config
 from snaps_graph.datasets.kitti import KittiSequence
@@ -167,6 +168,16 @@ def main() -> int:
         print(
             f"direction error median {np.median(dirn):.2f} deg, p90 {np.percentile(dirn, 90):.2f}; in the ground plane (x, z) median {np.median(ground):.2f} deg"
         )
+        ref = image_reference()  # where the first pass's images put the second: the truth the images agree with
+        seen = [(np.linalg.solve(G[r], ref[c]), m.T_ref_cur) for r, c, m in out if c in ref]
+        if seen:
+            rot_i = np.array([rotation_angle_deg(t[:3, :3].T @ e[:3, :3]) for t, e in seen])
+            dt_i = np.array([e[:3, 3] - t[:3, 3] for t, e in seen])
+            print(
+                f"against the image reference (revisit_reference.py, {len(seen)} pairs): rotation error median {np.median(rot_i):.3f} deg, "
+                f"p90 {np.percentile(rot_i, 90):.3f}; translation error median {np.median(np.linalg.norm(dt_i, axis=1)):.2f} m, "
+                "x, y, z " + ", ".join(f"{v:+.2f}" for v in np.median(dt_i, axis=0)) + " m"
+            )
         by_cur: dict[int, list] = {}
         for r, c, m in out:
             by_cur.setdefault(c, []).append((r, m.T_ref_cur))
