@@ -44,10 +44,11 @@ ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_DATA = ROOT / ".." / "shared" / "data" / "kitti00_loop"
 
 
-def one_run(seq: Path, gt_all: np.ndarray, pct: float, seed: int, work: Path, args) -> dict:
+def one_run(seq: Path, gt_all: np.ndarray, truth_all: np.ndarray, pct: float, seed: int, work: Path, args) -> dict:
+    """One drifted run; ``truth_all`` is what the odometry is drifted from and measured against
+    (``gt_all`` itself, or with ``--truth images`` its image-consistent version)."""
     frames = frame_ids(seq)
-    gt = gt_all[: frames[-1] + 1]
-    truth = consistent_truth(gt, image_reference()) if args.truth == "images" else gt
+    gt, truth = gt_all[: frames[-1] + 1], truth_all[: frames[-1] + 1]
     drifted = drift_trajectory(truth, seed, pct=pct)
     name = f"p{pct:g}_s{seed}_{args.search}" + ("_images" if args.truth == "images" else "")
     odo = work / f"{name}.txt"
@@ -149,6 +150,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {args.data}: no sequences/00/image_0 or poses/00.txt", file=sys.stderr)
         return 2
     gt_all = read_kitti_poses(gt_file)
+    truth_all = consistent_truth(gt_all, image_reference()) if args.truth == "images" else gt_all
     tmp = None
     if args.work is None:
         tmp = tempfile.TemporaryDirectory(prefix="bench_revisit_")
@@ -164,7 +166,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         for pct in args.pct:
             for seed in args.seeds:
-                r = one_run(seq, gt_all, pct, seed, work, args)
+                r = one_run(seq, gt_all, truth_all, pct, seed, work, args)
                 rows.append(r)
                 d = r["dev"]
                 odo, sn, ba = d.get("vo", np.nan), d.get("snaps", np.nan), d.get("batch", np.nan)

@@ -84,11 +84,10 @@ def arbitrary_pose(seed: int) -> np.ndarray:
     return T
 
 
-def run_case(pct: float, seed: int, work: Path, reference: dict[int, np.ndarray], truth: str) -> dict:
+def run_case(pct: float, seed: int, work: Path, gt: np.ndarray, reference: dict[int, np.ndarray], truth: str) -> dict:
     """A alone, then B with ``--prior A``; B's odometry drifted from the ground truth
     (``truth = "gt"``) or from the ground truth whose second pass the images agree with ("images")."""
     work.mkdir(parents=True, exist_ok=True)
-    gt = read_poses(DATA / "poses" / "00.txt")
     gt_b = consistent_truth(gt, reference) if truth == "images" else gt
     odo_a, odo_b = work / "odometry_a.txt", work / "odometry_b.txt"
     write_kitti_poses(odo_a, drift_trajectory(gt, seed, pct=pct))
@@ -124,10 +123,10 @@ def frames_of(run: Path) -> np.ndarray:
     return np.loadtxt(run / "frames.csv", delimiter=",", skiprows=1, usecols=0, dtype=np.int64)
 
 
-def figures(a: Path, b: Path, gt: np.ndarray, reference: dict[int, np.ndarray] | None = None) -> dict:
-    """The figures against the ground truth, and with ``reference`` (frame -> T_world_cam in the
-    ground truth's world, ``revisit_reference.image_reference``) against where A's images put B
-    (``img``: the frames the reference located)."""
+def figures(a: Path, b: Path, gt: np.ndarray, reference: dict[int, np.ndarray]) -> dict:
+    """The figures against the ground truth, and (``img_*``) against ``reference`` (frame ->
+    T_world_cam in the ground truth's world, ``revisit_reference.image_reference``): where A's
+    images put B, over the frames it located."""
     fa, fb = frames_of(a), frames_of(b)
     to_a = np.linalg.inv(gt[fa[0]])  # A's frame: A's first camera
     metrics = json.loads((b / "metrics.json").read_text())
@@ -140,11 +139,9 @@ def figures(a: Path, b: Path, gt: np.ndarray, reference: dict[int, np.ndarray] |
     rows = [i for i, f in enumerate(fb) if OVERLAP[0] <= f <= OVERLAP[1]]
     ga = gt[fa][:, :3, 3]
     out = {"reloc": sess.get("frame"), "cross_loops": len(cross), "false": int(false), "gt_dy": gt_height_gap(cross, gt)}
-    truths = {"": (rows, {fb[i]: gt[fb[i]] for i in rows})}
-    if reference is not None:
-        located = [i for i in rows if fb[i] in reference]
-        truths["img"] = (located, {fb[i]: reference[fb[i]] for i in located})
-        out["img_frames"] = len(located)
+    located = [i for i in rows if fb[i] in reference]
+    out["img_frames"] = len(located)
+    truths = {"": (rows, {fb[i]: gt[fb[i]] for i in rows}), "img": (located, {fb[i]: reference[fb[i]] for i in located})}
     for tag, (use, truth) in truths.items():
         for name, bp, ap in (("rt", b_rt, a_stored), ("ref", b_ref, a_joint)):
             agree, err_b, err_a = [], [], []
@@ -221,7 +218,7 @@ def main() -> None:
         return
     if not SEQ.is_dir():
         sys.exit(f"{SEQ}: not found (the real revisit, ../shared/data/kitti00_loop)")
-    reference = image_reference()
+    gt, reference = read_poses(DATA / "poses" / "00.txt"), image_reference()
     print(
         "pct seed | reloc loops false | against the images (frames): agree rt ref, B err rt ref / A |"
         " against the GT: agree rt ref, on the ground rt ref | GT dy | met: images, GT, GT ground"
@@ -231,20 +228,20 @@ def main() -> None:
         for seed in [int(s) for s in args.seeds.split(",")]:
             work = args.work / (f"{pct:g}pct_seed{seed}" + ("_images" if args.truth == "images" else ""))
             if args.reuse and (work / "B" / "metrics.json").is_file():
-                r = figures(work / "A", work / "B", read_poses(DATA / "poses" / "00.txt"), reference)
+                r = figures(work / "A", work / "B", gt, reference)
             else:
-                r = run_case(pct, seed, work, reference, args.truth)
+                r = run_case(pct, seed, work, gt, reference, args.truth)
             found = r["reloc"] is not None and RELOC_WINDOW[0] <= r["reloc"] <= RELOC_WINDOW[1] and r["false"] == 0
             met = {
-                "img": found and reference is not None and meets(r["img_rt"], r["img_ref"]),
+                "img": found and meets(r["img_rt"], r["img_ref"]),
                 "": found and meets(r["rt"], r["ref"]),
                 "ground": found and meets(r["rt_ground"], r["ref_ground"]),
             }
             met_all = {k: met_all[k] and met[k] for k in met}
-            i_rt, i_ref = r.get("img_rt", [np.nan] * 3), r.get("img_ref", [np.nan] * 3)
+            i_rt, i_ref = r["img_rt"], r["img_ref"]
             print(
                 f"{pct:3g} {seed:4d} | {r['reloc']!s:>5} {r['cross_loops']:5d} {r['false']:5d} |"
-                f" ({r.get('img_frames', 0):2d}) {i_rt[0]:5.2f} {i_ref[0]:4.2f}, {i_rt[1]:4.2f} {i_ref[1]:4.2f} / {i_ref[2]:4.2f} |"
+                f" ({r['img_frames']:2d}) {i_rt[0]:5.2f} {i_ref[0]:4.2f}, {i_rt[1]:4.2f} {i_ref[1]:4.2f} / {i_ref[2]:4.2f} |"
                 f" {r['rt'][0]:5.2f} {r['ref'][0]:4.2f}, {r['rt_ground'][0]:4.2f} {r['ref_ground'][0]:4.2f} | {r['gt_dy']:5.2f} |"
                 f" {yes(met['img'])}, {yes(met[''])}, {yes(met['ground'])}"
             )

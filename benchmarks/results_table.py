@@ -298,26 +298,23 @@ def _peer_table(args) -> list[str]:
 
 
 def _revisit_note(run_dir: Path, seq: Path) -> str:
-    """The revisit's figures: mean deviation over bench_revisit's window, and the loops."""
+    """The revisit's figures: mean deviation over bench_revisit's window, against the ground truth
+    and against where the first pass's images put the second, and the loops."""
     import numpy as np
     from _revisit import WINDOW, frame_ids, window_deviation
+    from revisit_reference import DATA, image_reference
 
     from snaps_graph.trajectory_io import read_kitti_poses
 
     frames, gt = frame_ids(seq), read_kitti_poses(run_dir / "poses_gt.txt")
-    dev = {t: window_deviation(read_kitti_poses(run_dir / f"poses_{t}.txt"), gt, frames) for t in TRAJECTORIES}
-    loops = [json.loads(line) for line in (run_dir / "loops.jsonl").read_text().splitlines() if line.strip()]
-    shown = ", ".join(f"{lp['frame']} -> {lp['reference']}" for lp in loops) or "none"
-    from revisit_reference import DATA, image_reference
-
-    truth = read_kitti_poses(DATA / "poses" / "00.txt")
-    ref = image_reference()
+    trajs = {t: read_kitti_poses(run_dir / f"poses_{t}.txt") for t in TRAJECTORIES}
+    dev = {t: window_deviation(trajs[t], gt, frames) for t in TRAJECTORIES}
+    truth, ref = read_kitti_poses(DATA / "poses" / "00.txt"), image_reference()
     rows = [i for i, f in enumerate(frames) if f in ref and WINDOW[0] <= f <= WINDOW[1]]
     seen = np.array([np.linalg.solve(truth[frames[0]], ref[frames[i]]) for i in rows])
-    by_images = {
-        t: float(np.linalg.norm(read_kitti_poses(run_dir / f"poses_{t}.txt")[rows, :3, 3] - seen[:, :3, 3], axis=1).mean())
-        for t in TRAJECTORIES
-    }
+    by_images = {t: float(np.linalg.norm(trajs[t][rows, :3, 3] - seen[:, :3, 3], axis=1).mean()) for t in TRAJECTORIES}
+    loops = [json.loads(line) for line in (run_dir / "loops.jsonl").read_text().splitlines() if line.strip()]
+    shown = ", ".join(f"{lp['frame']} -> {lp['reference']}" for lp in loops) or "none"
     return (
         f"Revisit: mean deviation over frames {WINDOW[0]}-{WINDOW[1]}, odometry / SNAPS / iSAM2 / batch: "
         f"{' / '.join(f'{dev[t]:.2f}' for t in TRAJECTORIES)} m against KITTI's ground truth, which the images contradict "

@@ -31,6 +31,7 @@ from scipy.spatial.transform import Rotation
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from snaps_graph.camera import StereoCamera
 from snaps_graph.trajectory_io import read_poses
 
 DATA = ROOT.parent / "shared" / "data" / "kitti00_loop"
@@ -46,8 +47,13 @@ CACHE = ROOT / "results" / "revisit_reference"
 
 
 def camera() -> np.ndarray:
-    line = next(ln for ln in (DATA / "sequences" / "00" / "calib.txt").read_text().splitlines() if ln.startswith("P0"))
-    return np.array(line.split()[1:], float).reshape(3, 4)[:, :3]
+    """The left camera's K, read as every run reads calib.txt."""
+    return StereoCamera.from_calib_file(DATA / "sequences" / "00" / "calib.txt").K
+
+
+def nearest_first(gt: np.ndarray, f: int) -> int:
+    """The first-pass frame nearest to frame ``f`` by the ground truth."""
+    return int(FIRST_PASS[np.argmin(np.linalg.norm(gt[FIRST_PASS][:, :3, 3] - gt[f][:3, 3], axis=1))])
 
 
 class Features:
@@ -96,7 +102,7 @@ def triangulated(feats: Features, gt: np.ndarray, K: np.ndarray, j1: int, j2: in
 def locate(feats: Features, gt: np.ndarray, K: np.ndarray, f: int, gaps: tuple[int, ...]) -> np.ndarray | None:
     """Second-pass frame f's T_world_cam (the GT's world) from the nearest first-pass frame's
     triangulated points, or None with fewer than MIN_INLIERS."""
-    j = int(FIRST_PASS[np.argmin(np.linalg.norm(gt[FIRST_PASS][:, :3, 3] - gt[f][:3, 3], axis=1))])
+    j = nearest_first(gt, f)
     parts = [triangulated(feats, gt, K, max(j - g, FIRST_PASS[0]), min(j + g, FIRST_PASS[-1])) for g in gaps]
     X = np.concatenate([p[0] for p in parts])
     desc = np.concatenate([p[1] for p in parts])
@@ -171,7 +177,7 @@ def epipolar_check(frames: range = range(1577, 1636, 6)) -> None:
     gt, K, feats, ref = read_poses(DATA / "poses" / "00.txt"), camera(), Features(), image_reference()
     print("frame  first | matches | median Sampson px: images' own fit   ground truth   reference")
     for f in frames:
-        j = int(FIRST_PASS[np.argmin(np.linalg.norm(gt[FIRST_PASS][:, :3, 3] - gt[f][:3, 3], axis=1))])
+        j = nearest_first(gt, f)
         (u1, d1), (u2, d2) = feats(j), feats(f)
         m = ratio_matches(d1, d2, 0.8)
         x1, x2 = u1[m[:, 0]], u2[m[:, 1]]

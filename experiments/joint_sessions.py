@@ -68,17 +68,24 @@ def run_recording(a: Path, seq: Path, frames: str, out: Path) -> tuple[list[Link
     return links, kept["initial"], kept["T_own_prior"]
 
 
-def step_scale(s: Session, gt: np.ndarray) -> np.ndarray:
-    """Per axis (rotation x, y, z, offset x, y, z) the RMS of the odometry steps' errors against the
-    ground truth in units of their sigmas."""
-    e = []
+def step_errors(s: Session, gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The odometry steps' errors against the ground truth, (N, 6) rotation vector and offset, and
+    their sigmas (N, 6)."""
+    e, sig = [], []
     f = s.factors
     for (i, j), T, C, robust in zip(f.pairs, f.measured, f.covariance, f.robust):
         if robust or j != i + 1:
             continue
         D = np.linalg.solve(np.linalg.solve(gt[s.frame_ids[i]], gt[s.frame_ids[j]]), T)
-        e.append(np.r_[Rotation.from_matrix(D[:3, :3]).as_rotvec(), D[:3, 3]] / np.sqrt(np.diag(C)))
-    return np.sqrt((np.array(e) ** 2).mean(0))
+        e.append(np.r_[Rotation.from_matrix(D[:3, :3]).as_rotvec(), D[:3, 3]])
+        sig.append(np.sqrt(np.diag(C)))
+    return np.array(e), np.array(sig)
+
+
+def step_scale(s: Session, gt: np.ndarray) -> np.ndarray:
+    """Per axis the RMS of the odometry steps' errors in units of their sigmas."""
+    e, sig = step_errors(s, gt)
+    return np.sqrt(((e / sig) ** 2).mean(0))
 
 
 def solve(
@@ -165,11 +172,10 @@ def main() -> None:
     print("steps' errors in sigmas, RMS per axis (rot x y z, offset x y z): A", np.round(wa, 3), "B", np.round(wb, 3))
     sel: dict[str, Callable[[int], bool]] = {"every loop": lambda j: True, f"loops to A < {args.split}": lambda j: j < args.split}
     sel[f"loops to A >= {args.split}"] = lambda j: j >= args.split
-    joint = None
+    joint: dict[str, np.ndarray] = {}
     for name, keep in sel.items():
-        a, b = solve(A, B, [lk for lk in links if keep(lk[0])], initial, T_own_prior)
-        joint = a if joint is None else joint
-        print(f"joint, {name}: A {dev(a, fa):.3f} m, B {dev(b, fb):.3f} m")
+        joint[name], b = solve(A, B, [lk for lk in links if keep(lk[0])], initial, T_own_prior)
+        print(f"joint, {name}: A {dev(joint[name], fa):.3f} m, B {dev(b, fb):.3f} m")
     for name, kw in (
         ("steps scaled to their true size", {"scales": (wa, wb)}),
         ("loops x10", {"link_scale": 10.0}),
@@ -178,18 +184,12 @@ def main() -> None:
     ):
         a, b = solve(A, B, links, initial, T_own_prior, **kw)  # type: ignore[arg-type]
         print(f"joint, every loop, {name}: A {dev(a, fa):.3f} m, B {dev(b, fb):.3f} m")
-    assert joint is not None
     print("A per 100 frames, alone / joint (every loop), m:")
     for s in range(0, len(fa), 100):
         sl = slice(s, s + 100)
-        print(f"  {fa[s]:5d}: {dev(A.poses[sl], fa[sl]):.2f} / {dev(joint[sl], fa[sl]):.2f}")
-    n = len(fa) // 200 * 200
-    e = []
-    for (i, j), T, _, robust in zip(A.factors.pairs, A.factors.measured, A.factors.covariance, A.factors.robust):
-        if not robust and j == i + 1:
-            D = np.linalg.solve(np.linalg.solve(gt[fa[i]], gt[fa[j]]), T)
-            e.append(np.r_[Rotation.from_matrix(D[:3, :3]).as_rotvec(), D[:3, 3]])
-    E = np.array(e)[: min(n, len(e)) // 200 * 200]
+        print(f"  {fa[s]:5d}: {dev(A.poses[sl], fa[sl]):.2f} / {dev(joint['every loop'][sl], fa[sl]):.2f}")
+    E, _ = step_errors(A, gt)
+    E = E[: len(E) // 200 * 200]
     ratio = E.reshape(-1, 200, 6).sum(1).var(0) / (200 * E.var(0))
     print("A's steps: variance of a 200-step sum over 200 x a step's, per axis (1: independent):", np.round(ratio, 2))
 

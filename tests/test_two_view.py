@@ -23,6 +23,9 @@ from snaps_graph.types import FrameFeatures, StereoFrame
 from snaps_graph.verification.features import LOOP_QUERY_FEATURES, MAX_DISTANCE_M, verify_features
 from snaps_graph.verification.mono import MonoFeatureBank, partner_pose, triangulate, two_view_covariance, two_view_features
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from revisit_reference import DATA, GAPS, Features, camera, locate  # noqa: E402
+
 LOOP_SEQ = SHARED_DATA / "kitti00_loop" / "sequences" / "00"
 KITTI06 = SHARED_DATA / "kitti" / "sequences" / "06"
 
@@ -201,9 +204,6 @@ def test_revisit_loop_agrees_with_the_images_and_the_ground_truth_does_not():
     m = verify_features(bank.reference(idx[155]), bank.query(idx[1600], seq[idx[1600]]), None, seq.camera, cfg, vcfg, unique=True)
     assert m is not None
     sigma = np.sqrt(np.diag(two_view_covariance(m.cov)))
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    from revisit_reference import DATA, GAPS, Features, camera, locate
-
     gt = read_poses(DATA / "poses" / "00.txt")
     seen = locate(Features(), gt, camera(), 1600, GAPS)
     assert seen is not None
