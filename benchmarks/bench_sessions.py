@@ -20,13 +20,13 @@ re-expressed from an arbitrary pose so that it knows nothing of A's frame. A run
   truth, from GPS, puts the second pass lower).
 - the agreement and B's error again against where A's images put B (``revisit_reference.py``:
   OpenCV PnP against points triangulated from A's frames at their ground-truth poses) instead of
-  the ground truth, whose second pass the images contradict (10 px median epipolar error), over
+  the ground truth, whose second pass the images contradict (docs/sessions.md), over
   the frames of 1573-1641 the reference locates. The targets are judged both ways.
 
 ``--truth images`` drifts B's odometry from the ground truth with its second pass moved where the
 images put it (``revisit_reference.consistent_truth``): an odometry of B's images would agree
 with its loops; one drifted from the ground truth disagrees with them by the ground truth's own
-error (up to 1.5 degrees of heading over the revisit), which no drift model describes.
+error, which no drift model describes.
 
 With ``--rendered SEQ`` (the street rendering of KITTI 00, ``make data DATASETS=street00``), the
 stereo VO in both sessions instead: A = frames 0-1499, B = 1500-4540 with ``--prior A`` (B's VO

@@ -313,12 +313,14 @@ def _revisit_note(run_dir: Path, seq: Path) -> str:
     rows = [i for i, f in enumerate(frames) if f in ref and WINDOW[0] <= f <= WINDOW[1]]
     seen = np.array([np.linalg.solve(truth[frames[0]], ref[frames[i]]) for i in rows])
     by_images = {t: float(np.linalg.norm(trajs[t][rows, :3, 3] - seen[:, :3, 3], axis=1).mean()) for t in TRAJECTORIES}
+    # How far above the ground truth the images put the second pass (y down in the camera).
+    up = [-np.linalg.solve(truth[frames[i]], ref[frames[i]])[1, 3] for i in rows]
     loops = [json.loads(line) for line in (run_dir / "loops.jsonl").read_text().splitlines() if line.strip()]
     shown = ", ".join(f"{lp['frame']} -> {lp['reference']}" for lp in loops) or "none"
     return (
         f"Revisit: mean deviation over frames {WINDOW[0]}-{WINDOW[1]}, odometry / SNAPS / iSAM2 / batch: "
         f"{' / '.join(f'{dev[t]:.2f}' for t in TRAJECTORIES)} m against KITTI's ground truth, which the images contradict "
-        f"there (it puts the second pass 0.7-0.9 m lower on the same road: docs/odometry-input.md); "
+        f"there (it puts the second pass {min(up):.2f}-{max(up):.2f} m lower on the same road: docs/odometry-input.md); "
         f"{' / '.join(f'{by_images[t]:.2f}' for t in TRAJECTORIES)} m against where the first pass's images put the "
         f"second (`benchmarks/revisit_reference.py`, the {len(rows)} frames it locates); loops (frame -> reference): {shown}."
     )

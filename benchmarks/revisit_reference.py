@@ -3,9 +3,9 @@ two-session figures that the images agree with, unlike KITTI's ground truth ther
 
 The ground truth of ``../shared/data/kitti00_loop`` is consistent within each pass, but between the
 passes it contradicts the images: its relative pose between a second-pass frame and the nearest
-first-pass frame leaves the images' feature matches a median epipolar (Sampson) error of about
-10 px, against under 0.5 px for the pose the images fit (see ``epipolar_check``). So B's agreement
-with A cannot be judged against it at the half-metre level.
+first-pass frame leaves the images' feature matches a far larger epipolar (Sampson) error than
+the pose the images fit (``epipolar_check`` prints both; docs/odometry-input.md). So a second
+session's agreement with the first cannot be judged against it at the half-metre level.
 
 The reference: for each second-pass frame f in the revisit, SIFT points of the nearest first-pass
 frame j are triangulated from first-pass frame pairs (j - g, j + g) at their ground-truth poses
